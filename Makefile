@@ -1,0 +1,31 @@
+# Two commands do all set-up on a fresh machine (Python 3.11+ and pip only):
+#   make demo   # simulate the built-in default scene and write a video
+#   make test   # run the test suite
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+OUT ?= out/demo
+
+.PHONY: demo test test-slow bench venv clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m experiments.demo --out=$(OUT)
+
+# pytest exits 5 when it collects nothing: treat that as a failure too.
+test: $(STAMP)
+	JAX_PLATFORMS=cpu $(PY) -m pytest -n 2 --dist loadfile -q tests
+
+test-slow: $(STAMP)
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q -m slow tests
+
+clean:
+	rm -rf $(VENV) out

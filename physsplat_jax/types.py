@@ -1,0 +1,374 @@
+"""Shared pytree types: Gaussians, Camera, ObjectInfo, Scene.
+
+Dimension letters used in docstrings: ``K`` Gaussians, ``N`` particles,
+``B`` SH basis functions ``(d + 1)**2``, ``H W`` image, ``T`` frames.
+
+Conventions (fixed for the whole package):
+- Quaternions are ``wxyz`` (INRIA ``rot_0`` is ``w``) and stored raw; the
+  activation normalises them.
+- Log-scales, opacity logits and SH coefficients are stored pre-activation,
+  exactly as in an INRIA 3DGS PLY: ``scale = exp(log_scale)``,
+  ``opacity = sigmoid(logit)``, ``rgb_dc = 0.5 + C0 * sh[:, 0]``.
+- SH coefficients are ``(K, B, 3)``: coefficient-major, channel last (the
+  in-memory layout of the INRIA code; the PLY stores ``f_rest`` channel-major).
+- Cameras are OpenCV/COLMAP: world-to-camera ``viewmat`` (4x4), camera axes
+  +x right, +y down, +z forward; pixel centres at ``(j + 0.5, i + 0.5)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+Array = jax.Array
+ArrayLike = Any
+
+
+def sh_degree_from_bases(num_bases: int) -> int:
+  """SH degree ``d`` from the number of basis functions ``(d + 1)**2``."""
+  d = int(round(np.sqrt(num_bases))) - 1
+  if (d + 1) ** 2 != num_bases or not 0 <= d <= 3:
+    raise ValueError(
+      f'SH coefficient count {num_bases} is not (d+1)^2 for a degree d in '
+      '0..3 (expected 1, 4, 9 or 16 per channel).'
+    )
+  return d
+
+
+class Gaussians(struct.PyTreeNode):
+  """A set of 3D Gaussians with their pre-activation parameters.
+
+  Attributes:
+    means: (K, 3) centres [scene units].
+    log_scales: (K, 3) log of the standard deviations along the local axes.
+    quats: (K, 4) rotations as raw (not necessarily unit) quaternions, wxyz.
+    opacity_logits: (K,) opacity before the sigmoid.
+    sh: (K, B, 3) spherical-harmonics colour coefficients, B = (d + 1)**2.
+    normals: (K, 3) or None; carried only so INRIA files round-trip exactly.
+    extras: dict name -> (K,) array of other per-Gaussian PLY properties
+      (e.g. ``object_id``); carried through subsets and written back.
+  """
+
+  means: Array
+  log_scales: Array
+  quats: Array
+  opacity_logits: Array
+  sh: Array
+  normals: Array | None = None
+  extras: dict[str, Array] = struct.field(default_factory=dict)
+
+  @property
+  def num(self) -> int:
+    return self.means.shape[0]
+
+  def __len__(self) -> int:
+    return self.means.shape[0]
+
+  @property
+  def sh_degree(self) -> int:
+    return sh_degree_from_bases(self.sh.shape[-2])
+
+  # Activations --------------------------------------------------------------
+  @property
+  def scales(self) -> Array:
+    """(K, 3) standard deviations along the local axes."""
+    return jnp.exp(self.log_scales)
+
+  @property
+  def opacities(self) -> Array:
+    """(K,) opacities in (0, 1)."""
+    return jax.nn.sigmoid(self.opacity_logits)
+
+  @property
+  def unit_quats(self) -> Array:
+    """(K, 4) normalised wxyz quaternions."""
+    from physsplat_jax import gaussians as _g
+
+    return _g.normalize_quat(self.quats)
+
+  @property
+  def rotations(self) -> Array:
+    """(K, 3, 3) rotation matrices (columns are the local axes)."""
+    from physsplat_jax import gaussians as _g
+
+    return _g.quat_to_rotmat(self.quats)
+
+  @property
+  def covariances(self) -> Array:
+    """(K, 3, 3) covariances ``R S S^T R^T``."""
+    from physsplat_jax import gaussians as _g
+
+    return _g.covariance(self.log_scales, self.quats)
+
+  @property
+  def rgb_dc(self) -> Array:
+    """(K, 3) view-independent colour ``0.5 + C0 * sh_dc`` (not clamped)."""
+    from physsplat_jax import gaussians as _g
+
+    return _g.sh_dc_to_rgb(self.sh[:, 0, :])
+
+  # Selection ----------------------------------------------------------------
+  def subset(self, index) -> Gaussians:
+    """Rows selected by a boolean mask or an integer index array (host side).
+
+    Not for use under ``jit`` with a boolean mask (the size is data-dependent);
+    there, use masks or fixed capacities instead.
+    """
+    idx = np.asarray(index)
+    if idx.dtype == bool:
+      if idx.shape != (self.num,):
+        raise ValueError(
+          f'subset mask has shape {idx.shape}, expected ({self.num},)'
+        )
+      idx = np.nonzero(idx)[0]
+    take = lambda a: None if a is None else a[idx]
+    return self.replace(
+      means=take(self.means),
+      log_scales=take(self.log_scales),
+      quats=take(self.quats),
+      opacity_logits=take(self.opacity_logits),
+      sh=take(self.sh),
+      normals=take(self.normals),
+      extras={k: take(v) for k, v in self.extras.items()},
+    )
+
+  def with_sh_degree(self, degree: int) -> Gaussians:
+    """Truncates or zero-pads the SH coefficients to ``degree``."""
+    nb = (degree + 1) ** 2
+    sh = self.sh
+    if sh.shape[1] >= nb:
+      sh = sh[:, :nb]
+    else:
+      pad = jnp.zeros((sh.shape[0], nb - sh.shape[1], 3), sh.dtype)
+      sh = jnp.concatenate([sh, pad], axis=1)
+    return self.replace(sh=sh)
+
+  def astype(self, dtype) -> Gaussians:
+    """Casts every floating array to ``dtype``."""
+    cast = lambda a: (
+      a
+      if a is None or not jnp.issubdtype(a.dtype, jnp.floating)
+      else a.astype(dtype)
+    )
+    return jax.tree.map(cast, self)
+
+
+def concatenate_gaussians(parts: list[Gaussians]) -> Gaussians:
+  """Concatenates Gaussian sets (same SH degree) along the first axis."""
+  if not parts:
+    raise ValueError('concatenate_gaussians needs at least one set')
+  deg = max(p.sh_degree for p in parts)
+  parts = [p.with_sh_degree(deg) for p in parts]
+  cat = lambda xs: jnp.concatenate(xs, axis=0)
+  have_normals = all(p.normals is not None for p in parts)
+  keys = set(parts[0].extras)
+  for p in parts[1:]:
+    keys &= set(p.extras)
+  return Gaussians(
+    means=cat([p.means for p in parts]),
+    log_scales=cat([p.log_scales for p in parts]),
+    quats=cat([p.quats for p in parts]),
+    opacity_logits=cat([p.opacity_logits for p in parts]),
+    sh=cat([p.sh for p in parts]),
+    normals=cat([p.normals for p in parts]) if have_normals else None,
+    extras={k: cat([p.extras[k] for p in parts]) for k in sorted(keys)},
+  )
+
+
+class Camera(struct.PyTreeNode):
+  """A pinhole camera, OpenCV convention.
+
+  Attributes:
+    viewmat: (4, 4) world-to-camera transform (+x right, +y down, +z forward).
+    fx, fy: focal lengths [pixels].
+    cx, cy: principal point [pixels]; pixel (i, j) has its centre at
+      ``(j + 0.5, i + 0.5)``, so an image-centred camera has ``cx = W / 2``.
+    width, height: image size [pixels] (static).
+    near, far: clipping depths [scene units] (static).
+    name: a label, e.g. the image file name (static).
+  """
+
+  viewmat: Array
+  fx: Array
+  fy: Array
+  cx: Array
+  cy: Array
+  width: int = struct.field(pytree_node=False)
+  height: int = struct.field(pytree_node=False)
+  near: float = struct.field(pytree_node=False, default=0.01)
+  far: float = struct.field(pytree_node=False, default=1e10)
+  name: str = struct.field(pytree_node=False, default='')
+
+  @property
+  def K(self) -> Array:
+    """(3, 3) intrinsic matrix."""
+    z = jnp.zeros_like(self.fx)
+    o = jnp.ones_like(self.fx)
+    return jnp.stack(
+      [
+        jnp.stack([self.fx, z, self.cx]),
+        jnp.stack([z, self.fy, self.cy]),
+        jnp.stack([z, z, o]),
+      ]
+    )
+
+  @property
+  def camtoworld(self) -> Array:
+    """(4, 4) camera-to-world transform."""
+    R = self.viewmat[:3, :3]
+    t = self.viewmat[:3, 3]
+    out = jnp.eye(4, dtype=self.viewmat.dtype)
+    out = out.at[:3, :3].set(R.T)
+    return out.at[:3, 3].set(-R.T @ t)
+
+  @property
+  def position(self) -> Array:
+    """(3,) camera centre in world coordinates."""
+    R = self.viewmat[:3, :3]
+    return -R.T @ self.viewmat[:3, 3]
+
+  def project(self, points: Array) -> tuple[Array, Array]:
+    """Projects world points to pixels.
+
+    Args:
+      points: (..., 3) world coordinates.
+
+    Returns:
+      (uv, depth): (..., 2) pixel coordinates (continuous; pixel (i, j) covers
+      ``[j, j+1) x [i, i+1)``) and (...,) camera-space depth.
+    """
+    pc = points @ self.viewmat[:3, :3].T + self.viewmat[:3, 3]
+    z = pc[..., 2]
+    u = self.fx * pc[..., 0] / z + self.cx
+    v = self.fy * pc[..., 1] / z + self.cy
+    return jnp.stack([u, v], axis=-1), z
+
+  def resized(self, width: int, height: int) -> Camera:
+    """The same camera at another resolution (intrinsics scaled)."""
+    sx = width / self.width
+    sy = height / self.height
+    return self.replace(
+      fx=self.fx * sx,
+      fy=self.fy * sy,
+      cx=self.cx * sx,
+      cy=self.cy * sy,
+      width=int(width),
+      height=int(height),
+    )
+
+
+def make_camera(
+  viewmat,
+  fx,
+  fy,
+  width: int,
+  height: int,
+  cx=None,
+  cy=None,
+  near: float = 0.01,
+  far: float = 1e10,
+  name: str = '',
+  dtype=jnp.float32,
+) -> Camera:
+  """Builds a :class:`Camera`; the principal point defaults to the centre."""
+  cx = width / 2.0 if cx is None else cx
+  cy = height / 2.0 if cy is None else cy
+  f = lambda v: jnp.asarray(v, dtype)
+  return Camera(
+    viewmat=f(viewmat),
+    fx=f(fx),
+    fy=f(fy),
+    cx=f(cx),
+    cy=f(cy),
+    width=int(width),
+    height=int(height),
+    near=float(near),
+    far=float(far),
+    name=str(name),
+  )
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectInfo:
+  """Static description of one object of a scene.
+
+  Attributes:
+    name: a human-readable name, e.g. ``'jelly cube'`` (used by offline
+      perception to pick a library material).
+    material: a material-library key chosen by the scene's author, or None.
+    fixed: True for objects that do not move (tables, pots, ground).
+    tags: free-form labels.
+  """
+
+  name: str
+  material: str | None = None
+  fixed: bool = False
+  tags: tuple[str, ...] = ()
+
+
+class Scene(struct.PyTreeNode):
+  """A 3DGS scene split into objects, with cameras.
+
+  Attributes:
+    gaussians: the Gaussians, K of them.
+    object_ids: (K,) int32 object index per Gaussian into ``objects``;
+      -1 means background (not simulated).
+    objects: static tuple of :class:`ObjectInfo`.
+    cameras: tuple of :class:`Camera` (may be empty).
+    up_axis: static, one of 'x', 'y', 'z', '-x', '-y', '-z': the world's up.
+    meters_per_unit: static, metres per scene unit (physics runs in metres).
+    name: static label.
+  """
+
+  gaussians: Gaussians
+  object_ids: Array
+  objects: tuple[ObjectInfo, ...] = struct.field(pytree_node=False, default=())
+  cameras: tuple[Camera, ...] = ()
+  up_axis: str = struct.field(pytree_node=False, default='z')
+  meters_per_unit: float = struct.field(pytree_node=False, default=1.0)
+  name: str = struct.field(pytree_node=False, default='')
+
+  @property
+  def num_objects(self) -> int:
+    return len(self.objects)
+
+  @property
+  def object_names(self) -> tuple[str, ...]:
+    return tuple(o.name for o in self.objects)
+
+  @property
+  def up_vector(self) -> np.ndarray:
+    """(3,) unit world-up vector."""
+    return up_vector(self.up_axis)
+
+  def object_mask(self, index_or_name) -> Array:
+    """(K,) bool mask of one object, by index or name."""
+    if isinstance(index_or_name, str):
+      names = self.object_names
+      if index_or_name not in names:
+        raise KeyError(
+          f'scene {self.name!r} has no object {index_or_name!r}; objects: '
+          f'{list(names)}'
+        )
+      index_or_name = names.index(index_or_name)
+    return self.object_ids == index_or_name
+
+
+def up_vector(axis: str) -> np.ndarray:
+  """Unit vector for an axis label such as ``'z'`` or ``'-y'``."""
+  table = {'x': 0, 'y': 1, 'z': 2}
+  a = axis.strip().lower()
+  sign = -1.0 if a.startswith('-') else 1.0
+  a = a.lstrip('+-')
+  if a not in table:
+    raise ValueError(
+      f"up axis {axis!r} is not one of 'x', 'y', 'z', '-x', '-y', '-z'"
+    )
+  v = np.zeros(3)
+  v[table[a]] = sign
+  return v
