@@ -1,0 +1,144 @@
+"""Tests for physsplat_jax.deform: exactness under affine motions, gradients."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+from jax import test_util as jtu
+
+from physsplat_jax import deform
+from physsplat_jax import gaussians as gs
+from physsplat_jax import test_util
+
+_F32_TOL = 2e-4
+_F64_TOL = 1e-9
+
+
+def _random_rotation(rng):
+  q = rng.normal(size=4)
+  return np.asarray(gs.quat_to_rotmat(jnp.asarray(q / np.linalg.norm(q))))
+
+
+def _scene(seed=0, num_g=200, num_d=60, dtype=jnp.float32):
+  g = test_util.random_gaussians(jax.random.PRNGKey(seed), num_g, dtype=dtype)
+  rng = np.random.default_rng(seed)
+  drivers = rng.uniform(-1.1, 1.1, size=(num_d, 3))
+  return g, drivers
+
+
+class DeformTest(parameterized.TestCase):
+
+  @parameterized.named_parameters(
+    ('_fit', False), ('_interpolated_F', True))
+  def test_rigid_motion_is_exact(self, use_F):
+    g, drivers = _scene()
+    bind = deform.make_binding(g.means, drivers, k=8)
+    rng = np.random.default_rng(1)
+    R = _random_rotation(rng)
+    t = rng.normal(size=3)
+    x = jnp.asarray(drivers @ R.T + t, jnp.float32)
+    F = jnp.broadcast_to(jnp.asarray(R, jnp.float32), (len(drivers), 3, 3))
+    means, covs, rots = deform.deform(bind, g, x, F if use_F else None)
+    want_means = np.asarray(g.means) @ R.T + t
+    want_covs = R @ np.asarray(g.covariances) @ R.T
+    np.testing.assert_allclose(means, want_means, atol=_F32_TOL)
+    np.testing.assert_allclose(covs, want_covs, atol=_F32_TOL * 1e-2)
+    np.testing.assert_allclose(rots, np.broadcast_to(R, rots.shape),
+                               atol=_F32_TOL)
+
+  def test_uniform_stretch_is_exact(self):
+    g, drivers = _scene(seed=2)
+    bind = deform.make_binding(g.means, drivers, k=10)
+    A = np.diag([1.5, 0.7, 1.2])
+    t = np.array([0.1, -0.2, 0.3])
+    x = jnp.asarray(drivers @ A.T + t, jnp.float32)
+    means, covs, rots = deform.deform(bind, (g.means, g.covariances), x)
+    np.testing.assert_allclose(means, np.asarray(g.means) @ A.T + t,
+                               atol=_F32_TOL)
+    np.testing.assert_allclose(covs, A @ np.asarray(g.covariances) @ A.T,
+                               atol=1e-6)
+    # A pure stretch has no rotation.
+    np.testing.assert_allclose(rots, np.broadcast_to(np.eye(3), rots.shape),
+                               atol=_F32_TOL)
+
+  def test_general_affine_exact_in_f64(self):
+    with jax.enable_x64(True):
+      g, drivers = _scene(seed=3, dtype=jnp.float64)
+      bind = deform.make_binding(g.means, drivers, k=6)
+      rng = np.random.default_rng(3)
+      A = np.eye(3) + 0.3 * rng.normal(size=(3, 3))
+      x = jnp.asarray(drivers @ A.T)
+      means, covs, rots = deform.deform(bind, g, x)
+      np.testing.assert_allclose(means, np.asarray(g.means) @ A.T,
+                                 atol=_F64_TOL)
+      np.testing.assert_allclose(covs, A @ np.asarray(g.covariances) @ A.T,
+                                 atol=_F64_TOL)
+      u, _, vt = np.linalg.svd(A)
+      np.testing.assert_allclose(rots[0], u @ vt, atol=1e-8)
+
+  def test_nonaffine_motion_is_local(self):
+    # A bend: Gaussians follow nearby drivers, error shrinks with density.
+    g, _ = _scene(seed=4, num_g=300)
+    errs = []
+    for n in (100, 800):
+      drivers = np.random.default_rng(n).uniform(-1.1, 1.1, size=(n, 3))
+      bind = deform.make_binding(g.means, drivers, k=8)
+      warp = lambda p: p + 0.2 * np.sin(2 * p[:, [1, 2, 0]])
+      means, _, _ = deform.deform(bind, g, jnp.asarray(warp(drivers),
+                                                       jnp.float32))
+      errs.append(np.abs(np.asarray(means) - warp(np.asarray(g.means))).max())
+    self.assertLess(errs[1], errs[0])
+    self.assertLess(errs[1], 0.05)
+
+  @parameterized.named_parameters(('_fit', False), ('_interpolated_F', True))
+  def test_gradients_match_finite_differences(self, use_F):
+    with jax.enable_x64(True):
+      g, drivers = _scene(seed=5, num_g=6, num_d=12, dtype=jnp.float64)
+      bind = deform.make_binding(g.means, drivers, k=5)
+      rng = np.random.default_rng(5)
+      x = jnp.asarray(drivers + 0.05 * rng.normal(size=drivers.shape))
+      F = jnp.asarray(np.eye(3) + 0.1 * rng.normal(size=(12, 3, 3)))
+      covs0 = g.covariances
+
+      def f(x, F):
+        m, c, r = deform.deform(bind, (g.means, covs0), x,
+                                F if use_F else None)
+        return jnp.sum(jnp.sin(m)) + jnp.sum(c * 7.0) + jnp.sum(r ** 3)
+
+      jtu.check_grads(f, (x, F), order=1, modes=('rev',), atol=1e-6,
+                      rtol=1e-6, eps=1e-5)
+      gx = jax.grad(f)(x, F)
+      test_util.assert_tree_all_finite(gx)
+      self.assertGreater(float(jnp.abs(gx).max()), 0.0)
+
+  def test_polar_gradient_finite_at_identity(self):
+    with jax.enable_x64(True):
+      f = lambda F: jnp.sum(deform.polar_rotation(F) * jnp.arange(9.0).reshape(
+        3, 3))
+      grad = jax.grad(f)(jnp.eye(3))
+      test_util.assert_tree_all_finite(grad)
+      jtu.check_grads(f, (jnp.eye(3),), order=1, modes=('rev',), eps=1e-5)
+
+  def test_jit_and_deform_gaussians(self):
+    g, drivers = _scene(seed=6)
+    bind = deform.make_binding(g.means, drivers, k=8)
+    x = jnp.asarray(drivers, jnp.float32)
+    means, covs, _ = jax.jit(deform.deform)(bind, g, x)
+    np.testing.assert_allclose(means, g.means, atol=_F32_TOL)
+    out = deform.deform_gaussians(bind, g, x)
+    np.testing.assert_allclose(out.covariances, g.covariances, atol=1e-6)
+
+  def test_bad_input_errors(self):
+    g, drivers = _scene()
+    with self.assertRaisesRegex(ValueError, 'at least 4 driving'):
+      deform.make_binding(g.means, drivers[:3])
+    with self.assertRaisesRegex(ValueError, r'expected \(N, 3\)'):
+      deform.make_binding(g.means, drivers[:, :2])
+    bind = deform.make_binding(g.means[:10], drivers)
+    with self.assertRaisesRegex(ValueError, 'binding was made for 10'):
+      deform.deform(bind, g, jnp.asarray(drivers))
+
+
+if __name__ == '__main__':
+  absltest.main()
