@@ -1,0 +1,253 @@
+"""Tests for physsplat_jax.sampling: Poisson disk, PGAS radii, K-means."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+from scipy import spatial
+
+from physsplat_jax import sampling
+from physsplat_jax.sampling import curvature
+from physsplat_jax.sampling import pgas
+from physsplat_jax.sampling import poisson
+
+_poisson = jax.jit(
+  poisson.poisson_disk,
+  static_argnames=('max_samples', 'max_per_cell', 'max_neighbors',
+                   'max_rounds'))
+
+
+def _cloud(n=3000, seed=0):
+  rng = np.random.default_rng(seed)
+  pts = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+  r = np.where(pts[:, 0] < 0.5, 0.06, 0.12).astype(np.float32)
+  return pts, r
+
+
+def _sequential_greedy(pts, r, prio):
+  keep = np.zeros(len(pts), bool)
+  for i in np.argsort(-prio, kind='stable'):
+    kp = np.nonzero(keep)[0]
+    d = np.linalg.norm(pts[kp] - pts[i], axis=1)
+    if not np.any(d < np.minimum(r[kp], r[i])):
+      keep[i] = True
+  return keep
+
+
+def _sphere(n, radius=1.0, seed=0):
+  rng = np.random.default_rng(seed)
+  v = rng.normal(size=(n, 3))
+  return radius * v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+class PoissonTest(parameterized.TestCase):
+
+  def test_separation_and_coverage(self):
+    pts, r = _cloud()
+    res = _poisson(jax.random.PRNGKey(0), jnp.asarray(pts), jnp.asarray(r),
+                   max_samples=3000)
+    self.assertFalse(bool(res.overflow))
+    keep = np.asarray(res.keep)
+    kp, kr = pts[keep], r[keep]
+    self.assertEqual(int(res.count), keep.sum())
+    d = spatial.distance.cdist(kp, kp)
+    np.fill_diagonal(d, np.inf)
+    # "min" convention: kept pairs are at least min(r_i, r_j) apart.
+    self.assertTrue(np.all(d >= np.minimum(kr[:, None], kr[None, :])))
+    # Every input point has a kept point within its own radius (< 2 r).
+    dist, _ = spatial.cKDTree(kp).query(pts)
+    self.assertTrue(np.all(dist < r))
+    # The compacted outputs agree with the mask.
+    v = np.asarray(res.valid)
+    np.testing.assert_array_equal(np.sort(np.asarray(res.index)[v]),
+                                  np.nonzero(keep)[0])
+    np.testing.assert_allclose(np.asarray(res.points)[v],
+                               pts[np.asarray(res.index)[v]])
+
+  def test_matches_sequential_greedy(self):
+    pts, r = _cloud(n=400, seed=1)
+    prio = np.random.default_rng(2).permutation(400).astype(np.float32)
+    res = _poisson(None, jnp.asarray(pts), jnp.asarray(r), max_samples=400,
+                   priority=jnp.asarray(prio))
+    np.testing.assert_array_equal(np.asarray(res.keep),
+                                  _sequential_greedy(pts, r, prio))
+
+  def test_deterministic_for_a_key(self):
+    pts, r = _cloud(n=1000)
+    a = _poisson(jax.random.PRNGKey(3), pts, r, max_samples=1000)
+    b = _poisson(jax.random.PRNGKey(3), pts, r, max_samples=1000)
+    c = _poisson(jax.random.PRNGKey(4), pts, r, max_samples=1000)
+    np.testing.assert_array_equal(a.index, b.index)
+    np.testing.assert_array_equal(a.keep, b.keep)
+    self.assertFalse(np.array_equal(np.asarray(a.keep), np.asarray(c.keep)))
+
+  def test_capacity_overflow(self):
+    pts, r = _cloud(n=1000)
+    full = _poisson(jax.random.PRNGKey(0), pts, r, max_samples=1000)
+    n = int(full.count)
+    small = _poisson(jax.random.PRNGKey(0), pts, r, max_samples=n - 10)
+    self.assertTrue(bool(small.overflow))
+    self.assertEqual(int(small.overflow_code), 1)
+    self.assertEqual(int(np.sum(small.valid)), n - 10)
+    # The first n - 10 are the highest-priority kept points.
+    np.testing.assert_array_equal(small.index, full.index[: n - 10])
+    with self.assertRaisesRegex(ValueError, 'raise max_samples'):
+      sampling.check_overflow(small)
+    crowded = _poisson(jax.random.PRNGKey(0), pts, r, max_samples=1000,
+                       max_per_cell=2)
+    self.assertTrue(int(crowded.overflow_code) & 2)
+    with self.assertRaisesRegex(ValueError, 'max_per_cell'):
+      sampling.check_overflow(crowded)
+    sampling.check_overflow(full)  # no error
+
+  def test_valid_mask_excludes_points(self):
+    pts, r = _cloud(n=800)
+    valid = pts[:, 1] < 0.5
+    res = _poisson(jax.random.PRNGKey(0), pts, r, max_samples=800,
+                   valid=jnp.asarray(valid))
+    self.assertFalse(np.any(np.asarray(res.keep) & ~valid))
+    dist, _ = spatial.cKDTree(pts[np.asarray(res.keep)]).query(pts[valid])
+    self.assertTrue(np.all(dist < r[valid]))
+
+
+class PGASTest(parameterized.TestCase):
+
+  def setUp(self):
+    super().setUp()
+    self.pts = _sphere(3000).astype(np.float32)
+    self.cfg = pgas.PGASConfig(base_radius=0.3)
+
+  def _count(self, E, K_hat):
+    r = pgas.adaptive_radius(np.full(len(self.pts), E),
+                             np.full(len(self.pts), K_hat), self.cfg)
+    res = _poisson(jax.random.PRNGKey(0), self.pts, r.astype(np.float32),
+                   max_samples=3000, max_per_cell=128, max_neighbors=128)
+    self.assertFalse(bool(res.overflow))
+    return int(res.count)
+
+  def test_count_grows_as_stiffness_falls(self):
+    counts = [self._count(E, 3.0) for E in (1e7, 1e6, 2e5, 5e4)]
+    self.assertTrue(all(a < b for a, b in zip(counts, counts[1:])), counts)
+
+  def test_count_grows_with_curvature(self):
+    counts = [self._count(1e6, k) for k in (1.0, 3.0, 10.0)]
+    self.assertTrue(all(a < b for a, b in zip(counts, counts[1:])), counts)
+
+  def test_radius_formula(self):
+    cfg = self.cfg
+    r = pgas.adaptive_radius(np.array([1e7, 1e6, 1e6, 1e2]),
+                             np.array([1.0, 1.0, 10.0, 1.0]), cfg)
+    # E_hat=1: k sqrt(1) r > r -> capped at r; E_hat=0.1, K_hat=1: r;
+    # E_hat=0.1, K_hat=10: sqrt(10) sqrt(0.01) r; tiny E: floor.
+    np.testing.assert_allclose(
+      r, [0.3, 0.3, 0.3 * np.sqrt(10) * 0.1, 0.3 * cfg.min_radius_frac],
+      rtol=1e-12)
+    rj = pgas.adaptive_radius(jnp.asarray([1e6]), jnp.asarray([10.0]), cfg)
+    self.assertIsInstance(rj, jax.Array)
+
+  def test_local_curvature_flat_vs_curved(self):
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
+    small = 0.1 * _sphere(600, seed=1) + np.array([3.0, 0, 0])
+    k_plane = curvature.local_curvature(plane, k=16)
+    k_ball = curvature.local_curvature(small, k=16)
+    self.assertLess(k_plane.max(), 1e-10)
+    self.assertGreater(np.median(k_ball), 1e-3)
+    # Per-Gaussian measure: flat disc 0, isotropic 1/3.
+    kg = curvature.gaussian_curvature(
+      np.stack([np.diag([1.0, 1.0, 0.0]), np.eye(3)]))
+    np.testing.assert_allclose(kg, [0.0, 1.0 / 3.0], atol=1e-12)
+
+  def test_pgas_curvature_densifies_curved_regions(self):
+    # A flat plate with a small ball on it: more drivers per Gaussian on the
+    # ball (local curvature) at the same E.
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)]
+    ball = 0.15 * _sphere(600, seed=2) + np.array([0.0, 0.0, 0.4])
+    pts = np.concatenate([plane, ball]).astype(np.float32)
+    covs = np.broadcast_to(np.diag([1e-4, 1e-4, 1e-6]), (len(pts), 3, 3))
+    cfg = pgas.PGASConfig(base_radius=0.25)
+    k_hat, info = pgas.pgas_curvature(pts, np.ones(len(pts), bool),
+                                      np.zeros(len(pts), int), covs, cfg)
+    self.assertGreater(np.median(k_hat[3000:]), np.median(k_hat[:3000]))
+    r = pgas.adaptive_radius(np.full(len(pts), 1e5), k_hat, cfg)
+    res = _poisson(jax.random.PRNGKey(1), pts, r.astype(np.float32),
+                   max_samples=len(pts))
+    self.assertFalse(bool(res.overflow))
+    keep = np.asarray(res.keep)
+    # Drivers per unit area (plane 2x2, ball 4 pi 0.15^2).
+    per_area_ball = keep[3000:].sum() / (4 * np.pi * 0.15**2)
+    per_area_plane = keep[:3000].sum() / 4.0
+    self.assertGreater(per_area_ball, 1.5 * per_area_plane)
+    self.assertIn(0, info['k_obj'])
+
+  def test_interior_points_use_object_curvature(self):
+    pts = np.concatenate([_sphere(500), 0.3 * _sphere(50, seed=3)])
+    surf = np.arange(550) < 500
+    covs = np.broadcast_to(np.eye(3) * 1e-4, (550, 3, 3))
+    k_hat, info = pgas.pgas_curvature(pts, surf, np.zeros(550, int), covs,
+                                      self.cfg)
+    # Isotropic Gaussians: K_g = 1/3 -> K_hat_obj = v_max.
+    self.assertAlmostEqual(info['k_obj'][0], 10.0)
+    np.testing.assert_allclose(k_hat[500:], 10.0)
+
+  def test_scale_for_budget(self):
+    pts = _sphere(1000, seed=4).astype(np.float32)
+    r = pgas.adaptive_radius(np.full(1000, 1e6), np.full(1000, 3.0),
+                             self.cfg)
+    fn = lambda rad: _poisson(jax.random.PRNGKey(0), pts, rad,
+                              max_samples=1000, max_per_cell=64,
+                              max_neighbors=128)
+    mult, res = pgas.scale_for_budget(fn, r, 100, lo=0.2, hi=5.0, iters=10)
+    self.assertLessEqual(int(res.count), 100)
+    self.assertGreater(int(res.count), 85)
+    self.assertGreater(mult, 0)
+
+  def test_bad_config(self):
+    with self.assertRaisesRegex(ValueError, 'base_radius'):
+      pgas.PGASConfig(base_radius=0.0)
+    with self.assertRaisesRegex(ValueError, 'v_min'):
+      pgas.PGASConfig(base_radius=1.0, v_min=0.5)
+
+
+class KMeansTest(parameterized.TestCase):
+
+  @parameterized.named_parameters(('_pp', 'kmeans++'), ('_random', 'random'))
+  def test_recovers_separated_blobs(self, init):
+    rng = np.random.default_rng(0)
+    centres = np.array([[0, 0, 0], [5, 0, 0], [0, 5, 0], [0, 0, 5.0]])
+    pts = (centres[:, None] + 0.1 * rng.normal(size=(4, 250, 3))).reshape(
+      -1, 3).astype(np.float32)
+    fn = jax.jit(functools.partial(sampling.kmeans, num_clusters=4,
+                                   num_iters=10, init=init))
+    res = fn(jax.random.PRNGKey(1), jnp.asarray(pts))
+    got = np.asarray(res.centers)
+    d = spatial.distance.cdist(centres, got)
+    if init == 'kmeans++':  # D^2 seeding finds all four blobs
+      self.assertLess(d.min(1).max(), 0.05)
+      np.testing.assert_array_equal(np.sort(res.counts), [250] * 4)
+    self.assertEqual(int(np.sum(res.counts)), 1000)
+    # Lloyd never increases the inertia.
+    res0 = sampling.kmeans(jax.random.PRNGKey(1), jnp.asarray(pts), 4,
+                           num_iters=0, init=init)
+    self.assertLessEqual(float(res.inertia), float(res0.inertia) + 1e-3)
+
+  def test_valid_mask_and_determinism(self):
+    rng = np.random.default_rng(1)
+    pts = jnp.asarray(rng.uniform(size=(500, 3)), jnp.float32)
+    valid = jnp.arange(500) < 300
+    a = sampling.kmeans(jax.random.PRNGKey(0), pts, 16, valid=valid)
+    b = sampling.kmeans(jax.random.PRNGKey(0), pts, 16, valid=valid)
+    np.testing.assert_array_equal(a.centers, b.centers)
+    self.assertTrue(np.all(np.asarray(a.assign)[300:] == -1))
+    self.assertEqual(int(a.counts.sum()), 300)
+    self.assertTrue(np.all(np.asarray(a.centers)[:, None] != 0))
+    with self.assertRaisesRegex(ValueError, 'init'):
+      sampling.kmeans(jax.random.PRNGKey(0), pts, 4, init='bogus')
+
+
+if __name__ == '__main__':
+  absltest.main()
