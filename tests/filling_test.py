@@ -1,0 +1,181 @@
+"""Tests for physsplat_jax.sampling.filling: interior filling of shells."""
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+from absl.testing import absltest
+
+from physsplat_jax import gaussians as gs
+from physsplat_jax.sampling import filling
+from physsplat_jax.types import Gaussians
+
+_fill = jax.jit(filling.fill_gaussians,
+                static_argnames=('max_particles', 'config'))
+_CFG = filling.FillConfig(grid_res=32)
+
+
+def _shell(n=4000, radius=1.0, seed=0, log_scale=-3.5, open_top=False):
+  """Flat Gaussians tangent to a sphere shell."""
+  rng = np.random.default_rng(seed)
+  v = rng.normal(size=(n, 3))
+  v /= np.linalg.norm(v, axis=1, keepdims=True)
+  if open_top:
+    v = v[v[:, 2] < 0.3]
+    n = len(v)
+  means = radius * v
+  # Rotation taking e3 to the normal: the third (thin) axis is the normal.
+  z = np.array([0.0, 0.0, 1.0])
+  axis = np.cross(z, v)
+  s = np.linalg.norm(axis, axis=1, keepdims=True)
+  c = v[:, 2:3]
+  half = 0.5 * np.arctan2(s, c)
+  ax = np.where(s > 1e-9, axis / np.maximum(s, 1e-12), [1.0, 0, 0])
+  quats = np.c_[np.cos(half), np.sin(half) * ax]
+  ls = np.tile([log_scale, log_scale, log_scale - 2.0], (n, 1))
+  f = lambda a: jnp.asarray(a, jnp.float32)
+  return Gaussians(
+    means=f(means), log_scales=f(ls), quats=f(quats),
+    opacity_logits=f(np.full(n, 3.0)), sh=jnp.zeros((n, 1, 3)))
+
+
+def _run(g, key=jax.random.PRNGKey(0), max_particles=40000, config=_CFG):
+  return _fill(key, g.means, g.log_scales, g.quats, g.opacities,
+               max_particles=max_particles, config=config)
+
+
+class FillingTest(absltest.TestCase):
+
+  def test_sphere_shell_interior(self):
+    g = _shell()
+    res = _run(g)
+    self.assertFalse(bool(res.overflow))
+    p = np.asarray(res.points)[np.asarray(res.valid)]
+    r = np.linalg.norm(p, axis=1)
+    dx = float(res.dx)
+    # Everything inside the sphere, nothing outside (interior cells exclude
+    # the occupied shell, so the points stay within the radius).
+    self.assertLess(r.max(), 1.0)
+    # The interior is filled up to about a shell thickness (~2 cells).
+    self.assertGreater(r.max(), 1.0 - 3 * dx)
+    vol = len(p) * dx**3
+    want = 4 / 3 * np.pi * (1.0 - 1.5 * dx) ** 3
+    self.assertLess(abs(vol - want) / want, 0.15)
+    # Roughly uniform: octants within 10 % of each other.
+    octant = (p[:, 0] > 0) * 4 + (p[:, 1] > 0) * 2 + (p[:, 2] > 0)
+    counts = np.bincount(octant, minlength=8)
+    self.assertLess(counts.max() / counts.min(), 1.1)
+    # Radial uniformity: the fraction within r < 0.5 matches the volume.
+    frac = np.mean(r < 0.5) / np.mean(r < 0.8)
+    self.assertAlmostEqual(frac, (0.5 / 0.8) ** 3, delta=0.03)
+
+  def test_open_shell_is_not_filled(self):
+    g = _shell(open_top=True)
+    res = _run(g)
+    closed = _run(_shell())
+    # Axis rays only: cells right under the curved rim see the wall along
+    # all 6 axes, so a few percent remain (a known limit of 6-ray casting).
+    self.assertLess(int(res.count), 0.05 * int(closed.count))
+
+  def test_deterministic_and_jittered(self):
+    g = _shell(n=2000)
+    cfg = filling.FillConfig(grid_res=16, particles_per_cell=2)
+    a = _run(g, jax.random.PRNGKey(1), 8000, cfg)
+    b = _run(g, jax.random.PRNGKey(1), 8000, cfg)
+    c = _run(g, jax.random.PRNGKey(2), 8000, cfg)
+    np.testing.assert_array_equal(a.points, b.points)
+    self.assertFalse(np.array_equal(np.asarray(a.points),
+                                    np.asarray(c.points)))
+    self.assertEqual(int(a.count), 2 * int(np.sum(a.inside)))
+    centres = filling.fill_gaussians(None, g.means, g.log_scales, g.quats,
+                                     g.opacities, 4000,
+                                     filling.FillConfig(grid_res=16))
+    self.assertEqual(int(centres.count), int(np.sum(a.inside)))
+
+  def test_pathological_covariances_stay_bounded(self):
+    g = _shell(n=4000)
+    rng = np.random.default_rng(1)
+    ls = np.asarray(g.log_scales).copy()
+    bad = rng.choice(4000, 400, replace=False)
+    ls[bad[:100]] = 80.0        # exp overflows to inf
+    ls[bad[100:200]] = 30.0     # radius 1e13
+    ls[bad[200:300]] = -80.0    # zero scale
+    ls[bad[300:]] = np.nan
+    q = np.asarray(g.quats).copy()
+    q[bad[300:350]] = 0.0       # zero quaternion
+    g = g.replace(log_scales=jnp.asarray(ls, jnp.float32),
+                  quats=jnp.asarray(q, jnp.float32))
+    t0 = time.perf_counter()
+    res = _run(g)
+    res.points.block_until_ready()
+    elapsed = time.perf_counter() - t0
+    self.assertLess(elapsed, 60.0)  # includes compile; ~1 s warm
+    p = np.asarray(res.points)[np.asarray(res.valid)]
+    self.assertTrue(np.all(np.isfinite(p)))
+    self.assertGreater(len(p), 1000)
+    self.assertLess(np.linalg.norm(p, axis=1).max(), 1.0)
+
+  def test_overflow_and_errors(self):
+    g = _shell(n=2000)
+    res = _run(g, max_particles=100)
+    self.assertTrue(bool(res.overflow))
+    self.assertEqual(int(np.sum(res.valid)), 100)
+    ids = np.zeros(2000, np.int32)
+    with self.assertRaisesRegex(ValueError, 'max_particles_per_object'):
+      filling.fill_objects(None, g, ids, max_particles_per_object=100,
+                           config=filling.FillConfig(grid_res=16))
+    bad = g.replace(means=g.means.at[0, 0].set(jnp.nan))
+    with self.assertRaisesRegex(ValueError, 'non-finite means'):
+      filling.fill_objects(None, bad, ids,
+                           config=filling.FillConfig(grid_res=16))
+    with self.assertRaisesRegex(ValueError, 'grid_res'):
+      filling.FillConfig(grid_res=1024)
+
+  def test_fill_objects_two_spheres(self):
+    a = _shell(n=2000)
+    b = _shell(n=2000, radius=0.5, seed=1)
+    b = b.replace(means=b.means + jnp.array([3.0, 0, 0]))
+    from physsplat_jax.types import concatenate_gaussians
+    g = concatenate_gaussians([a, b])
+    ids = np.r_[np.zeros(2000), np.ones(2000)].astype(np.int32)
+    cfg = filling.FillConfig(grid_res=16)
+    pts, obj = filling.fill_objects(jax.random.PRNGKey(0), g, ids,
+                                    config=cfg)
+    self.assertEqual(set(np.unique(obj)), {0, 1})
+    self.assertTrue(np.all(np.linalg.norm(pts[obj == 0], axis=1) < 1.0))
+    c = pts[obj == 1] - np.array([3.0, 0, 0])
+    self.assertTrue(np.all(np.linalg.norm(c, axis=1) < 0.5))
+    pts2, _ = filling.fill_objects(jax.random.PRNGKey(0), g, ids, config=cfg)
+    np.testing.assert_array_equal(pts, pts2)
+
+  def test_fill_mesh(self):
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    pts = filling.fill_mesh(mesh, 0.1)
+    self.assertTrue(np.all(np.linalg.norm(pts, axis=1) < 1.0))
+    vol = len(pts) * 0.1**3
+    self.assertAlmostEqual(vol, mesh.volume, delta=0.1 * mesh.volume)
+    box = trimesh.creation.box()
+    box.faces = box.faces[:-2]
+    with self.assertRaisesRegex(ValueError, 'watertight'):
+      filling.fill_mesh(box, 0.1)
+
+  def test_interior_cells_on_a_box(self):
+    occ = np.zeros((10, 10, 10), bool)
+    occ[2:8, 2:8, 2] = occ[2:8, 2:8, 7] = True
+    occ[2:8, 2, 2:8] = occ[2:8, 7, 2:8] = True
+    occ[2, 2:8, 2:8] = occ[7, 2:8, 2:8] = True
+    inside = np.asarray(filling.interior_cells(jnp.asarray(occ)))
+    want = np.zeros_like(occ)
+    want[3:7, 3:7, 3:7] = True
+    np.testing.assert_array_equal(inside, want)
+    occ[4, 4, 7] = False  # a hole in the lid
+    inside5 = np.asarray(filling.interior_cells(jnp.asarray(occ), 5))
+    self.assertTrue(inside5[4, 4, 5])
+    inside6 = np.asarray(filling.interior_cells(jnp.asarray(occ), 6))
+    self.assertFalse(inside6[4, 4, 5])
+
+
+if __name__ == '__main__':
+  absltest.main()
