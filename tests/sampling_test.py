@@ -17,7 +17,7 @@ from physsplat_jax.sampling import poisson
 _poisson = jax.jit(
   poisson.poisson_disk,
   static_argnames=('max_samples', 'max_per_cell', 'max_neighbors',
-                   'max_rounds'))
+                   'max_rounds', 'thin', 'num_levels'))
 
 
 def _cloud(n=3000, seed=0):
@@ -57,8 +57,14 @@ class PoissonTest(parameterized.TestCase):
     np.fill_diagonal(d, np.inf)
     # "min" convention: kept pairs are at least min(r_i, r_j) apart.
     self.assertTrue(np.all(d >= np.minimum(kr[:, None], kr[None, :])))
-    # Every input point has a kept point within its own radius (< 2 r).
+    # Every input point has a kept point within 2 r (thinned candidates).
     dist, _ = spatial.cKDTree(kp).query(pts)
+    self.assertTrue(np.all(dist < 2 * r))
+    # Without thinning: within r.
+    res2 = _poisson(jax.random.PRNGKey(0), jnp.asarray(pts), jnp.asarray(r),
+                    max_samples=3000, thin=False, max_per_cell=128)
+    self.assertFalse(bool(res2.overflow))
+    dist, _ = spatial.cKDTree(pts[np.asarray(res2.keep)]).query(pts)
     self.assertTrue(np.all(dist < r))
     # The compacted outputs agree with the mask.
     v = np.asarray(res.valid)
@@ -71,7 +77,7 @@ class PoissonTest(parameterized.TestCase):
     pts, r = _cloud(n=400, seed=1)
     prio = np.random.default_rng(2).permutation(400).astype(np.float32)
     res = _poisson(None, jnp.asarray(pts), jnp.asarray(r), max_samples=400,
-                   priority=jnp.asarray(prio))
+                   priority=jnp.asarray(prio), thin=False)
     np.testing.assert_array_equal(np.asarray(res.keep),
                                   _sequential_greedy(pts, r, prio))
 
@@ -110,21 +116,21 @@ class PoissonTest(parameterized.TestCase):
                    valid=jnp.asarray(valid))
     self.assertFalse(np.any(np.asarray(res.keep) & ~valid))
     dist, _ = spatial.cKDTree(pts[np.asarray(res.keep)]).query(pts[valid])
-    self.assertTrue(np.all(dist < r[valid]))
+    self.assertTrue(np.all(dist < 2 * r[valid]))
 
 
 class PGASTest(parameterized.TestCase):
 
   def setUp(self):
     super().setUp()
-    self.pts = _sphere(3000).astype(np.float32)
+    self.pts = _sphere(1500).astype(np.float32)
     self.cfg = pgas.PGASConfig(base_radius=0.3)
 
   def _count(self, E, K_hat):
     r = pgas.adaptive_radius(np.full(len(self.pts), E),
                              np.full(len(self.pts), K_hat), self.cfg)
     res = _poisson(jax.random.PRNGKey(0), self.pts, r.astype(np.float32),
-                   max_samples=3000, max_per_cell=128, max_neighbors=128)
+                   max_samples=1500)
     self.assertFalse(bool(res.overflow))
     return int(res.count)
 
@@ -211,6 +217,52 @@ class PGASTest(parameterized.TestCase):
       pgas.PGASConfig(base_radius=0.0)
     with self.assertRaisesRegex(ValueError, 'v_min'):
       pgas.PGASConfig(base_radius=1.0, v_min=0.5)
+
+
+class DrivingTest(parameterized.TestCase):
+
+  @classmethod
+  def setUpClass(cls):
+    super().setUpClass()
+    from physsplat_jax.types import Gaussians
+    pts = np.concatenate([_sphere(600), _sphere(600, seed=1) + [3.0, 0, 0]])
+    n = len(pts)
+    g = Gaussians(
+      means=jnp.asarray(pts, jnp.float32),
+      log_scales=jnp.full((n, 3), -3.0), quats=jnp.tile(
+        jnp.array([1.0, 0, 0, 0]), (n, 1)),
+      opacity_logits=jnp.full((n,), 3.0), sh=jnp.zeros((n, 1, 3)))
+    cls.ids = np.r_[np.zeros(600), np.ones(600)].astype(np.int32)
+    cls.cand = sampling.make_candidates(
+      jax.random.PRNGKey(0), g, cls.ids,
+      fill_config=sampling.FillConfig(grid_res=12))
+
+  def test_candidates(self):
+    c = self.cand
+    self.assertEqual(int(c.is_surface.sum()), 1200)
+    self.assertGreater(int((~c.is_surface).sum()), 100)
+    per_obj = [c.volume[c.object_ids == o].sum() for o in (0, 1)]
+    np.testing.assert_allclose(per_obj, 4 / 3 * np.pi, rtol=0.3)
+
+  @parameterized.named_parameters(
+    ('_pgas', 'pgas'), ('_uniform', 'uniform'), ('_kmeans', 'kmeans'))
+  def test_budget_and_volume(self, method):
+    # Radius-driven for the Poisson methods (the budget bisection is
+    # tested in PGASTest.test_scale_for_budget), budget-driven for K-means.
+    cfg = pgas.PGASConfig(base_radius=0.6)
+    d = sampling.select_drivers(
+      jax.random.PRNGKey(1), self.cand, method, E={0: 1e5, 1: 5e6},
+      config=cfg, budget=100 if method == 'kmeans' else None)
+    self.assertGreater(len(d.x), 40)
+    self.assertLess(len(d.x), 600)
+    np.testing.assert_allclose(d.volume.sum(), self.cand.volume.sum(),
+                               rtol=1e-9)
+    n_soft = np.sum(d.object_ids == 0)
+    n_stiff = np.sum(d.object_ids == 1)
+    if method == 'pgas':  # the soft object gets more drivers
+      self.assertGreater(n_soft, 1.5 * n_stiff)
+    else:  # same shape and size: about the same number
+      self.assertLess(abs(n_soft - n_stiff), 0.25 * (n_soft + n_stiff))
 
 
 class KMeansTest(parameterized.TestCase):

@@ -262,7 +262,8 @@ def fill_objects(
   objects=None,
   max_particles_per_object: int = 200_000,
   config: FillConfig = FillConfig(),
-) -> tuple[np.ndarray, np.ndarray]:
+  return_info: bool = False,
+):
   """Fills every object of a scene (host loop over objects).
 
   Args:
@@ -272,9 +273,12 @@ def fill_objects(
     objects: optional iterable of object ids to fill (default: all >= 0).
     max_particles_per_object: capacity per object.
     config: :class:`FillConfig`.
+    return_info: also return a dict object id -> {'dx', 'num_inside',
+      'num_occupied'} (cell size and cell counts, e.g. for volumes).
 
   Returns:
-    (points (P, 3) float32, object (P,) int32), deterministic for ``key``.
+    (points (P, 3) float32, object (P,) int32), deterministic for ``key``
+    (plus the info dict if ``return_info``).
 
   Raises:
     ValueError: non-finite means, or more interior points than the capacity.
@@ -287,7 +291,7 @@ def fill_objects(
   if objects is None:
     objects = sorted(int(o) for o in np.unique(oid) if o >= 0)
   fill = jax.jit(fill_gaussians, static_argnames=('max_particles', 'config'))
-  pts_all, ids_all = [], []
+  pts_all, ids_all, info = [], [], {}
   for i, o in enumerate(objects):
     m = oid == o
     if not m.any():
@@ -305,12 +309,17 @@ def fill_objects(
         f'fill_objects: object {o} has {int(res.count)} interior points > '
         f'max_particles_per_object={max_particles_per_object}; raise it or '
         'lower FillConfig.grid_res / particles_per_cell')
+    info[int(o)] = {'dx': float(res.dx),
+                     'num_inside': int(np.sum(res.inside)),
+                     'num_occupied': int(np.sum(res.occupied))}
     v = np.asarray(res.valid)
     pts_all.append(np.asarray(res.points)[v].astype(np.float32))
     ids_all.append(np.full(int(v.sum()), o, np.int32))
   if not pts_all:
-    return np.zeros((0, 3), np.float32), np.zeros((0,), np.int32)
-  return np.concatenate(pts_all), np.concatenate(ids_all)
+    out = np.zeros((0, 3), np.float32), np.zeros((0,), np.int32)
+  else:
+    out = np.concatenate(pts_all), np.concatenate(ids_all)
+  return (*out, info) if return_info else out
 
 
 def fill_mesh(mesh, spacing: float, max_points: int = 2_000_000,

@@ -12,13 +12,20 @@ its neighbours are dropped; the result is the same as the sequential greedy
 pass, so it is deterministic for a key. Guarantees (checked in the tests):
 
 - separation: any two kept points satisfy ``|x_i - x_j| >= min(r_i, r_j)``;
-- coverage: every input point ``p`` is within ``r_p`` of a kept point
-  (a dropped point conflicts with a kept one), hence within ``2 r_p``.
+- coverage: every input point ``p`` is within ``2 r_p`` of a kept point
+  (``r_p`` without thinning: a dropped point conflicts with a kept one).
 
-Neighbours come from a hashed uniform cell grid of cell size ``max r``
-(Teschner et al. 2003 spatial hashing; jax-md ``partition.cell_list``): points
-are sorted by cell hash and each point scans the 27 cells around it, at most
-``max_per_cell`` points per cell, keeping at most ``max_neighbors`` conflicts.
+Dense inputs are first thinned to one representative per voxel of side half
+the lower bound of the point's radius level (:func:`thin_candidates`; the
+representative has the smallest radius in its voxel), which keeps the
+coverage within ``2 r`` and bounds the points per hash cell.
+
+Neighbours come from a multi-level hashed cell grid (Teschner et al. 2003
+spatial hashing; jax-md ``partition.cell_list``): radii are grouped in
+levels a factor 2 apart, level ``l`` hashed in cells of side
+``r_max / 2^l``, and each point scans the 27 cells around it at every level,
+at most ``max_per_cell`` points per cell, keeping at most ``max_neighbors``
+conflicts.
 Everything has a fixed capacity; :class:`PoissonResult.overflow` says when a
 capacity was too small (re-run with larger ones on the host).
 """
@@ -62,61 +69,131 @@ class PoissonResult(struct.PyTreeNode):
   overflow_code: Array
 
 
-def _cell_hash(c: Array, table_size: int) -> Array:
+def _cell_hash(c: Array, level: Array, table_size: int) -> Array:
   c = c.astype(jnp.uint32)
   h = (c[..., 0] * np.uint32(_HASH_PRIMES[0])) ^ (
     c[..., 1] * np.uint32(_HASH_PRIMES[1])) ^ (
-    c[..., 2] * np.uint32(_HASH_PRIMES[2]))
+    c[..., 2] * np.uint32(_HASH_PRIMES[2])) ^ (
+    level.astype(jnp.uint32) * np.uint32(2654435761))
   return (h % np.uint32(table_size)).astype(jnp.int32)
 
 
+def radius_levels(radius: Array, valid: Array, num_levels: int):
+  """Level of each point: radii in ``(r_max / 2^(l+1), r_max / 2^l]``.
+
+  The last level also takes every smaller radius.
+
+  Returns:
+    (level (N,) int32, cell size per level (L,), r_max ()).
+  """
+  r = jnp.where(valid, radius, 0.0)
+  r_max = jnp.maximum(jnp.max(r), 1e-30)
+  lvl = jnp.floor(jnp.log2(r_max / jnp.maximum(r, 1e-30)))
+  lvl = jnp.clip(lvl, 0, num_levels - 1).astype(jnp.int32)
+  h = r_max / 2.0 ** jnp.arange(num_levels)
+  return lvl, h, r_max
+
+
+def thin_candidates(
+  points: Array, radius: Array, priority: Array, valid: Array,
+  num_levels: int = 4,
+) -> Array:
+  """One representative per voxel of side ``r_lo / 2`` (per radius level).
+
+  Voxel side ``c = r_lo / sqrt(3)``, ``r_lo`` the lower bound of the
+  point's radius level (for the last level, at most half the smallest
+  radius). In each voxel the point with the smallest radius (then the
+  highest priority) represents the others, so every point ``p`` has a
+  representative ``q`` with ``|p - q| < r_lo <= r_p`` and ``r_q <= r_p``;
+  coverage of ``q`` within ``r_q`` then gives coverage of ``p`` within
+  ``2 r_p``. It bounds the candidates per hash cell (at most
+  ``(2 sqrt(3))^3 ~ 42`` per level) whatever the input density.
+
+  Returns:
+    (N,) bool mask of representatives (a subset of ``valid``).
+  """
+  n = points.shape[0]
+  lvl, h, _ = radius_levels(radius, valid, num_levels)
+  r_min = jnp.min(jnp.where(valid, radius, jnp.inf))
+  # (sqrt(3) c <= h / 2 = the level's lower radius bound.)
+  c = h / (2.0 * np.sqrt(3.0))
+  c = c.at[-1].set(jnp.minimum(c[-1], 0.5 * r_min / np.sqrt(3.0)))
+  lo = jnp.min(jnp.where(valid[:, None], points, jnp.inf), axis=0)
+  lo = jnp.where(jnp.isfinite(lo), lo, 0.0)
+  vox = jnp.floor((points - lo) / c[lvl][:, None]).astype(jnp.int32)
+  big = jnp.iinfo(jnp.int32).max
+  lvl_k = jnp.where(valid, lvl, big)
+  keys = (-priority, radius, vox[:, 2], vox[:, 1], vox[:, 0], lvl_k)
+  order = jnp.lexsort(keys)
+  sv = vox[order]
+  sl = lvl_k[order]
+  first = jnp.concatenate([
+    jnp.array([True]),
+    jnp.any(sv[1:] != sv[:-1], axis=1) | (sl[1:] != sl[:-1])])
+  rep = jnp.zeros((n,), bool).at[order].set(first)
+  return rep & valid
+
+
 def conflict_neighbors(
-  points: Array, radius: Array, max_per_cell: int = 32,
-  max_neighbors: int = 64, valid: Array | None = None,
+  points: Array, radius: Array, max_per_cell: int = 64,
+  max_neighbors: int = 128, valid: Array | None = None,
+  num_levels: int = 4,
 ) -> tuple[Array, Array, Array, Array]:
   """Fixed-capacity lists of conflicting pairs ``|x_i-x_j| < min(r_i, r_j)``.
+
+  Points are binned per radius level ``l`` into hash cells of side
+  ``h_l = r_max / 2^l`` (>= every radius of that level); a point finds its
+  level-``l`` conflicts in the 27 level-``l`` cells around it, since a
+  conflict is closer than ``r_j <= h_l``.
 
   Args:
     points: (N, 3) positions.
     radius: (N,) positive radii (same units).
-    max_per_cell: capacity of one hash cell (cell size = max radius).
+    max_per_cell: capacity of one hash cell.
     max_neighbors: capacity of one point's conflict list.
     valid: optional (N,) bool; invalid points have no conflicts.
+    num_levels: static number of radius levels (factor 2 apart).
 
   Returns:
     (nbr (N, max_neighbors) int32, nbr_mask (N, max_neighbors) bool,
     cell_overflow () bool, nbr_overflow () bool).
   """
   n = points.shape[0]
+  L = num_levels
   valid = jnp.ones((n,), bool) if valid is None else valid
   r = jnp.where(valid, radius, 0.0)
-  h = jnp.maximum(jnp.max(r), 1e-30)
+  lvl, h, _ = radius_levels(radius, valid, L)
   lo = jnp.min(jnp.where(valid[:, None], points, jnp.inf), axis=0)
   lo = jnp.where(jnp.isfinite(lo), lo, 0.0)
-  cell = jnp.floor((points - lo) / h).astype(jnp.int32) + 1
-  cell = jnp.where(valid[:, None], cell, -(2**20))
+  # Cell of every point at every level: (N, L, 3).
+  cell_all = jnp.floor((points - lo)[:, None, :] / h[None, :, None])
+  cell_all = cell_all.astype(jnp.int32) + 1
+  cell = jnp.take_along_axis(cell_all, lvl[:, None, None], axis=1)[:, 0]
   table = 1
   while table < 2 * n:
     table *= 2
-  key = _cell_hash(cell, table)
+  key = _cell_hash(cell, lvl, table)
   key = jnp.where(valid, key, table)  # invalid points sort last
   order = jnp.argsort(key)
   skey = key[order]
   offs = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing='ij'),
                   -1).reshape(27, 3)
-  nc = cell[:, None, :] + jnp.asarray(offs, jnp.int32)  # (N, 27, 3)
-  nkey = _cell_hash(nc, table)
+  nc = cell_all[:, :, None, :] + jnp.asarray(offs, jnp.int32)  # (N,L,27,3)
+  levels = jnp.arange(L, dtype=jnp.int32)[None, :, None]
+  nkey = _cell_hash(nc, levels, table)
   start = jnp.searchsorted(skey, nkey, side='left')
   end = jnp.searchsorted(skey, nkey, side='right')
-  cell_overflow = jnp.any(valid[:, None] & (end - start > max_per_cell))
-  slot = start[..., None] + jnp.arange(max_per_cell)  # (N, 27, M)
+  cell_overflow = jnp.any(valid[:, None, None] & (end - start > max_per_cell))
+  slot = start[..., None] + jnp.arange(max_per_cell)  # (N, L, 27, M)
   in_run = slot < end[..., None]
   j = order[jnp.clip(slot, 0, n - 1)]
-  same_cell = jnp.all(cell[j] == nc[:, :, None, :], axis=-1)
-  d2 = jnp.sum((points[j] - points[:, None, None, :]) ** 2, axis=-1)
-  rmin = jnp.minimum(r[j], r[:, None, None])
-  conf = (in_run & same_cell & (j != jnp.arange(n)[:, None, None])
-          & (d2 < rmin * rmin) & valid[:, None, None] & valid[j])
+  same_cell = jnp.all(cell[j] == nc[..., None, :], axis=-1) & (
+    lvl[j] == levels[..., None])
+  d2 = jnp.sum((points[j] - points[:, None, None, None, :]) ** 2, axis=-1)
+  rmin = jnp.minimum(r[j], r[:, None, None, None])
+  ii = jnp.arange(n)[:, None, None, None]
+  conf = (in_run & same_cell & (j != ii) & (d2 < rmin * rmin)
+          & valid[:, None, None, None] & valid[j])
   conf = conf.reshape(n, -1)
   j = j.reshape(n, -1)
   num = jnp.sum(conf, axis=1)
@@ -174,10 +251,12 @@ def poisson_disk(
   radius: Array | float,
   max_samples: int,
   valid: Array | None = None,
-  max_per_cell: int = 32,
-  max_neighbors: int = 64,
+  max_per_cell: int = 64,
+  max_neighbors: int = 128,
   max_rounds: int = 256,
   priority: Array | None = None,
+  thin: bool = True,
+  num_levels: int = 4,
 ) -> PoissonResult:
   """Poisson-disk subsample of ``points`` with per-point radius (jittable).
 
@@ -190,6 +269,12 @@ def poisson_disk(
     max_per_cell, max_neighbors, max_rounds: static capacities; see module
       docstring. Overflow of any of them sets ``overflow``.
     priority: optional (N,) explicit priorities (higher kept first).
+    thin: first keep one representative per small voxel
+      (:func:`thin_candidates`); bounds the work on dense inputs, and the
+      coverage bound becomes ``2 r`` instead of ``r``. With ``thin=False``
+      the result is exactly the sequential greedy pass in priority order.
+    num_levels: static number of radius levels (factor 2 apart) of the
+      multi-level hash grid; radii below ``r_max / 2^(L-1)`` share the last.
 
   Returns:
     A :class:`PoissonResult`.
@@ -199,12 +284,16 @@ def poisson_disk(
   valid = jnp.ones((n,), bool) if valid is None else valid
   if priority is None:
     priority = jax.random.uniform(key, (n,), jnp.float32)
+  if priority is None and key is None:
+    raise ValueError('poisson_disk: pass a PRNG key or explicit priorities')
   # Distinct priorities: ranks (argsort is stable, so ties go to the lower
   # index).
   rank = jnp.argsort(jnp.argsort(-priority)).astype(jnp.float32)
   prio = -rank  # distinct, exact in f32 up to 2^24 points
+  if thin:
+    valid = thin_candidates(points, radius, prio, valid, num_levels)
   nbr, mask, cell_of, nbr_of = conflict_neighbors(
-    points, radius, max_per_cell, max_neighbors, valid)
+    points, radius, max_per_cell, max_neighbors, valid, num_levels)
   keep, unfinished = greedy_independent_set(prio, nbr, mask, valid,
                                             max_rounds)
   count = jnp.sum(keep).astype(jnp.int32)
