@@ -82,7 +82,8 @@ class Binding(struct.PyTreeNode):
 
 
 def make_binding(
-  gauss_means, driver_rest_x, k: int = 8, dtype=None
+  gauss_means, driver_rest_x, k: int = 8, dtype=None,
+  gauss_object_ids=None, driver_object_ids=None,
 ) -> Binding:
   """Binds each Gaussian to its ``k`` nearest drivers (host side, not jitted).
 
@@ -92,6 +93,9 @@ def make_binding(
       affine fit (at least 4 non-coplanar drivers per neighbourhood).
     k: neighbours per Gaussian, clipped to N.
     dtype: float dtype of the result (default: that of ``gauss_means``).
+    gauss_object_ids, driver_object_ids: optional (K,) and (N,) object ids;
+      when given, Gaussians bind only to drivers of their own object (so
+      separate objects never drag each other).
 
   Returns:
     A :class:`Binding`.
@@ -116,9 +120,29 @@ def make_binding(
   k = int(min(k, dx.shape[0]))
   gm64 = gm.astype(np.float64)
   dx64 = dx.astype(np.float64)
-  dist, idx = spatial.cKDTree(dx64).query(gm64, k=k)
-  dist = dist.reshape(len(gm64), k)
-  idx = idx.reshape(len(gm64), k)
+  if (gauss_object_ids is None) != (driver_object_ids is None):
+    raise ValueError('make_binding: pass both gauss_object_ids and '
+                     'driver_object_ids, or neither')
+  if gauss_object_ids is None:
+    dist, idx = spatial.cKDTree(dx64).query(gm64, k=k)
+  else:
+    go = np.asarray(gauss_object_ids)
+    do = np.asarray(driver_object_ids)
+    if go.shape != (len(gm64),) or do.shape != (len(dx64),):
+      raise ValueError(f'make_binding: object ids have shapes {go.shape}, '
+                       f'{do.shape}; expected ({len(gm64)},), ({len(dx64)},)')
+    dist = np.zeros((len(gm64), k))
+    idx = np.zeros((len(gm64), k), np.int64)
+    for o in np.unique(go):
+      gsel = np.nonzero(go == o)[0]
+      dsel = np.nonzero(do == o)[0]
+      if len(dsel) < k:
+        raise ValueError(
+          f'make_binding: object {o} has {len(dsel)} driving particles, '
+          f'fewer than k={k}; sample more drivers for it or lower k')
+      d_o, i_o = spatial.cKDTree(dx64[dsel]).query(gm64[gsel], k=k)
+      dist[gsel] = d_o.reshape(len(gsel), k)
+      idx[gsel] = dsel[i_o.reshape(len(gsel), k)]
   h = np.maximum(dist[:, -1:], 1e-12)
   w = np.exp(-((dist / h) ** 2))
   w = w / w.sum(1, keepdims=True)

@@ -129,6 +129,26 @@ class DeformTest(parameterized.TestCase):
     out = deform.deform_gaussians(bind, g, x)
     np.testing.assert_allclose(out.covariances, g.covariances, atol=1e-6)
 
+  def test_per_object_binding(self):
+    g, drivers = _scene(seed=7)
+    go = (np.asarray(g.means)[:, 0] > 0).astype(int)
+    do = (drivers[:, 0] > 0).astype(int)
+    bind = deform.make_binding(g.means, drivers, k=6, gauss_object_ids=go,
+                               driver_object_ids=do)
+    np.testing.assert_array_equal(do[np.asarray(bind.index)],
+                                  np.broadcast_to(go[:, None], (len(go), 6)))
+    # Move only object 1's drivers: object 0's Gaussians stay put.
+    x = drivers + np.where(do[:, None] == 1, [0.5, 0, 0], 0.0)
+    means, _, _ = deform.deform(bind, g, jnp.asarray(x, jnp.float32))
+    np.testing.assert_allclose(np.asarray(means)[go == 0],
+                               np.asarray(g.means)[go == 0], atol=_F32_TOL)
+    np.testing.assert_allclose(np.asarray(means)[go == 1],
+                               np.asarray(g.means)[go == 1] + [0.5, 0, 0],
+                               atol=_F32_TOL)
+    with self.assertRaisesRegex(ValueError, 'fewer than k'):
+      deform.make_binding(g.means, drivers, k=6, gauss_object_ids=go,
+                          driver_object_ids=np.r_[do[:-55], [1] * 55])
+
   def test_bad_input_errors(self):
     g, drivers = _scene()
     with self.assertRaisesRegex(ValueError, 'at least 4 driving'):

@@ -137,7 +137,7 @@ def thin_candidates(
 def conflict_neighbors(
   points: Array, radius: Array, max_per_cell: int = 64,
   max_neighbors: int = 128, valid: Array | None = None,
-  num_levels: int = 4,
+  num_levels: int = 4, batch_size: int = 512,
 ) -> tuple[Array, Array, Array, Array]:
   """Fixed-capacity lists of conflicting pairs ``|x_i-x_j| < min(r_i, r_j)``.
 
@@ -153,6 +153,8 @@ def conflict_neighbors(
     max_neighbors: capacity of one point's conflict list.
     valid: optional (N,) bool; invalid points have no conflicts.
     num_levels: static number of radius levels (factor 2 apart).
+    batch_size: points processed together (memory ~ batch_size *
+      num_levels * 27 * max_per_cell).
 
   Returns:
     (nbr (N, max_neighbors) int32, nbr_mask (N, max_neighbors) bool,
@@ -176,32 +178,36 @@ def conflict_neighbors(
   key = jnp.where(valid, key, table)  # invalid points sort last
   order = jnp.argsort(key)
   skey = key[order]
-  offs = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing='ij'),
-                  -1).reshape(27, 3)
-  nc = cell_all[:, :, None, :] + jnp.asarray(offs, jnp.int32)  # (N,L,27,3)
-  levels = jnp.arange(L, dtype=jnp.int32)[None, :, None]
-  nkey = _cell_hash(nc, levels, table)
-  start = jnp.searchsorted(skey, nkey, side='left')
-  end = jnp.searchsorted(skey, nkey, side='right')
-  cell_overflow = jnp.any(valid[:, None, None] & (end - start > max_per_cell))
-  slot = start[..., None] + jnp.arange(max_per_cell)  # (N, L, 27, M)
-  in_run = slot < end[..., None]
-  j = order[jnp.clip(slot, 0, n - 1)]
-  same_cell = jnp.all(cell[j] == nc[..., None, :], axis=-1) & (
-    lvl[j] == levels[..., None])
-  d2 = jnp.sum((points[j] - points[:, None, None, None, :]) ** 2, axis=-1)
-  rmin = jnp.minimum(r[j], r[:, None, None, None])
-  ii = jnp.arange(n)[:, None, None, None]
-  conf = (in_run & same_cell & (j != ii) & (d2 < rmin * rmin)
-          & valid[:, None, None, None] & valid[j])
-  conf = conf.reshape(n, -1)
-  j = j.reshape(n, -1)
-  num = jnp.sum(conf, axis=1)
+  offs = jnp.asarray(
+    np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing='ij'),
+             -1).reshape(27, 3), jnp.int32)
+  levels = jnp.arange(L, dtype=jnp.int32)[:, None]
+  kk = min(max_neighbors, L * 27 * max_per_cell)
+
+  def one(args):
+    # Conflicts of one point; mapped in batches to bound memory.
+    i, x_i, r_i, c_i, ok_i = args
+    nc = c_i[:, None, :] + offs  # (L, 27, 3)
+    nkey = _cell_hash(nc, levels, table)
+    start = jnp.searchsorted(skey, nkey, side='left')
+    end = jnp.searchsorted(skey, nkey, side='right')
+    over = ok_i & jnp.any(end - start > max_per_cell)
+    slot = start[..., None] + jnp.arange(max_per_cell)  # (L, 27, M)
+    j = order[jnp.clip(slot, 0, n - 1)]
+    same = jnp.all(cell[j] == nc[..., None, :], axis=-1) & (
+      lvl[j] == levels[..., None])
+    d2 = jnp.sum((points[j] - x_i) ** 2, axis=-1)
+    rmin = jnp.minimum(r[j], r_i)
+    conf = ((slot < end[..., None]) & same & (j != i) & (d2 < rmin * rmin)
+            & ok_i & valid[j]).ravel()
+    j = j.ravel()
+    _, pos = jax.lax.top_k(conf.astype(jnp.int32), kk)
+    return j[pos], conf[pos], over, jnp.sum(conf)
+
+  nbr, mask, over, num = jax.lax.map(
+    one, (jnp.arange(n), points, r, cell_all, valid), batch_size=batch_size)
+  cell_overflow = jnp.any(over)
   nbr_overflow = jnp.any(num > max_neighbors)
-  kk = min(max_neighbors, conf.shape[1])
-  _, pos = jax.lax.top_k(conf.astype(jnp.int32), kk)
-  nbr = jnp.take_along_axis(j, pos, axis=1)
-  mask = jnp.take_along_axis(conf, pos, axis=1)
   if kk < max_neighbors:
     pad = max_neighbors - kk
     nbr = jnp.pad(nbr, ((0, 0), (0, pad)))
