@@ -69,7 +69,8 @@ class PGASConfig:
 
   def __post_init__(self):
     if not self.base_radius > 0:
-      raise ValueError(f'PGASConfig.base_radius={self.base_radius}: must be > 0')
+      raise ValueError(
+        f'PGASConfig.base_radius={self.base_radius}: must be > 0')
     if not 1.0 <= self.v_min < self.v_max:
       raise ValueError(f'PGASConfig: need 1 <= v_min < v_max, got '
                        f'{self.v_min}, {self.v_max}')
