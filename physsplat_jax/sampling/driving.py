@@ -131,7 +131,7 @@ def _voronoi_volume(cand: Candidates, drivers_x, driver_obj):
 def select_drivers(
   key, cand: Candidates, method: str = 'pgas', E=None,
   config: pgas.PGASConfig | None = None, budget: int | None = None,
-  max_per_cell: int = 64, max_neighbors: int = 128, kmeans_iters: int = 20,
+  max_per_cell: int = 256, max_neighbors: int = 256, kmeans_iters: int = 20,
   bisect_iters: int = 12,
 ) -> Drivers:
   """Chooses driving particles among the candidates.
