@@ -1,0 +1,888 @@
+"""PhysGaussian ``config/*.json`` scene configs, parsed as static dataclasses.
+
+Accepts the schema of PhysGaussian (Xie et al., CVPR 2024,
+``utils/decode_param.py``) as is, with the same defaults:
+
+- material: ``material`` (name or id 0..6), ``E`` [Pa, normalised domain],
+  ``nu`` in [0, 0.5], ``density`` [kg/m^3], ``g`` (scalar or 3-vector
+  [m/s^2]), ``n_grid`` cells over ``[0, grid_lim]^3``; optional
+  ``yield_stress``, ``hardening``, ``xi``, ``friction_angle`` [deg],
+  ``plastic_viscosity``, ``softening``, ``rpic_damping``,
+  ``grid_v_damping_scale`` and ``additional_material_params`` (boxes
+  ``{point, size, E, nu, density}`` that override the material inside
+  ``|x - point|_i < size_i`` on every axis).
+- time: ``substep_dt``, ``frame_dt``, ``frame_num`` [s, s, frames].
+- preprocessing: ``opacity_threshold``, ``rotation_degree[]`` /
+  ``rotation_axis[]``, ``sim_area``, ``scale``, ``particle_filling{...}``.
+- camera: ``mpm_space_vertical_upward_axis``, ``mpm_space_viewpoint_center``,
+  ``default_camera_index``, ``init_azimuthm`` [sic], ``init_elevation``,
+  ``init_radius``, ``move_camera``, ``delta_a``, ``delta_e``, ``delta_r``.
+- ``boundary_conditions``: a list of ``{type, ...}`` with the types of
+  PhysGaussian's ``set_boundary_conditions``.
+
+Normalised domain (PhysGaussian ``transform2origin`` + ``shift2center111``):
+after the rotations ``R = R_k ... R_1`` (each ``rotation_degree[i]`` degrees
+about axis ``rotation_axis[i]``), the selected positions are mapped as
+
+  x_n = (R x - c) * s + (1, 1, 1),   c = (min + max) / 2,
+  s = scale / max_i(max_i - min_i),
+
+so the object fits a cube of side ``scale`` centred at (1, 1, 1) inside
+``[0, grid_lim]^3``. E, forces, impulses and velocities in the config are in
+these normalised units (REFERENCE.md §1.4-1.5); ``denormalise_positions``
+inverts the map: ``x = R^T ((x_n - 1) / s + c)``.
+
+Material names map to the package's canonical constitutive models:
+jelly (0) -> fixed_corotated, metal (1) -> von_mises, sand (2) ->
+drucker_prager, foam (3) -> foam, snow (4) -> snow, plasticine (5) ->
+plasticine, neo-hookean (6, PhysDreamer) -> neo_hookean; canonical names
+('stvk', 'newtonian', 'bingham', 'rigid', ...) are accepted too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+from absl import logging
+from flax import struct
+
+Array = Any
+
+CANONICAL_MODELS = (
+  'fixed_corotated', 'neo_hookean', 'stvk', 'von_mises', 'drucker_prager',
+  'snow', 'foam', 'plasticine', 'newtonian', 'bingham', 'rigid',
+)
+
+# PhysGaussian (and PhysDreamer id 6) names and ids -> canonical model names.
+MATERIAL_ALIASES = {
+  'jelly': 'fixed_corotated', 'elastic': 'fixed_corotated',
+  'corotated': 'fixed_corotated', 'metal': 'von_mises', 'sand': 'drucker_prager',
+  'foam': 'foam', 'snow': 'snow', 'plasticine': 'plasticine',
+  'neo-hookean': 'neo_hookean', 'neohookean': 'neo_hookean',
+  'water': 'newtonian', 'fluid': 'newtonian', 'non_newtonian': 'bingham',
+  'non-newtonian': 'bingham',
+}
+MATERIAL_IDS = {
+  0: 'fixed_corotated', 1: 'von_mises', 2: 'drucker_prager', 3: 'foam',
+  4: 'snow', 5: 'plasticine', 6: 'neo_hookean',
+}
+
+BOUNDARY_TYPES = (
+  'bounding_box', 'cuboid', 'particle_impulse', 'enforce_particle_translation',
+  'enforce_particle_velocity_rotation', 'surface_collider',
+  'release_particles_sequentially',
+)
+
+# Required fields (name -> expected kind) per boundary-condition type, as
+# read by PhysGaussian's set_boundary_conditions.
+_BC_FIELDS = {
+  'bounding_box': {},
+  'cuboid': {'point': 'vec3', 'size': 'vec3', 'velocity': 'vec3',
+             'start_time': 'float', 'end_time': 'float'},
+  'particle_impulse': {'force': 'vec3', 'num_dt': 'int',
+                       'start_time': 'float'},
+  'enforce_particle_translation': {'point': 'vec3', 'size': 'vec3',
+                                   'velocity': 'vec3', 'start_time': 'float',
+                                   'end_time': 'float'},
+  'enforce_particle_velocity_rotation': {
+    'point': 'vec3', 'normal': 'vec3', 'half_height_and_radius': 'vec2',
+    'rotation_scale': 'float', 'translation_scale': 'float',
+    'start_time': 'float', 'end_time': 'float'},
+  'surface_collider': {'point': 'vec3', 'normal': 'vec3',
+                       'surface': 'str', 'friction': 'float',
+                       'start_time': 'float', 'end_time': 'float'},
+  'release_particles_sequentially': {},
+}
+_BC_OPTIONAL = {
+  'cuboid': {'reset': 'int'},
+  'particle_impulse': {'point': 'vec3', 'size': 'vec3'},
+}
+SURFACE_TYPES = ('sticky', 'slip', 'cut')
+
+_KNOWN_TOP = {
+  'material', 'E', 'nu', 'density', 'g', 'grid_lim', 'n_grid',
+  'yield_stress', 'hardening', 'xi', 'friction_angle', 'plastic_viscosity',
+  'softening', 'rpic_damping', 'grid_v_damping_scale',
+  'additional_material_params', 'substep_dt', 'frame_dt', 'frame_num',
+  'opacity_threshold', 'rotation_degree', 'rotation_axis', 'sim_area',
+  'scale', 'particle_filling', 'mpm_space_vertical_upward_axis',
+  'mpm_space_viewpoint_center', 'default_camera_index', 'init_azimuthm',
+  'init_elevation', 'init_radius', 'move_camera', 'delta_a', 'delta_e',
+  'delta_r', 'boundary_conditions',
+}
+
+# Fields that are parsed and validated but that no part of this package acts
+# on yet (docs/configs.md); a one-line warning names those present.
+NOT_HONOURED = (
+  'particle_filling', 'mpm_space_vertical_upward_axis',
+  'mpm_space_viewpoint_center', 'default_camera_index', 'init_azimuthm',
+  'init_elevation', 'init_radius', 'move_camera', 'delta_a', 'delta_e',
+  'delta_r',
+)
+
+
+class ConfigError(ValueError):
+  """A config field has a bad value or type; the message names the fix."""
+
+
+# ----------------------------------------------------------------- dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialBox:
+  """An ``additional_material_params`` entry (normalised units).
+
+  Attributes:
+    point: box centre (3,) [normalised length].
+    size: box half-extents (3,) [normalised length].
+    E: Young's modulus inside the box [Pa]; None keeps the base value.
+    nu: Poisson ratio inside the box; None keeps the base value.
+    density: density inside the box [kg/m^3]; None keeps the base value.
+  """
+
+  point: tuple[float, float, float]
+  size: tuple[float, float, float]
+  E: float | None = None
+  nu: float | None = None
+  density: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class BoundaryCondition:
+  """One ``boundary_conditions`` entry.
+
+  Attributes:
+    type: one of ``BOUNDARY_TYPES``.
+    params: sorted ``(name, value)`` pairs; lists become tuples.
+  """
+
+  type: str
+  params: tuple[tuple[str, Any], ...] = ()
+
+  def get(self, name: str, default: Any = None) -> Any:
+    """Returns the value of field ``name`` or ``default``."""
+    return dict(self.params).get(name, default)
+
+
+@dataclasses.dataclass(frozen=True)
+class ParticleFilling:
+  """PhysGaussian ``particle_filling`` block (parsed; see docs/configs.md)."""
+
+  params: tuple[tuple[str, Any], ...] = ()
+
+  def get(self, name: str, default: Any = None) -> Any:
+    """Returns the value of field ``name`` or ``default``."""
+    return dict(self.params).get(name, default)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraConfig:
+  """PhysGaussian camera fields (parsed; not used by the simulator)."""
+
+  vertical_upward_axis: tuple[float, ...] = (0.0, 0.0, 1.0)
+  viewpoint_center: tuple[float, ...] = (1.0, 1.0, 1.0)
+  default_camera_index: int = 0
+  init_azimuth: float = 0.0
+  init_elevation: float = 0.0
+  init_radius: float = 0.0
+  move_camera: bool = False
+  delta_a: float = 0.0
+  delta_e: float = 0.0
+  delta_r: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysGaussianConfig:
+  """A parsed PhysGaussian scene config: frozen and hashable (static).
+
+  Attributes:
+    material: canonical constitutive-model name (``CANONICAL_MODELS``).
+    E: Young's modulus [Pa in normalised units].
+    nu: Poisson ratio in [0, 0.5].
+    density: [kg/m^3].
+    g: gravity (3,) [m/s^2, normalised]; a scalar ``g`` means (0, 0, -g).
+    n_grid: grid cells per axis.
+    grid_lim: domain side; the grid spans ``[0, grid_lim]^3``.
+    substep_dt: substep [s].
+    frame_dt: frame interval [s].
+    frame_num: number of frames.
+    rpic_damping: RPIC damping in [0, 1] (0 = plain APIC/MLS).
+    grid_v_damping_scale: per-substep grid velocity factor (>= 1 disables).
+    yield_stress, hardening, xi, friction_angle, plastic_viscosity,
+      softening: plasticity parameters (friction_angle in degrees).
+    additional_material_params: boxes overriding E/nu/density.
+    boundary_conditions: tuple of ``BoundaryCondition``.
+    opacity_threshold: Gaussians with sigmoid(opacity) below it are dropped.
+    rotation_degree, rotation_axis: preprocessing rotations (deg, 0/1/2).
+    sim_area: ``(xmin, xmax, ymin, ymax, zmin, zmax)`` after rotation, or
+      None for everything.
+    scale: side of the cube the object is scaled into (default 1).
+    particle_filling: ``ParticleFilling`` or None.
+    camera: ``CameraConfig``.
+    source: where the config came from (for messages).
+  """
+
+  material: str = 'fixed_corotated'
+  E: float = 1e5
+  nu: float = 0.4
+  density: float = 200.0
+  g: tuple[float, float, float] = (0.0, 0.0, -9.8)
+  n_grid: int = 50
+  grid_lim: float = 2.0
+  substep_dt: float = 1e-4
+  frame_dt: float = 1e-2
+  frame_num: int = 100
+  rpic_damping: float = 0.0
+  grid_v_damping_scale: float = 1.1
+  yield_stress: float = 1e6
+  hardening: float = 0.0
+  xi: float = 0.0
+  friction_angle: float = 25.0
+  plastic_viscosity: float = 0.0
+  softening: float = 0.1
+  additional_material_params: tuple[MaterialBox, ...] = ()
+  boundary_conditions: tuple[BoundaryCondition, ...] = ()
+  opacity_threshold: float = 0.02
+  rotation_degree: tuple[float, ...] = ()
+  rotation_axis: tuple[int, ...] = ()
+  sim_area: tuple[float, ...] | None = None
+  scale: float = 1.0
+  particle_filling: ParticleFilling | None = None
+  camera: CameraConfig = CameraConfig()
+  source: str = '<dict>'
+
+  @property
+  def dx(self) -> float:
+    """Grid spacing [normalised length]."""
+    return self.grid_lim / self.n_grid
+
+  @property
+  def substeps_per_frame(self) -> int:
+    """``round(frame_dt / substep_dt)``, as PhysGaussian's step count."""
+    return max(1, int(round(self.frame_dt / self.substep_dt)))
+
+  def replace(self, **kwargs) -> 'PhysGaussianConfig':
+    """Returns a copy with fields replaced (re-validated)."""
+    return _validate(dataclasses.replace(self, **kwargs))
+
+
+class MaterialParams(struct.PyTreeNode):
+  """Differentiable scalar material parameters (float arrays, shape ()).
+
+  Attributes:
+    E: Young's modulus [Pa].
+    nu: Poisson ratio.
+    density: [kg/m^3].
+    yield_stress: [Pa].
+    hardening: von Mises hardening coefficient.
+    xi: hardening rate.
+    friction_angle: [deg].
+    plastic_viscosity: [Pa s].
+    softening: plasticine softening.
+  """
+
+  E: Array
+  nu: Array
+  density: Array
+  yield_stress: Array
+  hardening: Array
+  xi: Array
+  friction_angle: Array
+  plastic_viscosity: Array
+  softening: Array
+
+
+class NormTransform(struct.PyTreeNode):
+  """Map from input (PLY) coordinates to the normalised simulation domain.
+
+  ``x_n = (R x - centre) * scale + offset``.
+
+  Attributes:
+    rotation: (3, 3) preprocessing rotation R.
+    centre: (3,) bounding-box centre of the rotated, selected points.
+    scale: () factor ``scale / max extent``.
+    offset: (3,) shift, (1, 1, 1) as in PhysGaussian.
+  """
+
+  rotation: Array
+  centre: Array
+  scale: Array
+  offset: Array
+
+
+# --------------------------------------------------------------------- parsing
+
+
+def _where(source: str, field: str) -> str:
+  return f'{source}: field {field!r}'
+
+
+def _type_error(source, field, value, expected):
+  return ConfigError(
+    f'{_where(source, field)} has value {value!r} of type '
+    f'{type(value).__name__}; expected {expected}. Fix the value in the '
+    'JSON file.'
+  )
+
+
+def _float(source, field, value):
+  if isinstance(value, bool) or not isinstance(value, (int, float)):
+    raise _type_error(source, field, value, 'a number')
+  value = float(value)
+  if not math.isfinite(value):
+    raise _type_error(source, field, value, 'a finite number')
+  return value
+
+
+def _int(source, field, value):
+  if isinstance(value, bool):
+    raise _type_error(source, field, value, 'an integer')
+  if isinstance(value, float) and value.is_integer():
+    value = int(value)
+  if not isinstance(value, int):
+    raise _type_error(source, field, value, 'an integer')
+  return value
+
+
+def _vec(source, field, value, n=None):
+  if not isinstance(value, (list, tuple)):
+    want = f'a list of {n} numbers' if n else 'a list of numbers'
+    raise _type_error(source, field, value, want)
+  if n is not None and len(value) != n:
+    raise ConfigError(
+      f'{_where(source, field)} has {len(value)} entries {value!r}; '
+      f'expected {n} numbers.'
+    )
+  return tuple(_float(source, f'{field}[{i}]', v) for i, v in enumerate(value))
+
+
+def _bool(source, field, value):
+  if isinstance(value, bool):
+    return value
+  if isinstance(value, int) and value in (0, 1):
+    return bool(value)
+  raise _type_error(source, field, value, 'true/false')
+
+
+def _freeze(value):
+  if isinstance(value, (list, tuple)):
+    return tuple(_freeze(v) for v in value)
+  if isinstance(value, dict):
+    return tuple(sorted((k, _freeze(v)) for k, v in value.items()))
+  return value
+
+
+def material_name(value: Any, source: str = '<dict>') -> str:
+  """Maps a PhysGaussian material name or id to a canonical model name.
+
+  Args:
+    value: e.g. 'jelly', 'sand', 2, or a canonical name like 'stvk'.
+    source: config path, for the error message.
+
+  Returns:
+    One of ``CANONICAL_MODELS``.
+
+  Raises:
+    ConfigError: unknown name or id.
+  """
+  if isinstance(value, bool):
+    raise _type_error(source, 'material', value, 'a material name or id')
+  if isinstance(value, (int, float)) and float(value).is_integer():
+    if int(value) in MATERIAL_IDS:
+      return MATERIAL_IDS[int(value)]
+    raise ConfigError(
+      f'{_where(source, "material")}: unknown material id {value!r}; '
+      f'PhysGaussian ids are {sorted(MATERIAL_IDS)} '
+      '(0 jelly, 1 metal, 2 sand, 3 foam, 4 snow, 5 plasticine, '
+      '6 neo-hookean).'
+    )
+  if not isinstance(value, str):
+    raise _type_error(source, 'material', value, 'a material name or id')
+  key = value.strip().lower()
+  if key in CANONICAL_MODELS:
+    return key
+  if key in MATERIAL_ALIASES:
+    return MATERIAL_ALIASES[key]
+  raise ConfigError(
+    f'{_where(source, "material")}: unknown material {value!r}; use one of '
+    f'{sorted(MATERIAL_ALIASES)} (PhysGaussian names) or '
+    f'{list(CANONICAL_MODELS)}.'
+  )
+
+
+def _parse_box(source, i, box):
+  field = f'additional_material_params[{i}]'
+  if not isinstance(box, dict):
+    raise _type_error(source, field, box, 'an object {point, size, ...}')
+  for k in box:
+    if k not in ('point', 'size', 'E', 'nu', 'density'):
+      raise ConfigError(
+        f'{_where(source, field)}: unknown key {k!r}; expected point, size, '
+        'E, nu, density.'
+      )
+  for k in ('point', 'size'):
+    if k not in box:
+      raise ConfigError(f'{_where(source, field)}: missing {k!r} (3 numbers).')
+  opt = {
+    k: _float(source, f'{field}.{k}', box[k])
+    for k in ('E', 'nu', 'density') if k in box
+  }
+  return MaterialBox(
+    point=_vec(source, f'{field}.point', box['point'], 3),
+    size=_vec(source, f'{field}.size', box['size'], 3),
+    **opt,
+  )
+
+
+def _check_kind(source, field, value, kind):
+  if kind == 'vec3':
+    return _vec(source, field, value, 3)
+  if kind == 'vec2':
+    return _vec(source, field, value, 2)
+  if kind == 'float':
+    return _float(source, field, value)
+  if kind == 'int':
+    return _int(source, field, value)
+  if kind == 'str':
+    if not isinstance(value, str):
+      raise _type_error(source, field, value, 'a string')
+    return value
+  return _freeze(value)
+
+
+def _parse_bc(source, i, bc):
+  field = f'boundary_conditions[{i}]'
+  if not isinstance(bc, dict):
+    raise _type_error(source, field, bc, 'an object with a "type"')
+  kind = bc.get('type')
+  if kind not in BOUNDARY_TYPES:
+    raise ConfigError(
+      f'{_where(source, field + ".type")}: unknown boundary condition '
+      f'{kind!r}; expected one of {list(BOUNDARY_TYPES)}.'
+    )
+  required = _BC_FIELDS[kind]
+  optional = _BC_OPTIONAL.get(kind, {})
+  params = {}
+  for name, want in required.items():
+    if name not in bc:
+      if name in ('start_time', 'end_time'):
+        continue  # PhysGaussian defaults: 0 and 1e3.
+      raise ConfigError(
+        f'{_where(source, field)} ({kind}): missing field {name!r}.'
+      )
+  for name, value in bc.items():
+    if name == 'type':
+      continue
+    want = required.get(name, optional.get(name))
+    params[name] = _check_kind(source, f'{field}.{name}', value, want)
+  if kind == 'surface_collider' and params['surface'] not in SURFACE_TYPES:
+    raise ConfigError(
+      f'{_where(source, field + ".surface")}: {params["surface"]!r}; '
+      f'expected one of {list(SURFACE_TYPES)}.'
+    )
+  return BoundaryCondition(type=kind, params=tuple(sorted(params.items())))
+
+
+def parse_config(
+  raw: dict[str, Any], source: str = '<dict>', warn: bool = True
+) -> PhysGaussianConfig:
+  """Parses a PhysGaussian JSON dict into a ``PhysGaussianConfig``.
+
+  Args:
+    raw: the decoded JSON object.
+    source: name used in messages (usually the file path).
+    warn: log one line naming present fields that are not honoured.
+
+  Returns:
+    The validated, frozen config.
+
+  Raises:
+    ConfigError: a field has the wrong type, an unknown name or a value out
+      of range; the message names the field, the value and the fix.
+  """
+  if not isinstance(raw, dict):
+    raise ConfigError(
+      f'{source}: the config must be a JSON object, got '
+      f'{type(raw).__name__}.'
+    )
+  unknown = sorted(set(raw) - _KNOWN_TOP)
+  if unknown:
+    logging.warning(
+      '%s: ignoring unknown fields %s (not in the PhysGaussian schema).',
+      source, unknown,
+    )
+  kw: dict[str, Any] = {'source': source}
+  if 'material' in raw:
+    kw['material'] = material_name(raw['material'], source)
+  for name in ('E', 'nu', 'density', 'grid_lim', 'substep_dt', 'frame_dt',
+               'rpic_damping', 'grid_v_damping_scale', 'yield_stress',
+               'hardening', 'xi', 'friction_angle', 'plastic_viscosity',
+               'softening', 'opacity_threshold', 'scale'):
+    if name in raw:
+      kw[name] = _float(source, name, raw[name])
+  for name in ('n_grid', 'frame_num'):
+    if name in raw:
+      kw[name] = _int(source, name, raw[name])
+  if 'g' in raw:
+    g = raw['g']
+    if isinstance(g, (list, tuple)):
+      kw['g'] = _vec(source, 'g', g, 3)
+    else:
+      kw['g'] = (0.0, 0.0, -_float(source, 'g', g))
+  if 'additional_material_params' in raw:
+    boxes = raw['additional_material_params']
+    if not isinstance(boxes, list):
+      raise _type_error(source, 'additional_material_params', boxes, 'a list')
+    kw['additional_material_params'] = tuple(
+      _parse_box(source, i, b) for i, b in enumerate(boxes)
+    )
+  if 'boundary_conditions' in raw:
+    bcs = raw['boundary_conditions']
+    if not isinstance(bcs, list):
+      raise _type_error(source, 'boundary_conditions', bcs, 'a list')
+    kw['boundary_conditions'] = tuple(
+      _parse_bc(source, i, b) for i, b in enumerate(bcs)
+    )
+  if 'rotation_degree' in raw:
+    kw['rotation_degree'] = _vec(source, 'rotation_degree',
+                                 raw['rotation_degree'])
+  if 'rotation_axis' in raw:
+    axes = raw['rotation_axis']
+    if not isinstance(axes, list):
+      raise _type_error(source, 'rotation_axis', axes, 'a list of 0/1/2')
+    kw['rotation_axis'] = tuple(
+      _int(source, f'rotation_axis[{i}]', a) for i, a in enumerate(axes)
+    )
+  if raw.get('sim_area') is not None:
+    kw['sim_area'] = _vec(source, 'sim_area', raw['sim_area'], 6)
+  if raw.get('particle_filling') is not None:
+    pf = raw['particle_filling']
+    if not isinstance(pf, dict):
+      raise _type_error(source, 'particle_filling', pf, 'an object')
+    kw['particle_filling'] = ParticleFilling(params=_freeze(pf))
+  cam = {}
+  cam_fields = {
+    'mpm_space_vertical_upward_axis': ('vertical_upward_axis', 'vec3'),
+    'mpm_space_viewpoint_center': ('viewpoint_center', 'vec3'),
+    'default_camera_index': ('default_camera_index', 'int'),
+    'init_azimuthm': ('init_azimuth', 'float'),
+    'init_elevation': ('init_elevation', 'float'),
+    'init_radius': ('init_radius', 'float'),
+    'delta_a': ('delta_a', 'float'),
+    'delta_e': ('delta_e', 'float'),
+    'delta_r': ('delta_r', 'float'),
+  }
+  for name, (attr, kind) in cam_fields.items():
+    if raw.get(name) is not None:
+      cam[attr] = _check_kind(source, name, raw[name], kind)
+  if raw.get('move_camera') is not None:
+    cam['move_camera'] = _bool(source, 'move_camera', raw['move_camera'])
+  kw['camera'] = CameraConfig(**cam)
+  config = _validate(PhysGaussianConfig(**kw))
+  present = [f for f in NOT_HONOURED if raw.get(f) is not None]
+  if warn and present:
+    logging.warning(
+      '%s: fields parsed but not honoured yet (see docs/configs.md): %s',
+      source, ', '.join(present),
+    )
+  return config
+
+
+def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
+  s = c.source
+  if c.material not in CANONICAL_MODELS:
+    material_name(c.material, s)
+  if not 0.0 <= c.nu <= 0.5:
+    raise ConfigError(
+      f'{_where(s, "nu")} = {c.nu!r} is outside [0, 0.5] (PhysGaussian '
+      'raises the same error); use a Poisson ratio in [0, 0.5).'
+    )
+  for name in ('E', 'density', 'grid_lim', 'substep_dt', 'frame_dt',
+               'scale'):
+    if getattr(c, name) <= 0:
+      raise ConfigError(
+        f'{_where(s, name)} = {getattr(c, name)!r} must be > 0.'
+      )
+  for name in ('n_grid', 'frame_num'):
+    if getattr(c, name) < 1:
+      raise ConfigError(f'{_where(s, name)} = {getattr(c, name)!r} must be'
+                        ' >= 1.')
+  if c.n_grid < 4:
+    raise ConfigError(f'{_where(s, "n_grid")} = {c.n_grid} is too small; '
+                      'the quadratic B-spline stencil needs n_grid >= 4.')
+  if c.substep_dt > c.frame_dt:
+    raise ConfigError(
+      f'{_where(s, "substep_dt")} = {c.substep_dt} exceeds frame_dt = '
+      f'{c.frame_dt}; use substep_dt <= frame_dt.'
+    )
+  if not 0.0 <= c.rpic_damping <= 1.0:
+    raise ConfigError(f'{_where(s, "rpic_damping")} = {c.rpic_damping} must '
+                      'be in [0, 1].')
+  if len(c.rotation_degree) != len(c.rotation_axis):
+    raise ConfigError(
+      f'{s}: rotation_degree has {len(c.rotation_degree)} entries but '
+      f'rotation_axis has {len(c.rotation_axis)}; give one axis per angle.'
+    )
+  for i, a in enumerate(c.rotation_axis):
+    if a not in (0, 1, 2):
+      raise ConfigError(f'{_where(s, f"rotation_axis[{i}]")} = {a!r}; '
+                        'expected 0 (x), 1 (y) or 2 (z).')
+  if c.sim_area is not None:
+    lo, hi = np.array(c.sim_area[0::2]), np.array(c.sim_area[1::2])
+    if np.any(lo >= hi):
+      raise ConfigError(f'{_where(s, "sim_area")} = {c.sim_area}: each min '
+                        'must be below its max (xmin, xmax, ymin, ...).')
+  for i, b in enumerate(c.additional_material_params):
+    if b.nu is not None and not 0.0 <= b.nu <= 0.5:
+      raise ConfigError(
+        f'{_where(s, f"additional_material_params[{i}].nu")} = {b.nu} is '
+        'outside [0, 0.5].'
+      )
+    for name in ('E', 'density'):
+      v = getattr(b, name)
+      if v is not None and v <= 0:
+        raise ConfigError(
+          f'{_where(s, f"additional_material_params[{i}].{name}")} = {v} '
+          'must be > 0.'
+        )
+  return c
+
+
+def load_config(path: str | os.PathLike, warn: bool = True
+                ) -> PhysGaussianConfig:
+  """Reads and parses a PhysGaussian JSON config file.
+
+  Args:
+    path: path to the ``.json`` file.
+    warn: log fields that are parsed but not honoured.
+
+  Returns:
+    The parsed ``PhysGaussianConfig``.
+
+  Raises:
+    ConfigError: missing file, invalid JSON or a bad field.
+  """
+  path = os.fspath(path)
+  if not os.path.isfile(path):
+    raise ConfigError(f'config file {path!r} does not exist; pass --config='
+                      'PATH.json pointing to a PhysGaussian config.')
+  with open(path) as f:
+    try:
+      raw = json.load(f)
+    except json.JSONDecodeError as e:
+      raise ConfigError(f'{path}: invalid JSON ({e}).') from None
+  return parse_config(raw, source=path, warn=warn)
+
+
+# ------------------------------------------------------ arrays and transforms
+
+
+def material_params(config: PhysGaussianConfig, dtype=jnp.float32
+                    ) -> MaterialParams:
+  """The config's scalar material values as differentiable arrays.
+
+  Args:
+    config: parsed config.
+    dtype: float dtype.
+
+  Returns:
+    ``MaterialParams`` with () arrays.
+  """
+  f = lambda v: jnp.asarray(v, dtype)  # noqa: E731
+  return MaterialParams(
+    E=f(config.E), nu=f(config.nu), density=f(config.density),
+    yield_stress=f(config.yield_stress), hardening=f(config.hardening),
+    xi=f(config.xi), friction_angle=f(config.friction_angle),
+    plastic_viscosity=f(config.plastic_viscosity),
+    softening=f(config.softening),
+  )
+
+
+def material_fields(
+  config: PhysGaussianConfig, x_norm: Array, params: MaterialParams | None = None
+) -> tuple[Array, Array, Array]:
+  """Per-particle E, nu, density with ``additional_material_params`` applied.
+
+  A particle takes a box's values when ``|x_n - point|_i < size_i`` on every
+  axis; later boxes win, as in PhysGaussian's sequential overwrite.
+
+  Args:
+    config: parsed config (static boxes).
+    x_norm: (N, 3) particle positions in the normalised domain.
+    params: base values (differentiable); defaults to ``material_params``.
+
+  Returns:
+    ``(E, nu, density)``, each (N,).
+  """
+  if params is None:
+    params = material_params(config, x_norm.dtype)
+  n = x_norm.shape[0]
+  E = jnp.broadcast_to(params.E, (n,)).astype(x_norm.dtype)
+  nu = jnp.broadcast_to(params.nu, (n,)).astype(x_norm.dtype)
+  rho = jnp.broadcast_to(params.density, (n,)).astype(x_norm.dtype)
+  for box in config.additional_material_params:
+    inside = jnp.all(
+      jnp.abs(x_norm - jnp.asarray(box.point, x_norm.dtype))
+      < jnp.asarray(box.size, x_norm.dtype), axis=-1,
+    )
+    if box.E is not None:
+      E = jnp.where(inside, box.E, E)
+    if box.nu is not None:
+      nu = jnp.where(inside, box.nu, nu)
+    if box.density is not None:
+      rho = jnp.where(inside, box.density, rho)
+  return E, nu, rho
+
+
+def rotation_matrix(config: PhysGaussianConfig) -> np.ndarray:
+  """Preprocessing rotation ``R = R_k ... R_1`` (float64 (3, 3)).
+
+  Each ``R_i`` rotates by ``rotation_degree[i]`` degrees about axis
+  ``rotation_axis[i]`` (right-handed), applied in list order.
+  """
+  R = np.eye(3)
+  for deg, axis in zip(config.rotation_degree, config.rotation_axis):
+    t = math.radians(deg)
+    c, s = math.cos(t), math.sin(t)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    Ri = np.eye(3)
+    Ri[i, i], Ri[i, j], Ri[j, i], Ri[j, j] = c, -s, s, c
+    R = Ri @ R
+  return R
+
+
+def select_particles(
+  config: PhysGaussianConfig, means: np.ndarray,
+  opacity: np.ndarray | None = None,
+) -> np.ndarray:
+  """Row indices that PhysGaussian simulates (host-side, static count).
+
+  Drops Gaussians with ``opacity < opacity_threshold`` (activated opacity),
+  rotates, then keeps those inside ``sim_area`` (inclusive).
+
+  Args:
+    config: parsed config.
+    means: (K, 3) Gaussian centres in input coordinates.
+    opacity: (K,) activated opacities in [0, 1], or None to keep all.
+
+  Returns:
+    (N,) int64 sorted row numbers.
+
+  Raises:
+    ConfigError: nothing left to simulate.
+  """
+  means = np.asarray(means, np.float64)
+  keep = np.ones(means.shape[0], bool)
+  if opacity is not None:
+    keep &= np.asarray(opacity) >= config.opacity_threshold
+  if config.sim_area is not None:
+    x = means @ rotation_matrix(config).T
+    a = config.sim_area
+    for d in range(3):
+      keep &= (x[:, d] >= a[2 * d]) & (x[:, d] <= a[2 * d + 1])
+  ids = np.nonzero(keep)[0]
+  if ids.size == 0:
+    raise ConfigError(
+      f'{config.source}: no Gaussians left after opacity_threshold='
+      f'{config.opacity_threshold} and sim_area={config.sim_area}; lower '
+      'the threshold or widen sim_area.'
+    )
+  return ids
+
+
+def make_norm_transform(config: PhysGaussianConfig, means: Array,
+                        dtype=jnp.float32) -> NormTransform:
+  """Builds PhysGaussian's input -> normalised-domain map for ``means``.
+
+  Args:
+    config: parsed config (rotation, scale).
+    means: (N, 3) selected positions in input coordinates.
+    dtype: float dtype of the transform.
+
+  Returns:
+    ``NormTransform`` mapping the points' rotated bounding box to a cube of
+    side ``config.scale`` centred at (1, 1, 1).
+
+  Raises:
+    ConfigError: the points are degenerate (zero extent) or do not fit in
+      ``[0, grid_lim]^3`` after normalisation.
+  """
+  means = np.asarray(means, np.float64)
+  R = rotation_matrix(config)
+  x = means @ R.T
+  lo, hi = x.min(0), x.max(0)
+  extent = float(np.max(hi - lo))
+  if not extent > 0:
+    raise ConfigError(
+      f'{config.source}: the selected Gaussians have zero extent; cannot '
+      'normalise a single point (select more Gaussians).'
+    )
+  half = 0.5 * config.scale
+  if 1.0 - half < 0 or 1.0 + half > config.grid_lim:
+    raise ConfigError(
+      f'{_where(config.source, "scale")} = {config.scale}: the object cube '
+      f'[{1 - half}, {1 + half}] leaves the grid [0, {config.grid_lim}]; use '
+      'scale <= 2 and grid_lim >= 1 + scale / 2.'
+    )
+  return NormTransform(
+    rotation=jnp.asarray(R, dtype),
+    centre=jnp.asarray(0.5 * (lo + hi), dtype),
+    scale=jnp.asarray(config.scale / extent, dtype),
+    offset=jnp.ones((3,), dtype),
+  )
+
+
+def normalise_positions(transform: NormTransform, x: Array) -> Array:
+  """Input coordinates (..., 3) -> normalised simulation domain (..., 3)."""
+  return (x @ transform.rotation.T - transform.centre) * transform.scale + (
+    transform.offset
+  )
+
+
+def denormalise_positions(transform: NormTransform, x_norm: Array) -> Array:
+  """Normalised domain (..., 3) -> input coordinates (..., 3)."""
+  return ((x_norm - transform.offset) / transform.scale + transform.centre) @ (
+    transform.rotation
+  )
+
+
+def normalise_velocity(transform: NormTransform, v: Array) -> Array:
+  """Input-frame velocities (or forces per unit mass) -> normalised units."""
+  return (v @ transform.rotation.T) * transform.scale
+
+
+def denormalise_velocity(transform: NormTransform, v_norm: Array) -> Array:
+  """Normalised-domain velocities -> input-frame velocities."""
+  return (v_norm / transform.scale) @ transform.rotation
+
+
+def cfl_substep(config: PhysGaussianConfig, cfl: float = 0.5) -> float:
+  """Largest stable-ish substep from the P-wave speed: ``cfl dx / c_p``.
+
+  ``c_p = sqrt((lam + 2 mu) / rho)`` with ``lam, mu`` from (E, nu); uses the
+  stiffest of the base material and the boxes.
+
+  Args:
+    config: parsed config.
+    cfl: Courant number.
+
+  Returns:
+    dt [s].
+  """
+  cands = [(config.E, config.nu, config.density)]
+  for b in config.additional_material_params:
+    cands.append((b.E or config.E, config.nu if b.nu is None else b.nu,
+                  b.density or config.density))
+  c = 0.0
+  for E, nu, rho in cands:
+    nu = min(nu, 0.499)
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    mu = E / (2 * (1 + nu))
+    c = max(c, math.sqrt((lam + 2 * mu) / rho))
+  return cfl * config.dx / c
