@@ -1,0 +1,356 @@
+"""MPDP point network: per-point multiplicative material fields.
+
+PhysSplat's Material Property Distribution Prediction (MPDP) turns the
+MLLM's *mean* properties of an object (E, nu, rho, constitutive model) into a
+per-point distribution: a network predicts a field ``m(x)`` normalised by its
+mean, and the per-point value is ``mean * m(x)`` (PhysSplat, ICCV 2025,
+Sec. 3.3). This module is that network, written as a small PointNet/DGCNN
+(Qi et al. 2017; Wang et al. 2019) in Flax linen:
+
+  h_i   = MLP(p_i)                                  shared per-point MLP
+  e_i   = max_{j in kNN(i)} MLP([h_i, h_j - h_i, p_j - p_i])   EdgeConv
+  g     = max_{i valid} Dense([h_i, e_i])           global feature
+  c     = MLP(means)                                condition on the MLLM means
+  raw_i = MLP([h_i, e_i, g, c, p_i])  (3 channels: E, nu, rho)
+  l_i   = r * tanh(raw_i / r)                        bounded logits, r per channel
+  m_i   = exp(l_i) / mean_{j valid} exp(l_j)         mean exactly 1
+
+``p`` are the object's points centred on their (masked) mean and scaled so the
+farthest valid point is at radius 1, so the field is invariant to
+translation and scale. The kNN is static-shaped (``lax.top_k`` over the full
+pairwise-distance matrix, O(N^2) memory; padded points are never chosen).
+The last layer is zero-initialised, so an untrained network gives the
+mean-only baseline ``m = 1`` exactly.
+
+Normalisation: ``m_i = N_valid * w_i / sum_valid w`` with ``w = exp(l - max l)``;
+the mean over valid points is 1 up to float rounding (|mean - 1| <= ~1e-7 in
+f32). Padded points get ``m = 1`` and never affect valid outputs.
+
+Poisson's ratio: ``nu_i = clip(nu_mean * m_nu_i, 0, NU_MAX)`` with
+``NU_MAX = 0.49`` in :func:`material_from_field` (clipping keeps nu in
+[0, 0.5) whatever the mean; the nu field's logit range is small, log 1.5, so
+clipping only bites for means near 0.5).
+
+The physics only ever sees a params pytree: ``predict(params, points,
+means, mask)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Canonical constitutive-model names (shared across the package).
+MODEL_NAMES = (
+  'fixed_corotated', 'neo_hookean', 'stvk', 'von_mises', 'drucker_prager',
+  'snow', 'foam', 'plasticine', 'newtonian', 'bingham', 'rigid',
+)
+NUM_MODELS = len(MODEL_NAMES)
+# log10 E, nu, log10 rho, model one-hot, rigid flag.
+MEANS_DIM = 3 + NUM_MODELS + 1
+NU_MAX = 0.49
+# Channel order of the field.
+FIELD_CHANNELS = ('E', 'nu', 'rho')
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+  """Static (hashable) architecture of the MPDP network.
+
+  Attributes:
+    features: widths of the shared per-point MLP.
+    edge_features: width of the EdgeConv MLP; 0 disables EdgeConv.
+    k_neighbors: kNN size of the EdgeConv (static).
+    global_features: width of the max-pooled global feature.
+    cond_features: width of the embedding of the mean properties.
+    head_features: widths of the per-point output MLP.
+    log_range: per-channel bound r of the logits (E, nu, rho): the field's
+      max/min ratio is at most exp(2 r).
+  """
+
+  features: tuple[int, ...] = (64, 64)
+  edge_features: int = 64
+  k_neighbors: int = 8
+  global_features: int = 128
+  cond_features: int = 32
+  head_features: tuple[int, ...] = (64, 64)
+  log_range: tuple[float, float, float] = (3.0, 0.405, 0.693)
+
+  @classmethod
+  def from_dict(cls, d) -> 'ModelConfig':
+    """Builds a config from a dict / ConfigDict (lists become tuples)."""
+    d = dict(d)
+    unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+    if unknown:
+      raise ValueError(
+        f'Unknown MPDP model config fields {sorted(unknown)}; valid fields '
+        f'are {[f.name for f in dataclasses.fields(cls)]}.'
+      )
+    for k in ('features', 'head_features', 'log_range'):
+      if k in d:
+        d[k] = tuple(d[k])
+    return cls(**d)
+
+  def to_dict(self) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v
+            for k, v in dataclasses.asdict(self).items()}
+
+
+def encode_means(E, nu, rho, model='fixed_corotated', rigid=None):
+  """Encodes an object's mean properties as the network's condition vector.
+
+  Args:
+    E: mean Young's modulus [Pa], > 0 (scalar or array).
+    nu: mean Poisson's ratio in [0, 0.5).
+    rho: mean density [kg/m^3], > 0.
+    model: constitutive-model name (one of ``MODEL_NAMES``) or an int index,
+      or a sequence of them matching the shape of ``E``.
+    rigid: rigid flag; defaults to ``model == 'rigid'``.
+
+  Returns:
+    (..., MEANS_DIM) float32: [(log10 E - 6) / 2, (nu - 0.25) / 0.25,
+    (log10 rho - 3) / 0.5, one-hot(model), rigid].
+
+  Raises:
+    ValueError: on non-positive/non-finite E or rho, nu outside [0, 0.5), or
+      an unknown model name.
+  """
+  E = np.asarray(E, np.float64)
+  nu = np.asarray(nu, np.float64)
+  rho = np.asarray(rho, np.float64)
+  if not np.all(np.isfinite(E)) or np.any(E <= 0):
+    raise ValueError(f'MPDP means: E must be finite and > 0 Pa, got {E}.')
+  if not np.all(np.isfinite(rho)) or np.any(rho <= 0):
+    raise ValueError(
+      f'MPDP means: rho must be finite and > 0 kg/m^3, got {rho}.')
+  if not np.all(np.isfinite(nu)) or np.any(nu < 0) or np.any(nu >= 0.5):
+    raise ValueError(
+      f'MPDP means: nu must be in [0, 0.5), got {nu}; clamp it (e.g. 0.49) '
+      'for nearly incompressible materials.')
+  shape = np.broadcast_shapes(E.shape, nu.shape, rho.shape)
+  models = np.asarray(model, dtype=object).reshape(-1)
+  ids = []
+  for m in models:
+    if isinstance(m, (int, np.integer)):
+      if not 0 <= int(m) < NUM_MODELS:
+        raise ValueError(f'MPDP means: model index {m} not in 0..{NUM_MODELS - 1}.')
+      ids.append(int(m))
+    elif m in MODEL_NAMES:
+      ids.append(MODEL_NAMES.index(m))
+    else:
+      raise ValueError(
+        f'MPDP means: unknown constitutive model {m!r}; use one of '
+        f'{MODEL_NAMES}.')
+  ids = np.broadcast_to(np.asarray(ids).reshape(
+    np.asarray(model, dtype=object).shape), shape)
+  if rigid is None:
+    rigid = ids == MODEL_NAMES.index('rigid')
+  rigid = np.broadcast_to(np.asarray(rigid, np.float64), shape)
+  onehot = np.eye(NUM_MODELS)[ids]
+  out = np.concatenate([
+    ((np.log10(E) - 6.0) / 2.0)[..., None] * np.ones(shape + (1,)),
+    ((nu - 0.25) / 0.25)[..., None] * np.ones(shape + (1,)),
+    ((np.log10(rho) - 3.0) / 0.5)[..., None] * np.ones(shape + (1,)),
+    onehot, rigid[..., None],
+  ], axis=-1)
+  return jnp.asarray(out, jnp.float32)
+
+
+def normalize_points(points, mask):
+  """Centres points on their masked mean and scales the farthest to radius 1.
+
+  Args:
+    points: (N, 3) positions [any length unit].
+    mask: (N,) bool, True for valid points.
+
+  Returns:
+    (N, 3) normalised points (padded rows are zeroed).
+  """
+  w = mask.astype(points.dtype)
+  n = jnp.maximum(jnp.sum(w), 1.0)
+  centre = jnp.sum(points * w[:, None], axis=0) / n
+  p = (points - centre) * w[:, None]
+  r = jnp.sqrt(jnp.max(jnp.sum(p * p, axis=-1)))
+  # A single point (r = 0) stays at the origin instead of dividing by zero.
+  r = jnp.where(r > 0, r, 1.0)
+  return p / r
+
+
+def knn_indices(points, mask, k: int):
+  """Static-shape k nearest valid neighbours (self included).
+
+  Args:
+    points: (N, 3) positions.
+    mask: (N,) bool validity.
+    k: number of neighbours (static).
+
+  Returns:
+    (N, k) int32 indices; slots with no valid neighbour point to self.
+  """
+  n = points.shape[0]
+  d2 = jnp.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=-1)
+  d2 = jnp.where(mask[None, :], d2, jnp.inf)
+  k = min(k, n)
+  neg, idx = jax.lax.top_k(-jax.lax.stop_gradient(d2), k)
+  self_idx = jnp.broadcast_to(jnp.arange(n)[:, None], idx.shape)
+  return jnp.where(jnp.isfinite(neg), idx, self_idx)
+
+
+def _mlp(x, features: Sequence[int]):
+  for f in features:
+    x = nn.gelu(nn.Dense(f)(x))
+  return x
+
+
+class PointNet(nn.Module):
+  """PointNet/DGCNN-lite producing per-point logits (see module docstring)."""
+
+  config: ModelConfig = ModelConfig()
+
+  @nn.compact
+  def __call__(self, points, means, mask):
+    """Per-point bounded logits.
+
+    Args:
+      points: (N, 3) normalised points.
+      means: (MEANS_DIM,) encoded mean properties.
+      mask: (N,) bool validity.
+
+    Returns:
+      (N, 3) logits in [-r, r] per channel (E, nu, rho).
+    """
+    cfg = self.config
+    n = points.shape[0]
+    h = _mlp(points, cfg.features)
+    feats = [h]
+    if cfg.edge_features > 0 and cfg.k_neighbors > 0:
+      idx = knn_indices(points, mask, cfg.k_neighbors)
+      hj = h[idx]
+      hi = jnp.broadcast_to(h[:, None, :], hj.shape)
+      rel = points[idx] - points[:, None, :]
+      e = jnp.concatenate([hi, hj - hi, rel], axis=-1)
+      e = nn.gelu(nn.Dense(cfg.edge_features)(e))
+      e = nn.Dense(cfg.edge_features)(e)
+      feats.append(nn.gelu(jnp.max(e, axis=1)))
+    local = jnp.concatenate(feats, axis=-1)
+    g = nn.Dense(cfg.global_features)(local)
+    g = jnp.max(jnp.where(mask[:, None], g, -jnp.inf), axis=0)
+    g = jnp.where(jnp.isfinite(g), g, 0.0)
+    c = _mlp(means, (cfg.cond_features, cfg.cond_features))
+    z = jnp.concatenate([
+      local, jnp.broadcast_to(g, (n, g.shape[-1])),
+      jnp.broadcast_to(c, (n, c.shape[-1])), points,
+    ], axis=-1)
+    z = _mlp(z, cfg.head_features)
+    raw = nn.Dense(3, kernel_init=nn.initializers.zeros)(z)
+    r = jnp.asarray(cfg.log_range, raw.dtype)
+    return r * jnp.tanh(raw / r)
+
+
+def normalize_field(logits, mask):
+  """Turns logits into a positive field with masked mean exactly 1.
+
+  Args:
+    logits: (N, C) logits.
+    mask: (N,) bool validity.
+
+  Returns:
+    (N, C) field; mean over valid rows is 1 per channel, padded rows are 1.
+  """
+  m = mask[:, None]
+  lmax = jnp.max(jnp.where(m, logits, -jnp.inf), axis=0)
+  lmax = jax.lax.stop_gradient(jnp.where(jnp.isfinite(lmax), lmax, 0.0))
+  w = jnp.where(m, jnp.exp(jnp.where(m, logits, 0.0) - lmax), 0.0)
+  n = jnp.maximum(jnp.sum(mask.astype(logits.dtype)), 1.0)
+  field = w * (n / jnp.sum(w, axis=0))
+  return jnp.where(m, field, 1.0)
+
+
+def _check_inputs(points, means, mask):
+  if points.ndim not in (2, 3) or points.shape[-1] != 3:
+    raise ValueError(
+      f'MPDP predict: points must have shape (N, 3) or (B, N, 3), got '
+      f'{points.shape}.')
+  if means.shape[-1] != MEANS_DIM or means.ndim != points.ndim - 1:
+    raise ValueError(
+      f'MPDP predict: means must have shape ({MEANS_DIM},) (or (B, '
+      f'{MEANS_DIM}) for batched points); got {means.shape}. Build it with '
+      'physsplat_jax.mpdp.encode_means(E, nu, rho, model).')
+  if mask is not None and mask.shape != points.shape[:-1]:
+    raise ValueError(
+      f'MPDP predict: mask shape {mask.shape} must equal points.shape[:-1] '
+      f'= {points.shape[:-1]}.')
+
+
+def make_predict(config: ModelConfig = ModelConfig()):
+  """Returns ``predict_fn(params, points, means, mask=None) -> (N, 3)``.
+
+  ``predict_fn`` normalises the points, runs :class:`PointNet` and returns
+  the field (E, nu, rho multipliers) with masked mean exactly 1. Leading
+  batch dimension is supported: points (B, N, 3), means (B, MEANS_DIM),
+  mask (B, N).
+  """
+  net = PointNet(config)
+
+  def single(params, points, means, mask):
+    p = normalize_points(points, mask)
+    logits = net.apply({'params': params}, p, means.astype(p.dtype), mask)
+    return normalize_field(logits, mask)
+
+  def predict_fn(params, points, means, mask=None):
+    points = jnp.asarray(points)
+    means = jnp.asarray(means)
+    _check_inputs(points, means, mask)
+    if mask is None:
+      mask = jnp.ones(points.shape[:-1], bool)
+    mask = jnp.asarray(mask, bool)
+    if points.ndim == 3:
+      return jax.vmap(single, (None, 0, 0, 0))(params, points, means, mask)
+    return single(params, points, means, mask)
+
+  return predict_fn
+
+
+def init_params(key, config: ModelConfig = ModelConfig(),
+                num_points: int = 16):
+  """Initial params pytree (the field is exactly 1 until trained)."""
+  p = jnp.zeros((num_points, 3))
+  m = jnp.zeros((MEANS_DIM,))
+  return PointNet(config).init(key, p, m, jnp.ones((num_points,), bool))[
+    'params']
+
+
+predict = make_predict(ModelConfig())
+predict.__doc__ = (
+  """Per-point multiplicative field of the default architecture.
+
+  Args:
+    params: params pytree (e.g. :func:`load_pretrained`).
+    points: (N, 3) object points (any frame/scale; normalised inside), or
+      (B, N, 3).
+    means: (MEANS_DIM,) from :func:`encode_means`, or (B, MEANS_DIM).
+    mask: optional (N,) / (B, N) bool validity for padded points.
+
+  Returns:
+    (N, 3) multipliers for (E, nu, rho); masked mean exactly 1, padded
+    rows 1.
+  """)
+
+
+def material_from_field(field, E, nu, rho):
+  """Per-point E, nu, rho = mean * field, with nu clipped to [0, NU_MAX].
+
+  Args:
+    field: (N, 3) multipliers from :func:`predict`.
+    E, nu, rho: scalar means [Pa, -, kg/m^3] (may be traced).
+
+  Returns:
+    (E, nu, rho), each (N,).
+  """
+  return (E * field[:, 0], jnp.clip(nu * field[:, 1], 0.0, NU_MAX),
+          rho * field[:, 2])

@@ -1,0 +1,104 @@
+"""Shipped MPDP weights: a flat ``.npz`` of params plus a JSON model config.
+
+The shipped file ``physsplat_jax/data/mpdp/mpdp_params.npz`` (and
+``mpdp_params.json``) is produced by ``experiments/train_mpdp.py
+--export=...`` from an orbax training checkpoint; ``load_pretrained()``
+returns its params pytree, which the pipeline uses by default with
+:func:`physsplat_jax.mpdp.model.predict` (the default architecture).
+A flat NumPy archive (not an orbax directory) keeps the package small and
+loadable without orbax.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+
+import jax.numpy as jnp
+import numpy as np
+
+from physsplat_jax.mpdp import model as model_lib
+
+PRETRAINED_DIR = os.path.join(os.path.dirname(os.path.dirname(
+  os.path.abspath(__file__))), 'data', 'mpdp')
+PRETRAINED_NAME = 'mpdp_params'
+
+
+def _flatten(tree, prefix=''):
+  out = {}
+  for k, v in tree.items():
+    key = f'{prefix}/{k}' if prefix else str(k)
+    if isinstance(v, dict):
+      out.update(_flatten(v, key))
+    else:
+      out[key] = np.asarray(v)
+  return out
+
+
+def save_params(params, model_config: model_lib.ModelConfig, directory: str,
+                name: str = PRETRAINED_NAME, metadata: dict | None = None):
+  """Writes ``<directory>/<name>.npz`` and ``<name>.json``.
+
+  Args:
+    params: linen params pytree (nested dicts of arrays).
+    model_config: the architecture the params belong to.
+    directory: output directory (created if missing).
+    name: file stem.
+    metadata: extra JSON-serialisable info (e.g. held-out metrics).
+  """
+  os.makedirs(directory, exist_ok=True)
+  flat = _flatten(dict(params))
+  np.savez_compressed(os.path.join(directory, name + '.npz'),
+                      **{k: v.astype(np.float32) for k, v in flat.items()})
+  with open(os.path.join(directory, name + '.json'), 'w') as f:
+    json.dump({'model_config': model_config.to_dict(),
+               'metadata': metadata or {}}, f, indent=1)
+
+
+def load_params(directory: str, name: str = PRETRAINED_NAME):
+  """Reads params written by :func:`save_params`.
+
+  Returns:
+    (params pytree of float32 jax arrays, ModelConfig, metadata dict).
+
+  Raises:
+    ValueError: if the files are missing.
+  """
+  npz = os.path.join(directory, name + '.npz')
+  js = os.path.join(directory, name + '.json')
+  if not (os.path.exists(npz) and os.path.exists(js)):
+    raise ValueError(
+      f'MPDP params not found: expected {npz} and {js}; train them with '
+      'experiments/train_mpdp.py --export=<dir>.')
+  with open(js) as f:
+    meta = json.load(f)
+  params = {}
+  with np.load(npz) as data:
+    for key in data.files:
+      node = params
+      *parents, leaf = key.split('/')
+      for p in parents:
+        node = node.setdefault(p, {})
+      node[leaf] = jnp.asarray(data[key])
+  cfg = model_lib.ModelConfig.from_dict(meta['model_config'])
+  return params, cfg, meta.get('metadata', {})
+
+
+@functools.lru_cache(maxsize=1)
+def _load_default():
+  return load_params(PRETRAINED_DIR)
+
+
+def load_pretrained():
+  """Params of the shipped checkpoint (default architecture).
+
+  Returns:
+    The params pytree for :func:`physsplat_jax.mpdp.model.predict`.
+  """
+  params, cfg, _ = _load_default()
+  if cfg != model_lib.ModelConfig():
+    raise ValueError(
+      f'Shipped MPDP params were trained for {cfg}, not the default '
+      'ModelConfig(); use make_predict(cfg) with load_params().')
+  return params

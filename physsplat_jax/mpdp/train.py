@@ -1,0 +1,234 @@
+"""Supervised MPDP training on synthetic objects (optax + orbax).
+
+Loss: masked mean over valid points and the three channels of the squared
+log error, ``w_c * (log m_pred - log m_true)^2`` (log space because the fields
+are multiplicative; the mean-only baseline ``m = 1`` has loss
+``mean(w_c log^2 m_true)``). Adam(W) with warmup + cosine decay and global-norm
+clipping. Checkpoints are orbax ``CheckpointManager`` steps holding
+``{'step', 'params', 'opt_state'}``; a run restarted in the same workdir
+resumes from the latest step (batches are drawn from ``(seed, step)`` so a
+resumed run sees the same batches). Metrics go to absl logging and
+``workdir/metrics.jsonl`` (one JSON object per line).
+
+Layout of ``config`` (an ``ml_collections.ConfigDict``; see
+``experiments/configs/mpdp.py``): ``model`` (fields of
+:class:`~physsplat_jax.mpdp.model.ModelConfig`), ``data`` (seed, eval_seed,
+num_train, num_eval, num_points, min_fill), ``train`` (seed, learning_rate,
+weight_decay, warmup_steps, num_steps, batch_size, grad_clip,
+channel_weights, log_every, eval_every, checkpoint_every, max_to_keep).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from absl import logging
+
+from physsplat_jax.mpdp import model as model_lib
+from physsplat_jax.mpdp import synthetic
+
+
+def masked_log_errors(pred, target, mask):
+  """Per-channel masked mean squared log error.
+
+  Args:
+    pred, target: (B, N, 3) positive fields.
+    mask: (B, N) bool.
+
+  Returns:
+    (3,) mean over valid points of ``(log pred - log target)^2``.
+  """
+  m = mask[..., None]
+  lp = jnp.log(jnp.where(m, pred, 1.0))
+  lt = jnp.log(jnp.where(m, target, 1.0))
+  n = jnp.maximum(jnp.sum(mask), 1)
+  return jnp.sum(jnp.where(m, (lp - lt) ** 2, 0.0), axis=(0, 1)) / n
+
+
+def make_loss(model_config: model_lib.ModelConfig, channel_weights=(1., 1., 1.)):
+  """Returns ``loss_fn(params, batch) -> (loss, per-channel MSLE (3,))``."""
+  predict_fn = model_lib.make_predict(model_config)
+  w = jnp.asarray(channel_weights, jnp.float32)
+
+  def loss_fn(params, batch):
+    pred = predict_fn(params, batch['points'], batch['means'], batch['mask'])
+    per = masked_log_errors(pred, batch['field'], batch['mask'])
+    return jnp.sum(w * per) / jnp.sum(w), per
+
+  return loss_fn
+
+
+def make_optimizer(train_config):
+  """AdamW + warmup-cosine schedule + global-norm clipping."""
+  schedule = optax.warmup_cosine_decay_schedule(
+    0.0, train_config.learning_rate, train_config.warmup_steps,
+    max(train_config.num_steps, train_config.warmup_steps + 1),
+    end_value=0.05 * train_config.learning_rate)
+  return optax.chain(
+    optax.clip_by_global_norm(train_config.grad_clip),
+    optax.adamw(schedule, weight_decay=train_config.weight_decay))
+
+
+def make_train_step(loss_fn, tx):
+  """Returns ``step_fn(state, batch) -> (state, loss, per)`` (not jitted)."""
+
+  def step_fn(state, batch):
+    (loss, per), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+      state['params'], batch)
+    updates, opt_state = tx.update(grads, state['opt_state'],
+                                   state['params'])
+    params = optax.apply_updates(state['params'], updates)
+    return ({'step': state['step'] + 1, 'params': params,
+             'opt_state': opt_state}, loss, per)
+
+  return step_fn
+
+
+def evaluate(params, model_config, data, batch_size: int = 64):
+  """Held-out metrics of the network and of the mean-only baseline (m = 1).
+
+  Args:
+    params: params pytree.
+    model_config: the network's :class:`ModelConfig`.
+    data: dict from :func:`synthetic.make_dataset`.
+    batch_size: evaluation batch size.
+
+  Returns:
+    dict of floats: ``rmse_log_{E,nu,rho}`` (RMS log error), ``mare_E``
+    (mean |m_E pred - m_E true| / m_E true), and the ``baseline_*`` values.
+  """
+  predict_fn = jax.jit(model_lib.make_predict(model_config))
+  num = data['points'].shape[0]
+  sq = np.zeros(3)
+  sq0 = np.zeros(3)
+  are = are0 = 0.0
+  count = 0
+  for i in range(0, num, batch_size):
+    sl = slice(i, i + batch_size)
+    pred = np.asarray(predict_fn(params, data['points'][sl],
+                                 data['means'][sl], data['mask'][sl]),
+                      np.float64)
+    mask = data['mask'][sl]
+    tgt = data['field'][sl].astype(np.float64)[mask]
+    pred = pred[mask]
+    sq += np.sum((np.log(pred) - np.log(tgt)) ** 2, axis=0)
+    sq0 += np.sum(np.log(tgt) ** 2, axis=0)
+    are += np.sum(np.abs(pred[:, 0] - tgt[:, 0]) / tgt[:, 0])
+    are0 += np.sum(np.abs(1.0 - tgt[:, 0]) / tgt[:, 0])
+    count += int(mask.sum())
+  out = {}
+  for c, name in enumerate(model_lib.FIELD_CHANNELS):
+    out[f'rmse_log_{name}'] = float(np.sqrt(sq[c] / count))
+    out[f'baseline_rmse_log_{name}'] = float(np.sqrt(sq0[c] / count))
+  out['mare_E'] = float(are / count)
+  out['baseline_mare_E'] = float(are0 / count)
+  return out
+
+
+def _model_config(config) -> model_lib.ModelConfig:
+  return model_lib.ModelConfig.from_dict(config.model.to_dict())
+
+
+def make_datasets(config):
+  """(train, eval) datasets from ``config.data`` (disjoint seeds)."""
+  d = config.data
+  if d.seed == d.eval_seed:
+    raise ValueError(
+      f'config.data.seed ({d.seed}) must differ from config.data.eval_seed '
+      'so the held-out objects are not training objects.')
+  train = synthetic.make_dataset(d.seed, d.num_train, d.num_points,
+                                 d.min_fill)
+  held = synthetic.make_dataset(d.eval_seed, d.num_eval, d.num_points,
+                                d.min_fill)
+  return train, held
+
+
+def _batch(data, seed: int, step: int, batch_size: int):
+  rng = np.random.default_rng([seed, step])
+  idx = rng.choice(data['points'].shape[0], batch_size, replace=False)
+  return {k: jnp.asarray(data[k][idx])
+          for k in ('points', 'mask', 'field', 'means')}
+
+
+def _write_metrics(workdir, record):
+  with open(os.path.join(workdir, 'metrics.jsonl'), 'a') as f:
+    f.write(json.dumps(record) + '\n')
+
+
+def train_and_evaluate(config, workdir: str) -> dict:
+  """Trains MPDP on synthetic objects, checkpointing and resuming in workdir.
+
+  Args:
+    config: ConfigDict (see module docstring).
+    workdir: directory for ``checkpoints/``, ``metrics.jsonl`` and
+      ``config.json``; created if missing. If it holds checkpoints, training
+      resumes from the latest step.
+
+  Returns:
+    dict: final held-out metrics (see :func:`evaluate`) plus ``step``,
+    ``train_loss`` and ``params`` (the trained params pytree).
+  """
+  tc = config.train
+  if tc.batch_size > config.data.num_train:
+    raise ValueError(
+      f'config.train.batch_size ({tc.batch_size}) exceeds '
+      f'config.data.num_train ({config.data.num_train}).')
+  workdir = os.path.abspath(workdir)
+  os.makedirs(workdir, exist_ok=True)
+  logging.info('MPDP training on %s; workdir %s', jax.devices(), workdir)
+  with open(os.path.join(workdir, 'config.json'), 'w') as f:
+    json.dump(config.to_dict(), f, indent=1)
+
+  mcfg = _model_config(config)
+  t0 = time.time()
+  train_data, eval_data = make_datasets(config)
+  logging.info('generated %d train / %d held-out objects in %.1f s',
+               config.data.num_train, config.data.num_eval, time.time() - t0)
+
+  params = model_lib.init_params(jax.random.key(tc.seed), mcfg,
+                                 config.data.num_points)
+  tx = make_optimizer(tc)
+  state = {'step': jnp.asarray(0, jnp.int32), 'params': params,
+           'opt_state': tx.init(params)}
+  loss_fn = make_loss(mcfg, tuple(tc.channel_weights))
+  step_fn = jax.jit(make_train_step(loss_fn, tx), donate_argnums=0)
+
+  options = ocp.CheckpointManagerOptions(max_to_keep=tc.max_to_keep,
+                                         create=True)
+  loss = per = None
+  with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints'),
+                             options=options) as mngr:
+    latest = mngr.latest_step()
+    if latest is not None:
+      state = mngr.restore(latest, args=ocp.args.StandardRestore(
+        jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
+      logging.info('resumed from step %d', latest)
+    start = int(state['step'])
+    t_start = time.time()
+    for step in range(start, tc.num_steps):
+      batch = _batch(train_data, tc.seed, step, tc.batch_size)
+      state, loss, per = step_fn(state, batch)
+      done = step + 1
+      if done % tc.log_every == 0 or done == tc.num_steps:
+        rec = {'step': done, 'train_loss': float(loss),
+               'train_msle': [float(x) for x in per],
+               'elapsed_s': time.time() - t_start}
+        if done % tc.eval_every == 0 or done == tc.num_steps:
+          rec.update(evaluate(state['params'], mcfg, eval_data))
+        logging.info('step %d: %s', done, rec)
+        _write_metrics(workdir, rec)
+      if done % tc.checkpoint_every == 0 or done == tc.num_steps:
+        mngr.save(done, args=ocp.args.StandardSave(state))
+    mngr.wait_until_finished()
+  result = evaluate(state['params'], mcfg, eval_data)
+  result.update(step=int(state['step']),
+                train_loss=None if loss is None else float(loss),
+                params=state['params'])
+  return result

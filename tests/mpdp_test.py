@@ -1,0 +1,306 @@
+"""Tests for physsplat_jax.mpdp: network properties, data, training, I/O."""
+
+import json
+import os
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from absl.testing import absltest
+
+from experiments.configs import mpdp_test as test_config
+from physsplat_jax.mpdp import model as model_lib
+from physsplat_jax.mpdp import pretrained
+from physsplat_jax.mpdp import synthetic
+from physsplat_jax.mpdp import train as train_lib
+
+_MEAN_TOL = 1e-5          # |mean(field) - 1| in float32
+_EQUIV_TOL = 1e-5         # permutation / invariance tolerance, float32
+_FD_RTOL = 1e-6           # float64 directional finite difference
+_SMALL = model_lib.ModelConfig(
+  features=(16, 16), edge_features=16, k_neighbors=4, global_features=16,
+  cond_features=8, head_features=(16,))
+
+
+def _random_params(config=_SMALL, seed=0, scale=0.3, num_points=16):
+  """Initial params plus noise so the field is far from 1."""
+  params = model_lib.init_params(jax.random.key(seed), config, num_points)
+  leaves, tree = jax.tree.flatten(params)
+  keys = jax.random.split(jax.random.key(seed + 1), len(leaves))
+  leaves = [x + scale * jax.random.normal(k, x.shape, x.dtype)
+            for x, k in zip(leaves, keys)]
+  return jax.tree.unflatten(tree, leaves)
+
+
+def _object(seed=3, n=64, kind=None, min_fill=0.75):
+  o = synthetic.make_object(seed, n, kind=kind, min_fill=min_fill)
+  return o, jnp.asarray(o.points), o.means, jnp.asarray(o.mask)
+
+
+class ModelTest(absltest.TestCase):
+
+  def setUp(self):
+    super().setUp()
+    self.predict = jax.jit(model_lib.make_predict(_SMALL))
+    self.params = _random_params()
+
+  def test_mean_exactly_one_with_padding(self):
+    o, pts, means, mask = _object(min_fill=0.6)
+    self.assertLess(int(mask.sum()), 64)  # there is padding to mask
+    field = np.asarray(self.predict(self.params, pts, means, mask))
+    valid = field[np.asarray(mask)]
+    np.testing.assert_allclose(valid.mean(0), 1.0, atol=_MEAN_TOL)
+    # The field is not trivially 1 (the test could fail).
+    self.assertGreater(valid[:, 0].std(), 0.05)
+    np.testing.assert_array_equal(field[~np.asarray(mask)], 1.0)
+    self.assertTrue(np.all(field > 0))
+    # Garbage in the padded rows changes nothing in the valid rows.
+    junk = pts.at[~mask].set(1e3)
+    field2 = np.asarray(self.predict(self.params, junk, means, mask))
+    np.testing.assert_allclose(field2, field, atol=_EQUIV_TOL)
+
+  def test_mean_one_batched_and_without_mask(self):
+    data = synthetic.make_dataset(5, 3, 48, min_fill=0.5)
+    f = np.asarray(self.predict(self.params, data['points'], data['means'],
+                                data['mask']))
+    for b in range(3):
+      np.testing.assert_allclose(f[b][data['mask'][b]].mean(0), 1.0,
+                                 atol=_MEAN_TOL)
+    f1 = np.asarray(self.predict(self.params, data['points'][0],
+                                 data['means'][0]))
+    np.testing.assert_allclose(f1.mean(0), 1.0, atol=_MEAN_TOL)
+
+  def test_permutation_equivariance_and_similarity_invariance(self):
+    _, pts, means, mask = _object(min_fill=1.0)
+    field = np.asarray(self.predict(self.params, pts, means, mask))
+    perm = np.random.default_rng(0).permutation(pts.shape[0])
+    fp = np.asarray(self.predict(self.params, pts[perm], means, mask[perm]))
+    np.testing.assert_allclose(fp, field[perm], atol=_EQUIV_TOL)
+    # Translation and uniform scale of the input leave the field unchanged.
+    moved = pts * 3.7 + jnp.array([10.0, -2.0, 5.0])
+    fm = np.asarray(self.predict(self.params, moved, means, mask))
+    np.testing.assert_allclose(fm, field, atol=1e-4)
+
+  def test_untrained_network_is_mean_only_baseline(self):
+    params = model_lib.init_params(jax.random.key(0), _SMALL)
+    _, pts, means, mask = _object()
+    field = self.predict(params, pts, means, mask)
+    np.testing.assert_array_equal(np.asarray(field), 1.0)
+
+  def test_means_condition_the_field(self):
+    _, pts, _, mask = _object(min_fill=1.0)
+    a = self.predict(self.params, pts,
+                     model_lib.encode_means(1e4, 0.3, 500.0, 'foam'), mask)
+    b = self.predict(self.params, pts,
+                     model_lib.encode_means(1e8, 0.3, 500.0, 'von_mises'),
+                     mask)
+    self.assertGreater(float(jnp.max(jnp.abs(a - b))), 1e-3)
+
+  def test_material_from_field_keeps_nu_below_half(self):
+    field = jnp.array([[2.0, 1.5, 1.0], [0.5, 0.1, 1.0]])
+    E, nu, rho = model_lib.material_from_field(field, 1e6, 0.45, 1000.0)
+    np.testing.assert_allclose(E, [2e6, 5e5])
+    np.testing.assert_allclose(nu, [model_lib.NU_MAX, 0.045], rtol=1e-6)
+    self.assertTrue(np.all(np.asarray(nu) < 0.5))
+    np.testing.assert_allclose(rho, [1000.0, 1000.0])
+
+  def test_bad_inputs_raise_clear_errors(self):
+    with self.assertRaisesRegex(ValueError, 'nu must be in'):
+      model_lib.encode_means(1e6, 0.5, 1000.0)
+    with self.assertRaisesRegex(ValueError, 'E must be finite'):
+      model_lib.encode_means(-1.0, 0.3, 1000.0)
+    with self.assertRaisesRegex(ValueError, 'unknown constitutive model'):
+      model_lib.encode_means(1e6, 0.3, 1000.0, 'jelly')
+    with self.assertRaisesRegex(ValueError, 'means must have shape'):
+      model_lib.predict(self.params, jnp.zeros((8, 3)), jnp.zeros((4,)))
+    with self.assertRaisesRegex(ValueError, 'points must have shape'):
+      model_lib.predict(self.params, jnp.zeros((8, 2)),
+                        jnp.zeros((model_lib.MEANS_DIM,)))
+    with self.assertRaisesRegex(ValueError, 'Unknown MPDP model config'):
+      model_lib.ModelConfig.from_dict({'width': 3})
+
+  def test_encode_means_batched(self):
+    m = model_lib.encode_means([1e6, 1e4], [0.3, 0.2], [1e3, 2e3],
+                               ['rigid', 'foam'])
+    self.assertEqual(m.shape, (2, model_lib.MEANS_DIM))
+    self.assertEqual(float(m[0, -1]), 1.0)   # rigid flag from the name
+    self.assertEqual(float(m[1, -1]), 0.0)
+    np.testing.assert_allclose(m[:, 0], [0.0, -1.0])
+
+  def test_gradient_finite_and_matches_finite_differences(self):
+    o, _, _, _ = _object(n=24)
+    with jax.enable_x64(True):
+      params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64),
+                            _random_params(num_points=24))
+      pts = jnp.asarray(o.points, jnp.float64)
+      means = jnp.asarray(o.means, jnp.float64)
+      mask = jnp.asarray(o.mask)
+      target = jnp.asarray(o.field, jnp.float64)
+      predict = model_lib.make_predict(_SMALL)
+
+      def loss(p):
+        f = predict(p, pts, means, mask)
+        return train_lib.masked_log_errors(f[None], target[None],
+                                           mask[None]).sum()
+
+      grads = jax.grad(loss)(params)
+      for g in jax.tree.leaves(grads):
+        self.assertTrue(np.all(np.isfinite(np.asarray(g))))
+      leaves, tree = jax.tree.flatten(params)
+      keys = jax.random.split(jax.random.key(7), len(leaves))
+      direction = jax.tree.unflatten(tree, [
+        jax.random.normal(k, x.shape, x.dtype) for x, k in zip(leaves, keys)])
+      analytic = sum(float(jnp.vdot(g, d)) for g, d in zip(
+        jax.tree.leaves(grads), jax.tree.leaves(direction)))
+      eps = 1e-5
+      shift = lambda s: jax.tree.map(lambda x, d: x + s * d, params,
+                                     direction)
+      numeric = (float(loss(shift(eps))) - float(loss(shift(-eps)))) / (
+        2 * eps)
+      self.assertGreater(abs(analytic), 1e-6)
+      np.testing.assert_allclose(analytic, numeric, rtol=_FD_RTOL)
+
+
+class SyntheticTest(absltest.TestCase):
+
+  def test_deterministic(self):
+    a = synthetic.make_dataset(11, 4, 64)
+    b = synthetic.make_dataset(11, 4, 64)
+    c = synthetic.make_dataset(12, 4, 64)
+    for k in ('points', 'mask', 'field', 'means'):
+      np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    self.assertFalse(np.array_equal(a['points'], c['points']))
+
+  def test_fields_have_mean_one_and_all_kinds_appear(self):
+    kinds = set()
+    for seed in range(24):
+      o = synthetic.make_object(seed, 128)
+      kinds.add(o.kind)
+      np.testing.assert_allclose(o.field[o.mask].mean(0), 1.0, atol=_MEAN_TOL)
+      self.assertTrue(np.all(o.field[o.mask] > 0))
+      self.assertTrue(np.all(o.points[~o.mask] == 0))
+    self.assertEqual(kinds, set(synthetic.KINDS))
+
+  def test_rules_stiffer_near_support_and_in_thick_parts(self):
+    for seed in range(6):
+      o = synthetic.make_object(seed, 256, kind='beam', min_fill=1.0)
+      if o.model == 'rigid' or o.model in synthetic.FLUIDS:
+        continue
+      d, f = o.dist, o.field[:, 0]
+      near = f[d < np.quantile(d, 0.2)].mean()
+      far = f[d > np.quantile(d, 0.8)].mean()
+      self.assertGreater(near, 1.5 * far, msg=f'seed {seed}')
+    # Thickness alone (equal distance): thicker is stiffer and denser.
+    dist = np.zeros(4)
+    thick = np.array([0.1, 0.2, 0.4, 0.8])
+    f = synthetic.ground_truth_field(dist, thick, 1e6, 'neo_hookean')
+    self.assertTrue(np.all(np.diff(f[:, 0]) > 0))
+    self.assertTrue(np.all(np.diff(f[:, 2]) > 0))
+    # Softer materials get stronger gradients.
+    dist = np.linspace(0.0, 1.0, 8)
+    thick = np.ones(8)
+    soft = synthetic.ground_truth_field(dist, thick, 1e4, 'fixed_corotated')
+    stiff = synthetic.ground_truth_field(dist, thick, 1e8, 'fixed_corotated')
+    self.assertGreater(soft[0, 0] / soft[-1, 0], stiff[0, 0] / stiff[-1, 0])
+    # Rigid bodies and fluids are homogeneous.
+    for m in ('rigid', 'newtonian'):
+      np.testing.assert_array_equal(
+        synthetic.ground_truth_field(dist, thick, 1e6, m), 1.0)
+
+  def test_bad_kind_raises(self):
+    with self.assertRaisesRegex(ValueError, 'Unknown synthetic object kind'):
+      synthetic.make_object(0, 64, kind='tree')
+
+
+class TrainTest(absltest.TestCase):
+
+  def test_optax_steps_lower_the_loss(self):
+    data = synthetic.make_dataset(3, 4, 48)
+    batch = {k: jnp.asarray(data[k]) for k in ('points', 'mask', 'field',
+                                                'means')}
+    params = model_lib.init_params(jax.random.key(0), _SMALL)
+    loss_fn = train_lib.make_loss(_SMALL)
+    tx = optax.adam(3e-3)
+    state = {'step': jnp.asarray(0), 'params': params,
+             'opt_state': tx.init(params)}
+    step_fn = jax.jit(train_lib.make_train_step(loss_fn, tx))
+    loss0 = float(loss_fn(params, batch)[0])
+    for _ in range(3):
+      state, _, _ = step_fn(state, batch)
+    loss3 = float(loss_fn(state['params'], batch)[0])
+    self.assertLess(loss3, loss0)
+    self.assertEqual(int(state['step']), 3)
+
+  def test_train_checkpoint_restore_and_resume(self):
+    config = test_config.get_config()
+    with tempfile.TemporaryDirectory() as workdir:
+      r1 = train_lib.train_and_evaluate(config, workdir)
+      self.assertEqual(r1['step'], config.train.num_steps)
+      # Restore the saved state: identical predictions.
+      mcfg = model_lib.ModelConfig.from_dict(config.model.to_dict())
+      predict = jax.jit(model_lib.make_predict(mcfg))
+      tx = train_lib.make_optimizer(config.train)
+      abstract = {'step': jnp.asarray(0, jnp.int32), 'params': r1['params'],
+                  'opt_state': tx.init(r1['params'])}
+      abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
+      with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints')) as m:
+        self.assertEqual(m.latest_step(), config.train.num_steps)
+        restored = m.restore(m.latest_step(), args=ocp.args.StandardRestore(
+          abstract))
+      self.assertEqual(int(restored['step']), config.train.num_steps)
+      restored = restored['params']
+      _, pts, means, mask = _object(n=32)
+      np.testing.assert_array_equal(
+        np.asarray(predict(restored, pts, means, mask)),
+        np.asarray(predict(r1['params'], pts, means, mask)))
+      # Resume: a longer run continues from the saved step.
+      config.unlock()
+      config.train.num_steps = config.train.num_steps + 2
+      r2 = train_lib.train_and_evaluate(config, workdir)
+      self.assertEqual(r2['step'], config.train.num_steps)
+      with open(os.path.join(workdir, 'metrics.jsonl')) as f:
+        steps = [json.loads(line)['step'] for line in f]
+      self.assertEqual(steps, [2, 4, 6])
+      self.assertIn('baseline_rmse_log_E', r2)
+      # npz export round trip is exact.
+      pretrained.save_params(r2['params'], mcfg, workdir, 'exported')
+      p, cfg, _ = pretrained.load_params(workdir, 'exported')
+      self.assertEqual(cfg, mcfg)
+      np.testing.assert_array_equal(
+        np.asarray(predict(p, pts, means, mask)),
+        np.asarray(predict(r2['params'], pts, means, mask)))
+
+  def test_same_eval_and_train_seed_rejected(self):
+    config = test_config.get_config()
+    config.data.eval_seed = config.data.seed
+    with self.assertRaisesRegex(ValueError, 'must differ'):
+      train_lib.make_datasets(config)
+
+
+class PretrainedTest(absltest.TestCase):
+
+  def test_shipped_checkpoint_beats_mean_only_baseline(self):
+    params = pretrained.load_pretrained()
+    # Seed 99 is neither the training (1) nor the evaluation (2) seed.
+    data = synthetic.make_dataset(99, 16, 256)
+    m = train_lib.evaluate(params, model_lib.ModelConfig(), data)
+    self.assertLess(m['rmse_log_E'], 0.7 * m['baseline_rmse_log_E'])
+    self.assertLess(m['rmse_log_rho'], m['baseline_rmse_log_rho'])
+    self.assertLess(m['mare_E'], m['baseline_mare_E'])
+    # Default predict with the shipped params: mean exactly one.
+    f = model_lib.predict(params, data['points'][0], data['means'][0],
+                          data['mask'][0])
+    np.testing.assert_allclose(np.asarray(f)[data['mask'][0]].mean(0), 1.0,
+                               atol=_MEAN_TOL)
+
+  def test_shipped_checkpoint_is_small(self):
+    size = sum(os.path.getsize(os.path.join(pretrained.PRETRAINED_DIR, f))
+               for f in os.listdir(pretrained.PRETRAINED_DIR))
+    self.assertLess(size, 2 * 1024 * 1024)
+
+
+if __name__ == '__main__':
+  absltest.main()
