@@ -321,8 +321,9 @@ def init_params(key, config: ModelConfig = ModelConfig(),
   """Initial params pytree (the field is exactly 1 until trained)."""
   p = jnp.zeros((num_points, 3))
   m = jnp.zeros((MEANS_DIM,))
-  return PointNet(config).init(key, p, m, jnp.ones((num_points,), bool))[
-    'params']
+  # Jitted: linen's eager init of this network takes seconds on a CPU.
+  init_fn = jax.jit(PointNet(config).init)
+  return init_fn(key, p, m, jnp.ones((num_points,), bool))['params']
 
 
 predict = make_predict(ModelConfig())
