@@ -12,7 +12,7 @@ Sec. 3.3). This module is that network, written as a small PointNet/DGCNN
   g     = max_{i valid} Dense([h_i, e_i])           global feature
   c     = MLP(means)                                condition on the MLLM means
   raw_i = MLP([h_i, e_i, g, c, p_i])  (3 channels: E, nu, rho)
-  l_i   = r * tanh(raw_i / r)                        bounded logits, r per channel
+  l_i   = r * tanh(raw_i / r)                  bounded logits, r per channel
   m_i   = exp(l_i) / mean_{j valid} exp(l_j)         mean exactly 1
 
 ``p`` are the object's points centred on their (masked) mean and scaled so the
@@ -22,7 +22,7 @@ pairwise-distance matrix, O(N^2) memory; padded points are never chosen).
 The last layer is zero-initialised, so an untrained network gives the
 mean-only baseline ``m = 1`` exactly.
 
-Normalisation: ``m_i = N_valid * w_i / sum_valid w`` with ``w = exp(l - max l)``;
+Normalisation: ``m_i = N_valid * w_i / sum_valid w``, ``w = exp(l - max l)``;
 the mean over valid points is 1 up to float rounding (|mean - 1| <= ~1e-7 in
 f32). Padded points get ``m = 1`` and never affect valid outputs.
 
@@ -138,7 +138,8 @@ def encode_means(E, nu, rho, model='fixed_corotated', rigid=None):
   for m in models:
     if isinstance(m, (int, np.integer)):
       if not 0 <= int(m) < NUM_MODELS:
-        raise ValueError(f'MPDP means: model index {m} not in 0..{NUM_MODELS - 1}.')
+        raise ValueError(
+          f'MPDP means: model index {m} not in 0..{NUM_MODELS - 1}.')
       ids.append(int(m))
     elif m in MODEL_NAMES:
       ids.append(MODEL_NAMES.index(m))

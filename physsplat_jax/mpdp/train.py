@@ -52,7 +52,8 @@ def masked_log_errors(pred, target, mask):
   return jnp.sum(jnp.where(m, (lp - lt) ** 2, 0.0), axis=(0, 1)) / n
 
 
-def make_loss(model_config: model_lib.ModelConfig, channel_weights=(1., 1., 1.)):
+def make_loss(model_config: model_lib.ModelConfig,
+              channel_weights=(1.0, 1.0, 1.0)):
   """Returns ``loss_fn(params, batch) -> (loss, per-channel MSLE (3,))``."""
   predict_fn = model_lib.make_predict(model_config)
   w = jnp.asarray(channel_weights, jnp.float32)
