@@ -1,0 +1,763 @@
+"""3D Gaussian Splatting PLY files: a NumPy reader and writer (no plyfile).
+
+The INRIA layout (``graphdeco-inria/gaussian-splatting``,
+``scene/gaussian_model.py``) is one ``vertex`` element of float32 properties::
+
+  x y z  [nx ny nz]  f_dc_0..2  [f_rest_0..R-1]  opacity  scale_0..2  rot_0..3
+
+All values are pre-activation (``opacity = sigmoid(opacity)``,
+``scale = exp(scale_i)``, ``rot_0`` is ``w``), exactly the convention of
+:class:`physsplat_jax.types.Gaussians`. ``f_rest`` is stored channel-major:
+``f_rest_{c * (B - 1) + k}`` is channel ``c`` of SH coefficient ``k + 1``, so
+``R = 3 (B - 1)`` is 0, 9, 24 or 45 for SH degree 0, 1, 2 or 3; in memory the
+coefficients are ``(K, B, 3)``. ``f_rest_*``, ``scale_*`` and ``rot_*`` are
+matched by their numeric suffix, not by file order.
+
+What is read: binary little- and big-endian and ASCII PLY 1.0 with any scalar
+types (``char/int8 uchar/uint8 short/int16 ushort/uint16 int/int32
+uint/uint32 float/float32 double/float64``), converted to the requested float
+dtype; normals are optional and kept in ``Gaussians.normals``; every other
+scalar vertex property (``object_id``, ``label``, ...) is kept in
+``Gaussians.extras`` with its integer type (floats are cast to ``dtype``) and
+written back after ``rot_3``. Elements other than ``vertex`` are parsed (so
+list properties such as faces are skipped correctly) and then ignored. The
+PlayCanvas/SuperSplat ``compressed.ply`` (``chunk``/``vertex``/``sh``) is
+decoded by :mod:`physsplat_jax.io.compressed`.
+
+What is written: binary little-endian (default) or ASCII, ``\\n`` line
+endings, float32 for the Gaussian fields, so that ``save_ply(load_ply(f))``
+reproduces an INRIA file byte for byte (normals are written only when present,
+``f_rest`` only when the SH degree is above 0).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+from typing import Mapping
+
+import jax.numpy as jnp
+import numpy as np
+
+from physsplat_jax.types import Gaussians
+
+PathLike = str | os.PathLike
+
+# PLY scalar type names (and their aliases) -> NumPy type codes.
+PLY_TYPES = {
+  'char': 'i1', 'int8': 'i1',
+  'uchar': 'u1', 'uint8': 'u1',
+  'short': 'i2', 'int16': 'i2',
+  'ushort': 'u2', 'uint16': 'u2',
+  'int': 'i4', 'int32': 'i4',
+  'uint': 'u4', 'uint32': 'u4',
+  'float': 'f4', 'float32': 'f4',
+  'double': 'f8', 'float64': 'f8',
+}  # fmt: skip
+# NumPy type codes -> the canonical PLY names we write.
+_WRITE_NAMES = {
+  'i1': 'char', 'u1': 'uchar', 'i2': 'short', 'u2': 'ushort',
+  'i4': 'int', 'u4': 'uint', 'f4': 'float', 'f8': 'double',
+}  # fmt: skip
+FORMATS = ('binary_little_endian', 'binary_big_endian', 'ascii')
+_ENDIAN = {'binary_little_endian': '<', 'binary_big_endian': '>', 'ascii': '<'}
+
+# Number of f_rest_* properties for SH degree 0..3.
+F_REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}
+REQUIRED = (
+  ('x', 'y', 'z')
+  + tuple(f'f_dc_{i}' for i in range(3))
+  + ('opacity',)
+  + tuple(f'scale_{i}' for i in range(3))
+  + tuple(f'rot_{i}' for i in range(4))
+)
+NORMALS = ('nx', 'ny', 'nz')
+_MAX_HEADER_BYTES = 1 << 20
+_NAME_RE = re.compile(r'^[^\s]+$')
+
+
+class PlyError(ValueError):
+  """A PLY file that cannot be read (or Gaussians that cannot be written)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PlyProperty:
+  """One property of a PLY element.
+
+  Attributes:
+    name: property name.
+    dtype: NumPy type code of the value (or of the list items), e.g. ``'f4'``.
+    count_dtype: for a list property, the type code of its length prefix;
+      None for a scalar property.
+  """
+
+  name: str
+  dtype: str
+  count_dtype: str | None = None
+
+  @property
+  def is_list(self) -> bool:
+    return self.count_dtype is not None
+
+
+@dataclasses.dataclass(frozen=True)
+class PlyElement:
+  """One element of a PLY header: a name, a row count and its properties."""
+
+  name: str
+  count: int
+  properties: tuple[PlyProperty, ...]
+
+  @property
+  def property_names(self) -> tuple[str, ...]:
+    return tuple(p.name for p in self.properties)
+
+  @property
+  def has_lists(self) -> bool:
+    return any(p.is_list for p in self.properties)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlyHeader:
+  """A parsed PLY header.
+
+  Attributes:
+    format: ``'binary_little_endian'``, ``'binary_big_endian'`` or
+      ``'ascii'``.
+    elements: the elements in file order.
+    comments: the ``comment`` lines (without the keyword).
+    size: header length in bytes, including the ``end_header`` line.
+  """
+
+  format: str
+  elements: tuple[PlyElement, ...]
+  comments: tuple[str, ...] = ()
+  size: int = 0
+
+  def element(self, name: str) -> PlyElement | None:
+    for e in self.elements:
+      if e.name == name:
+        return e
+    return None
+
+
+# ----------------------------------------------------------------------------
+# Header.
+
+
+def _parse_header(data: bytes, path) -> PlyHeader:
+  """Parses the header at the start of ``data`` (the whole file or a prefix)."""
+  if not (data.startswith(b'ply\n') or data.startswith(b'ply\r\n')):
+    raise PlyError(
+      f'{path}: not a PLY file (it must start with the line "ply"; '
+      f'found {data[:16]!r})'
+    )
+  m = re.search(rb'(^|\n)end_header\r?\n', data[:_MAX_HEADER_BYTES])
+  if m is None:
+    if len(data) < _MAX_HEADER_BYTES and b'end_header' in data:
+      # Header ends the file without a newline: an empty body.
+      m = re.search(rb'(^|\n)end_header\r?$', data)
+    if m is None:
+      raise PlyError(
+        f'{path}: PLY header has no "end_header" line (file truncated or '
+        'not a PLY file)'
+      )
+  size = m.end()
+  try:
+    text = data[:size].decode('ascii')
+  except UnicodeDecodeError as e:
+    raise PlyError(f'{path}: PLY header is not ASCII text ({e})') from None
+  fmt = None
+  elements: list[tuple[str, int, list[PlyProperty]]] = []
+  comments = []
+  for lineno, raw in enumerate(text.splitlines()[1:], start=2):
+    words = raw.split()
+    if not words:
+      continue
+    key = words[0]
+    where = f'{path}: PLY header line {lineno} ({raw.strip()!r})'
+    if key == 'format':
+      if len(words) != 3 or words[1] not in FORMATS:
+        raise PlyError(
+          f'{where}: unsupported format; expected one of {FORMATS} '
+          'with version 1.0'
+        )
+      if words[2] not in ('1.0', '1'):
+        raise PlyError(f'{where}: unsupported PLY version {words[2]!r}')
+      fmt = words[1]
+    elif key in ('comment', 'obj_info'):
+      if key == 'comment':
+        comments.append(raw.strip()[len('comment') :].strip())
+    elif key == 'element':
+      if len(words) != 3 or not words[2].isdigit():
+        raise PlyError(f'{where}: expected "element <name> <count>"')
+      elements.append((words[1], int(words[2]), []))
+    elif key == 'property':
+      if not elements:
+        raise PlyError(f'{where}: property before any element')
+      if len(words) == 3:
+        if words[1] not in PLY_TYPES:
+          raise PlyError(
+            f'{where}: unknown PLY type {words[1]!r}; known: '
+            f'{sorted(PLY_TYPES)}'
+          )
+        prop = PlyProperty(words[2], PLY_TYPES[words[1]])
+      elif len(words) == 5 and words[1] == 'list':
+        for t in words[2:4]:
+          if t not in PLY_TYPES:
+            raise PlyError(f'{where}: unknown PLY type {t!r}')
+        prop = PlyProperty(words[4], PLY_TYPES[words[3]], PLY_TYPES[words[2]])
+      else:
+        raise PlyError(
+          f'{where}: expected "property <type> <name>" or '
+          '"property list <count type> <item type> <name>"'
+        )
+      if prop.name in [p.name for p in elements[-1][2]]:
+        raise PlyError(
+          f'{where}: duplicate property {prop.name!r} in element '
+          f'{elements[-1][0]!r}'
+        )
+      elements[-1][2].append(prop)
+    elif key == 'end_header':
+      break
+    else:
+      raise PlyError(f'{where}: unknown header keyword {key!r}')
+  if fmt is None:
+    raise PlyError(f'{path}: PLY header has no "format" line')
+  return PlyHeader(
+    format=fmt,
+    elements=tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements),
+    comments=tuple(comments),
+    size=size,
+  )
+
+
+def _read_bytes(path) -> bytes:
+  try:
+    with open(path, 'rb') as f:
+      return f.read()
+  except FileNotFoundError:
+    raise FileNotFoundError(f'PLY file not found: {path}') from None
+  except IsADirectoryError:
+    raise PlyError(f'{path}: is a directory, not a PLY file') from None
+
+
+def read_ply_header(path: PathLike) -> PlyHeader:
+  """Reads only the header of a PLY file.
+
+  Args:
+    path: file path.
+
+  Returns:
+    The parsed :class:`PlyHeader`.
+
+  Raises:
+    PlyError: not a PLY file or a malformed header.
+  """
+  with open(path, 'rb') as f:
+    head = f.read(_MAX_HEADER_BYTES)
+  return _parse_header(head, path)
+
+
+# ----------------------------------------------------------------------------
+# Body.
+
+
+def _scalar_dtype(element: PlyElement, endian: str) -> np.dtype:
+  return np.dtype([(p.name, endian + p.dtype) for p in element.properties])
+
+
+def _native(a: np.ndarray) -> np.ndarray:
+  return a.astype(a.dtype.newbyteorder('='), copy=True)
+
+
+def _truncated(path, element, expected, actual):
+  return PlyError(
+    f'{path}: truncated PLY payload in element {element.name!r} '
+    f'({element.count} rows): expected {expected} bytes, file has {actual}'
+  )
+
+
+def _read_binary(data: bytes, header: PlyHeader, path) -> dict:
+  endian = _ENDIAN[header.format]
+  offset = header.size
+  out = {}
+  # Fast path: a total size check up front gives one clear message.
+  if not any(e.has_lists for e in header.elements):
+    expected = sum(
+      e.count * _scalar_dtype(e, endian).itemsize for e in header.elements
+    )
+    actual = len(data) - header.size
+    if actual < expected:
+      shapes = ', '.join(
+        f'{e.name}: {e.count} x {_scalar_dtype(e, endian).itemsize} B'
+        for e in header.elements
+      )
+      raise PlyError(
+        f'{path}: truncated PLY payload: expected {expected} bytes after '
+        f'the header ({shapes}), file has {actual}'
+      )
+  for e in header.elements:
+    if not e.has_lists:
+      dt = _scalar_dtype(e, endian)
+      nbytes = e.count * dt.itemsize
+      if offset + nbytes > len(data):
+        raise _truncated(path, e, nbytes, len(data) - offset)
+      rows = np.frombuffer(data, dt, e.count, offset)
+      out[e.name] = {p.name: _native(rows[p.name]) for p in e.properties}
+      offset += nbytes
+      continue
+    cols = {p.name: [] for p in e.properties}
+    for _ in range(e.count):
+      for p in e.properties:
+        if p.is_list:
+          cdt = np.dtype(endian + p.count_dtype)
+          if offset + cdt.itemsize > len(data):
+            raise _truncated(path, e, offset + cdt.itemsize, len(data))
+          n = int(np.frombuffer(data, cdt, 1, offset)[0])
+          offset += cdt.itemsize
+          idt = np.dtype(endian + p.dtype)
+          if offset + n * idt.itemsize > len(data):
+            raise _truncated(path, e, offset + n * idt.itemsize, len(data))
+          cols[p.name].append(_native(np.frombuffer(data, idt, n, offset)))
+          offset += n * idt.itemsize
+        else:
+          dt = np.dtype(endian + p.dtype)
+          if offset + dt.itemsize > len(data):
+            raise _truncated(path, e, offset + dt.itemsize, len(data))
+          cols[p.name].append(np.frombuffer(data, dt, 1, offset)[0])
+          offset += dt.itemsize
+    out[e.name] = {
+      p.name: (
+        cols[p.name]
+        if p.is_list
+        else np.asarray(cols[p.name], np.dtype(p.dtype))
+      )
+      for p in e.properties
+    }
+  return out
+
+
+def _parse_tokens(tokens, dtype: str, path, what):
+  try:
+    if dtype.startswith('f'):
+      return np.asarray(tokens).astype(np.float64).astype(dtype)
+    vals = np.asarray(tokens).astype(np.float64)
+  except ValueError as e:
+    raise PlyError(f'{path}: bad ASCII value in {what}: {e}') from None
+  if np.any(vals != np.round(vals)):
+    raise PlyError(
+      f'{path}: non-integer ASCII value in integer property {what}'
+    )
+  info = np.iinfo(dtype)
+  if vals.size and (vals.min() < info.min or vals.max() > info.max):
+    raise PlyError(f'{path}: ASCII value out of range for {what} ({dtype})')
+  return vals.astype(dtype)
+
+
+def _read_ascii(data: bytes, header: PlyHeader, path) -> dict:
+  tokens = data[header.size :].split()
+  pos = 0
+  out = {}
+  for e in header.elements:
+    if not e.has_lists:
+      n = e.count * len(e.properties)
+      if pos + n > len(tokens):
+        raise PlyError(
+          f'{path}: truncated ASCII PLY payload in element {e.name!r}: '
+          f'expected {e.count} rows x {len(e.properties)} values, found '
+          f'{(len(tokens) - pos) // max(len(e.properties), 1)} full rows'
+        )
+      block = np.asarray(tokens[pos : pos + n]).reshape(e.count, -1)
+      pos += n
+      out[e.name] = {
+        p.name: _parse_tokens(block[:, i], p.dtype, path, f'{e.name}.{p.name}')
+        for i, p in enumerate(e.properties)
+      }
+      continue
+    cols = {p.name: [] for p in e.properties}
+    for row in range(e.count):
+      for p in e.properties:
+        what = f'{e.name}.{p.name} (row {row})'
+        if pos >= len(tokens):
+          raise PlyError(
+            f'{path}: truncated ASCII PLY payload in element {e.name!r} at '
+            f'row {row} of {e.count}'
+          )
+        if p.is_list:
+          n = int(_parse_tokens([tokens[pos]], p.count_dtype, path, what)[0])
+          pos += 1
+          if pos + n > len(tokens):
+            raise PlyError(
+              f'{path}: truncated ASCII PLY payload in {what}'
+            )
+          cols[p.name].append(
+            _parse_tokens(tokens[pos : pos + n], p.dtype, path, what)
+          )
+          pos += n
+        else:
+          cols[p.name].append(
+            _parse_tokens([tokens[pos]], p.dtype, path, what)[0]
+          )
+          pos += 1
+    out[e.name] = {
+      p.name: (
+        cols[p.name]
+        if p.is_list
+        else np.asarray(cols[p.name], np.dtype(p.dtype))
+      )
+      for p in e.properties
+    }
+  return out
+
+
+def read_ply(path: PathLike) -> tuple[PlyHeader, dict[str, dict[str, np.ndarray]]]:
+  """Reads every element of a PLY file into NumPy arrays.
+
+  Args:
+    path: file path.
+
+  Returns:
+    ``(header, elements)`` where ``elements[element][property]`` is a
+    native-endian ``(count,)`` array for a scalar property (its PLY type) or
+    a list of arrays for a list property.
+
+  Raises:
+    PlyError: not a PLY file, malformed header or truncated payload.
+  """
+  data = _read_bytes(path)
+  header = _parse_header(data, path)
+  if header.format == 'ascii':
+    return header, _read_ascii(data, header, path)
+  return header, _read_binary(data, header, path)
+
+
+# ----------------------------------------------------------------------------
+# Writer.
+
+
+def _ply_type_name(dtype: np.dtype, what: str) -> str:
+  code = np.dtype(dtype).str[1:]
+  if np.dtype(dtype) == np.bool_:
+    code = 'u1'
+  if code == 'i8' or code == 'u8':
+    code = code[0] + '4'
+  if code not in _WRITE_NAMES:
+    raise PlyError(
+      f'{what}: dtype {np.dtype(dtype)} has no PLY type; use one of '
+      'int8/uint8/int16/uint16/int32/uint32/float32/float64'
+    )
+  return _WRITE_NAMES[code]
+
+
+def _format_ascii(col: np.ndarray) -> list[str]:
+  if col.dtype.kind == 'f':
+    fmt = '%.9g' if col.dtype.itemsize <= 4 else '%.17g'
+    return [fmt % v for v in col.tolist()]
+  return [str(v) for v in col.tolist()]
+
+
+def write_ply(
+  path: PathLike,
+  elements: Mapping[str, Mapping[str, np.ndarray]],
+  *,
+  format: str = 'binary_little_endian',  # noqa: A002
+  comments: tuple[str, ...] = (),
+) -> None:
+  """Writes scalar-property elements to a PLY file.
+
+  Args:
+    path: output path.
+    elements: ``{element: {property: (count,) array}}`` in file order; each
+      array's dtype picks the PLY type (int64/uint64 are narrowed to 32 bits
+      after a range check, bool becomes uchar).
+    format: ``'binary_little_endian'``, ``'binary_big_endian'`` or
+      ``'ascii'``.
+    comments: header comment lines.
+
+  Raises:
+    PlyError: unknown format, bad names, ragged columns or unsupported dtypes.
+  """
+  if format not in FORMATS:
+    raise PlyError(f'{path}: unknown PLY format {format!r}; use {FORMATS}')
+  lines = ['ply', f'format {format} 1.0']
+  lines += [f'comment {c}' for c in comments]
+  blocks = []
+  for ename, props in elements.items():
+    if not _NAME_RE.match(ename):
+      raise PlyError(f'{path}: bad PLY element name {ename!r}')
+    cols = {}
+    count = None
+    for pname, arr in props.items():
+      what = f'{path}: property {ename}.{pname}'
+      if not _NAME_RE.match(pname):
+        raise PlyError(f'{what}: PLY names may not contain whitespace')
+      a = np.asarray(arr)
+      if a.ndim != 1:
+        raise PlyError(f'{what} has shape {a.shape}; expected (count,)')
+      if count is None:
+        count = a.shape[0]
+      elif a.shape[0] != count:
+        raise PlyError(
+          f'{what} has {a.shape[0]} rows but the element has {count}'
+        )
+      tname = _ply_type_name(a.dtype, what)
+      code = PLY_TYPES[tname]
+      if a.dtype.kind in 'iub' and a.dtype.itemsize == 8:
+        info = np.iinfo(code)
+        if a.size and (a.min() < info.min or a.max() > info.max):
+          raise PlyError(f'{what}: values out of range for {tname}')
+      cols[pname] = a.astype(code)
+      lines.append(f'property {tname} {pname}')
+    count = 0 if count is None else count
+    lines.insert(len(lines) - len(cols), f'element {ename} {count}')
+    blocks.append((count, cols))
+  lines.append('end_header')
+  head = ('\n'.join(lines) + '\n').encode('ascii')
+  with open(path, 'wb') as f:
+    f.write(head)
+    for count, cols in blocks:
+      if not cols:
+        continue
+      if format == 'ascii':
+        strs = [_format_ascii(c) for c in cols.values()]
+        f.write(''.join(' '.join(r) + '\n' for r in zip(*strs)).encode())
+        continue
+      endian = _ENDIAN[format]
+      dt = np.dtype([(k, endian + c.dtype.str[1:]) for k, c in cols.items()])
+      rows = np.empty(count, dt)
+      for k, c in cols.items():
+        rows[k] = c
+      f.write(rows.tobytes())
+
+
+# ----------------------------------------------------------------------------
+# Gaussians <-> PLY.
+
+
+def _indexed(names, prefix):
+  """``{i: name}`` for names ``prefix<i>``."""
+  out = {}
+  for n in names:
+    if n.startswith(prefix) and n[len(prefix) :].isdigit():
+      out[int(n[len(prefix) :])] = n
+  return out
+
+
+def _vertex_to_gaussians(
+  vertex: Mapping[str, np.ndarray], path, dtype
+) -> Gaussians:
+  names = list(vertex)
+  missing = [n for n in REQUIRED if n not in vertex]
+  if missing:
+    raise PlyError(
+      f'{path}: vertex element is missing propert'
+      f'{"y" if len(missing) == 1 else "ies"} {missing}; a 3DGS PLY needs '
+      f'{" ".join(REQUIRED)} (and optionally nx ny nz, f_rest_*)'
+    )
+  rest = _indexed(names, 'f_rest_')
+  if len(rest) not in F_REST_COUNTS or sorted(rest) != list(range(len(rest))):
+    raise PlyError(
+      f'{path}: found {len(rest)} f_rest_* properties '
+      f'(indices {sorted(rest)[:5]}...); expected f_rest_0..f_rest_{{R-1}} '
+      'with R = 0, 9, 24 or 45 (SH degree 0..3)'
+    )
+  for name in names:
+    if isinstance(vertex[name], list):
+      raise PlyError(
+        f'{path}: vertex property {name!r} is a list; 3DGS PLY vertices '
+        'have scalar properties only'
+      )
+  count = len(vertex['x'])
+  used = list(REQUIRED) + [rest[i] for i in range(len(rest))]
+  has_normals = all(n in vertex for n in NORMALS)
+  if has_normals:
+    used += list(NORMALS)
+  bad = []
+  for n in used:
+    col = vertex[n]
+    if col.dtype.kind == 'f':
+      nonfinite = int(np.count_nonzero(~np.isfinite(col)))
+      if nonfinite:
+        bad.append(f'{n}: {nonfinite} of {count} rows')
+  if bad:
+    raise PlyError(
+      f'{path}: non-finite values (NaN/inf) in {"; ".join(bad)}; clean '
+      'the file (e.g. drop those rows) before loading'
+    )
+  col = lambda ns: np.stack([vertex[n] for n in ns], axis=-1)
+  nr = len(rest) // 3
+  dc = col([f'f_dc_{i}' for i in range(3)])[:, None, :]
+  if nr:
+    fr = col([rest[i] for i in range(len(rest))]).reshape(count, 3, nr)
+    sh = np.concatenate([dc, fr.transpose(0, 2, 1)], axis=1)
+  else:
+    sh = dc
+  f = lambda a: jnp.asarray(np.asarray(a, np.float64).astype(np.dtype(dtype)))
+  extras = {}
+  for n in names:
+    if n in used or (has_normals and n in NORMALS):
+      continue
+    a = vertex[n]
+    if a.dtype.kind == 'f':
+      extras[n] = f(a)
+    elif a.dtype.itemsize > 4:
+      extras[n] = jnp.asarray(a.astype(np.int32))
+    else:
+      extras[n] = jnp.asarray(a)
+  return Gaussians(
+    means=f(col(['x', 'y', 'z'])),
+    log_scales=f(col([f'scale_{i}' for i in range(3)])),
+    quats=f(col([f'rot_{i}' for i in range(4)])),
+    opacity_logits=f(vertex['opacity']),
+    sh=f(sh),
+    normals=f(col(NORMALS)) if has_normals else None,
+    extras=extras,
+  )
+
+
+def load_ply(path: PathLike, dtype=jnp.float32) -> Gaussians:
+  """Loads a 3DGS PLY file (INRIA layout or PlayCanvas compressed).
+
+  Args:
+    path: file path.
+    dtype: float dtype of the returned arrays (float32 keeps the file's
+      float32 values exactly).
+
+  Returns:
+    :class:`~physsplat_jax.types.Gaussians` with K rows: means (K, 3),
+    log_scales (K, 3), quats (K, 4) wxyz, opacity_logits (K,), sh (K, B, 3),
+    normals (K, 3) or None, extras {name: (K,)}.
+
+  Raises:
+    PlyError: not a PLY, unsupported format, truncated payload, missing
+      properties, non-finite values or wrong counts (the message names the
+      file and the problem).
+  """
+  header, elements = read_ply(path)
+  if 'vertex' not in elements:
+    raise PlyError(
+      f'{path}: no "vertex" element (elements: '
+      f'{[e.name for e in header.elements]}); a 3DGS PLY stores one vertex '
+      'per Gaussian'
+    )
+  if 'chunk' in elements and 'packed_position' in elements['vertex']:
+    from physsplat_jax.io import compressed
+
+    return compressed.decode_compressed(elements, path, dtype)
+  return _vertex_to_gaussians(elements['vertex'], path, dtype)
+
+
+def gaussians_to_vertex(gaussians: Gaussians, path='<gaussians>') -> dict:
+  """The INRIA-ordered ``{property: (K,) array}`` of a set of Gaussians.
+
+  Args:
+    gaussians: the Gaussians (any float dtype; written as float32).
+    path: used in error messages only.
+
+  Returns:
+    An ordered dict of property name -> (K,) NumPy array.
+
+  Raises:
+    PlyError: inconsistent shapes, non-finite values or clashing extras.
+  """
+  g = gaussians
+  k = np.shape(g.means)[0] if np.ndim(g.means) == 2 else -1
+  expect = {
+    'means': (k, 3),
+    'log_scales': (k, 3),
+    'quats': (k, 4),
+    'opacity_logits': (k,),
+  }
+  if g.normals is not None:
+    expect['normals'] = (k, 3)
+  for name, shape in expect.items():
+    got = np.shape(getattr(g, name))
+    if got != shape or k < 0:
+      raise PlyError(
+        f'{path}: Gaussians.{name} has shape {got}, expected {shape} '
+        '(K = number of Gaussians from means)'
+      )
+  sh_shape = np.shape(g.sh)
+  if len(sh_shape) != 3 or sh_shape[0] != k or sh_shape[2] != 3 or (
+    sh_shape[1] not in (1, 4, 9, 16)
+  ):
+    raise PlyError(
+      f'{path}: Gaussians.sh has shape {sh_shape}, expected ({k}, B, 3) '
+      'with B in 1, 4, 9, 16'
+    )
+  f32 = lambda a: np.asarray(a).astype(np.float32)
+  out = {}
+  means = f32(g.means)
+  out.update(x=means[:, 0], y=means[:, 1], z=means[:, 2])
+  if g.normals is not None:
+    nrm = f32(g.normals)
+    out.update(nx=nrm[:, 0], ny=nrm[:, 1], nz=nrm[:, 2])
+  sh = f32(g.sh)
+  for c in range(3):
+    out[f'f_dc_{c}'] = sh[:, 0, c]
+  rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(k, -1)
+  for i in range(rest.shape[1]):
+    out[f'f_rest_{i}'] = rest[:, i]
+  out['opacity'] = f32(g.opacity_logits)
+  ls = f32(g.log_scales)
+  for i in range(3):
+    out[f'scale_{i}'] = ls[:, i]
+  q = f32(g.quats)
+  for i in range(4):
+    out[f'rot_{i}'] = q[:, i]
+  bad = [
+    f'{n}: {int(np.count_nonzero(~np.isfinite(a)))} rows'
+    for n, a in out.items()
+    if not np.all(np.isfinite(a))
+  ]
+  if bad:
+    raise PlyError(
+      f'{path}: refusing to write non-finite values ({"; ".join(bad)})'
+    )
+  for name, a in g.extras.items():
+    if name in out or name in NORMALS:
+      raise PlyError(
+        f'{path}: Gaussians.extras[{name!r}] clashes with a 3DGS property '
+        'name; rename it'
+      )
+    a = np.asarray(a)
+    if a.shape != (k,):
+      raise PlyError(
+        f'{path}: Gaussians.extras[{name!r}] has shape {a.shape}; extras '
+        f'must be per-Gaussian ({k},) arrays'
+      )
+    out[name] = a
+  return out
+
+
+def save_ply(
+  path: PathLike, gaussians: Gaussians, *, binary: bool = True
+) -> None:
+  """Writes Gaussians as an INRIA 3DGS PLY file.
+
+  Property order: ``x y z [nx ny nz] f_dc_0..2 [f_rest_*] opacity scale_0..2
+  rot_0..3 [extras...]``; Gaussian fields as float32, extras with their own
+  type. Normals are written only when ``gaussians.normals`` is set (INRIA
+  writes zeros; pass ``normals=jnp.zeros((K, 3))`` for the full 62-property
+  layout).
+
+  Args:
+    path: output path (parent directories are created).
+    gaussians: the Gaussians.
+    binary: binary little-endian (True) or ASCII (False).
+
+  Raises:
+    PlyError: inconsistent shapes, non-finite values or bad extras.
+  """
+  vertex = gaussians_to_vertex(gaussians, path)
+  parent = os.path.dirname(os.fspath(path))
+  if parent:
+    os.makedirs(parent, exist_ok=True)
+  write_ply(
+    path,
+    {'vertex': vertex},
+    format='binary_little_endian' if binary else 'ascii',
+  )
+
