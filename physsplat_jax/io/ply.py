@@ -22,12 +22,35 @@ scalar vertex property (``object_id``, ``label``, ...) is kept in
 written back after ``rot_3``. Elements other than ``vertex`` are parsed (so
 list properties such as faces are skipped correctly) and then ignored. The
 PlayCanvas/SuperSplat ``compressed.ply`` (``chunk``/``vertex``/``sh``) is
-decoded by :mod:`physsplat_jax.io.compressed`.
+read and written too (layout below).
 
 What is written: binary little-endian (default) or ASCII, ``\\n`` line
 endings, float32 for the Gaussian fields, so that ``save_ply(load_ply(f))``
 reproduces an INRIA file byte for byte (normals are written only when present,
 ``f_rest`` only when the SH degree is above 0).
+
+PlayCanvas compressed PLY (``playcanvas/splat-transform``,
+``writers/compressed-chunk.ts`` and ``readers/decompress-ply.ts``): Gaussians
+in chunks of 256; ``element chunk`` holds per-chunk float32 bounds
+``min_x min_y min_z max_x max_y max_z`` (positions), ``min_scale_*``,
+``max_scale_*`` (log-scales, clamped to [-20, 20]) and optionally
+``min_r.. max_b`` (colours ``0.5 + C0 f_dc``); ``element vertex`` holds four
+uint32 per Gaussian:
+
+* ``packed_position``/``packed_scale``: 11-10-11 bit unorms ``(x << 21) |
+  (y << 11) | z`` of ``t = (v - min) / (max - min)``, decoded as
+  ``min (1 - t) + max t``;
+* ``packed_rotation``: 2 bits for the index of the largest component of the
+  unit quaternion ``(rot_0..rot_3)`` (made positive), then the other three
+  in order as 10-bit unorms of ``q_i sqrt(2)/2 + 0.5``; the largest is
+  ``sqrt(1 - sum of squares)``;
+* ``packed_color``: 8-8-8-8 bit ``r g b sigmoid(opacity)``.
+
+``element sh`` (optional) holds ``f_rest_*`` as uchar in the INRIA
+channel-major order: ``byte = trunc(256 (f / 8 + 0.5))``, decoded as
+``8 (n - 0.5)`` with ``n = (byte + 0.5) / 256`` (0 -> 0, 255 -> 1). An
+opacity byte of 0 or 255 would decode to an infinite logit; we clamp it to
+``logit(0.5 / 255)`` and ``logit(254.5 / 255)`` (about -/+6.2).
 """
 
 from __future__ import annotations
@@ -40,6 +63,7 @@ from typing import Mapping
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.gaussians import SH_C0
 from physsplat_jax.types import Gaussians
 
 PathLike = str | os.PathLike
@@ -643,9 +667,7 @@ def load_ply(path: PathLike, dtype=jnp.float32) -> Gaussians:
       'per Gaussian'
     )
   if 'chunk' in elements and 'packed_position' in elements['vertex']:
-    from physsplat_jax.io import compressed
-
-    return compressed.decode_compressed(elements, path, dtype)
+    return decode_compressed(elements, path, dtype)
   return _vertex_to_gaussians(elements['vertex'], path, dtype)
 
 
@@ -761,3 +783,281 @@ def save_ply(
     format='binary_little_endian' if binary else 'ascii',
   )
 
+
+
+# ----------------------------------------------------------------------------
+# PlayCanvas compressed PLY.
+
+CHUNK_SIZE = 256
+CHUNK_PROPS = (
+  'min_x', 'min_y', 'min_z', 'max_x', 'max_y', 'max_z',
+  'min_scale_x', 'min_scale_y', 'min_scale_z',
+  'max_scale_x', 'max_scale_y', 'max_scale_z',
+)  # fmt: skip
+CHUNK_COLOR_PROPS = ('min_r', 'min_g', 'min_b', 'max_r', 'max_g', 'max_b')
+PACKED_PROPS = (
+  'packed_position', 'packed_rotation', 'packed_scale', 'packed_color'
+)  # fmt: skip
+# Log-scale bounds of the PlayCanvas encoder ("sometimes values are at
+# infinity").
+_SCALE_CLAMP = 20.0
+# Opacity bytes 0/255 would decode to -/+inf; this keeps logits finite.
+_ALPHA_EPS = 0.5 / 255.0
+
+
+def _unorm(v: np.ndarray, shift: int, bits: int) -> np.ndarray:
+  t = (1 << bits) - 1
+  return ((v >> np.uint32(shift)) & np.uint32(t)).astype(np.float64) / t
+
+
+def _pack_unorm(x: np.ndarray, bits: int) -> np.ndarray:
+  t = (1 << bits) - 1
+  return np.clip(np.floor(x * t + 0.5), 0, t).astype(np.uint32)
+
+
+def _lerp(a, b, t):
+  return a * (1.0 - t) + b * t
+
+
+def decode_compressed(
+  elements: Mapping[str, Mapping[str, np.ndarray]], path='<ply>',
+  dtype=jnp.float32
+) -> Gaussians:
+  """Decodes the elements of a PlayCanvas ``compressed.ply`` into Gaussians.
+
+  Args:
+    elements: ``{element: {property: array}}`` as returned by
+      :func:`read_ply`, with ``chunk``, ``vertex`` and optionally ``sh``.
+    path: used in error messages.
+    dtype: float dtype of the result.
+
+  Returns:
+    :class:`~physsplat_jax.types.Gaussians` (no normals, no extras).
+
+  Raises:
+    PlyError: missing properties, wrong counts or bad types.
+  """
+  chunk, vertex = elements['chunk'], elements['vertex']
+  for ename, el, names in (
+    ('chunk', chunk, CHUNK_PROPS),
+    ('vertex', vertex, PACKED_PROPS),
+  ):
+    missing = [n for n in names if n not in el]
+    if missing:
+      raise PlyError(
+        f'{path}: compressed PLY element {ename!r} is missing {missing}; '
+        f'it needs {" ".join(names)}'
+      )
+  for n in PACKED_PROPS:
+    if vertex[n].dtype.kind not in 'iu':
+      raise PlyError(
+        f'{path}: compressed PLY property vertex.{n} is '
+        f'{vertex[n].dtype}; expected uint'
+      )
+  k = len(vertex['packed_position'])
+  num_chunks = len(chunk['min_x'])
+  if num_chunks != -(-k // CHUNK_SIZE):
+    raise PlyError(
+      f'{path}: compressed PLY has {num_chunks} chunks for {k} Gaussians; '
+      f'expected ceil({k} / {CHUNK_SIZE}) = {-(-k // CHUNK_SIZE)}'
+    )
+  has_color = all(n in chunk for n in CHUNK_COLOR_PROPS)
+  c = {
+    n: np.asarray(chunk[n], np.float32).astype(np.float64)
+    for n in CHUNK_PROPS + (CHUNK_COLOR_PROPS if has_color else ())
+  }
+  bad = [n for n, a in c.items() if not np.all(np.isfinite(a))]
+  if bad:
+    raise PlyError(f'{path}: non-finite chunk bounds in {bad}')
+  ci = np.arange(k) // CHUNK_SIZE
+  ch = {n: a[ci] for n, a in c.items()}
+  u32 = lambda n: vertex[n].astype(np.uint32)
+
+  def unpack_111011(v, lo, hi):
+    t = [_unorm(v, 21, 11), _unorm(v, 11, 10), _unorm(v, 0, 11)]
+    return np.stack(
+      [_lerp(ch[lo[i]], ch[hi[i]], t[i]) for i in range(3)], axis=-1
+    )
+
+  means = unpack_111011(
+    u32('packed_position'), ('min_x', 'min_y', 'min_z'),
+    ('max_x', 'max_y', 'max_z')
+  )  # fmt: skip
+  log_scales = unpack_111011(
+    u32('packed_scale'),
+    ('min_scale_x', 'min_scale_y', 'min_scale_z'),
+    ('max_scale_x', 'max_scale_y', 'max_scale_z'),
+  )
+  rot = u32('packed_rotation')
+  abc = np.stack(
+    [(_unorm(rot, s, 10) - 0.5) * np.sqrt(2.0) for s in (20, 10, 0)], -1
+  )
+  largest = (rot >> np.uint32(30)).astype(np.int64)
+  m = np.sqrt(np.maximum(0.0, 1.0 - np.sum(abc**2, axis=-1)))
+  quats = np.empty((k, 4))
+  rows = np.arange(k)
+  quats[rows, largest] = m
+  others = np.array([[j for j in range(4) if j != i] for i in range(4)])
+  for col in range(3):
+    quats[rows, others[largest, col]] = abc[:, col]
+  color = u32('packed_color')
+  rgba = np.stack([_unorm(color, s, 8) for s in (24, 16, 8, 0)], axis=-1)
+  rgb = rgba[:, :3]
+  if has_color:
+    rgb = np.stack(
+      [_lerp(ch[f'min_{a}'], ch[f'max_{a}'], rgb[:, i])
+       for i, a in enumerate('rgb')], axis=-1
+    )  # fmt: skip
+  dc = (rgb - 0.5) / SH_C0
+  alpha = np.clip(rgba[:, 3], _ALPHA_EPS, 1.0 - _ALPHA_EPS)
+  opacity = -np.log(1.0 / alpha - 1.0)
+  sh = dc[:, None, :]
+  if 'sh' in elements:
+    shel = elements['sh']
+    rest = _indexed(list(shel), 'f_rest_')
+    if len(rest) not in (9, 24, 45) or sorted(rest) != list(range(len(rest))):
+      raise PlyError(
+        f'{path}: compressed PLY "sh" element has {len(rest)} f_rest_* '
+        'properties; expected f_rest_0..f_rest_{R-1} with R = 9, 24 or 45'
+      )
+    if len(shel[rest[0]]) != k:
+      raise PlyError(
+        f'{path}: compressed PLY "sh" element has {len(shel[rest[0]])} rows '
+        f'but there are {k} Gaussians'
+      )
+    b = np.stack([shel[rest[i]] for i in range(len(rest))], -1)
+    b = b.astype(np.float64)
+    n = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b + 0.5) / 256.0))
+    fr = ((n - 0.5) * 8.0).reshape(k, 3, len(rest) // 3)
+    sh = np.concatenate([sh, fr.transpose(0, 2, 1)], axis=1)
+  # Decoded in float64 then rounded to float32, as the reference decoder does.
+  f = lambda a: jnp.asarray(a.astype(np.float32).astype(np.dtype(dtype)))
+  return Gaussians(
+    means=f(means),
+    log_scales=f(log_scales),
+    quats=f(quats),
+    opacity_logits=f(opacity),
+    sh=f(sh),
+  )
+
+
+def encode_compressed(gaussians: Gaussians, path='<gaussians>') -> dict:
+  """Encodes Gaussians as PlayCanvas compressed-PLY elements (file order kept).
+
+  Args:
+    gaussians: the Gaussians (normals and extras are not stored).
+    path: used in error messages.
+
+  Returns:
+    ``{'chunk': {...}, 'vertex': {...}[, 'sh': {...}]}`` for
+    :func:`write_ply`.
+  """
+  v = gaussians_to_vertex(gaussians.replace(normals=None, extras={}), path)
+  k = len(v['x'])
+  if k == 0:
+    raise PlyError(f'{path}: cannot write an empty compressed PLY')
+  num_chunks = -(-k // CHUNK_SIZE)
+  pad = num_chunks * CHUNK_SIZE - k
+
+  def chunked(a):
+    # The encoder repeats the last Gaussian to fill the final chunk.
+    a = np.concatenate([a, np.repeat(a[-1:], pad, axis=0)])
+    return a.reshape(num_chunks, CHUNK_SIZE)
+
+  def quantize(names, clamp=None):
+    cols, lo, hi = [], [], []
+    for n in names:
+      a = v[n].astype(np.float64)
+      ca = chunked(a)
+      mn, mx = ca.min(axis=1), ca.max(axis=1)
+      if clamp is not None:
+        mn, mx = np.clip(mn, -clamp, clamp), np.clip(mx, -clamp, clamp)
+      mnr = np.repeat(mn, CHUNK_SIZE)[:k]
+      mxr = np.repeat(mx, CHUNK_SIZE)[:k]
+      rng = mxr - mnr
+      t = np.where(rng < 1e-5, 0.0, (a - mnr) / np.where(rng > 0, rng, 1.0))
+      t = np.where(a <= mnr, 0.0, np.where(a >= mxr, 1.0, t))
+      cols.append(t)
+      lo.append(mn.astype(np.float32))
+      hi.append(mx.astype(np.float32))
+    return cols, lo, hi
+
+  def pack_111011(t):
+    return (
+      (_pack_unorm(t[0], 11) << np.uint32(21))
+      | (_pack_unorm(t[1], 10) << np.uint32(11))
+      | _pack_unorm(t[2], 11)
+    )
+
+  pt, plo, phi = quantize(('x', 'y', 'z'))
+  st, slo, shi = quantize(('scale_0', 'scale_1', 'scale_2'), _SCALE_CLAMP)
+  for c in range(3):
+    v[f'_rgb_{c}'] = (v[f'f_dc_{c}'].astype(np.float64) * SH_C0 + 0.5).astype(
+      np.float32
+    )
+  ct, clo, chi = quantize(('_rgb_0', '_rgb_1', '_rgb_2'))
+  alpha = 1.0 / (1.0 + np.exp(-v['opacity'].astype(np.float64)))
+  color = (
+    (_pack_unorm(ct[0], 8) << np.uint32(24))
+    | (_pack_unorm(ct[1], 8) << np.uint32(16))
+    | (_pack_unorm(ct[2], 8) << np.uint32(8))
+    | _pack_unorm(alpha, 8)
+  )
+  q = np.stack([v[f'rot_{i}'] for i in range(4)], -1).astype(np.float64)
+  qn = np.linalg.norm(q, axis=-1, keepdims=True)
+  q = np.where(qn > 0, q / np.where(qn > 0, qn, 1.0), np.array([1.0, 0, 0, 0]))
+  largest = np.argmax(np.abs(q), axis=-1)
+  rows = np.arange(k)
+  q = q * np.where(q[rows, largest] < 0, -1.0, 1.0)[:, None]
+  rot = largest.astype(np.uint32)
+  others = np.array([[j for j in range(4) if j != i] for i in range(4)])
+  for col in range(3):
+    comp = q[rows, others[largest, col]]
+    rot = (rot << np.uint32(10)) | _pack_unorm(
+      comp * np.sqrt(2.0) * 0.5 + 0.5, 10
+    )
+  chunk = {}
+  names = CHUNK_PROPS + CHUNK_COLOR_PROPS
+  values = plo + phi + slo + shi + clo + chi
+  for n, a in zip(names, values):
+    chunk[n] = a
+  out = {
+    'chunk': chunk,
+    'vertex': {
+      'packed_position': pack_111011(pt),
+      'packed_rotation': rot,
+      'packed_scale': pack_111011(st),
+      'packed_color': color,
+    },
+  }
+  rest = [n for n in v if n.startswith('f_rest_')]
+  if rest:
+    out['sh'] = {
+      n: np.clip(
+        np.trunc((v[n].astype(np.float64) / 8.0 + 0.5) * 256.0), 0, 255
+      ).astype(np.uint8)
+      for n in rest
+    }
+  return out
+
+
+def save_compressed_ply(path: PathLike, gaussians: Gaussians) -> None:
+  """Writes Gaussians as a PlayCanvas/SuperSplat ``compressed.ply``.
+
+  Lossy (about 16 bytes per Gaussian plus 1 byte per SH coefficient); the
+  Gaussians keep their order (PlayCanvas sorts them in Morton order first,
+  which only changes the quantisation chunks). Normals and extras are
+  dropped. See the module docstring for the layout.
+
+  Args:
+    path: output path (parent directories are created).
+    gaussians: the Gaussians.
+
+  Raises:
+    PlyError: inconsistent shapes, non-finite values or no Gaussians.
+  """
+  elements = encode_compressed(gaussians, path)
+  parent = os.path.dirname(os.fspath(path))
+  if parent:
+    os.makedirs(parent, exist_ok=True)
+  write_ply(path, elements, comments=('Generated by physsplat_jax',))
