@@ -393,7 +393,8 @@ def _read_ascii(data: bytes, header: PlyHeader, path) -> dict:
           f'expected {e.count} rows x {len(e.properties)} values, found '
           f'{(len(tokens) - pos) // max(len(e.properties), 1)} full rows'
         )
-      block = np.asarray(tokens[pos : pos + n]).reshape(e.count, -1)
+      block = np.asarray(tokens[pos : pos + n], dtype=bytes)
+      block = block.reshape(e.count, len(e.properties))
       pos += n
       out[e.name] = {
         p.name: _parse_tokens(block[:, i], p.dtype, path, f'{e.name}.{p.name}')
@@ -719,7 +720,7 @@ def gaussians_to_vertex(gaussians: Gaussians, path='<gaussians>') -> dict:
   sh = f32(g.sh)
   for c in range(3):
     out[f'f_dc_{c}'] = sh[:, 0, c]
-  rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(k, -1)
+  rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(k, 3 * (sh.shape[1] - 1))
   for i in range(rest.shape[1]):
     out[f'f_rest_{i}'] = rest[:, i]
   out['opacity'] = f32(g.opacity_logits)
@@ -739,7 +740,7 @@ def gaussians_to_vertex(gaussians: Gaussians, path='<gaussians>') -> dict:
       f'{path}: refusing to write non-finite values ({"; ".join(bad)})'
     )
   for name, a in g.extras.items():
-    if name in out or name in NORMALS:
+    if name in out or (g.normals is not None and name in NORMALS):
       raise PlyError(
         f'{path}: Gaussians.extras[{name!r}] clashes with a 3DGS property '
         'name; rename it'
