@@ -1,0 +1,317 @@
+"""Tests for camera utilities and camera-file readers (OpenCV conventions)."""
+
+import json
+import math
+import pathlib
+import tempfile
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+
+from physsplat_jax import cameras
+from physsplat_jax.io import cameras as cam_io
+from physsplat_jax.types import make_camera
+
+# Pixel agreement of float32 projections of O(1) scenes.
+PIXEL_TOL = 1e-3
+ORTHO_TOL = 1e-5
+
+
+def _rot(axis, deg):
+  a = np.deg2rad(deg)
+  c, s = np.cos(a), np.sin(a)
+  i, j = [(1, 2), (2, 0), (0, 1)][axis]
+  R = np.eye(3)
+  R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+  return R
+
+
+# A known camera: OpenCV camera-to-world rotation (columns = camera axes in
+# world coordinates), centre, intrinsics.
+C2W_R = _rot(2, 30.0) @ _rot(0, -110.0) @ _rot(1, 10.0)
+CENTER = np.array([0.3, -2.5, 1.2])
+W, H = 64, 48
+FX, FY = 70.0, 72.0
+
+
+def _expected_pixel(X, fx, fy, cx, cy):
+  """Brute-force pinhole projection in float64 with the known camera."""
+  pc = C2W_R.T @ (X - CENTER)
+  return np.array([fx * pc[0] / pc[2] + cx, fy * pc[1] / pc[2] + cy]), pc[2]
+
+
+def _points():
+  # Points in front of the known camera: centre + depth * forward + offsets.
+  fwd, right, down = C2W_R[:, 2], C2W_R[:, 0], C2W_R[:, 1]
+  return [
+    CENTER + 3.0 * fwd,
+    CENTER + 2.0 * fwd + 0.4 * right - 0.3 * down,
+    CENTER + 5.0 * fwd - 1.0 * right + 0.7 * down,
+  ]
+
+
+def _opengl_c2w():
+  c2w = np.eye(4)
+  c2w[:3, :3] = C2W_R * np.array([1.0, -1.0, -1.0])
+  c2w[:3, 3] = CENTER
+  return c2w
+
+
+class CameraUtilTest(parameterized.TestCase):
+
+  def test_look_at_target_at_centre_up_is_minus_y(self):
+    eye = np.array([3.0, 2.0, 1.0])
+    target = np.array([0.0, 0.5, 0.5])
+    up = np.array([0.0, 0.0, 1.0])
+    vm = np.asarray(cameras.look_at(eye, target, up), np.float64)
+    R = vm[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=ORTHO_TOL)
+    self.assertAlmostEqual(np.linalg.det(R), 1.0, places=5)
+    cam = make_camera(vm, 50.0, 50.0, W, H)
+    np.testing.assert_allclose(cam.position, eye, atol=1e-5)
+    uv, z = cam.project(jnp.asarray(np.stack([target, target + 0.2 * up])))
+    uv = np.asarray(uv)
+    np.testing.assert_allclose(uv[0], [W / 2, H / 2], atol=PIXEL_TOL)
+    self.assertGreater(float(z[0]), 0.0)
+    # Up in the world is up in the image: smaller row, same column.
+    self.assertLess(uv[1, 1], H / 2 - 1.0)
+    self.assertAlmostEqual(uv[1, 0], W / 2, delta=PIXEL_TOL)
+    # A point to the camera's right (forward x up) has a larger column.
+    right = np.cross(target - eye, up)
+    uv, _ = cam.project(jnp.asarray(target + 0.2 * right / np.linalg.norm(
+      right)))
+    self.assertGreater(float(uv[0]), W / 2 + 1.0)
+
+  def test_look_at_vertical_view_and_bad_input(self):
+    vm = np.asarray(cameras.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0],
+                                    [0.0, 0.0, 1.0]))
+    self.assertTrue(np.all(np.isfinite(vm)))
+    np.testing.assert_allclose(vm[:3, :3] @ vm[:3, :3].T, np.eye(3),
+                               atol=ORTHO_TOL)
+    np.testing.assert_allclose(vm[2, :3], [0.0, 0.0, -1.0], atol=ORTHO_TOL)
+    with self.assertRaisesRegex(ValueError, 'same point'):
+      cameras.look_at([1.0, 1.0, 1.0], [1.0, 1.0, 1.0])
+    with self.assertRaisesRegex(ValueError, r'shape \(2,\)'):
+      cameras.look_at([1.0, 1.0], [0.0, 0.0, 0.0])
+
+  def test_look_at_is_differentiable_and_jittable(self):
+    with jax.enable_x64(True):
+      target = jnp.array([0.1, 0.2, 0.3])
+      point = jnp.array([0.5, -0.2, 0.6])
+
+      def pixel(eye):
+        vm = cameras.look_at(eye, target, jnp.array([0.0, 0.0, 1.0]))
+        pc = vm[:3, :3] @ point + vm[:3, 3]
+        return 100.0 * pc[:2] / pc[2]
+
+      eye = jnp.array([2.0, 1.0, 1.5])
+      jac = jax.jit(jax.jacobian(pixel))(eye)
+      eps = 1e-6
+      fd = np.stack([
+        (pixel(eye + eps * e) - pixel(eye - eps * e)) / (2 * eps)
+        for e in np.eye(3)
+      ], axis=-1)
+      np.testing.assert_allclose(jac, fd, rtol=1e-6, atol=1e-6)
+
+  def test_opengl_conversions_invert(self):
+    vm = cameras.opengl_c2w_to_viewmat(_opengl_c2w())
+    np.testing.assert_allclose(
+      np.asarray(cameras.viewmat_to_opengl_c2w(vm)), _opengl_c2w(), atol=1e-5
+    )
+    np.testing.assert_allclose(
+      np.asarray(vm)[:3, :3], C2W_R.T, atol=1e-6
+    )
+    self.assertAlmostEqual(
+      float(cameras.fov_from_focal(cameras.focal_from_fov(40.0, 300), 300)),
+      40.0, places=4)
+    self.assertAlmostEqual(float(cameras.focal_from_fov(90.0, 200)), 100.0,
+                           places=4)
+
+  @parameterized.named_parameters(('_zup', (0.0, 0.0, 1.0)),
+                                  ('_yup', (0.0, 1.0, 0.0)),
+                                  ('_minus_yup', (0.0, -1.0, 0.0)))
+  def test_orbit_cameras(self, up):
+    center = np.array([0.5, -0.2, 0.1])
+    up = np.asarray(up)
+    cams = cameras.orbit_cameras(center, 2.0, 30.0, 8, up=up, fov_deg=60.0,
+                                 width=W, height=H, start_azimuth_deg=10.0)
+    self.assertLen(cams, 8)
+    self.assertAlmostEqual(float(cams[0].fy), H / 2 / math.tan(math.pi / 6),
+                           places=3)
+    positions = np.stack([np.asarray(c.position, np.float64) for c in cams])
+    rel = positions - center
+    np.testing.assert_allclose(np.linalg.norm(rel, axis=-1), 2.0, atol=1e-5)
+    np.testing.assert_allclose(rel @ up / 2.0, np.sin(np.deg2rad(30.0)),
+                               atol=1e-5)
+    horiz = rel - np.outer(rel @ up, up)
+    cosang = np.sum(horiz * np.roll(horiz, -1, 0), -1) / np.sum(
+      horiz * horiz, -1)
+    np.testing.assert_allclose(cosang, np.cos(np.deg2rad(45.0)), atol=1e-5)
+    # Counter-clockwise about up.
+    self.assertGreater(float(np.cross(horiz[0], horiz[1]) @ up), 0.0)
+    for c in cams:
+      uv, z = c.project(jnp.asarray(np.stack([center, center + 0.3 * up])))
+      uv = np.asarray(uv)
+      np.testing.assert_allclose(uv[0], [W / 2, H / 2], atol=PIXEL_TOL)
+      self.assertLess(uv[1, 1], H / 2)
+
+  def test_fit_camera_frames_the_box(self):
+    lo, hi = np.array([-1.0, 0.0, 2.0]), np.array([3.0, 1.0, 2.5])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0])
+                        for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    for az, el in ((0.0, 20.0), (130.0, -40.0), (250.0, 85.0)):
+      cam = cameras.fit_camera(lo, hi, up=(0, 0, 1), width=80, height=40,
+                               fov_deg=45.0, azimuth=az, elevation=el,
+                               padding=1.0)
+      uv, z = cam.project(jnp.asarray(corners))
+      uv, z = np.asarray(uv), np.asarray(z)
+      self.assertTrue(np.all(z > cam.near) and np.all(z < cam.far))
+      self.assertTrue(np.all((uv >= 0) & (uv <= [80, 40])), f'{az},{el}')
+      centre_uv, _ = cam.project(jnp.asarray(0.5 * (lo + hi)))
+      np.testing.assert_allclose(centre_uv, [40, 20], atol=PIXEL_TOL)
+      # Tight: the bounding sphere's silhouette touches the narrow side.
+      r = 0.5 * np.linalg.norm(hi - lo)
+      d = np.linalg.norm(np.asarray(cam.position) - 0.5 * (lo + hi))
+      half = math.atan(20.0 / float(cam.fy))
+      self.assertAlmostEqual(r / d, math.sin(half), places=4)
+    with self.assertRaisesRegex(ValueError, 'below bounds_min'):
+      cameras.fit_camera(hi, lo)
+    with self.assertRaisesRegex(ValueError, 'fov_deg'):
+      cameras.fit_camera(lo, hi, fov_deg=180.0)
+
+
+class CameraFileTest(parameterized.TestCase):
+
+  def setUp(self):
+    super().setUp()
+    tmp = tempfile.TemporaryDirectory()
+    self.addCleanup(tmp.cleanup)
+    self.tmp = pathlib.Path(tmp.name)
+
+  def _json(self, name, data):
+    p = self.tmp / name
+    p.write_text(json.dumps(data))
+    return p
+
+  def _check(self, cam, fx, fy, cx, cy):
+    self.assertEqual((cam.width, cam.height), (W, H))
+    for X in _points():
+      expected, depth = _expected_pixel(X, fx, fy, cx, cy)
+      uv, z = cam.project(jnp.asarray(X, jnp.float32))
+      np.testing.assert_allclose(np.asarray(uv), expected, atol=PIXEL_TOL)
+      self.assertAlmostEqual(float(z), depth, places=4)
+
+  def test_inria_cameras_json(self):
+    entry = {
+      'id': 0, 'img_name': 'frame_000', 'width': W, 'height': H,
+      'position': CENTER.tolist(), 'rotation': C2W_R.tolist(),
+      'fy': FY, 'fx': FX,
+    }
+    path = self._json('cameras.json', [entry, dict(entry, img_name='b')])
+    cams = cam_io.load_cameras(path)
+    self.assertLen(cams, 2)
+    self.assertEqual(cams[0].name, 'frame_000')
+    self._check(cams[0], FX, FY, W / 2, H / 2)
+    # Writer round trip.
+    cam_io.save_inria_cameras(self.tmp / 'out.json', cams)
+    back = cam_io.load_inria_cameras(self.tmp / 'out.json')
+    self._check(back[1], FX, FY, W / 2, H / 2)
+    self.assertEqual(back[1].name, 'b')
+
+  def test_nerf_synthetic_transforms(self):
+    angle_x = 2.0 * math.atan(W / (2.0 * FX))
+    frames = [{'file_path': './train/r_0', 'rotation': 0.0,
+               'transform_matrix': _opengl_c2w().tolist()}]
+    path = self._json('transforms_train.json',
+                      {'camera_angle_x': angle_x, 'frames': frames})
+    # Size from the image next to the file (file_path has no extension).
+    import imageio.v3 as iio
+
+    (self.tmp / 'train').mkdir()
+    iio.imwrite(self.tmp / 'train' / 'r_0.png', np.zeros((H, W, 3), np.uint8))
+    cams = cam_io.load_cameras(path)
+    self.assertEqual(cams[0].name, './train/r_0')
+    self._check(cams[0], FX, FX, W / 2, H / 2)
+    # Or from arguments when there is no image.
+    (self.tmp / 'train' / 'r_0.png').unlink()
+    self._check(cam_io.load_cameras(path, width=W, height=H)[0], FX, FX,
+                W / 2, H / 2)
+    with self.assertRaisesRegex(cam_io.CameraFileError, 'no image size'):
+      cam_io.load_cameras(path)
+
+  def test_nerfstudio_transforms_with_applied_transform(self):
+    # nerfstudio's COLMAP import: rows (x, z, -y) of the original world.
+    A = np.eye(4)[:3]
+    A = A[[0, 2, 1]]
+    A[2] *= -1
+    A4 = np.eye(4)
+    A4[:3] = A
+    cx, cy = 30.5, 25.25  # off-centre principal point
+    frame = {'file_path': 'images/a.png',
+             'transform_matrix': (A4 @ _opengl_c2w()).tolist()}
+    other = dict(frame, fl_x=2 * FX, file_path='images/b.png')
+    data = {'camera_model': 'OPENCV', 'fl_x': FX, 'fl_y': FY, 'cx': cx,
+            'cy': cy, 'w': W, 'h': H, 'k1': 0.0, 'p1': 0.0,
+            'applied_transform': A.tolist(), 'frames': [frame, other]}
+    path = self._json('transforms.json', data)
+    cams = cam_io.load_cameras(path, undo_applied_transform=True)
+    self._check(cams[0], FX, FY, cx, cy)
+    self._check(cams[1], 2 * FX, FY, cx, cy)  # per-frame intrinsics win
+    # Without undoing, the camera lives in nerfstudio's rotated world.
+    cam = cam_io.load_cameras(path)[0]
+    for X in _points():
+      expected, _ = _expected_pixel(X, FX, FY, cx, cy)
+      uv, _ = cam.project(jnp.asarray(A @ np.r_[X, 1.0], jnp.float32))
+      np.testing.assert_allclose(np.asarray(uv), expected, atol=PIXEL_TOL)
+
+  def test_missing_fields_and_bad_files(self):
+    entry = {'id': 0, 'img_name': 'a', 'width': W, 'height': H,
+             'position': [0, 0, 0], 'rotation': np.eye(3).tolist(), 'fy': 1.0}
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                r"camera 0 \(a\) is missing \['fx'\]"):
+      cam_io.load_cameras(self._json('c.json', [entry]))
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                r'rotation has shape \(2, 2\)'):
+      cam_io.load_cameras(self._json(
+        'c.json', [dict(entry, fx=1.0, rotation=[[1, 0], [0, 1]])]))
+    with self.assertRaisesRegex(cam_io.CameraFileError, "'width' must be"):
+      cam_io.load_cameras(self._json('c.json', [dict(entry, fx=1.0,
+                                                     width=-3)]))
+    frame = {'file_path': 'x', 'transform_matrix': np.eye(4).tolist()}
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                r'frame 0 has no "transform_matrix"'):
+      cam_io.load_cameras(self._json(
+        't.json', {'camera_angle_x': 0.7, 'frames': [{'file_path': 'x'}]}))
+    with self.assertRaisesRegex(cam_io.CameraFileError, 'no focal length'):
+      cam_io.load_cameras(self._json('t.json', {'w': 4, 'h': 4,
+                                                'frames': [frame]}))
+    with self.assertRaisesRegex(cam_io.CameraFileError, 'OPENCV_FISHEYE'):
+      cam_io.load_cameras(self._json('t.json', {
+        'camera_model': 'OPENCV_FISHEYE', 'fl_x': 1, 'w': 4, 'h': 4,
+        'frames': [frame]}))
+    with self.assertRaisesRegex(cam_io.CameraFileError, 'no "applied_trans'):
+      cam_io.load_cameras(
+        self._json('t.json', {'fl_x': 1, 'w': 4, 'h': 4, 'frames': [frame]}),
+        undo_applied_transform=True)
+    with self.assertRaisesRegex(cam_io.CameraFileError, 'not valid JSON'):
+      p = self.tmp / 'bad.json'
+      p.write_text('{"frames": [')
+      cam_io.load_cameras(p)
+    with self.assertRaisesRegex(cam_io.CameraFileError, 'unknown camera file'):
+      cam_io.load_cameras(self._json('u.json', {'cameras': []}))
+    with self.assertRaisesRegex(cam_io.CameraFileError, '"frames" is empty'):
+      cam_io.load_cameras(self._json('e.json', {'fl_x': 1, 'w': 4, 'h': 4,
+                                                'frames': []}))
+    with warnings.catch_warnings(record=True) as caught:
+      warnings.simplefilter('always')
+      cam_io.load_cameras(self._json('k.json', {
+        'fl_x': 1, 'w': 4, 'h': 4, 'k1': 0.1, 'frames': [frame]}))
+    self.assertTrue(any('distortion' in str(w.message) for w in caught))
+
+
+if __name__ == '__main__':
+  absltest.main()
