@@ -293,7 +293,8 @@ def _scalar_dtype(element: PlyElement, endian: str) -> np.dtype:
 
 
 def _native(a: np.ndarray) -> np.ndarray:
-  return a.astype(a.dtype.newbyteorder('='), copy=True)
+  # Little-endian fields on a little-endian host stay views (no copy).
+  return a.astype(a.dtype.newbyteorder('='), copy=False)
 
 
 def _truncated(path, element, expected, actual):
@@ -303,7 +304,10 @@ def _truncated(path, element, expected, actual):
   )
 
 
-def _read_binary(data: bytes, header: PlyHeader, path) -> dict:
+def _read_binary(
+  data: bytes, header: PlyHeader, path, matrices: dict | None = None
+) -> dict:
+  """Binary payload -> columns; homogeneous elements also go to matrices."""
   endian = _ENDIAN[header.format]
   offset = header.size
   out = {}
@@ -328,8 +332,18 @@ def _read_binary(data: bytes, header: PlyHeader, path) -> dict:
       nbytes = e.count * dt.itemsize
       if offset + nbytes > len(data):
         raise _truncated(path, e, nbytes, len(data) - offset)
-      rows = np.frombuffer(data, dt, e.count, offset)
-      out[e.name] = {p.name: _native(rows[p.name]) for p in e.properties}
+      codes = {p.dtype for p in e.properties}
+      if matrices is not None and len(codes) == 1:
+        # One (count, P) matrix: column blocks are then cheap slices.
+        mat = np.frombuffer(
+          data, endian + codes.pop(), e.count * len(e.properties), offset
+        ).reshape(e.count, len(e.properties))
+        mat = _native(mat)
+        matrices[e.name] = mat
+        out[e.name] = {p.name: mat[:, i] for i, p in enumerate(e.properties)}
+      else:
+        rows = np.frombuffer(data, dt, e.count, offset)
+        out[e.name] = {p.name: _native(rows[p.name]) for p in e.properties}
       offset += nbytes
       continue
     cols = {p.name: [] for p in e.properties}
@@ -437,7 +451,9 @@ def _read_ascii(data: bytes, header: PlyHeader, path) -> dict:
   return out
 
 
-def read_ply(path: PathLike) -> tuple[PlyHeader, dict[str, dict[str, np.ndarray]]]:
+def read_ply(
+  path: PathLike,
+) -> tuple[PlyHeader, dict[str, dict[str, np.ndarray]]]:
   """Reads every element of a PLY file into NumPy arrays.
 
   Args:
@@ -451,11 +467,18 @@ def read_ply(path: PathLike) -> tuple[PlyHeader, dict[str, dict[str, np.ndarray]
   Raises:
     PlyError: not a PLY file, malformed header or truncated payload.
   """
+  header, elements, _ = _read(path)
+  return header, elements
+
+
+def _read(path):
+  """(header, elements, {element: (count, P) matrix if homogeneous})."""
   data = _read_bytes(path)
   header = _parse_header(data, path)
+  matrices = {}
   if header.format == 'ascii':
-    return header, _read_ascii(data, header, path)
-  return header, _read_binary(data, header, path)
+    return header, _read_ascii(data, header, path), matrices
+  return header, _read_binary(data, header, path, matrices), matrices
 
 
 # ----------------------------------------------------------------------------
@@ -483,6 +506,10 @@ def _format_ascii(col: np.ndarray) -> list[str]:
   return [str(v) for v in col.tolist()]
 
 
+def _header_start(format, comments):  # noqa: A002
+  return ['ply', f'format {format} 1.0'] + [f'comment {c}' for c in comments]
+
+
 def write_ply(
   path: PathLike,
   elements: Mapping[str, Mapping[str, np.ndarray]],
@@ -506,8 +533,7 @@ def write_ply(
   """
   if format not in FORMATS:
     raise PlyError(f'{path}: unknown PLY format {format!r}; use {FORMATS}')
-  lines = ['ply', f'format {format} 1.0']
-  lines += [f'comment {c}' for c in comments]
+  lines = _header_start(format, comments)
   blocks = []
   for ename, props in elements.items():
     if not _NAME_RE.match(ename):
@@ -550,6 +576,12 @@ def write_ply(
         f.write(''.join(' '.join(r) + '\n' for r in zip(*strs)).encode())
         continue
       endian = _ENDIAN[format]
+      codes = {c.dtype.str[1:] for c in cols.values()}
+      if len(codes) == 1:
+        # Homogeneous rows (the INRIA case): one (count, P) matrix.
+        mat = np.stack(list(cols.values()), axis=1)
+        f.write(mat.astype(endian + codes.pop(), copy=False).tobytes())
+        continue
       dt = np.dtype([(k, endian + c.dtype.str[1:]) for k, c in cols.items()])
       rows = np.empty(count, dt)
       for k, c in cols.items():
@@ -571,9 +603,10 @@ def _indexed(names, prefix):
 
 
 def _vertex_to_gaussians(
-  vertex: Mapping[str, np.ndarray], path, dtype
+  vertex: Mapping[str, np.ndarray], path, dtype, mat=None
 ) -> Gaussians:
   names = list(vertex)
+  where = {n: i for i, n in enumerate(names)}
   missing = [n for n in REQUIRED if n not in vertex]
   if missing:
     raise PlyError(
@@ -600,7 +633,10 @@ def _vertex_to_gaussians(
   if has_normals:
     used += list(NORMALS)
   bad = []
-  for n in used:
+  all_finite = (
+    mat is not None and mat.dtype.kind == 'f' and np.isfinite(mat).all()
+  )
+  for n in [] if all_finite else used:
     col = vertex[n]
     if col.dtype.kind == 'f':
       nonfinite = int(np.count_nonzero(~np.isfinite(col)))
@@ -611,7 +647,12 @@ def _vertex_to_gaussians(
       f'{path}: non-finite values (NaN/inf) in {"; ".join(bad)}; clean '
       'the file (e.g. drop those rows) before loading'
     )
-  col = lambda ns: np.stack([vertex[n] for n in ns], axis=-1)
+  def col(ns):
+    idx = [where[n] for n in ns]
+    if mat is not None and idx == list(range(idx[0], idx[0] + len(idx))):
+      return mat[:, idx[0] : idx[0] + len(idx)]  # contiguous block: a view
+    return np.stack([vertex[n] for n in ns], axis=-1)
+
   nr = len(rest) // 3
   dc = col([f'f_dc_{i}' for i in range(3)])[:, None, :]
   if nr:
@@ -619,7 +660,8 @@ def _vertex_to_gaussians(
     sh = np.concatenate([dc, fr.transpose(0, 2, 1)], axis=1)
   else:
     sh = dc
-  f = lambda a: jnp.asarray(np.asarray(a, np.float64).astype(np.dtype(dtype)))
+  # One correctly rounded cast (float64 -> float32 directly is exact-nearest).
+  f = lambda a: jnp.asarray(np.asarray(a, np.dtype(dtype)))
   extras = {}
   for n in names:
     if n in used or (has_normals and n in NORMALS):
@@ -660,7 +702,7 @@ def load_ply(path: PathLike, dtype=jnp.float32) -> Gaussians:
       properties, non-finite values or wrong counts (the message names the
       file and the problem).
   """
-  header, elements = read_ply(path)
+  header, elements, matrices = _read(path)
   if 'vertex' not in elements:
     raise PlyError(
       f'{path}: no "vertex" element (elements: '
@@ -669,23 +711,13 @@ def load_ply(path: PathLike, dtype=jnp.float32) -> Gaussians:
     )
   if 'chunk' in elements and 'packed_position' in elements['vertex']:
     return decode_compressed(elements, path, dtype)
-  return _vertex_to_gaussians(elements['vertex'], path, dtype)
+  return _vertex_to_gaussians(
+    elements['vertex'], path, dtype, matrices.get('vertex')
+  )
 
 
-def gaussians_to_vertex(gaussians: Gaussians, path='<gaussians>') -> dict:
-  """The INRIA-ordered ``{property: (K,) array}`` of a set of Gaussians.
-
-  Args:
-    gaussians: the Gaussians (any float dtype; written as float32).
-    path: used in error messages only.
-
-  Returns:
-    An ordered dict of property name -> (K,) NumPy array.
-
-  Raises:
-    PlyError: inconsistent shapes, non-finite values or clashing extras.
-  """
-  g = gaussians
+def _vertex_matrix(g: Gaussians, path) -> tuple[list[str], np.ndarray]:
+  """INRIA property names and the (K, P) float32 matrix of the Gaussians."""
   k = np.shape(g.means)[0] if np.ndim(g.means) == 2 else -1
   expect = {
     'means': (k, 3),
@@ -710,35 +742,50 @@ def gaussians_to_vertex(gaussians: Gaussians, path='<gaussians>') -> dict:
       f'{path}: Gaussians.sh has shape {sh_shape}, expected ({k}, B, 3) '
       'with B in 1, 4, 9, 16'
     )
-  f32 = lambda a: np.asarray(a).astype(np.float32)
-  out = {}
-  means = f32(g.means)
-  out.update(x=means[:, 0], y=means[:, 1], z=means[:, 2])
+  def f32(a):
+    a = np.asarray(a).astype(np.float32)
+    return a if a.ndim == 2 else a[:, None]
+
+  sh = np.asarray(g.sh).astype(np.float32)
+  nr = 3 * (sh.shape[1] - 1)
+  names = ['x', 'y', 'z']
+  blocks = [f32(g.means)]
   if g.normals is not None:
-    nrm = f32(g.normals)
-    out.update(nx=nrm[:, 0], ny=nrm[:, 1], nz=nrm[:, 2])
-  sh = f32(g.sh)
-  for c in range(3):
-    out[f'f_dc_{c}'] = sh[:, 0, c]
-  rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(k, 3 * (sh.shape[1] - 1))
-  for i in range(rest.shape[1]):
-    out[f'f_rest_{i}'] = rest[:, i]
-  out['opacity'] = f32(g.opacity_logits)
-  ls = f32(g.log_scales)
-  for i in range(3):
-    out[f'scale_{i}'] = ls[:, i]
-  q = f32(g.quats)
-  for i in range(4):
-    out[f'rot_{i}'] = q[:, i]
-  bad = [
-    f'{n}: {int(np.count_nonzero(~np.isfinite(a)))} rows'
-    for n, a in out.items()
-    if not np.all(np.isfinite(a))
-  ]
-  if bad:
+    names += list(NORMALS)
+    blocks.append(f32(g.normals))
+  names += [f'f_dc_{c}' for c in range(3)] + [f'f_rest_{i}' for i in range(nr)]
+  blocks += [sh[:, 0, :], sh[:, 1:, :].transpose(0, 2, 1).reshape(k, nr)]
+  names += ['opacity'] + [f'scale_{i}' for i in range(3)]
+  names += [f'rot_{i}' for i in range(4)]
+  blocks += [f32(g.opacity_logits), f32(g.log_scales), f32(g.quats)]
+  mat = np.concatenate(blocks, axis=1)
+  if not np.isfinite(mat).all():
+    counts = np.count_nonzero(~np.isfinite(mat), axis=0)
+    bad = [f'{n}: {c} rows' for n, c in zip(names, counts) if c]
     raise PlyError(
       f'{path}: refusing to write non-finite values ({"; ".join(bad)})'
     )
+  return names, mat
+
+
+def gaussians_to_vertex(gaussians: Gaussians, path='<gaussians>') -> dict:
+  """The INRIA-ordered ``{property: (K,) array}`` of a set of Gaussians.
+
+  Args:
+    gaussians: the Gaussians (any float dtype; written as float32).
+    path: used in error messages only.
+
+  Returns:
+    An ordered dict of property name -> (K,) NumPy array (Gaussian fields
+    float32, then the extras with their own dtypes).
+
+  Raises:
+    PlyError: inconsistent shapes, non-finite values or clashing extras.
+  """
+  g = gaussians
+  names, mat = _vertex_matrix(g, path)
+  k = mat.shape[0]
+  out = {n: mat[:, i] for i, n in enumerate(names)}
   for name, a in g.extras.items():
     if name in out or (g.normals is not None and name in NORMALS):
       raise PlyError(
@@ -774,10 +821,23 @@ def save_ply(
   Raises:
     PlyError: inconsistent shapes, non-finite values or bad extras.
   """
-  vertex = gaussians_to_vertex(gaussians, path)
+  fast = binary and not gaussians.extras
+  if fast:
+    names, mat = _vertex_matrix(gaussians, path)
+  else:
+    vertex = gaussians_to_vertex(gaussians, path)
   parent = os.path.dirname(os.fspath(path))
   if parent:
     os.makedirs(parent, exist_ok=True)
+  if fast:
+    # One contiguous float32 matrix, as INRIA writes it.
+    lines = _header_start('binary_little_endian', ())
+    lines.append(f'element vertex {mat.shape[0]}')
+    lines += [f'property float {n}' for n in names] + ['end_header']
+    with open(path, 'wb') as f:
+      f.write(('\n'.join(lines) + '\n').encode('ascii'))
+      f.write(mat.astype('<f4', copy=False).tobytes())
+    return
   write_ply(
     path,
     {'vertex': vertex},
@@ -804,6 +864,16 @@ PACKED_PROPS = (
 _SCALE_CLAMP = 20.0
 # Opacity bytes 0/255 would decode to -/+inf; this keeps logits finite.
 _ALPHA_EPS = 0.5 / 255.0
+
+
+def _sh_byte_table() -> np.ndarray:
+  b = np.arange(256, dtype=np.float64)
+  n = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b + 0.5) / 256.0))
+  return ((n - 0.5) * 8.0).astype(np.float32)  # exact in float32
+
+
+# Decoded value of each SH byte (a lookup is one pass over the SH bytes).
+_SH_BYTE_TABLE = _sh_byte_table()
 
 
 def _unorm(v: np.ndarray, shift: int, bits: int) -> np.ndarray:
@@ -912,7 +982,7 @@ def decode_compressed(
   dc = (rgb - 0.5) / SH_C0
   alpha = np.clip(rgba[:, 3], _ALPHA_EPS, 1.0 - _ALPHA_EPS)
   opacity = -np.log(1.0 / alpha - 1.0)
-  sh = dc[:, None, :]
+  sh = dc[:, None, :].astype(np.float32)
   if 'sh' in elements:
     shel = elements['sh']
     rest = _indexed(list(shel), 'f_rest_')
@@ -927,9 +997,11 @@ def decode_compressed(
         f'but there are {k} Gaussians'
       )
     b = np.stack([shel[rest[i]] for i in range(len(rest))], -1)
-    b = b.astype(np.float64)
-    n = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b + 0.5) / 256.0))
-    fr = ((n - 0.5) * 8.0).reshape(k, 3, len(rest) // 3)
+    if b.dtype.kind not in 'iu' or b.size and (b.min() < 0 or b.max() > 255):
+      raise PlyError(
+        f'{path}: compressed PLY "sh" values must be uchar (0..255)'
+      )
+    fr = _SH_BYTE_TABLE[b.astype(np.uint8)].reshape(k, 3, len(rest) // 3)
     sh = np.concatenate([sh, fr.transpose(0, 2, 1)], axis=1)
   # Decoded in float64 then rounded to float32, as the reference decoder does.
   f = lambda a: jnp.asarray(a.astype(np.float32).astype(np.dtype(dtype)))
