@@ -205,9 +205,9 @@ def _check_inputs(gaussians, camera, background, covariances, view_rotations,
       f'render: gaussians.sh has shape {gaussians.sh.shape}; expected '
       f'({K}, B, 3)'
     )
-  if jnp.shape(background) != (3,):
+  if np.shape(background) != (3,):
     raise ValueError(
-      f'render: background has shape {jnp.shape(background)}; expected (3,) '
+      f'render: background has shape {np.shape(background)}; expected (3,) '
       'RGB, e.g. (1, 1, 1) for white'
     )
   if camera.width < 1 or camera.height < 1:

@@ -1,0 +1,306 @@
+"""Tests for physsplat_jax.render: parity with a brute-force reference,
+capacity/overflow handling, SH view rotation, precomputed covariances and
+gradients against central finite differences (x64)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+
+from physsplat_jax import cameras
+from physsplat_jax import gaussians as gs
+from physsplat_jax import test_util
+from physsplat_jax.render import raster
+from physsplat_jax.render import reference
+from physsplat_jax.render import sh_rotation
+from physsplat_jax.types import make_camera
+
+_IMAGE_TOL = 1e-4  # float32 renderer vs float64 reference, max abs
+_DEPTH_RTOL = 1e-4
+_GRAD_RTOL = 1e-5  # x64 analytic vs central differences
+_FD_STEP = 1e-6
+
+_render_jit = jax.jit(raster.render, static_argnames=('config',))
+
+
+def _scene(seed=0, num=200, sh_degree=0, scale_boost=1.0, dtype=jnp.float32):
+  g = test_util.random_gaussians(jax.random.PRNGKey(seed), num,
+                                 sh_degree=sh_degree, dtype=dtype)
+  return g.replace(log_scales=g.log_scales + scale_boost)
+
+
+def _camera(width=64, height=48, eye=(0.0, -3.5, 1.0), focal=60.0, cx=None,
+            cy=None, near=0.01, dtype=jnp.float32):
+  vm = cameras.look_at(np.asarray(eye), np.zeros(3))
+  return make_camera(vm, focal, focal, width, height, cx=cx, cy=cy,
+                     near=near, dtype=dtype)
+
+
+def _reference(g, cam, colors, background=(0.0, 0.0, 0.0), covs=None,
+               alpha_max=0.999):
+  covs = g.covariances if covs is None else covs
+  return reference.render_reference(
+    np.asarray(g.means), np.asarray(covs), np.asarray(colors),
+    np.asarray(g.opacities), np.asarray(cam.viewmat), cam.fx, cam.fy,
+    cam.cx, cam.cy, cam.width, cam.height, cam.near, cam.far,
+    background=background, alpha_max=alpha_max)
+
+
+class ReferenceParityTest(parameterized.TestCase):
+
+  @parameterized.named_parameters(
+    ('_sh0', 0, 64, 48, None, (0.0, 0.0, 0.0)),
+    ('_sh3_background', 3, 64, 64, None, (0.2, 0.5, 1.0)),
+    ('_odd_size_offcentre', 1, 37, 29, (15.0, 11.0), (1.0, 1.0, 1.0)),
+  )
+  def test_matches_reference(self, degree, width, height, principal, bg):
+    g = _scene(seed=degree, sh_degree=degree)
+    cx, cy = principal if principal else (None, None)
+    cam = _camera(width, height, cx=cx, cy=cy)
+    out = raster.render_image(g, cam, background=bg)
+    self.assertFalse(out.overflow)
+    colors = raster.gaussian_colors(g, cam)
+    image, alpha, depth = _reference(g, cam, colors, bg)
+    # The scene must exercise saturation (early stop) and empty pixels.
+    self.assertGreater(alpha.max(), 0.999)
+    self.assertLess(alpha.min(), 0.5)
+    np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL,
+                               err_msg='mismatch: image')
+    np.testing.assert_allclose(out.alpha, alpha, atol=_IMAGE_TOL,
+                               err_msg='mismatch: alpha')
+    drawn = alpha > 0.05
+    np.testing.assert_allclose(out.depth[drawn], depth[drawn],
+                               rtol=_DEPTH_RTOL, err_msg='mismatch: depth')
+
+  def test_differentiable_path_matches_reference(self):
+    g = _scene(seed=5, num=120)
+    cam = _camera(48, 40)
+    cfg = raster.RenderConfig(chunk_size=16)
+    out = raster.render_image(g, cam, config=cfg, differentiable=True)
+    colors = raster.gaussian_colors(g, cam)
+    image, alpha, _ = _reference(g, cam, colors)
+    np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL)
+    np.testing.assert_allclose(out.alpha, alpha, atol=_IMAGE_TOL)
+
+  def test_inria_alpha_cap_and_cumsum_prefix(self):
+    g = _scene(seed=7, num=150)
+    cam = _camera(48, 48)
+    cfg = raster.RenderConfig(alpha_max=0.99, prefix='cumsum', chunk_size=8)
+    out = raster.render_image(g, cam, config=cfg)
+    image, _, _ = _reference(g, cam, raster.gaussian_colors(g, cam),
+                             alpha_max=0.99)
+    np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL)
+
+  def test_near_plane_and_behind_camera_are_culled(self):
+    g = _scene(seed=3, num=60)
+    cam = _camera(32, 32, eye=(0.0, -1.5, 0.0), near=0.8)
+    out = raster.render_image(g, cam)
+    z = np.asarray(g.means @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3])[:, 2]
+    self.assertGreater(np.sum(z <= 0.8), 5)  # some are culled ...
+    self.assertLess(int(out.num_visible), np.sum(z > 0.8) + 1)
+    image, _, _ = _reference(g, cam, raster.gaussian_colors(g, cam))
+    np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL)
+
+
+class CapacityTest(parameterized.TestCase):
+
+  def test_overflow_flag_and_rerun(self):
+    g = _scene(seed=1)
+    cam = _camera()
+    big = raster.render_image(g, cam)
+    total = int(big.num_intersections)
+    self.assertGreater(total, 100)
+    small = raster.RenderConfig(capacity=total // 3)
+    out = jax.tree.map(np.asarray, _render_jit(g, cam, config=small))
+    self.assertTrue(out.overflow)
+    self.assertEqual(int(out.num_intersections), total)
+    rerun = raster.render_image(g, cam, config=small)
+    self.assertFalse(rerun.overflow)
+    np.testing.assert_array_equal(rerun.image, big.image)
+
+  def test_capacity_exact_boundary(self):
+    g = _scene(seed=2, num=80)
+    cam = _camera(48, 32)
+    total = int(raster.render_image(g, cam).num_intersections)
+    exact = _render_jit(g, cam, config=raster.RenderConfig(capacity=total))
+    short = _render_jit(g, cam,
+                        config=raster.RenderConfig(capacity=total - 1))
+    self.assertFalse(bool(exact.overflow))
+    self.assertTrue(bool(short.overflow))
+    ref, _, _ = _reference(g, cam, raster.gaussian_colors(g, cam))
+    np.testing.assert_allclose(exact.image, ref, atol=_IMAGE_TOL)
+
+  def test_differentiable_max_chunks_overflow(self):
+    g = _scene(seed=4, num=100)
+    cam = _camera(32, 32)
+    cfg = raster.RenderConfig(chunk_size=4, max_chunks=1)
+    out = jax.jit(raster.render_differentiable,
+                  static_argnames=('config',))(g, cam, config=cfg)
+    self.assertGreater(int(out.max_tile_count), 4)
+    self.assertTrue(bool(out.overflow))
+    fitted = raster.fit_render_config(g, cam, cfg)
+    self.assertGreaterEqual(fitted.max_chunks * 4, int(out.max_tile_count))
+    out2 = raster.render_image(g, cam, config=cfg, differentiable=True)
+    self.assertFalse(out2.overflow)
+    ref = raster.render_image(g, cam)
+    np.testing.assert_allclose(out2.image, ref.image, atol=1e-6)
+
+  def test_everything_culled_gives_background(self):
+    g = _scene(seed=0, num=10)
+    cam = _camera(32, 16, eye=(0.0, -3.5, 1.0))
+    g = g.replace(means=11.0 * cam.position[None] + 0.0 * g.means)
+    out = raster.render_image(g, cam, background=(0.1, 0.2, 0.3))
+    self.assertEqual(int(out.num_intersections), 0)
+    np.testing.assert_allclose(
+      out.image, np.broadcast_to([0.1, 0.2, 0.3], (16, 32, 3)), atol=1e-7)
+    np.testing.assert_array_equal(out.alpha, 0.0)
+
+  def test_single_gaussian_matches_closed_form(self):
+    # One isotropic Gaussian straight ahead: alpha(p) = o exp(-|d|^2 / 2 s2)
+    # with s2 = (f s / z)^2 + 0.3 (the EWA footprint plus the low-pass).
+    s, z, f, o = 0.05, 2.0, 40.0, 0.7
+    g = gs_single(s, o)
+    cam = make_camera(jnp.eye(4).at[2, 3].set(z), f, f, 33, 33)
+    out = raster.render_image(g, cam, colors=jnp.ones((1, 3)))
+    s2 = (f * s / z) ** 2 + 0.3
+    jj, ii = np.meshgrid(np.arange(33) + 0.5, np.arange(33) + 0.5)
+    d2 = (jj - 16.5) ** 2 + (ii - 16.5) ** 2
+    a = o * np.exp(-0.5 * d2 / s2)
+    a = np.where(a >= 1 / 255, a, 0.0)
+    np.testing.assert_allclose(out.alpha, a, atol=1e-6)
+    np.testing.assert_allclose(out.depth[16, 16], z, rtol=1e-6)
+
+  def test_bad_inputs_raise_clear_errors(self):
+    g = _scene(num=5)
+    cam = _camera(16, 16)
+    with self.assertRaisesRegex(ValueError, 'covariances has shape'):
+      raster.render(g, cam, covariances=jnp.zeros((4, 3, 3)))
+    with self.assertRaisesRegex(ValueError, 'colors has shape'):
+      raster.render(g, cam, colors=jnp.zeros((5, 4)))
+    with self.assertRaisesRegex(ValueError, 'background has shape'):
+      raster.render(g, cam, background=(1.0, 1.0))
+    with self.assertRaisesRegex(ValueError, 'no Gaussians'):
+      raster.render(g.subset(np.zeros(5, bool)), cam)
+    with self.assertRaisesRegex(ValueError, 'prefix'):
+      raster.render(g, cam, config=raster.RenderConfig(prefix='scan'))
+
+
+def gs_single(s, o):
+  from physsplat_jax.types import Gaussians
+
+  return Gaussians(
+    means=jnp.zeros((1, 3)), log_scales=jnp.full((1, 3), np.log(s)),
+    quats=jnp.array([[1.0, 0.0, 0.0, 0.0]]),
+    opacity_logits=jnp.array([np.log(o / (1 - o))]),
+    sh=jnp.zeros((1, 1, 3)))
+
+
+class CovarianceAndShTest(parameterized.TestCase):
+
+  def test_precomputed_covariances_equal_scale_rotation_path(self):
+    g = _scene(seed=11, num=150, sh_degree=1)
+    cam = _camera()
+    a = raster.render_image(g, cam)
+    b = raster.render_image(g, cam, covariances=g.covariances)
+    np.testing.assert_allclose(a.image, b.image, atol=1e-6)
+    np.testing.assert_allclose(a.alpha, b.alpha, atol=1e-6)
+
+  def test_explicit_colors_equal_sh_dc(self):
+    g = _scene(seed=12, num=150, sh_degree=0)
+    cam = _camera()
+    a = raster.render_image(g, cam)
+    b = raster.render_image(g, cam, colors=jnp.maximum(g.rgb_dc, 0.0))
+    np.testing.assert_allclose(a.image, b.image, atol=1e-6)
+
+  def test_rotating_scene_camera_and_view_rotation_keeps_image(self):
+    # Rotate every Gaussian (mean and covariance) and the camera by Q and pass
+    # Q as the view rotation: the SH see the same rest-frame direction, so
+    # the image is unchanged, although the world directions all changed.
+    g = _scene(seed=13, num=150, sh_degree=3)
+    cam = _camera()
+    q = np.array([0.8, 0.3, -0.4, 0.3])
+    Q = np.asarray(gs.quat_to_rotmat(jnp.asarray(q / np.linalg.norm(q))))
+    Qj = jnp.asarray(Q, jnp.float32)
+    g_rot = g.replace(means=g.means @ Qj.T)
+    covs = Qj @ g.covariances @ Qj.T
+    vm = np.asarray(cam.viewmat, np.float64).copy()
+    vm[:3, :3] = vm[:3, :3] @ Q.T
+    cam_rot = cam.replace(viewmat=jnp.asarray(vm, jnp.float32))
+    rots = jnp.broadcast_to(Qj, (g.num, 3, 3))
+    a = raster.render_image(g, cam)
+    b = raster.render_image(g_rot, cam_rot, covariances=covs,
+                            view_rotations=rots)
+    c = raster.render_image(g_rot, cam_rot, covariances=covs)
+    np.testing.assert_allclose(a.image, b.image, atol=2e-4)
+    # Without the view rotation the degree-3 colours differ.
+    self.assertGreater(np.abs(a.image - c.image).max(), 1e-2)
+    # Rotating the SH coefficients instead gives the same image too.
+    sh_rot = sh_rotation.rotate_sh(g.sh, rots)
+    d = raster.render_image(g_rot.replace(sh=sh_rot), cam_rot,
+                            covariances=covs)
+    np.testing.assert_allclose(a.image, d.image, atol=2e-4)
+
+
+class GradientTest(parameterized.TestCase):
+
+  def test_gradients_match_central_differences_x64(self):
+    with jax.enable_x64(True):
+      g = _scene(seed=21, num=8, scale_boost=1.5, dtype=jnp.float64)
+      cam = _camera(24, 20, focal=24.0, dtype=jnp.float64)
+      cfg = raster.RenderConfig(chunk_size=4, tile_size=8)
+      rng = np.random.default_rng(0)
+      w_img = jnp.asarray(rng.normal(size=(20, 24, 3)))
+      w_alpha = jnp.asarray(rng.normal(size=(20, 24)))
+      colors0 = jnp.asarray(rng.uniform(0.1, 0.9, size=(8, 3)))
+      covs0 = g.covariances
+
+      def loss(means, covs, colors, logits):
+        out = raster.render_differentiable(
+          g.replace(means=means, opacity_logits=logits), cam,
+          covariances=covs, colors=colors, background=(0.3, 0.2, 0.1),
+          config=cfg)
+        return jnp.sum(out.image * w_img) + jnp.sum(out.alpha * w_alpha)
+
+      args = (g.means, covs0, colors0, g.opacity_logits)
+      out = raster.render_differentiable(g, cam, config=cfg)
+      self.assertFalse(bool(out.overflow))
+      self.assertGreater(float(out.alpha.max()), 0.5)
+      grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(*args)
+      test_util.assert_tree_all_finite(grads)
+      loss_j = jax.jit(loss)
+      names = ('means', 'covariances', 'colors', 'opacity_logits')
+      for i, name in enumerate(names):
+        d = jnp.asarray(rng.normal(size=args[i].shape))
+        if name == 'covariances':
+          d = 1e-3 * (d + jnp.swapaxes(d, -1, -2))  # stay symmetric and PD
+        plus = list(args)
+        minus = list(args)
+        plus[i] = args[i] + _FD_STEP * d
+        minus[i] = args[i] - _FD_STEP * d
+        fd = (loss_j(*plus) - loss_j(*minus)) / (2 * _FD_STEP)
+        an = jnp.sum(grads[i] * d)
+        self.assertGreater(abs(float(an)), 1e-6, msg=name)
+        np.testing.assert_allclose(an, fd, rtol=_GRAD_RTOL,
+                                   err_msg=f'gradient mismatch: {name}')
+
+
+class ShRotationTest(absltest.TestCase):
+
+  def test_rotate_sh_rotates_the_function(self):
+    rng = np.random.default_rng(3)
+    sh = jnp.asarray(rng.normal(size=(5, 16, 3)), jnp.float32)
+    q = rng.normal(size=(5, 4))
+    R = gs.quat_to_rotmat(jnp.asarray(q, jnp.float32))
+    d = jnp.asarray(rng.normal(size=(5, 3)), jnp.float32)
+    rot = sh_rotation.rotate_sh(sh, R)
+    want = gs.eval_sh(sh, jnp.einsum('kji,kj->ki', R, d))
+    got = gs.eval_sh(rot, d)
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    np.testing.assert_allclose(rot[:, 0], sh[:, 0], atol=1e-6)
+
+
+if __name__ == '__main__':
+  absltest.main()
