@@ -1,0 +1,479 @@
+"""HTTP client for OpenAI-compatible chat-completions endpoints with images.
+
+Works with OpenAI, vLLM, Ollama (``http://localhost:11434/v1``), LM Studio
+(``http://localhost:1234/v1``) and any server that speaks the protocol::
+
+  POST {base_url}/chat/completions
+  {"model": ..., "temperature": 0, "max_tokens": ...,
+   "messages": [{"role": "system", "content": ...},
+                {"role": "user", "content": [
+                   {"type": "text", "text": prompt},
+                   {"type": "image_url",
+                    "image_url": {"url": "data:image/png;base64,..."}}]}]}
+  -> {"choices": [{"message": {"content": "..."}}]}
+
+Standard library only (urllib). The API key comes from an environment
+variable (``OPENAI_API_KEY`` by default, or the one named by
+``MLLMConfig.api_key_env``); local servers need none.
+
+Robustness:
+* per-request ``timeout_s`` (applies to connecting and to each socket read,
+  so a server that hangs is abandoned after ``timeout_s``);
+* up to ``max_retries`` retries with exponential backoff
+  ``backoff_s * 2**attempt`` (capped at ``backoff_max_s``; a numeric
+  ``Retry-After`` header is honoured up to the cap) on timeouts, connection
+  errors, HTTP 429 and 5xx, and on malformed (non-JSON) response bodies;
+  other 4xx fail at once (a bad request does not improve by repetition);
+* an on-disk cache keyed by ``sha256(model, system, prompt, sha256 of each
+  image's bytes)``: a rerun with the same renders and prompts makes no
+  request. Only successful answers are cached. Default directory
+  ``.mllm_cache/`` (in .gitignore); ``cache_dir=None`` disables it.
+
+Scripts get absl flags from :func:`define_flags` (nothing is defined at
+import time) and an :class:`MLLMConfig` from :func:`config_from_flags`.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import hashlib
+import http.client
+import json
+import os
+import socket
+import struct
+import tempfile
+import time
+import urllib.error
+import urllib.request
+import zlib
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+from absl import logging
+
+DEFAULT_CACHE_DIR = '.mllm_cache'
+_CACHE_VERSION = 1
+_BODY_EXCERPT = 300  # characters of an error body quoted in messages
+
+
+class MLLMError(RuntimeError):
+  """A request failed for good.
+
+  Attributes:
+    kind: 'timeout', 'connection', 'http', 'protocol' or 'config'.
+    status: the HTTP status for kind 'http', else None.
+    attempts: how many requests were made.
+    retry_after: the server's Retry-After header, if any.
+  """
+
+  def __init__(self, message: str, kind: str, status: int | None = None,
+               attempts: int = 0, retry_after: str | None = None):
+    super().__init__(message)
+    self.kind = kind
+    self.status = status
+    self.attempts = attempts
+    self.retry_after = retry_after
+
+
+@dataclasses.dataclass(frozen=True)
+class MLLMConfig:
+  """Endpoint and client settings (hashable).
+
+  Attributes:
+    base_url: e.g. ``'https://api.openai.com/v1'`` or
+      ``'http://127.0.0.1:11434/v1'``; None or '' means no endpoint
+      (offline perception). A URL ending in ``/chat/completions`` is used
+      as is.
+    model: model name sent in the request, e.g. ``'gpt-4o-mini'``,
+      ``'qwen2.5-vl'``, ``'llava'``.
+    api_key_env: environment variable holding the API key (sent as
+      ``Authorization: Bearer``); a missing variable sends no key.
+    timeout_s: per-request socket timeout [s].
+    max_retries: retries after the first attempt.
+    backoff_s: first backoff delay [s]; doubles each retry.
+    backoff_max_s: cap on one delay [s].
+    cache_dir: cache directory, or None to disable caching.
+    temperature: sampling temperature (0 for repeatable answers).
+    max_tokens: answer length cap.
+  """
+
+  base_url: str | None = None
+  model: str = 'gpt-4o-mini'
+  api_key_env: str = 'OPENAI_API_KEY'
+  timeout_s: float = 60.0
+  max_retries: int = 3
+  backoff_s: float = 1.0
+  backoff_max_s: float = 30.0
+  cache_dir: str | None = DEFAULT_CACHE_DIR
+  temperature: float = 0.0
+  max_tokens: int = 512
+
+  @property
+  def enabled(self) -> bool:
+    """Whether an endpoint is configured."""
+    return bool(self.base_url)
+
+  @property
+  def url(self) -> str:
+    """The full chat-completions URL."""
+    base = (self.base_url or '').rstrip('/')
+    if base.endswith('/chat/completions'):
+      return base
+    return base + '/chat/completions'
+
+  def validate(self) -> MLLMConfig:
+    """Returns self, or raises MLLMError(kind='config') naming the field."""
+    if not self.enabled:
+      return self
+    if not self.base_url.startswith(('http://', 'https://')):
+      raise MLLMError(
+        f'mllm base_url {self.base_url!r} must start with http:// or '
+        'https:// (e.g. http://127.0.0.1:11434/v1 for Ollama)', 'config')
+    if not self.model:
+      raise MLLMError('mllm model is empty; pass --mllm_model', 'config')
+    if not self.timeout_s > 0:
+      raise MLLMError(f'mllm timeout_s must be > 0, got {self.timeout_s}',
+                      'config')
+    if self.max_retries < 0:
+      raise MLLMError(f'mllm max_retries must be >= 0, got '
+                      f'{self.max_retries}', 'config')
+    return self
+
+
+@dataclasses.dataclass(frozen=True)
+class MLLMReply:
+  """One answer.
+
+  Attributes:
+    text: the assistant message content.
+    cached: True when it came from the on-disk cache (no request made).
+    attempts: requests made for it (0 when cached).
+    key: the cache key.
+  """
+
+  text: str
+  cached: bool
+  attempts: int
+  key: str
+
+
+# ------------------------------------------------------------------ images
+
+
+def encode_png(image) -> bytes:
+  """Encodes an (H, W, 3) or (H, W, 4) image as PNG (stdlib zlib only).
+
+  Args:
+    image: uint8 array, or floats in [0, 1] (clipped, rounded).
+
+  Returns:
+    The PNG file bytes (8-bit RGB or RGBA, no interlace).
+  """
+  a = np.asarray(image)
+  if a.ndim != 3 or a.shape[2] not in (3, 4) or 0 in a.shape[:2]:
+    raise ValueError(f'encode_png: expected (H, W, 3|4), got {a.shape}')
+  if a.dtype != np.uint8:
+    a = np.round(np.clip(np.nan_to_num(a.astype(np.float64)), 0, 1) * 255)
+    a = a.astype(np.uint8)
+  h, w, c = a.shape
+  raw = np.concatenate([np.zeros((h, 1), np.uint8), a.reshape(h, w * c)],
+                       axis=1).tobytes()
+
+  def chunk(tag: bytes, data: bytes) -> bytes:
+    return (struct.pack('>I', len(data)) + tag + data
+            + struct.pack('>I', zlib.crc32(tag + data) & 0xFFFFFFFF))
+
+  ihdr = struct.pack('>IIBBBBB', w, h, 8, 6 if c == 4 else 2, 0, 0, 0)
+  return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', ihdr)
+          + chunk(b'IDAT', zlib.compress(raw, 6)) + chunk(b'IEND', b''))
+
+
+def png_data_url(png: bytes) -> str:
+  """``data:image/png;base64,...`` URL of PNG bytes."""
+  return 'data:image/png;base64,' + base64.b64encode(png).decode('ascii')
+
+
+# ------------------------------------------------------------------- cache
+
+
+def cache_key(model: str, prompt: str, images: Sequence[bytes] = (),
+              system: str | None = None) -> str:
+  """sha256 hex of the model, system prompt, prompt and image bytes."""
+  h = hashlib.sha256()
+  payload = {
+    'v': _CACHE_VERSION, 'model': model, 'system': system or '',
+    'prompt': prompt,
+    'images': [hashlib.sha256(b).hexdigest() for b in images],
+  }
+  h.update(json.dumps(payload, sort_keys=True).encode('utf-8'))
+  return h.hexdigest()
+
+
+def _cache_path(cache_dir: str, key: str) -> str:
+  return os.path.join(cache_dir, key[:2], key + '.json')
+
+
+def _cache_read(cache_dir: str, key: str) -> str | None:
+  path = _cache_path(cache_dir, key)
+  try:
+    with open(path, encoding='utf-8') as f:
+      data = json.load(f)
+  except FileNotFoundError:
+    return None
+  except (OSError, json.JSONDecodeError) as e:
+    logging.warning('mllm cache: ignoring unreadable entry %s (%s)', path, e)
+    return None
+  text = data.get('text') if isinstance(data, dict) else None
+  return text if isinstance(text, str) else None
+
+
+def _cache_write(cache_dir: str, key: str, text: str, model: str) -> None:
+  path = _cache_path(cache_dir, key)
+  try:
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix='.tmp')
+    with os.fdopen(fd, 'w', encoding='utf-8') as f:
+      json.dump({'text': text, 'model': model, 'time': time.time()}, f)
+    os.replace(tmp, path)
+  except OSError as e:
+    logging.warning('mllm cache: cannot write %s (%s); continuing without '
+                    'caching', path, e)
+
+
+# ------------------------------------------------------------------ client
+
+
+def _content_text(content) -> str | None:
+  """Message content as text (string, or a list of text parts)."""
+  if isinstance(content, str):
+    return content
+  if isinstance(content, list):
+    parts = [p.get('text', '') for p in content
+             if isinstance(p, dict) and p.get('type') in ('text', None)]
+    return ''.join(parts) if parts else None
+  return None
+
+
+class MLLMClient:
+  """Chat-completions client with retries, backoff and an on-disk cache.
+
+  Attributes:
+    config: the :class:`MLLMConfig`.
+    num_requests: HTTP requests made so far.
+    num_cache_hits: answers served from the cache so far.
+  """
+
+  def __init__(self, config: MLLMConfig, *,
+               sleep: Callable[[float], None] = time.sleep,
+               environ: Mapping[str, str] | None = None):
+    """Creates a client.
+
+    Args:
+      config: endpoint settings; must be enabled (``base_url`` set).
+      sleep: delay function (tests pass a recorder).
+      environ: environment for the API key (default ``os.environ``).
+
+    Raises:
+      MLLMError: kind 'config' for a missing or malformed endpoint.
+    """
+    if not config.enabled:
+      raise MLLMError('no MLLM endpoint configured (base_url is empty); '
+                      'pass --mllm_base_url or use offline perception',
+                      'config')
+    self.config = config.validate()
+    self._sleep = sleep
+    env = os.environ if environ is None else environ
+    self._api_key = env.get(config.api_key_env) if config.api_key_env else None
+    if not self._api_key and config.api_key_env != 'OPENAI_API_KEY':
+      logging.warning('mllm: environment variable %s is not set; sending no '
+                      'API key', config.api_key_env)
+    self.num_requests = 0
+    self.num_cache_hits = 0
+
+  def _body(self, prompt, images, system) -> bytes:
+    content = [{'type': 'text', 'text': prompt}]
+    for png in images:
+      content.append({'type': 'image_url',
+                      'image_url': {'url': png_data_url(png)}})
+    messages = []
+    if system:
+      messages.append({'role': 'system', 'content': system})
+    messages.append({'role': 'user', 'content': content})
+    body = {
+      'model': self.config.model, 'messages': messages,
+      'temperature': self.config.temperature,
+      'max_tokens': self.config.max_tokens,
+    }
+    return json.dumps(body).encode('utf-8')
+
+  def _request_once(self, body: bytes) -> str:
+    """One POST; returns the content or raises a classified MLLMError."""
+    headers = {'Content-Type': 'application/json',
+               'Accept': 'application/json'}
+    if self._api_key:
+      headers['Authorization'] = f'Bearer {self._api_key}'
+    req = urllib.request.Request(self.config.url, data=body, headers=headers,
+                                 method='POST')
+    self.num_requests += 1
+    try:
+      with urllib.request.urlopen(req, timeout=self.config.timeout_s) as r:
+        raw = r.read()
+    except urllib.error.HTTPError as e:
+      try:
+        detail = e.read().decode('utf-8', 'replace')[:_BODY_EXCERPT]
+      except Exception:  # noqa: BLE001 - best effort for the message
+        detail = ''
+      raise MLLMError(
+        f'HTTP {e.code} {e.reason} from {self.config.url}: {detail}', 'http',
+        status=e.code,
+        retry_after=e.headers.get('Retry-After') if e.headers else None,
+      ) from None
+    except (TimeoutError, socket.timeout) as e:
+      raise MLLMError(f'no answer from {self.config.url} within '
+                      f'{self.config.timeout_s:g} s ({e})', 'timeout'
+                      ) from None
+    except urllib.error.URLError as e:
+      if isinstance(e.reason, (TimeoutError, socket.timeout)):
+        raise MLLMError(f'no answer from {self.config.url} within '
+                        f'{self.config.timeout_s:g} s', 'timeout') from None
+      raise MLLMError(f'cannot connect to {self.config.url}: {e.reason}',
+                      'connection') from None
+    except (http.client.HTTPException, ConnectionError, OSError) as e:
+      raise MLLMError(f'connection to {self.config.url} failed: {e!r}',
+                      'connection') from None
+    try:
+      data = json.loads(raw.decode('utf-8'))
+      text = _content_text(data['choices'][0]['message']['content'])
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, IndexError,
+            TypeError) as e:
+      raise MLLMError(
+        f'malformed chat-completions response from {self.config.url} '
+        f'({type(e).__name__}): {raw[:_BODY_EXCERPT]!r}', 'protocol'
+      ) from None
+    if text is None:
+      raise MLLMError(f'response from {self.config.url} has no text content',
+                      'protocol')
+    return text
+
+  def _delay(self, attempt: int, err: MLLMError) -> float:
+    d = min(self.config.backoff_s * 2.0 ** attempt, self.config.backoff_max_s)
+    ra = err.retry_after
+    if ra:
+      try:
+        d = min(max(d, float(ra)), self.config.backoff_max_s)
+      except ValueError:
+        pass
+    return d
+
+  def complete(self, prompt: str, images: Sequence[bytes] = (),
+               system: str | None = None) -> MLLMReply:
+    """Asks the model; answers from the cache when possible.
+
+    Args:
+      prompt: the user text.
+      images: PNG file bytes, sent as data URLs in order after the text.
+      system: optional system prompt.
+
+    Returns:
+      An :class:`MLLMReply`.
+
+    Raises:
+      MLLMError: after the retries are spent, or at once on a non-retryable
+        HTTP status; ``kind`` says what happened.
+    """
+    images = tuple(images)
+    key = cache_key(self.config.model, prompt, images, system)
+    if self.config.cache_dir:
+      text = _cache_read(self.config.cache_dir, key)
+      if text is not None:
+        self.num_cache_hits += 1
+        return MLLMReply(text=text, cached=True, attempts=0, key=key)
+    body = self._body(prompt, images, system)
+    attempts = 0
+    while True:
+      attempts += 1
+      try:
+        text = self._request_once(body)
+        break
+      except MLLMError as e:
+        retryable = (e.kind in ('timeout', 'connection', 'protocol')
+                     or (e.kind == 'http'
+                         and (e.status == 429 or e.status >= 500)))
+        if not retryable or attempts > self.config.max_retries:
+          what = 'not retried' if not retryable else (
+            f'after {attempts} attempts')
+          raise MLLMError(f'{e} ({what})', e.kind, e.status, attempts
+                          ) from None
+        delay = self._delay(attempts - 1, e)
+        logging.warning('mllm: attempt %d failed (%s); retrying in %.2f s',
+                        attempts, e, delay)
+        self._sleep(delay)
+    if self.config.cache_dir:
+      _cache_write(self.config.cache_dir, key, text, self.config.model)
+    return MLLMReply(text=text, cached=False, attempts=attempts, key=key)
+
+
+def make_client(config: MLLMConfig, **kwargs) -> MLLMClient:
+  """``MLLMClient(config, **kwargs)``."""
+  return MLLMClient(config, **kwargs)
+
+
+# ------------------------------------------------------------------- flags
+
+
+def define_flags(flag_values=None) -> None:
+  """Defines the ``--mllm_*`` absl flags (idempotent).
+
+  Flags: ``--mllm_base_url`` (empty = offline), ``--mllm_model``,
+  ``--mllm_api_key_env``, ``--mllm_timeout`` [s], ``--mllm_retries``,
+  ``--mllm_backoff`` [s], ``--mllm_cache_dir`` (empty disables the cache),
+  ``--mllm_max_tokens``.
+
+  Args:
+    flag_values: an ``absl.flags.FlagValues`` (default ``flags.FLAGS``).
+  """
+  from absl import flags
+
+  fv = flags.FLAGS if flag_values is None else flag_values
+  d = MLLMConfig()
+  specs = [
+    (flags.DEFINE_string, 'mllm_base_url', '',
+     'OpenAI-compatible endpoint, e.g. https://api.openai.com/v1 or '
+     'http://127.0.0.1:11434/v1 (Ollama); empty: offline perception from the '
+     'material library.'),
+    (flags.DEFINE_string, 'mllm_model', d.model, 'Model name to request.'),
+    (flags.DEFINE_string, 'mllm_api_key_env', d.api_key_env,
+     'Environment variable that holds the API key.'),
+    (flags.DEFINE_float, 'mllm_timeout', d.timeout_s,
+     'Per-request timeout [s].'),
+    (flags.DEFINE_integer, 'mllm_retries', d.max_retries,
+     'Retries on timeouts, connection errors, HTTP 429 and 5xx.'),
+    (flags.DEFINE_float, 'mllm_backoff', d.backoff_s,
+     'First retry delay [s]; doubles each retry.'),
+    (flags.DEFINE_string, 'mllm_cache_dir', d.cache_dir,
+     'On-disk answer cache; empty disables it.'),
+    (flags.DEFINE_integer, 'mllm_max_tokens', d.max_tokens,
+     'Maximum answer length [tokens].'),
+  ]
+  for define, name, default, help_ in specs:
+    if name not in fv:
+      define(name, default, help_, flag_values=fv)
+
+
+def config_from_flags(flag_values=None) -> MLLMConfig:
+  """An :class:`MLLMConfig` from the flags of :func:`define_flags`."""
+  from absl import flags
+
+  fv = flags.FLAGS if flag_values is None else flag_values
+  return MLLMConfig(
+    base_url=fv.mllm_base_url or None,
+    model=fv.mllm_model,
+    api_key_env=fv.mllm_api_key_env,
+    timeout_s=float(fv.mllm_timeout),
+    max_retries=int(fv.mllm_retries),
+    backoff_s=float(fv.mllm_backoff),
+    cache_dir=fv.mllm_cache_dir or None,
+    max_tokens=int(fv.mllm_max_tokens),
+  ).validate()
