@@ -4,6 +4,16 @@ The HTTP client lives in :mod:`physsplat_jax.io.mllm`; see docs/perception.md
 and docs/materials.md.
 """
 
+from physsplat_jax.perception.choice import MaterialChoice as MaterialChoice
+from physsplat_jax.perception.choice import apply_spec as apply_spec
+from physsplat_jax.perception.choice import (
+  simulation_values as simulation_values,
+)
+from physsplat_jax.perception.flags import define_flags as define_flags
+from physsplat_jax.perception.flags import (
+  options_from_flags as options_from_flags,
+)
+from physsplat_jax.perception.flags import parse_overrides as parse_overrides
 from physsplat_jax.perception.library import LibraryError as LibraryError
 from physsplat_jax.perception.library import Match as Match
 from physsplat_jax.perception.library import MaterialEntry as MaterialEntry
@@ -14,3 +24,13 @@ from physsplat_jax.perception.library import (
 from physsplat_jax.perception.library import default_library as default_library
 from physsplat_jax.perception.library import load_library as load_library
 from physsplat_jax.perception.library import parse_library as parse_library
+from physsplat_jax.perception.p3 import PerceptionOptions as PerceptionOptions
+from physsplat_jax.perception.p3 import perceive_object as perceive_object
+from physsplat_jax.perception.p3 import perceive_scene as perceive_scene
+from physsplat_jax.perception.p3 import (
+  render_object_view as render_object_view,
+)
+from physsplat_jax.perception.parsing import AnswerError as AnswerError
+from physsplat_jax.perception.selection import (
+  select_candidate as select_candidate,
+)

@@ -1,0 +1,278 @@
+"""Material choices: the per-object result of perception, and how values map
+to the simulation preset.
+
+Mapping a real-world estimate to simulation values (docs/materials.md)::
+
+  ratio  = clip(E_real / E_mid, 1 / R, R)           R = max_E_ratio (100)
+  E_sim  = clip(E_sim_lib * ratio ** 0.5, E_sim_min, E_sim_max)
+  nu_sim = min(nu_real, nu_sim_max)                  (0.45)
+  rho_sim = rho_real
+  yield_stress = yield_strain * E_sim                (strain-yield models)
+
+``E_mid`` is the library entry's real mid-range modulus and ``E_sim_lib`` its
+preset. The exponent 0.5 is the library's own compression law
+(``E_sim = sqrt(E_mid * 1e5 Pa)``), so an estimate equal to the library's
+mid value gives exactly the preset, and an estimate 100x stiffer gives a 10x
+stiffer simulation at most. ``nu`` is capped because the bulk modulus
+``E / (3 (1 - 2 nu))`` (and with it the stable time step) diverges as nu ->
+0.5.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from physsplat_jax.configs.physgaussian import CANONICAL_MODELS
+from physsplat_jax.perception.library import MODEL_PARAMS
+from physsplat_jax.perception.library import NEVER_RIGID_MODELS
+from physsplat_jax.perception.library import STRAIN_YIELD_MODELS
+from physsplat_jax.perception.library import MaterialEntry
+from physsplat_jax.perception.library import MaterialLibrary
+
+SOURCES = ('mllm', 'library', 'config', 'override')
+_SPEC_FIELDS = {'material', 'key', 'model', 'E', 'nu', 'rho', 'density',
+                'rigid'}
+_ALL_PARAMS = sorted({p for ps in MODEL_PARAMS.values() for p in ps})
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialChoice:
+  """The material perception chose for one object (hashable).
+
+  Attributes:
+    object_name: the scene object's name.
+    material_key: the library key.
+    model: constitutive model (``CANONICAL_MODELS``); for a rigid object,
+      the model it would be simulated with as a deformable body.
+    E: Young's modulus to simulate with [Pa] (the simulation value).
+    nu: Poisson's ratio to simulate with, in [0, 0.5).
+    rho: density to simulate with [kg/m^3].
+    rigid: simulate as a rigid body.
+    params: model parameters in simulation units, sorted ``(name, value)``.
+    source: 'mllm', 'library', 'config' or 'override': which path chose it.
+    reason: one line saying why.
+    E_real: the real-world Young's modulus estimate [Pa] behind ``E`` (the
+      MLLM's validated answer or the library's mid value), or None when the
+      values were given directly (config/override).
+    caption: the MLLM's caption ('' offline).
+    candidates: the MLLM's candidate keys, best first (() offline).
+    warnings: what went wrong on the way (empty when nothing did).
+  """
+
+  object_name: str
+  material_key: str
+  model: str
+  E: float
+  nu: float
+  rho: float
+  rigid: bool
+  params: tuple[tuple[str, float], ...] = ()
+  source: str = 'library'
+  reason: str = ''
+  E_real: float | None = None
+  caption: str = ''
+  candidates: tuple[str, ...] = ()
+  warnings: tuple[str, ...] = ()
+
+  @property
+  def params_dict(self) -> dict[str, float]:
+    return dict(self.params)
+
+  def to_dict(self) -> dict[str, Any]:
+    """JSON-ready dict (for report.json)."""
+    d = dataclasses.asdict(self)
+    d['params'] = self.params_dict
+    d['candidates'] = list(self.candidates)
+    d['warnings'] = list(self.warnings)
+    return d
+
+  def summary(self) -> str:
+    """``key [model, rigid] E=.. nu=.. rho=..`` for log lines."""
+    kind = 'rigid' if self.rigid else 'deformable'
+    return (f'{self.material_key} [{self.model}, {kind}] E_sim={self.E:.3g} '
+            f'Pa nu={self.nu:.3g} rho={self.rho:.4g} kg/m^3')
+
+
+def check_choice(c: MaterialChoice) -> MaterialChoice:
+  """Returns ``c`` or raises ValueError if any value is unphysical."""
+  bad = []
+  if c.model not in CANONICAL_MODELS:
+    bad.append(f'model {c.model!r} not in {list(CANONICAL_MODELS)}')
+  if not (math.isfinite(c.E) and c.E > 0):
+    bad.append(f'E={c.E}')
+  if not (math.isfinite(c.nu) and 0.0 <= c.nu < 0.5):
+    bad.append(f'nu={c.nu}')
+  if not (math.isfinite(c.rho) and c.rho > 0):
+    bad.append(f'rho={c.rho}')
+  if c.source not in SOURCES:
+    bad.append(f'source {c.source!r}')
+  for k, v in c.params:
+    if not math.isfinite(v):
+      bad.append(f'param {k}={v}')
+  if bad:
+    raise ValueError(f'material of object {c.object_name!r}: invalid '
+                     + ', '.join(bad))
+  return c
+
+
+def simulation_values(
+  entry: MaterialEntry,
+  library: MaterialLibrary,
+  E_real: float,
+  nu_real: float,
+  rho_real: float,
+  max_E_ratio: float = 100.0,
+) -> tuple[float, float, float, tuple[tuple[str, float], ...]]:
+  """Maps real-world estimates to simulation values (module docstring).
+
+  Args:
+    entry: the library material.
+    library: for the preset bounds.
+    E_real, nu_real, rho_real: validated real-world estimates [Pa, 1,
+      kg/m^3].
+    max_E_ratio: R, the largest factor between ``E_real`` and the entry's
+      mid value that is honoured.
+
+  Returns:
+    ``(E_sim, nu_sim, rho_sim, params)``.
+  """
+  lo, hi = library.E_sim_bounds
+  ratio = min(max(E_real / entry.E_mid, 1.0 / max_E_ratio), max_E_ratio)
+  E_sim = min(max(entry.E_sim * math.sqrt(ratio), lo), hi)
+  nu_sim = min(float(nu_real), library.nu_sim_max)
+  params = dict(entry.params)
+  if entry.model in STRAIN_YIELD_MODELS and entry.yield_strain is not None:
+    params['yield_stress'] = entry.yield_strain * E_sim
+  return float(E_sim), float(nu_sim), float(rho_real), tuple(
+    sorted(params.items()))
+
+
+def choice_from_entry(
+  object_name: str,
+  entry: MaterialEntry,
+  source: str,
+  reason: str,
+  warnings=(),
+) -> MaterialChoice:
+  """The entry's simulation preset, as a choice."""
+  return check_choice(MaterialChoice(
+    object_name=object_name, material_key=entry.key, model=entry.model,
+    E=entry.E_sim, nu=entry.nu_sim, rho=entry.rho_sim, rigid=entry.rigid,
+    params=entry.params, source=source, reason=reason, E_real=entry.E_mid,
+    warnings=tuple(warnings),
+  ))
+
+
+def rigid_for(entry: MaterialEntry, rigid: bool | None) -> tuple[bool, str]:
+  """The rigid flag to use given a model's answer, and a note ('' if none).
+
+  Granular media and fluids (``NEVER_RIGID_MODELS``) are never rigid.
+  """
+  if rigid is None:
+    return entry.rigid, ''
+  if rigid and entry.model in NEVER_RIGID_MODELS:
+    return False, (f'rigid=true ignored: {entry.key} ({entry.model}) '
+                   'cannot be a rigid body')
+  return bool(rigid), ''
+
+
+def apply_spec(
+  object_name: str,
+  spec: Any,
+  library: MaterialLibrary,
+  base: MaterialEntry | None,
+  source: str,
+) -> MaterialChoice:
+  """A choice from an override or config value.
+
+  Args:
+    object_name: the object's name.
+    spec: a library key or name (``'rubber'``, ``'rubber ball'``), or a
+      mapping with any of ``material`` (key or name), ``model``, ``E``,
+      ``nu``, ``rho`` (or ``density``), ``rigid`` and model parameters
+      (``yield_stress``, ``friction_angle``, ...). Numbers are SIMULATION
+      values, used as given (E in Pa as the solver sees it).
+    library: the material library.
+    base: the entry to start from when the mapping names no material (e.g.
+      the one the object's name matches); None requires ``material``.
+    source: 'override' or 'config'.
+
+  Returns:
+    A validated :class:`MaterialChoice`.
+
+  Raises:
+    ValueError: unknown material, unknown field, or unphysical value; the
+      message names the object and the field.
+  """
+  where = f'{source} for object {object_name!r}'
+  if isinstance(spec, str):
+    spec = {'material': spec}
+  if not isinstance(spec, Mapping):
+    raise ValueError(f'{where}: expected a material key or a mapping, got '
+                     f'{spec!r}')
+  unknown = sorted(set(spec) - _SPEC_FIELDS - set(_ALL_PARAMS))
+  if unknown:
+    raise ValueError(f'{where}: unknown field(s) {unknown}; allowed: '
+                     f'{sorted(_SPEC_FIELDS)} and parameters {_ALL_PARAMS}')
+  name = spec.get('material', spec.get('key'))
+  if name is not None:
+    m = library.match(str(name))
+    if m is None:
+      raise ValueError(f'{where}: material {name!r} is not in the library; '
+                       f'close keys: {library.suggest(str(name))}')
+    entry = library[m.key]
+    how = f'{name!r}' if m.key == name else f'{name!r} -> {m.key}'
+  elif base is not None:
+    entry, how = base, f'values over {base.key}'
+  else:
+    raise ValueError(f'{where}: no "material" given and the object name '
+                     'matches no library material')
+  fields = {'E': entry.E_sim, 'nu': entry.nu_sim, 'rho': entry.rho_sim}
+  for k_spec, k in (('E', 'E'), ('nu', 'nu'), ('rho', 'rho'),
+                    ('density', 'rho')):
+    if k_spec in spec:
+      try:
+        fields[k] = float(spec[k_spec])
+      except (TypeError, ValueError):
+        raise ValueError(f'{where}: {k_spec}={spec[k_spec]!r} is not a '
+                         'number') from None
+  model = spec.get('model', entry.model)
+  if model not in CANONICAL_MODELS:
+    from physsplat_jax.configs.physgaussian import material_name
+    try:
+      model = material_name(model, where)
+    except Exception:  # noqa: BLE001 - re-raised with our message
+      raise ValueError(f'{where}: model {model!r} is not one of '
+                       f'{list(CANONICAL_MODELS)}') from None
+  rigid = spec.get('rigid', entry.rigid)
+  if not isinstance(rigid, bool):
+    raise ValueError(f'{where}: rigid={rigid!r} must be true or false')
+  params = dict(entry.params) if model == entry.model else {}
+  if model in STRAIN_YIELD_MODELS and entry.yield_strain is not None and (
+      model == entry.model):
+    params['yield_stress'] = entry.yield_strain * fields['E']
+  for p in _ALL_PARAMS:
+    if p in spec:
+      try:
+        params[p] = float(spec[p])
+      except (TypeError, ValueError):
+        raise ValueError(f'{where}: {p}={spec[p]!r} is not a number'
+                         ) from None
+  missing = [p for p in MODEL_PARAMS[model] if p not in params]
+  if missing:
+    raise ValueError(f'{where}: model {model!r} needs parameter(s) '
+                     f'{missing}')
+  given = sorted(k for k in spec if k not in ('material', 'key'))
+  reason = f'{source} {how}' + (f' with {given}' if given else '')
+  try:
+    return check_choice(MaterialChoice(
+      object_name=object_name, material_key=entry.key, model=model,
+      E=fields['E'], nu=fields['nu'], rho=fields['rho'], rigid=rigid,
+      params=tuple(sorted(params.items())), source=source, reason=reason,
+      E_real=None if given else entry.E_mid,
+    ))
+  except ValueError as e:
+    raise ValueError(f'{where}: {e}') from None

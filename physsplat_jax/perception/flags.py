@@ -1,0 +1,113 @@
+"""absl flags for perception in experiment scripts (defined on request only).
+
+``define_flags()`` defines the ``--mllm_*`` flags of
+:func:`physsplat_jax.io.mllm.define_flags` plus:
+
+* ``--material_override`` (repeatable): ``'name=key'`` or
+  ``'name={"material": "rubber", "E": 3e5}'``; several pairs may be joined
+  with ``;`` (``'ball=rubber;can=aluminum'``). Values are simulation values.
+* ``--default_material``: library key for names that match nothing
+  (empty: error instead).
+* ``--perception_candidates``, ``--perception_image_size``,
+  ``--perception_selection``.
+
+``options_from_flags()`` turns them into :class:`PerceptionOptions`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from physsplat_jax.io import mllm
+from physsplat_jax.perception.p3 import SELECTION_METHODS
+from physsplat_jax.perception.p3 import PerceptionOptions
+
+
+def parse_overrides(items: Sequence[str] | str | None) -> dict[str, Any]:
+  """Parses ``name=value`` strings into an overrides dict.
+
+  Args:
+    items: strings like ``'ball=rubber'``, ``'a=wood;b=sand'`` or
+      ``'cube={"material": "jelly", "E": 2e4}'``.
+
+  Returns:
+    name -> library key/name or dict of values.
+
+  Raises:
+    ValueError: a malformed item (the message quotes it and shows the
+      form).
+  """
+  if items is None:
+    return {}
+  if isinstance(items, str):
+    items = [items]
+  out: dict[str, Any] = {}
+  for item in items:
+    parts = [item] if item.strip().split('=', 1)[-1].lstrip().startswith(
+      '{') else item.split(';')
+    for part in parts:
+      if not part.strip():
+        continue
+      if '=' not in part:
+        raise ValueError(f'material override {part!r}: expected name=key or '
+                         'name={"material": ..., "E": ...}')
+      name, value = part.split('=', 1)
+      name, value = name.strip(), value.strip()
+      if not name or not value:
+        raise ValueError(f'material override {part!r}: empty name or value')
+      if value.startswith('{'):
+        try:
+          value = json.loads(value)
+        except json.JSONDecodeError as e:
+          raise ValueError(f'material override {part!r}: invalid JSON ({e})'
+                           ) from None
+      out[name] = value
+  return out
+
+
+def define_flags(flag_values=None) -> None:
+  """Defines the MLLM and perception flags (idempotent)."""
+  from absl import flags
+
+  fv = flags.FLAGS if flag_values is None else flag_values
+  mllm.define_flags(fv)
+  d = PerceptionOptions()
+  specs = [
+    (flags.DEFINE_multi_string, 'material_override', [],
+     'Object material: name=key, name={"material": k, "E": ..}, or several '
+     'joined with ";". Beats the MLLM and the library.'),
+    (flags.DEFINE_string, 'default_material', d.default_material,
+     'Library key for object names that match nothing (empty: error).'),
+    (flags.DEFINE_integer, 'perception_candidates', d.num_candidates,
+     'Candidate materials asked of the MLLM (K).'),
+    (flags.DEFINE_integer, 'perception_image_size', d.image_size,
+     'Side of the rendered object view sent to the MLLM [pixels].'),
+  ]
+  for define, name, default, help_ in specs:
+    if name not in fv:
+      define(name, default, help_, flag_values=fv)
+  if 'perception_selection' not in fv:
+    flags.DEFINE_enum('perception_selection', d.selection,
+                      list(SELECTION_METHODS),
+                      'How to pick among candidates: MLLM score + text + '
+                      'rank, text + rank, or the first.', flag_values=fv)
+
+
+def options_from_flags(flag_values=None,
+                       config_materials: Mapping[str, Any] | None = None
+                       ) -> PerceptionOptions:
+  """:class:`PerceptionOptions` from the flags of :func:`define_flags`."""
+  from absl import flags
+
+  fv = flags.FLAGS if flag_values is None else flag_values
+  return PerceptionOptions(
+    mllm=mllm.config_from_flags(fv),
+    overrides=parse_overrides(fv.material_override),
+    config_materials=dict(config_materials or {}),
+    default_material=fv.default_material or None,
+    num_candidates=int(fv.perception_candidates),
+    image_size=int(fv.perception_image_size),
+    selection=fv.perception_selection,
+  ).validate()

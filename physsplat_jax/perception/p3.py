@@ -1,0 +1,455 @@
+"""MLLM-P3 perception of a scene's objects, with an offline default.
+
+For every object of a :class:`~physsplat_jax.types.Scene` the material is
+chosen by the first path that applies (one absl log line per object says
+which, and why):
+
+1. ``override``: ``options.overrides[object name]`` (a library key or name,
+   or a mapping of simulation values; see :func:`choice.apply_spec`).
+2. ``config``: ``options.config_materials[object name]`` (or its ``'*'``
+   entry), e.g. from a PhysGaussian config.
+3. ``mllm`` (when an endpoint is configured): PhysSplat's MLLM-P3 on a
+   rendered canonical view of the object alone:
+
+   (1) caption the object; (2) ask for K candidate materials and whether it
+   is rigid (JSON); (3) pick the best candidate (MLLM visual score + caption
+   text similarity + rank; :mod:`physsplat_jax.perception.selection`);
+   (4) ask for density, E and nu of the chosen material given the image and
+   caption (JSON). Every answer is validated
+   (:mod:`physsplat_jax.perception.parsing`); a malformed JSON answer is
+   asked again once (``json_retries``). The real-world values are mapped to
+   the simulation preset (:func:`choice.simulation_values`).
+
+   Any failure falls back to the library with a warning: a failed caption
+   or candidate step (network error, timeout, unusable answer) sends the
+   whole object to path 4; a failed score step drops the visual score; a
+   failed or out-of-range property answer uses library values for the
+   fields concerned.
+4. ``library`` (offline default): the scene's ``ObjectInfo.material`` key
+   if set, else the object's name matched against the library (key, alias,
+   phrase, keyword, fuzzy), else ``options.default_material`` with a
+   warning (or an error when that is None).
+
+Only rendering (``render_image``) and the injected client touch anything
+outside plain Python; the client is :class:`physsplat_jax.io.mllm.MLLMClient`
+unless one is passed in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol
+
+import jax.numpy as jnp
+import numpy as np
+from absl import logging
+
+from physsplat_jax.io.mllm import MLLMConfig
+from physsplat_jax.io.mllm import MLLMError
+from physsplat_jax.io.mllm import encode_png
+from physsplat_jax.perception import choice as choice_lib
+from physsplat_jax.perception import parsing
+from physsplat_jax.perception import prompts
+from physsplat_jax.perception.choice import MaterialChoice
+from physsplat_jax.perception.library import MaterialEntry
+from physsplat_jax.perception.library import MaterialLibrary
+from physsplat_jax.perception.library import MaterialNotFoundError
+from physsplat_jax.perception.library import default_library
+from physsplat_jax.perception.selection import DEFAULT_WEIGHTS
+from physsplat_jax.perception.selection import select_candidate
+from physsplat_jax.types import Gaussians
+from physsplat_jax.types import ObjectInfo
+from physsplat_jax.types import Scene
+from physsplat_jax.types import concatenate_gaussians
+
+SELECTION_METHODS = ('score', 'text', 'first')
+
+
+class ChatClient(Protocol):
+  """What perception needs from a client (``MLLMClient`` has it)."""
+
+  def complete(self, prompt: str, images: Sequence[bytes] = (),
+               system: str | None = None) -> Any:
+    """Returns an object with a ``text`` attribute."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PerceptionOptions:
+  """Settings of :func:`perceive_scene`.
+
+  Attributes:
+    mllm: endpoint settings; disabled (no ``base_url``) means offline.
+    overrides: object name -> library key/name or mapping of simulation
+      values (``{'material': 'rubber', 'E': 3e5}``); beats everything.
+    config_materials: object name (or ``'*'`` for all) -> same, from a
+      scene config; beats the MLLM and the library.
+    default_material: library key used when an object's name matches
+      nothing (with a warning); None raises instead.
+    num_candidates: K, candidate materials asked for.
+    image_size: side of the rendered view [pixels].
+    azimuth_deg, elevation_deg: viewing direction of the canonical view.
+    background: RGB background of the view.
+    name_hint: tell the MLLM the object's scene name in the caption prompt.
+    selection: 'score' (visual score + text + rank), 'text' (text + rank,
+      no score request) or 'first' (the MLLM's first candidate).
+    score_weights: ``(visual, text, rank)`` weights of 'score'.
+    json_retries: re-asks after an answer without usable JSON.
+    max_E_ratio: largest honoured factor between the MLLM's E and the
+      library's mid value (see :mod:`physsplat_jax.perception.choice`).
+    E_slack, rho_slack, nu_slack: plausibility bands of the validation.
+    scene_material_first: use ``ObjectInfo.material`` (when set) even when
+      an MLLM is configured.
+  """
+
+  mllm: MLLMConfig = MLLMConfig()
+  overrides: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+  config_materials: Mapping[str, Any] = dataclasses.field(
+    default_factory=dict)
+  default_material: str | None = 'jelly'
+  num_candidates: int = 5
+  image_size: int = 224
+  azimuth_deg: float = 30.0
+  elevation_deg: float = 20.0
+  background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+  name_hint: bool = True
+  selection: str = 'score'
+  score_weights: tuple[float, float, float] = DEFAULT_WEIGHTS
+  json_retries: int = 1
+  max_E_ratio: float = 100.0
+  E_slack: float = 10.0
+  rho_slack: float = 3.0
+  nu_slack: float = 0.1
+  scene_material_first: bool = False
+
+  def validate(self) -> PerceptionOptions:
+    if self.selection not in SELECTION_METHODS:
+      raise ValueError(f'PerceptionOptions.selection={self.selection!r} is '
+                       f'not one of {SELECTION_METHODS}')
+    if self.num_candidates < 1:
+      raise ValueError('PerceptionOptions.num_candidates must be >= 1, got '
+                       f'{self.num_candidates}')
+    if self.image_size < 8:
+      raise ValueError('PerceptionOptions.image_size must be >= 8, got '
+                       f'{self.image_size}')
+    if self.max_E_ratio < 1:
+      raise ValueError('PerceptionOptions.max_E_ratio must be >= 1, got '
+                       f'{self.max_E_ratio}')
+    return self
+
+
+# --------------------------------------------------------------- rendering
+
+
+def _pad_pow2(g: Gaussians) -> Gaussians:
+  """Pads with invisible Gaussians to a power of two (fewer recompiles)."""
+  g = g.replace(normals=None, extras={})
+  k = g.num
+  n = 1 << max(int(k - 1).bit_length(), 6)
+  if n == k:
+    return g
+  p = n - k
+  dt = g.means.dtype
+  pad = Gaussians(
+    means=jnp.broadcast_to(jnp.mean(g.means, axis=0), (p, 3)).astype(dt),
+    log_scales=jnp.full((p, 3), -12.0, dt),
+    quats=jnp.tile(jnp.asarray([[1.0, 0.0, 0.0, 0.0]], dt), (p, 1)),
+    opacity_logits=jnp.full((p,), -40.0, dt),
+    sh=jnp.zeros((p,) + g.sh.shape[1:], dt),
+  )
+  return concatenate_gaussians([g, pad])
+
+
+def render_object_view(
+  scene: Scene,
+  index: int,
+  size: int = 224,
+  azimuth_deg: float = 30.0,
+  elevation_deg: float = 20.0,
+  background=(1.0, 1.0, 1.0),
+) -> np.ndarray:
+  """Renders one object alone from a camera fitted to it.
+
+  The camera (:func:`physsplat_jax.cameras.fit_camera`) frames the 0.5-99.5
+  percentile box of the object's centres (robust to floaters), with the
+  scene's up axis. The object's Gaussians are padded with invisible ones to
+  a power of two (at least 64) so objects of similar size share one
+  compiled renderer.
+
+  Args:
+    scene: the scene.
+    index: object index into ``scene.objects``.
+    size: image side [pixels].
+    azimuth_deg, elevation_deg: viewing direction.
+    background: RGB.
+
+  Returns:
+    (size, size, 3) float32 image in [0, 1].
+
+  Raises:
+    ValueError: the object has no Gaussians.
+  """
+  from physsplat_jax.cameras import fit_camera
+  from physsplat_jax.render import render_image
+
+  mask = np.asarray(scene.object_ids) == index
+  if not mask.any():
+    raise ValueError(f'object {index} ({scene.objects[index].name!r}) has no '
+                     'Gaussians to render')
+  g = scene.gaussians.subset(mask)
+  means = np.asarray(g.means, np.float64)
+  lo = np.percentile(means, 0.5, axis=0)
+  hi = np.percentile(means, 99.5, axis=0)
+  pad = 0.05 * max(float(np.linalg.norm(hi - lo)), 1e-6)
+  # Fixed near/far (static camera fields): one compile serves all objects
+  # of a padded size; the camera is outside the object's bounding sphere.
+  cam = fit_camera(lo - pad, hi + pad, up=scene.up_vector, width=size,
+                   height=size, azimuth=azimuth_deg,
+                   elevation=elevation_deg, near=1e-3, far=1e10)
+  out = render_image(_pad_pow2(g), cam, background=tuple(background))
+  return np.clip(np.asarray(out.image, np.float32), 0.0, 1.0)
+
+
+# ---------------------------------------------------------------- helpers
+
+
+class _StepFailed(Exception):
+  """One P3 step failed for good (message says which and why)."""
+
+
+def _entry_offline(info: ObjectInfo, library: MaterialLibrary,
+                   default: str | None
+                   ) -> tuple[MaterialEntry | None, str, list[str]]:
+  """(entry or None, reason, warnings) of the offline path."""
+  warnings = []
+  if info.material:
+    if info.material in library:
+      return (library[info.material],
+              f'scene material key {info.material!r}', warnings)
+    m = library.match(info.material)
+    if m is not None:
+      return (library[m.key],
+              f'scene material {info.material!r} matched {m.how} '
+              f'{m.term!r}', warnings)
+    warnings.append(f'scene material {info.material!r} is not in the '
+                    'library')
+  m = library.match(info.name)
+  if m is not None:
+    return library[m.key], m.describe(info.name), warnings
+  if default is not None:
+    warnings.append(f'name {info.name!r} matched no library material; '
+                    f'default {default!r} used')
+    return library[default], f'default material {default!r}', warnings
+  return None, '', warnings
+
+
+def _offline_choice(info, library, options, warnings=(),
+                    prefix='') -> MaterialChoice:
+  entry, reason, w = _entry_offline(info, library, options.default_material)
+  if entry is None:
+    raise MaterialNotFoundError(
+      f'object {info.name!r}: no library material matches its name and no '
+      f'default is set; close keys: {library.suggest(info.name)}. Set '
+      'ObjectInfo.material, pass an override (name=key) or a '
+      'default_material.')
+  return choice_lib.choice_from_entry(
+    info.name, entry, 'library', prefix + reason, tuple(warnings) + tuple(w))
+
+
+def _lookup_spec(specs: Mapping[str, Any], info: ObjectInfo, index: int):
+  for k in (info.name, str(index)):
+    if k in specs:
+      return specs[k]
+  return specs.get('*')
+
+
+def _short(text: str, n: int = 80) -> str:
+  t = ' '.join(text.split())
+  return t if len(t) <= n else t[:n - 3] + '...'
+
+
+# ---------------------------------------------------------------- MLLM-P3
+
+
+def _mllm_choice(info: ObjectInfo, png: bytes, client: ChatClient,
+                 library: MaterialLibrary, options: PerceptionOptions
+                 ) -> MaterialChoice:
+  warnings: list[str] = []
+
+  def ask(task: str, prompt: str) -> str:
+    try:
+      return client.complete(prompt, [png], system=prompts.SYSTEM).text
+    except MLLMError as e:
+      raise _StepFailed(f'{task} request failed: {e}') from None
+
+  def ask_json(task: str, prompt: str, parse: Callable[[str], Any]):
+    text = ask(task, prompt)
+    for attempt in range(options.json_retries + 1):
+      try:
+        return parse(text)
+      except parsing.AnswerError as e:
+        if attempt == options.json_retries:
+          raise _StepFailed(f'{task} answer unusable: {e}') from None
+        warnings.append(f'{task} answer unusable ({e}); asked again')
+        text = ask(task, prompts.json_repair_prompt(prompt, text, str(e)))
+    raise AssertionError('unreachable')
+
+  # (1) caption.
+  caption = ask('caption', prompts.caption_prompt(
+    info.name if options.name_hint else None)).strip()
+  if not caption:
+    raise _StepFailed('caption answer is empty')
+  # (2) candidates + rigid.
+  cands = ask_json(
+    'candidates',
+    prompts.candidates_prompt(caption, options.num_candidates,
+                              [library[k].name for k in library.keys]),
+    lambda t: parsing.parse_candidates(t, library, options.num_candidates))
+  warnings.extend(cands.notes)
+  # (3) pick the best.
+  visual = None
+  if options.selection == 'first':
+    key, combined, method = cands.keys[0], {cands.keys[0]: 1.0}, 'first'
+  else:
+    if options.selection == 'score' and len(cands.keys) > 1:
+      try:
+        visual, notes = ask_json(
+          'score',
+          prompts.score_prompt(caption,
+                               [library[k].name for k in cands.keys]),
+          lambda t: parsing.parse_scores(t, library, cands.keys))
+        warnings.extend(notes)
+      except _StepFailed as e:
+        warnings.append(f'{e}; picked by text similarity and rank only')
+    key, combined, method = select_candidate(
+      cands.keys, caption, library, visual, options.score_weights)
+  entry = library[key]
+  # (4) properties.
+  try:
+    props = ask_json(
+      'properties',
+      prompts.properties_prompt(caption, entry.name, entry.description),
+      lambda t: parsing.validate_properties(
+        t, entry, options.E_slack, options.rho_slack, options.nu_slack))
+  except _StepFailed as e:
+    warnings.append(f'{e}; library values used')
+    props = parsing.library_properties(entry)
+  warnings.extend(props.notes)
+  if props.from_library:
+    warnings.append(f'{"/".join(props.from_library)} from the library '
+                    f'({entry.key})')
+  rigid, note = choice_lib.rigid_for(entry, cands.rigid)
+  if note:
+    warnings.append(note)
+  E, nu, rho, params = choice_lib.simulation_values(
+    entry, library, props.E, props.nu, props.rho, options.max_E_ratio)
+  got = [f for f in ('E', 'nu', 'rho') if f not in props.from_library]
+  reason = (
+    f'MLLM-P3: caption {_short(caption)!r}; candidates {list(cands.keys)}; '
+    f'picked {key} by {method} ({combined[key]:.2f}); '
+    + (f'{"/".join(got)} from the MLLM (E_real={props.E:.3g} Pa)'
+       if got else 'values from the library')
+  )
+  return choice_lib.check_choice(MaterialChoice(
+    object_name=info.name, material_key=key, model=entry.model, E=E, nu=nu,
+    rho=rho, rigid=rigid, params=params, source='mllm', reason=reason,
+    E_real=props.E, caption=caption, candidates=cands.keys,
+    warnings=tuple(warnings),
+  ))
+
+
+def perceive_object(
+  scene: Scene,
+  index: int,
+  options: PerceptionOptions,
+  library: MaterialLibrary,
+  client: ChatClient | None = None,
+  image: np.ndarray | None = None,
+) -> MaterialChoice:
+  """The material of one object (see the module docstring for the paths).
+
+  Args:
+    scene: the scene.
+    index: object index into ``scene.objects``.
+    options: settings.
+    library: the material library.
+    client: chat client, or None for offline.
+    image: (H, W, 3) view to send instead of rendering one.
+
+  Returns:
+    A validated :class:`MaterialChoice`.
+
+  Raises:
+    ValueError: a bad override/config value (names the object and field).
+    MaterialNotFoundError: offline, no match and no default material.
+  """
+  info = scene.objects[index]
+  spec = _lookup_spec(options.overrides, info, index)
+  source = 'override'
+  if spec is None:
+    spec, source = _lookup_spec(options.config_materials, info, index), \
+      'config'
+  if spec is not None:
+    base, _, _ = _entry_offline(info, library, None)
+    return choice_lib.apply_spec(info.name, spec, library, base, source)
+  if client is None or (options.scene_material_first and info.material):
+    return _offline_choice(info, library, options)
+  try:
+    if image is None:
+      image = render_object_view(
+        scene, index, options.image_size, options.azimuth_deg,
+        options.elevation_deg, options.background)
+    png = encode_png(image)
+    return _mllm_choice(info, png, client, library, options)
+  except (_StepFailed, ValueError) as e:
+    return _offline_choice(info, library, options,
+                           warnings=(f'MLLM-P3 failed: {e}',),
+                           prefix='MLLM-P3 failed, fell back to the library: ')
+
+
+def perceive_scene(
+  scene: Scene,
+  options: PerceptionOptions | None = None,
+  *,
+  client: ChatClient | None = None,
+  library: MaterialLibrary | None = None,
+  images: Mapping[int, np.ndarray] | None = None,
+) -> tuple[MaterialChoice, ...]:
+  """Chooses a material for every object of ``scene``.
+
+  Args:
+    scene: a scene with ``objects`` (background Gaussians, id -1, are not
+      perceived).
+    options: :class:`PerceptionOptions` (default: offline, library by name).
+    client: a chat client; default: an ``MLLMClient`` when
+      ``options.mllm`` has an endpoint, else None (offline).
+    library: the material library (default: the shipped one).
+    images: object index -> (H, W, 3) view to use instead of rendering.
+
+  Returns:
+    One :class:`MaterialChoice` per object, in ``scene.objects`` order.
+    Each is logged in one absl line naming its path and reason (WARNING
+    level when something fell back, INFO otherwise).
+  """
+  options = (options or PerceptionOptions()).validate()
+  library = library or default_library()
+  if options.default_material is not None:
+    library[options.default_material]  # fail early on a bad default
+  if client is None and options.mllm.enabled:
+    from physsplat_jax.io.mllm import MLLMClient
+
+    client = MLLMClient(options.mllm)
+  mode = 'MLLM-P3 via ' + options.mllm.model if client is not None else (
+    'offline (library)')
+  logging.info('perception: %d object(s), %s', len(scene.objects), mode)
+  out = []
+  for i, info in enumerate(scene.objects):
+    c = perceive_object(scene, i, options, library, client,
+                        None if images is None else images.get(i))
+    level = logging.WARNING if c.warnings else logging.INFO
+    logging.log(level, 'perception: object %d %r -> %s via %s: %s%s', i,
+                info.name, c.summary(), c.source, c.reason,
+                (' | warnings: ' + '; '.join(c.warnings)) if c.warnings
+                else '')
+    out.append(c)
+  return tuple(out)

@@ -1,0 +1,448 @@
+"""Parsing and validation of MLLM answers (pure functions).
+
+Every parser either returns clean values plus a list of notes saying what it
+repaired, or raises :class:`AnswerError` with a message that says what was
+wrong. Nothing here trusts the model:
+
+* JSON: code fences and prose around the object are stripped; a
+  brace-balanced ``{...}`` is searched; Python-style literals (single quotes,
+  True/False) are accepted as a last resort.
+* Candidates: names are mapped to library keys (key, alias, phrase, fuzzy;
+  see :meth:`MaterialLibrary.match`); unknown names are dropped with a note.
+* Scores: clipped to [0, 1]; a 0-10 or 0-100 scale is detected and rescaled.
+* Properties (:func:`validate_properties`): units are read from strings
+  (``'70 GPa'``, ``'2.7 g/cm3'``), from key suffixes (``youngs_modulus_gpa``)
+  or from ``*_unit`` fields. Then each value is checked against physics and
+  against the chosen library entry:
+
+  - E must be finite and > 0; it is accepted within a factor ``E_slack``
+    (10) of the entry's real range. Otherwise a unit slip is assumed if a
+    factor 1e±3, 1e±6, 1e±9 brings it into that band (``E = 70`` "Pa" for
+    aluminium is 70 GPa); failing that, the library's mid value is used.
+  - nu must be finite and in [0, 0.5); values further than ``nu_slack``
+    (0.1) from the entry's range are clipped into that band.
+  - rho must be finite and > 0, accepted within a factor ``rho_slack`` (3)
+    of the entry's range, repaired by a factor 1e±3 (g/cm^3 vs kg/m^3), else
+    the library's mid value.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import json
+import math
+import re
+from collections.abc import Mapping
+
+from physsplat_jax.perception.library import MaterialEntry
+from physsplat_jax.perception.library import MaterialLibrary
+
+_PRESSURE_UNITS = {
+  'pa': 1.0, 'n/m2': 1.0, 'n/m^2': 1.0, 'kpa': 1e3, 'mpa': 1e6,
+  'gpa': 1e9, 'n/mm2': 1e6, 'n/mm^2': 1e6, 'psi': 6894.757, 'ksi': 6.894757e6,
+}
+_DENSITY_UNITS = {
+  'kg/m3': 1.0, 'kg/m^3': 1.0, 'kgm3': 1.0, 'kg_m3': 1.0, 'g/cm3': 1e3,
+  'g/cm^3': 1e3, 'g_cm3': 1e3, 'g/ml': 1e3, 'kg/l': 1e3, 'g/l': 1.0,
+  'lb/ft3': 16.0185,
+}
+_E_FIELDS = ('youngs_modulus', 'young_modulus', 'youngs_modulus_pa', 'e',
+             'elastic_modulus', 'modulus', 'young', 'youngs')
+_NU_FIELDS = ('poisson_ratio', 'poissons_ratio', 'nu', 'poisson')
+_RHO_FIELDS = ('density', 'density_kg_m3', 'density_kg_per_m3', 'rho')
+_UNIT_REPAIRS = (1e9, 1e6, 1e3, 1e-3, 1e-6, 1e-9)
+_NUMBER = re.compile(r'[-+]?(?:\d[\d,_]*\.?\d*|\.\d+)(?:[eE][-+]?\d+)?')
+
+
+class AnswerError(ValueError):
+  """An MLLM answer is unusable; the message says why (with an excerpt)."""
+
+
+def _excerpt(text: str, n: int = 160) -> str:
+  t = ' '.join(str(text).split())
+  return repr(t if len(t) <= n else t[:n] + '...')
+
+
+# -------------------------------------------------------------------- JSON
+
+
+def _balanced_object(text: str) -> str | None:
+  """The first brace-balanced ``{...}`` substring (string-aware)."""
+  start = text.find('{')
+  while start >= 0:
+    depth, quote, esc = 0, None, False
+    for i in range(start, len(text)):
+      ch = text[i]
+      if quote:
+        if esc:
+          esc = False
+        elif ch == '\\':
+          esc = True
+        elif ch == quote:
+          quote = None
+        continue
+      if ch in ('"', "'"):
+        quote = ch
+      elif ch == '{':
+        depth += 1
+      elif ch == '}':
+        depth -= 1
+        if depth == 0:
+          return text[start:i + 1]
+    start = text.find('{', start + 1)
+  return None
+
+
+def extract_json(text: str) -> dict:
+  """The JSON object in an answer.
+
+  Raises:
+    AnswerError: no parseable object (the message quotes the answer).
+  """
+  if not isinstance(text, str) or not text.strip():
+    raise AnswerError('empty answer where JSON was expected')
+  t = text.strip()
+  fence = re.search(r'```(?:json|JSON)?\s*(.*?)```', t, re.S)
+  if fence:
+    t = fence.group(1).strip()
+  for cand in (t, _balanced_object(t)):
+    if not cand:
+      continue
+    try:
+      obj = json.loads(cand)
+    except json.JSONDecodeError:
+      try:
+        obj = ast.literal_eval(cand)
+      except (ValueError, SyntaxError, MemoryError, RecursionError):
+        continue
+    if isinstance(obj, dict):
+      return obj
+    raise AnswerError(f'expected a JSON object, got {type(obj).__name__}: '
+                      f'{_excerpt(text)}')
+  raise AnswerError(f'malformed JSON: {_excerpt(text)}')
+
+
+# -------------------------------------------------------------- candidates
+
+
+def _as_bool(v) -> bool | None:
+  if isinstance(v, bool):
+    return v
+  if isinstance(v, (int, float)) and v in (0, 1):
+    return bool(v)
+  if isinstance(v, str):
+    s = v.strip().lower()
+    if s in ('true', 'yes', 'rigid', '1'):
+      return True
+    if s in ('false', 'no', 'deformable', 'soft', '0'):
+      return False
+  return None
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidates:
+  """Parsed answer (2).
+
+  Attributes:
+    keys: library keys, most likely first, unique.
+    names: the model's names for them (same order).
+    rigid: the model's rigid flag, or None if missing/unreadable.
+    notes: what was repaired or dropped.
+  """
+
+  keys: tuple[str, ...]
+  names: tuple[str, ...]
+  rigid: bool | None
+  notes: tuple[str, ...] = ()
+
+
+def parse_candidates(text: str, library: MaterialLibrary,
+                     num_candidates: int) -> Candidates:
+  """Parses ``{"candidates": [...], "rigid": bool}``.
+
+  Raises:
+    AnswerError: malformed JSON, no candidate list, or no candidate that
+      maps to a library material.
+  """
+  obj = extract_json(text)
+  raw = obj.get('candidates', obj.get('materials'))
+  if not isinstance(raw, list) or not raw:
+    raise AnswerError(f'no "candidates" list in {_excerpt(text)}')
+  notes = []
+  keys, names = [], []
+  for item in raw:
+    name = item.get('material', item.get('name')) if isinstance(
+      item, dict) else item
+    if not isinstance(name, str) or not name.strip():
+      notes.append(f'ignored candidate {item!r}')
+      continue
+    m = library.match(name)
+    if m is None:
+      notes.append(f'candidate {name!r} matches no library material')
+      continue
+    if m.key not in keys:
+      keys.append(m.key)
+      names.append(name)
+  if not keys:
+    raise AnswerError(
+      'none of the candidates maps to a library material: '
+      f'{_excerpt(text)}')
+  keys, names = keys[:num_candidates], names[:num_candidates]
+  rigid = _as_bool(obj.get('rigid'))
+  if rigid is None:
+    notes.append(f'rigid flag missing or unreadable ({obj.get("rigid")!r})')
+  return Candidates(tuple(keys), tuple(names), rigid, tuple(notes))
+
+
+# ------------------------------------------------------------------ scores
+
+
+def parse_scores(text: str, library: MaterialLibrary,
+                 candidate_keys) -> tuple[dict[str, float], list[str]]:
+  """Parses ``{"scores": {name: s}}`` (or a list of {material, score}).
+
+  Returns:
+    (scores for the candidate keys that were rated, notes).
+
+  Raises:
+    AnswerError: malformed JSON or no usable score.
+  """
+  obj = extract_json(text)
+  raw = obj.get('scores', obj)
+  pairs = []
+  if isinstance(raw, Mapping):
+    pairs = list(raw.items())
+  elif isinstance(raw, list):
+    pairs = [(d.get('material', d.get('name')), d.get('score'))
+             for d in raw if isinstance(d, dict)]
+  notes = []
+  vals = {}
+  for name, s in pairs:
+    if not isinstance(name, str):
+      continue
+    try:
+      v = float(s)
+    except (TypeError, ValueError):
+      notes.append(f'score {s!r} for {name!r} is not a number')
+      continue
+    if not math.isfinite(v):
+      notes.append(f'score {s!r} for {name!r} is not finite')
+      continue
+    m = library.match(name)
+    if m is None or m.key not in candidate_keys:
+      continue
+    vals[m.key] = max(vals.get(m.key, -math.inf), v)
+  if not vals:
+    raise AnswerError(f'no usable candidate scores in {_excerpt(text)}')
+  top = max(vals.values())
+  if top > 1.0:
+    scale = 10.0 if top <= 10.0 else 100.0
+    notes.append(f'scores rescaled from a 0-{scale:g} scale')
+    vals = {k: v / scale for k, v in vals.items()}
+  out = {k: min(max(v, 0.0), 1.0) for k, v in vals.items()}
+  return out, notes
+
+
+# -------------------------------------------------------------- properties
+
+
+def _field(obj: Mapping, names) -> tuple[str, object] | None:
+  low = {str(k).lower(): k for k in obj}
+  for n in names:
+    if n in low:
+      return low[n], obj[low[n]]
+  # Key with a unit suffix, e.g. youngs_modulus_gpa, density_g_cm3.
+  for k_low, k in low.items():
+    for n in names:
+      if k_low.startswith(n + '_'):
+        return k, obj[k]
+  return None
+
+
+def _unit_factor(unit: str, table: Mapping[str, float]) -> float | None:
+  u = unit.strip().lower().replace(' ', '').replace('³', '3').replace(
+    '²', '2').replace('·', '')
+  return table.get(u)
+
+
+def _number_with_unit(key: str, value, obj: Mapping, table) -> tuple[
+    float | None, str]:
+  """(value in SI or None, note) from a number or a string with units."""
+  unit = None
+  if isinstance(value, bool):
+    return None, f'{key}={value!r} is not a number'
+  if isinstance(value, (int, float)):
+    x = float(value)
+  elif isinstance(value, str):
+    m = _NUMBER.search(value)
+    if not m:
+      return None, f'{key}={value!r} is not a number'
+    x = float(m.group(0).replace(',', '').replace('_', ''))
+    rest = value[m.end():].strip()
+    unit = rest.split()[0] if rest else None
+  else:
+    return None, f'{key}={value!r} is not a number'
+  note = ''
+  uk = f'{key}_unit'
+  if unit is None and isinstance(obj.get(uk, obj.get('unit')), str):
+    unit = obj.get(uk, obj.get('unit'))
+  if unit is None:
+    for suffix, f in table.items():
+      if key.lower().endswith('_' + suffix.replace('/', '_').replace('^', '')):
+        unit = suffix
+        break
+  if unit is not None:
+    f = _unit_factor(unit, table)
+    if f is None:
+      note = f'unknown unit {unit!r} for {key}; assumed SI'
+    elif f != 1.0:
+      x *= f
+      note = f'{key} given in {unit}'
+  return x, note
+
+
+@dataclasses.dataclass(frozen=True)
+class Properties:
+  """Validated real-world properties of one object's material.
+
+  Attributes:
+    E: Young's modulus [Pa].
+    nu: Poisson's ratio in [0, 0.5).
+    rho: density [kg/m^3].
+    from_library: names of the fields that fell back to the library.
+    notes: what was repaired or replaced, in words.
+  """
+
+  E: float
+  nu: float
+  rho: float
+  from_library: tuple[str, ...] = ()
+  notes: tuple[str, ...] = ()
+
+
+def library_properties(entry: MaterialEntry) -> Properties:
+  """The entry's real mid values (E: geometric mid; nu, rho: arithmetic)."""
+  return Properties(E=entry.E_mid, nu=entry.poisson_ratio.mid,
+                    rho=entry.density.geometric_mid,
+                    from_library=('E', 'nu', 'rho'))
+
+
+def _repair(x: float, ok) -> float | None:
+  """The unit-repair factor that makes ``ok(x * f)`` true, or None."""
+  for f in _UNIT_REPAIRS:
+    if ok(x * f):
+      return f
+  return None
+
+
+def validate_properties(text: str, entry: MaterialEntry,
+                        E_slack: float = 10.0, rho_slack: float = 3.0,
+                        nu_slack: float = 0.1) -> Properties:
+  """Parses and validates answer (4) against physics and the entry.
+
+  Args:
+    text: the model's answer.
+    entry: the chosen library material (plausibility bands, fallbacks).
+    E_slack, rho_slack: accepted factor outside the entry's real range.
+    nu_slack: accepted distance outside the entry's nu range.
+
+  Returns:
+    :class:`Properties`; invalid fields are replaced by library values and
+    named in ``from_library`` and ``notes``.
+
+  Raises:
+    AnswerError: the answer has no JSON object at all.
+  """
+  obj = extract_json(text)
+  lib = library_properties(entry)
+  notes, from_lib = [], []
+  name = entry.key
+
+  # Young's modulus.
+  E = None
+  f = _field(obj, _E_FIELDS)
+  if f is None:
+    notes.append('E missing')
+  else:
+    E, note = _number_with_unit(str(f[0]), f[1], obj, _PRESSURE_UNITS)
+    if note:
+      notes.append(note)
+    if E is None:
+      pass
+    elif not math.isfinite(E) or E <= 0:
+      notes.append(f'E={E:g} Pa is not positive and finite')
+      E = None
+    elif not entry.youngs_modulus.contains(E, E_slack):
+      r = entry.youngs_modulus
+      ok = lambda v: r.contains(v, E_slack)
+      fac = _repair(E, ok)
+      if fac is not None:
+        notes.append(
+          f'E={E:g} Pa is implausible for {name} [{r.min:.2g}, {r.max:.2g}] '
+          f'Pa; read as {E * fac:.3g} Pa (unit slip x{fac:g})')
+        E *= fac
+      else:
+        notes.append(f'E={E:g} Pa is outside the plausible range of {name} '
+                     f'[{r.min:.2g}, {r.max:.2g}] Pa (x{E_slack:g})')
+        E = None
+  if E is None:
+    E = lib.E
+    from_lib.append('E')
+
+  # Poisson's ratio.
+  nu = None
+  f = _field(obj, _NU_FIELDS)
+  if f is None:
+    notes.append('nu missing')
+  else:
+    nu, note = _number_with_unit(str(f[0]), f[1], obj, {})
+    if note and 'unknown unit' not in note:
+      notes.append(note)
+    if nu is not None and not (math.isfinite(nu) and 0.0 <= nu < 0.5):
+      notes.append(f'nu={nu:g} is outside [0, 0.5)')
+      nu = None
+    elif nu is not None:
+      lo = max(entry.poisson_ratio.min - nu_slack, 0.0)
+      hi = min(entry.poisson_ratio.max + nu_slack, 0.499)
+      if not lo <= nu <= hi:
+        clipped = min(max(nu, lo), hi)
+        notes.append(f'nu={nu:g} is far from {name} '
+                     f'[{entry.poisson_ratio.min:g}, '
+                     f'{entry.poisson_ratio.max:g}]; clipped to {clipped:g}')
+        nu = clipped
+  if nu is None:
+    nu = lib.nu
+    from_lib.append('nu')
+
+  # Density.
+  rho = None
+  f = _field(obj, _RHO_FIELDS)
+  if f is None:
+    notes.append('density missing')
+  else:
+    rho, note = _number_with_unit(str(f[0]), f[1], obj, _DENSITY_UNITS)
+    if note:
+      notes.append(note)
+    if rho is None:
+      pass
+    elif not math.isfinite(rho) or rho <= 0:
+      notes.append(f'density={rho:g} is not positive and finite')
+      rho = None
+    elif not entry.density.contains(rho, rho_slack):
+      r = entry.density
+      fac = _repair(rho, lambda v: r.contains(v, rho_slack))
+      if fac is not None and fac in (1e3, 1e-3):
+        notes.append(f'density={rho:g} kg/m^3 is implausible for {name}; '
+                     f'read as {rho * fac:.4g} kg/m^3 (unit slip x{fac:g})')
+        rho *= fac
+      else:
+        notes.append(f'density={rho:g} kg/m^3 is outside the plausible '
+                     f'range of {name} [{r.min:g}, {r.max:g}] (x'
+                     f'{rho_slack:g})')
+        rho = None
+  if rho is None:
+    rho = lib.rho
+    from_lib.append('rho')
+  return Properties(E=float(E), nu=float(nu), rho=float(rho),
+                    from_library=tuple(from_lib), notes=tuple(notes))

@@ -1,0 +1,444 @@
+"""Tests of MLLM-P3 perception against a scripted chat-completions server."""
+
+import base64
+import io
+import json
+import tempfile
+
+import imageio.v3 as iio
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+
+from physsplat_jax import perception
+from physsplat_jax.io import mllm
+from physsplat_jax.perception import parsing
+from physsplat_jax.perception import prompts
+from physsplat_jax.types import Gaussians
+from physsplat_jax.types import ObjectInfo
+from physsplat_jax.types import Scene
+from mllm_test_server import Reply
+from mllm_test_server import ScriptedChatServer
+from mllm_test_server import user_text
+
+_TIMEOUT_S = 0.3
+_VIEW = np.full((8, 8, 3), 0.5, np.float32)  # stands in for a render
+_LIB = perception.default_library()
+
+
+def _blob(key, center, color, n=40):
+  k1, k2 = jax.random.split(key)
+  means = jnp.asarray(center) + 0.1 * jax.random.normal(k1, (n, 3))
+  sh = jnp.broadcast_to((jnp.asarray(color) - 0.5) / 0.28209479, (n, 1, 3))
+  return Gaussians(
+    means=means, log_scales=jnp.full((n, 3), -3.0),
+    quats=jnp.tile(jnp.asarray([[1.0, 0, 0, 0]]), (n, 1)),
+    opacity_logits=jnp.full((n,), 3.0), sh=sh,
+  ), n
+
+
+def _scene(names=('metal can', 'rubber ball'), materials=None):
+  materials = materials or (None,) * len(names)
+  parts, ids = [], []
+  for i, _ in enumerate(names):
+    g, n = _blob(jax.random.PRNGKey(i), (i * 1.0, 0.0, 0.0),
+                 (0.8, 0.2 + 0.3 * i, 0.2))
+    parts.append(g)
+    ids.append(np.full(n, i, np.int32))
+  from physsplat_jax.types import concatenate_gaussians
+  return Scene(
+    gaussians=concatenate_gaussians(parts),
+    object_ids=jnp.asarray(np.concatenate(ids)),
+    objects=tuple(ObjectInfo(n, m) for n, m in zip(names, materials)),
+  )
+
+
+def _answers(material='aluminum', props=None, rigid=True, scores=None,
+             caption='A shiny silver drink can made of thin aluminium.'):
+  """A script that answers each task well (per-task overrides)."""
+  props = props if props is not None else {
+    'density_kg_m3': 2700.0, 'youngs_modulus_pa': 6.9e10,
+    'poisson_ratio': 0.33}
+  cands = {'candidates': [{'material': material, 'reason': 'looks like it'},
+                          {'material': 'steel', 'reason': 'metal'},
+                          {'material': 'hard plastic', 'reason': 'maybe'}],
+           'rigid': rigid}
+  scores = scores if scores is not None else {
+    'scores': {material: 0.9, 'steel': 0.4, 'hard plastic': 0.1}}
+  return {
+    'caption': caption,
+    'candidates': json.dumps(cands),
+    'score': json.dumps(scores),
+    'properties': json.dumps(props) if isinstance(props, dict) else props,
+  }
+
+
+def _script(answers, special=None):
+  """Routes by TASK; ``special(task, n_task) -> Reply | None`` can intercept."""
+  counts = {}
+
+  def script(req, n):
+    task = prompts.task_of(user_text(req))
+    counts[task] = counts.get(task, 0) + 1
+    if special is not None:
+      r = special(task, counts[task])
+      if r is not None:
+        return r
+    return Reply(text=answers[task])
+
+  return script
+
+
+def _options(url, **kw):
+  cfg = mllm.MLLMConfig(base_url=url, model='test-vlm',
+                        cache_dir=kw.pop('cache_dir', None),
+                        timeout_s=kw.pop('timeout_s', 5.0),
+                        max_retries=kw.pop('max_retries', 2),
+                        backoff_s=0.0)
+  return perception.PerceptionOptions(mllm=cfg, **kw)
+
+
+def _run(script, names=('metal can',), **kw):
+  scene = _scene(names[:1] if len(names) == 1 else names)
+  with ScriptedChatServer(script) as s:
+    opts = _options(s.url, **kw)
+    images = {i: _VIEW for i in range(len(scene.objects))}
+    choices = perception.perceive_scene(scene, opts, images=images)
+    return choices, s
+
+
+class MllmPathTest(parameterized.TestCase):
+
+  def assertValid(self, c):
+    perception.choice.check_choice(c)
+    self.assertIn(c.material_key, _LIB)
+    self.assertGreater(c.E, 0)
+    self.assertTrue(0 <= c.nu < 0.5)
+    self.assertGreater(c.rho, 0)
+
+  def test_good_answers(self):
+    with self.assertLogs('absl', level='INFO') as logs:
+      (c,), s = _run(_script(_answers()))
+    self.assertValid(c)
+    self.assertEqual((c.source, c.material_key, c.rigid, c.warnings),
+                     ('mllm', 'aluminum', True, ()))
+    self.assertEqual(c.candidates, ('aluminum', 'steel', 'hard_plastic'))
+    self.assertIn('picked aluminum by mllm_score+text+rank', c.reason)
+    self.assertEqual(c.caption, _answers()['caption'])
+    self.assertAlmostEqual(c.E_real, 6.9e10)
+    e = _LIB['aluminum']
+    want = perception.simulation_values(e, _LIB, 6.9e10, 0.33, 2700.0)
+    self.assertAlmostEqual(c.E, want[0])
+    self.assertEqual((c.nu, c.rho), (0.33, 2700.0))
+    self.assertEqual(s.num_requests, 4)  # caption, candidates, score, props
+    # The image went out as a PNG data URL.
+    url = s.requests[0]['messages'][-1]['content'][1]['image_url']['url']
+    png = base64.b64decode(url.split(',', 1)[1])
+    self.assertEqual(iio.imread(io.BytesIO(png)).shape, (8, 8, 3))
+    line = [x for x in logs.output if "object 0 'metal can'" in x]
+    self.assertLen(line, 1)
+    self.assertIn('via mllm: MLLM-P3', line[0])
+
+  def test_visual_score_decides(self):
+    # The MLLM lists steel first but scores aluminium highest.
+    a = _answers(material='steel', scores={
+      'scores': {'steel': 0.1, 'aluminium': 0.95, 'hard plastic': 0.1}})
+    a['candidates'] = json.dumps({'candidates': ['steel', 'aluminium',
+                                                 'plastic'], 'rigid': True})
+    (c,), _ = _run(_script(a))
+    self.assertEqual(c.material_key, 'aluminum')
+    self.assertIn('mllm_score+text+rank', c.reason)
+
+  def test_malformed_json_then_fixed(self):
+    bad = lambda task, n: (Reply(text='Sure! The materials are aluminium '
+                                 'and steel.')
+                           if task == 'candidates' and n == 1 else None)
+    (c,), s = _run(_script(_answers(), bad))
+    self.assertValid(c)
+    self.assertEqual((c.source, c.material_key), ('mllm', 'aluminum'))
+    self.assertTrue(any('candidates answer unusable (malformed JSON' in w
+                        and 'asked again' in w for w in c.warnings),
+                    c.warnings)
+    self.assertEqual(s.num_requests, 5)
+    repair = [user_text(r) for r in s.requests
+              if 'could not be used' in user_text(r)]
+    self.assertLen(repair, 1)
+
+  def test_malformed_json_falls_back(self):
+    bad = lambda task, n: Reply(text='{"candidates": [aluminium,')\
+      if task == 'candidates' else None
+    with self.assertLogs('absl', level='WARNING') as logs:
+      (c,), _ = _run(_script(_answers(), bad))
+    self.assertValid(c)
+    self.assertEqual((c.source, c.material_key), ('library', 'aluminum'))
+    self.assertIn('MLLM-P3 failed, fell back to the library', c.reason)
+    self.assertIn("name 'metal can' matched alias", c.reason)
+    self.assertTrue(any('candidates answer unusable: malformed JSON' in w
+                        for w in c.warnings), c.warnings)
+    self.assertTrue(any('via library' in x and 'warnings:' in x
+                        for x in logs.output))
+
+  @parameterized.named_parameters(
+    ('nu_0p7', {'density_kg_m3': 2700, 'youngs_modulus_pa': 7e10,
+                'poisson_ratio': 0.7},
+     ('nu',), 'nu=0.7 is outside [0, 0.5)'),
+    ('E_negative', {'density_kg_m3': 2700, 'youngs_modulus_pa': -3e9,
+                    'poisson_ratio': 0.33},
+     ('E',), 'is not positive and finite'),
+    ('E_zero_string', {'density_kg_m3': 2700, 'youngs_modulus_pa': 'zero',
+                       'poisson_ratio': 0.33},
+     ('E',), "'zero' is not a number"),
+    ('rho_negative', {'density_kg_m3': -1, 'youngs_modulus_pa': 7e10,
+                      'poisson_ratio': 0.33},
+     ('rho',), 'density=-1 is not positive'),
+    ('E_absurd', {'density_kg_m3': 2700, 'youngs_modulus_pa': 2.0e3,
+                  'poisson_ratio': 0.33},
+     ('E',), 'outside the plausible range of aluminum'),
+  )
+  def test_out_of_range_values(self, props, from_lib, message):
+    (c,), _ = _run(_script(_answers(props=props)))
+    self.assertValid(c)
+    self.assertEqual((c.source, c.material_key), ('mllm', 'aluminum'))
+    e = _LIB['aluminum']
+    self.assertTrue(any(message in w for w in c.warnings), c.warnings)
+    self.assertTrue(any(f'{"/".join(from_lib)} from the library' in w
+                        for w in c.warnings), c.warnings)
+    if 'E' in from_lib:
+      self.assertAlmostEqual(c.E_real, e.E_mid)
+      self.assertAlmostEqual(c.E, e.E_sim)
+    if 'nu' in from_lib:
+      self.assertAlmostEqual(c.nu, min(e.poisson_ratio.mid, 0.45))
+    if 'rho' in from_lib:
+      self.assertAlmostEqual(c.rho, e.density.geometric_mid)
+
+  def test_gpa_as_pa(self):
+    props = {'density_kg_m3': 2700, 'youngs_modulus_pa': 70,
+             'poisson_ratio': 0.33}
+    (c,), _ = _run(_script(_answers(props=props)))
+    self.assertValid(c)
+    self.assertAlmostEqual(c.E_real, 7e10)
+    self.assertTrue(any('read as 7e+10 Pa (unit slip x1e+09)' in w
+                        for w in c.warnings), c.warnings)
+
+  def test_units_in_strings(self):
+    props = {'density': '2.7 g/cm3', 'youngs_modulus': '69 GPa', 'nu': 0.33}
+    (c,), _ = _run(_script(_answers(props=props)))
+    self.assertAlmostEqual(c.E_real, 6.9e10)
+    self.assertAlmostEqual(c.rho, 2700.0)
+    self.assertIn('youngs_modulus given in GPa', c.warnings)
+
+  def test_http_500_then_success(self):
+    flaky = lambda task, n: Reply(status=500, body='{"error": "overloaded"}')\
+      if task == 'caption' and n == 1 else None
+    with self.assertLogs('absl', level='WARNING') as logs:
+      (c,), s = _run(_script(_answers(), flaky))
+    self.assertEqual((c.source, c.material_key, c.warnings),
+                     ('mllm', 'aluminum', ()))
+    self.assertEqual(s.num_requests, 5)
+    self.assertTrue(any('attempt 1 failed (HTTP 500' in x and 'retrying' in x
+                        for x in logs.output), logs.output)
+
+  def test_http_500_always(self):
+    down = lambda task, n: Reply(status=500, body='{"error": "down"}')
+    (c,), s = _run(_script(_answers(), down), max_retries=1)
+    self.assertEqual((c.source, c.material_key), ('library', 'aluminum'))
+    self.assertEqual(s.num_requests, 2)
+    self.assertTrue(any('caption request failed: HTTP 500' in w
+                        and 'after 2 attempts' in w for w in c.warnings),
+                    c.warnings)
+
+  def test_hang_past_timeout(self):
+    hang = lambda task, n: Reply(text='late', delay_s=3.0)
+    (c,), _ = _run(_script(_answers(), hang), timeout_s=_TIMEOUT_S,
+                   max_retries=0)
+    self.assertEqual((c.source, c.material_key), ('library', 'aluminum'))
+    self.assertTrue(any('no answer from' in w and 'within 0.3 s' in w
+                        for w in c.warnings), c.warnings)
+
+  def test_bad_scores_use_text(self):
+    bad = lambda task, n: Reply(text='I cannot score these.')\
+      if task == 'score' else None
+    (c,), _ = _run(_script(_answers(), bad))
+    self.assertEqual((c.source, c.material_key), ('mllm', 'aluminum'))
+    self.assertIn('by text+rank', c.reason)
+    self.assertTrue(any('picked by text similarity and rank only' in w
+                        for w in c.warnings), c.warnings)
+
+  def test_unknown_candidates_fall_back(self):
+    a = _answers()
+    a['candidates'] = json.dumps({'candidates': ['unobtainium', 'vibranium'],
+                                  'rigid': True})
+    (c,), _ = _run(_script(a))
+    self.assertEqual(c.source, 'library')
+    self.assertTrue(any('none of the candidates maps to a library material'
+                        in w for w in c.warnings), c.warnings)
+
+  def test_rigid_sand_is_not_rigid(self):
+    a = _answers(material='sand', props={
+      'density_kg_m3': 1600, 'youngs_modulus_pa': 3e7, 'poisson_ratio': 0.3},
+      caption='A pile of dry tan sand grains.')
+    (c,), _ = _run(_script(a), names=('sand pile',))
+    self.assertEqual((c.material_key, c.rigid), ('sand', False))
+    self.assertTrue(any('rigid=true ignored' in w for w in c.warnings))
+
+  def test_cache_makes_rerun_free(self):
+    with tempfile.TemporaryDirectory() as d:
+      scene = _scene()
+      images = {0: _VIEW, 1: _VIEW * 0.5}
+      a = _answers()
+      with ScriptedChatServer(_script(a)) as s:
+        first = perception.perceive_scene(
+          scene, _options(s.url, cache_dir=d), images=images)
+        n1 = s.num_requests
+        second = perception.perceive_scene(
+          scene, _options(s.url, cache_dir=d), images=images)
+        self.assertEqual(s.num_requests, n1)
+    self.assertEqual(n1, 8)
+    self.assertEqual(first, second)
+
+  def test_scene_material_first(self):
+    scene = _scene(('thing',), ('rubber',))
+    with ScriptedChatServer(_script(_answers())) as s:
+      (c,) = perception.perceive_scene(
+        scene, _options(s.url, scene_material_first=True),
+        images={0: _VIEW})
+      self.assertEqual(s.num_requests, 0)
+    self.assertEqual((c.source, c.material_key), ('library', 'rubber'))
+
+
+class OfflineTest(parameterized.TestCase):
+
+  def test_names_and_scene_keys(self):
+    scene = _scene(('metal can', 'Ficus leaves', 'thing', 'blob'),
+                   (None, None, 'terracotta', None))
+    with self.assertLogs('absl', level='INFO') as logs:
+      cs = perception.perceive_scene(scene)
+    self.assertEqual([c.material_key for c in cs],
+                     ['aluminum', 'leaf', 'terracotta', 'jelly'])
+    self.assertEqual({c.source for c in cs}, {'library'})
+    self.assertIn("scene material key 'terracotta'", cs[2].reason)
+    self.assertIn("name 'blob' matched nothing", ' '.join(cs[3].warnings)
+                  .replace('matched no library material', 'matched nothing'))
+    lines = [x for x in logs.output if 'perception: object' in x]
+    self.assertLen(lines, 4)
+    self.assertIn('offline (library)', ' '.join(logs.output))
+    self.assertTrue(lines[3].startswith('WARNING'))
+    leaf = _LIB['leaf']
+    self.assertEqual((cs[1].E, cs[1].nu, cs[1].rho),
+                     (leaf.E_sim, leaf.nu_sim, leaf.rho_sim))
+
+  def test_no_default_raises(self):
+    scene = _scene(('blob',))
+    with self.assertRaisesRegex(perception.MaterialNotFoundError,
+                                "object 'blob'.*override"):
+      perception.perceive_scene(
+        scene, perception.PerceptionOptions(default_material=None))
+
+  def test_overrides_and_config(self):
+    scene = _scene(('metal can', 'rubber ball', 'cube'))
+    opts = perception.PerceptionOptions(
+      overrides={'metal can': 'sheet metal',
+                 'rubber ball': {'E': 3e5, 'nu': 0.4}},
+      config_materials={'*': {'material': 'jelly', 'E': 2e4}})
+    a, b, c = perception.perceive_scene(scene, opts)
+    self.assertEqual((a.source, a.material_key, a.rigid),
+                     ('override', 'sheet_metal', False))
+    self.assertEqual((b.source, b.material_key, b.E, b.nu),
+                     ('override', 'rubber', 3e5, 0.4))
+    self.assertIn("with ['E', 'nu']", b.reason)
+    self.assertEqual((c.source, c.material_key, c.E), ('config', 'jelly',
+                                                       2e4))
+
+  def test_override_beats_mllm(self):
+    scene = _scene(('metal can',))
+    with ScriptedChatServer(_script(_answers())) as s:
+      (c,) = perception.perceive_scene(
+        scene, _options(s.url, overrides={'metal can': 'wood'}),
+        images={0: _VIEW})
+      self.assertEqual(s.num_requests, 0)
+    self.assertEqual((c.source, c.material_key), ('override', 'wood'))
+
+  @parameterized.named_parameters(
+    ('unknown_key', 'unobtainium', 'not in the library'),
+    ('bad_nu', {'material': 'jelly', 'nu': 0.6}, 'nu=0.6'),
+    ('bad_field', {'material': 'jelly', 'colour': 'red'},
+     r"unknown field\(s\) \['colour'\]"),
+    ('bad_model', {'material': 'jelly', 'model': 'gooey'}, "'gooey'"),
+  )
+  def test_bad_override(self, spec, pattern):
+    scene = _scene(('cube',))
+    with self.assertRaisesRegex(ValueError, "override for object 'cube'.*"
+                                + pattern):
+      perception.perceive_scene(
+        scene, perception.PerceptionOptions(overrides={'cube': spec}))
+
+  def test_parse_overrides(self):
+    self.assertEqual(
+      perception.parse_overrides(['a=wood;b=sand', 'c={"E": 1e4}']),
+      {'a': 'wood', 'b': 'sand', 'c': {'E': 1e4}})
+    with self.assertRaisesRegex(ValueError, 'expected name=key'):
+      perception.parse_overrides(['rubber'])
+
+  def test_flags(self):
+    from absl import flags
+    fv = flags.FlagValues()
+    perception.define_flags(fv)
+    perception.define_flags(fv)
+    fv(['p', '--material_override=ball=rubber', '--default_material=',
+        '--perception_candidates=3', '--mllm_base_url=http://127.0.0.1:1/v1'])
+    o = perception.options_from_flags(fv)
+    self.assertEqual((o.overrides, o.default_material, o.num_candidates,
+                      o.mllm.base_url),
+                     ({'ball': 'rubber'}, None, 3, 'http://127.0.0.1:1/v1'))
+
+
+class ParsingTest(absltest.TestCase):
+
+  def test_extract_json(self):
+    self.assertEqual(parsing.extract_json('```json\n{"a": 1}\n```'),
+                     {'a': 1})
+    self.assertEqual(parsing.extract_json('Here: {"a": {"b": "}"}} ok'),
+                     {'a': {'b': '}'}})
+    self.assertEqual(parsing.extract_json("{'a': True}"), {'a': True})
+    for bad in ('', 'no json here', '[1, 2]', '{"a": '):
+      with self.assertRaises(parsing.AnswerError):
+        parsing.extract_json(bad)
+
+  def test_scores_scale(self):
+    s, notes = parsing.parse_scores('{"scores": {"rubber": 8, "wood": 2}}',
+                                    _LIB, ('rubber', 'wood'))
+    self.assertEqual(s, {'rubber': 0.8, 'wood': 0.2})
+    self.assertIn('0-10 scale', notes[0])
+
+  def test_selection_text_only(self):
+    key, comb, method = perception.select_candidate(
+      ['steel', 'jelly'], 'a wobbly translucent green dessert', _LIB)
+    self.assertEqual((key, method), ('jelly', 'text+rank'))
+    self.assertTrue(all(0 <= v <= 1 for v in comb.values()))
+
+
+class RenderViewTest(absltest.TestCase):
+
+  def test_object_view_and_real_render_path(self):
+    scene = _scene(('metal can', 'rubber ball'))
+    img = perception.render_object_view(scene, 1, size=32)
+    self.assertEqual(img.shape, (32, 32, 3))
+    bg = np.all(img > 0.99, axis=-1)
+    # The object fills the centre and not the corners.
+    self.assertFalse(bg[12:20, 12:20].any())
+    self.assertTrue(bg[0, 0] and bg[-1, -1])
+    # Its colour, not the other object's.
+    np.testing.assert_allclose(img[16, 16], (0.8, 0.5, 0.2), atol=0.1)
+    with ScriptedChatServer(_script(_answers())) as s:
+      (c,) = perception.perceive_scene(_scene(('metal can',)),
+                                       _options(s.url, image_size=32))
+      url = s.requests[0]['messages'][-1]['content'][1]['image_url']['url']
+    png = iio.imread(io.BytesIO(base64.b64decode(url.split(',', 1)[1])))
+    self.assertEqual(png.shape, (32, 32, 3))
+    self.assertEqual(c.source, 'mllm')
+
+
+if __name__ == '__main__':
+  absltest.main()
