@@ -1,0 +1,462 @@
+"""Video and image outputs: streaming MP4, GIF fallback, PNG frames.
+
+MP4 is H.264 (``libx264``) in ``yuv420p``, the combination every browser and
+player decodes, written through ``imageio_ffmpeg.write_frames``: frames go to
+an ffmpeg process one at a time, so a simulation can stream its renders
+without keeping them in memory. ``yuv420p`` stores colour at half resolution,
+so widths and heights must be even: odd sizes are padded by repeating the last
+row/column (never rescaled). The ffmpeg binary ships inside the
+``imageio-ffmpeg`` wheel; ``IMAGEIO_FFMPEG_EXE`` overrides it. When no ffmpeg
+can be found, :class:`VideoWriter` logs a warning and writes an animated GIF
+(Pillow) next to the requested path instead.
+
+Frames are ``(H, W, 3)`` arrays (NumPy or JAX), either float in ``[0, 1]``
+(clipped, then rounded to 8 bits) or ``uint8``; NaNs and other shapes or
+dtypes are rejected with a message naming the frame.
+
+Example::
+
+  with VideoWriter('out/drop.mp4', fps=30) as video:
+    for t in range(num_frames):
+      video.append(render_frame(t))
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import warnings
+
+import numpy as np
+
+PathLike = str | os.PathLike
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_FPS = 30.0
+# imageio-ffmpeg quality in [0, 10] (10 = best); 8 looks clean on renders.
+DEFAULT_QUALITY = 8.0
+PNG_PATTERN = 'frame_%04d.png'
+
+
+class VideoError(ValueError):
+  """A frame or a setting that cannot be written."""
+
+
+# -----------------------------------------------------------------------------
+# Frames.
+
+
+def to_uint8(frame, what: str = 'frame') -> np.ndarray:
+  """Checks one RGB frame and converts it to ``uint8``.
+
+  Args:
+    frame: (H, W, 3) float in [0, 1] (values outside are clipped) or uint8;
+      NumPy or JAX.
+    what: name used in error messages (e.g. ``'frame 12'``).
+
+  Returns:
+    (H, W, 3) C-contiguous ``uint8`` array.
+
+  Raises:
+    VideoError: wrong shape or dtype, or non-finite values.
+  """
+  a = np.asarray(frame)
+  if a.ndim != 3 or a.shape[2] != 3 or a.shape[0] < 1 or a.shape[1] < 1:
+    raise VideoError(
+      f'{what}: shape {a.shape}; expected (H, W, 3) RGB (drop an alpha '
+      'channel with frame[..., :3])'
+    )
+  if a.dtype == np.uint8:
+    return np.ascontiguousarray(a)
+  if a.dtype == np.bool_ or not (
+    np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
+  ):
+    raise VideoError(
+      f'{what}: dtype {a.dtype}; expected float in [0, 1] or uint8'
+    )
+  if np.issubdtype(a.dtype, np.integer):
+    raise VideoError(
+      f'{what}: integer dtype {a.dtype}; pass uint8 (0..255) or float in '
+      '[0, 1] (e.g. frame / 255.0)'
+    )
+  bad = ~np.isfinite(a)
+  if bad.any():
+    i, j, _ = np.argwhere(bad)[0]
+    raise VideoError(
+      f'{what}: {int(bad.sum())} non-finite values (first at pixel row {i}, '
+      f'column {j}); the render produced NaN/inf'
+    )
+  return np.ascontiguousarray(
+    np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+  )
+
+
+def pad_to_even(frame: np.ndarray) -> np.ndarray:
+  """Pads (H, W, C) to even H and W by repeating the last row/column."""
+  h, w = frame.shape[:2]
+  ph, pw = h % 2, w % 2
+  if not (ph or pw):
+    return frame
+  return np.ascontiguousarray(
+    np.pad(frame, ((0, ph), (0, pw), (0, 0)), mode='edge')
+  )
+
+
+def _check_fps(fps) -> float:
+  fps = float(fps)
+  if not (np.isfinite(fps) and fps > 0):
+    raise VideoError(f'fps must be a positive number, got {fps}')
+  return fps
+
+
+def find_ffmpeg() -> str | None:
+  """Path of a usable ffmpeg executable, or None.
+
+  Uses ``imageio_ffmpeg.get_ffmpeg_exe()`` (the binary in its wheel, or
+  ``IMAGEIO_FFMPEG_EXE``) and checks that the file exists.
+  """
+  try:
+    import imageio_ffmpeg
+  except ImportError:
+    return None
+  try:
+    exe = imageio_ffmpeg.get_ffmpeg_exe()
+  except RuntimeError:
+    return None
+  if os.path.isfile(exe) and os.access(exe, os.X_OK):
+    return exe
+  found = shutil.which(exe)
+  return found
+
+
+@contextlib.contextmanager
+def _quiet_fork():
+  # JAX warns on every fork; subprocess execs ffmpeg right after forking,
+  # which is safe.
+  with warnings.catch_warnings():
+    warnings.filterwarnings('ignore', message='os.fork',
+                            category=RuntimeWarning)
+    yield
+
+
+def _makedirs_for(path) -> None:
+  parent = os.path.dirname(os.fspath(path))
+  if parent:
+    os.makedirs(parent, exist_ok=True)
+
+
+# -----------------------------------------------------------------------------
+# Streaming writer.
+
+
+class VideoWriter:
+  """Streams RGB frames into an MP4 (H.264, yuv420p) or a GIF.
+
+  The container follows the file extension: ``.mp4`` (also ``.mov``,
+  ``.mkv``) through ffmpeg, ``.gif`` through Pillow. If ffmpeg is not
+  available, an ``.mp4`` request falls back to ``<stem>.gif`` with a logged
+  warning; :attr:`path` is the file actually written. GIF frames are kept in
+  memory until :meth:`close` (Pillow writes a GIF in one go).
+
+  Use as a context manager, or call :meth:`close` (an unclosed MP4 is
+  truncated).
+
+  Attributes:
+    path: the file being written.
+    format: ``'mp4'`` or ``'gif'``.
+    fps: frames per second.
+    num_frames: frames appended so far.
+    size: (width, height) of the written frames (even for MP4), or None
+      before the first frame.
+  """
+
+  def __init__(
+    self,
+    path: PathLike,
+    fps: float = DEFAULT_FPS,
+    *,
+    quality: float = DEFAULT_QUALITY,
+    codec: str = 'libx264',
+    allow_gif_fallback: bool = True,
+  ):
+    """Opens a writer (ffmpeg starts at the first frame).
+
+    Args:
+      path: output file; ``.mp4``/``.mov``/``.mkv`` or ``.gif``.
+      fps: frames per second (> 0).
+      quality: imageio-ffmpeg quality, 0 (worst) .. 10 (best).
+      codec: ffmpeg video codec for MP4.
+      allow_gif_fallback: write a GIF when ffmpeg is missing (else raise).
+
+    Raises:
+      VideoError: unknown extension, bad fps, or no ffmpeg and no fallback.
+    """
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    self.fps = _check_fps(fps)
+    if not 0.0 <= float(quality) <= 10.0:
+      raise VideoError(f'quality must be in [0, 10], got {quality}')
+    self._quality = float(quality)
+    self._codec = codec
+    if ext in ('.mp4', '.mov', '.mkv', '.m4v'):
+      self._ffmpeg = find_ffmpeg()
+      if self._ffmpeg is None:
+        if not allow_gif_fallback:
+          raise VideoError(
+            f'{path}: no ffmpeg found (pip install imageio-ffmpeg, or set '
+            'IMAGEIO_FFMPEG_EXE); write a .gif instead'
+          )
+        gif = os.path.splitext(path)[0] + '.gif'
+        logger.warning(
+          'VideoWriter: ffmpeg is not available (install imageio-ffmpeg or '
+          'set IMAGEIO_FFMPEG_EXE); writing a GIF instead: %s', gif)
+        path, self.format = gif, 'gif'
+      else:
+        self.format = 'mp4'
+    elif ext == '.gif':
+      self.format = 'gif'
+    else:
+      raise VideoError(
+        f'{path}: unknown video extension {ext!r}; use .mp4 (H.264) or .gif'
+      )
+    self.path = path
+    self.num_frames = 0
+    self.size: tuple[int, int] | None = None
+    self._input_size: tuple[int, int] | None = None
+    self._gen = None
+    self._gif_frames: list[np.ndarray] = []
+    self._closed = False
+
+  def __enter__(self) -> VideoWriter:
+    return self
+
+  def __exit__(self, exc_type, exc, tb) -> None:
+    self.close()
+
+  def _open_ffmpeg(self, width: int, height: int) -> None:
+    import imageio_ffmpeg
+
+    _makedirs_for(self.path)
+    self._gen = imageio_ffmpeg.write_frames(
+      self.path, (width, height), pix_fmt_in='rgb24', pix_fmt_out='yuv420p',
+      fps=self.fps, quality=self._quality, codec=self._codec,
+      macro_block_size=2,  # sizes are already even: never rescale
+      ffmpeg_log_level='error',
+    )
+    with _quiet_fork():
+      self._gen.send(None)
+
+  def append(self, frame) -> None:
+    """Adds one frame.
+
+    Args:
+      frame: (H, W, 3) float in [0, 1] or uint8; every frame must have the
+        size of the first.
+
+    Raises:
+      VideoError: bad frame, a size change, or a closed writer.
+    """
+    if self._closed:
+      raise VideoError(f'{self.path}: append() after close()')
+    what = f'{self.path}: frame {self.num_frames}'
+    img = to_uint8(frame, what)
+    hw = img.shape[:2]
+    if self._input_size is None:
+      self._input_size = hw
+    elif hw != self._input_size:
+      raise VideoError(
+        f'{what}: size {hw[1]}x{hw[0]} differs from the first frame '
+        f'{self._input_size[1]}x{self._input_size[0]} (W x H); all frames '
+        'of a video must have one size'
+      )
+    if self.format == 'mp4':
+      img = pad_to_even(img)
+      if self._gen is None:
+        self._open_ffmpeg(img.shape[1], img.shape[0])
+      self._gen.send(img)
+    else:
+      self._gif_frames.append(img)
+    self.size = (img.shape[1], img.shape[0])
+    self.num_frames += 1
+
+  def close(self) -> None:
+    """Finishes the file (idempotent). A writer with no frames writes none."""
+    if self._closed:
+      return
+    self._closed = True
+    if self.format == 'mp4':
+      if self._gen is not None:
+        self._gen.close()
+        self._gen = None
+      return
+    if self._gif_frames:
+      _write_gif(self.path, self._gif_frames, self.fps)
+      self._gif_frames = []
+
+
+def _write_gif(path: str, frames: list[np.ndarray], fps: float) -> None:
+  from PIL import Image
+
+  _makedirs_for(path)
+  images = [Image.fromarray(f) for f in frames]
+  # GIF delays are in 1/100 s; Pillow takes milliseconds.
+  duration = max(int(round(1000.0 / fps)), 10)
+  images[0].save(path, save_all=True, append_images=images[1:],
+                 duration=duration, loop=0, optimize=False)
+
+
+# -----------------------------------------------------------------------------
+# Whole-array helpers.
+
+
+def _frames_array(frames, what: str):
+  if isinstance(frames, (list, tuple)):
+    if not frames:
+      raise VideoError(f'{what}: no frames given')
+    return frames
+  a = np.asarray(frames)
+  if a.ndim != 4:
+    raise VideoError(
+      f'{what}: frames have shape {a.shape}; expected (T, H, W, 3)'
+    )
+  if a.shape[0] == 0:
+    raise VideoError(f'{what}: no frames given (T = 0)')
+  return a
+
+
+def write_video(
+  path: PathLike, frames, fps: float = DEFAULT_FPS, **kwargs
+) -> str:
+  """Writes a whole sequence as MP4 (or GIF, by extension or fallback).
+
+  Args:
+    path: output file (``.mp4`` or ``.gif``).
+    frames: (T, H, W, 3) array or a list of (H, W, 3) frames (float in
+      [0, 1] or uint8).
+    fps: frames per second.
+    **kwargs: passed to :class:`VideoWriter` (``quality``, ``codec``,
+      ``allow_gif_fallback``).
+
+  Returns:
+    The path written (a ``.gif`` if ffmpeg was missing).
+  """
+  frames = _frames_array(frames, os.fspath(path))
+  with VideoWriter(path, fps, **kwargs) as video:
+    for f in frames:
+      video.append(f)
+  return video.path
+
+
+def read_video(path: PathLike) -> np.ndarray:
+  """Reads an MP4 (ffmpeg) or GIF back as (T, H, W, 3) uint8 (for checks)."""
+  path = os.fspath(path)
+  if not os.path.isfile(path):
+    raise VideoError(f'{path}: no such file')
+  if path.lower().endswith('.gif'):
+    from PIL import Image
+    from PIL import ImageSequence
+
+    with Image.open(path) as im:
+      return np.stack([np.asarray(f.convert('RGB'))
+                       for f in ImageSequence.Iterator(im)])
+  import imageio_ffmpeg
+
+  gen = imageio_ffmpeg.read_frames(path, pix_fmt='rgb24')
+  with _quiet_fork():
+    meta = next(gen)
+  w, h = meta['size']
+  frames = [np.frombuffer(b, np.uint8).reshape(h, w, 3) for b in gen]
+  if not frames:
+    return np.zeros((0, h, w, 3), np.uint8)
+  return np.stack(frames)
+
+
+def save_png(path: PathLike, image) -> None:
+  """Writes one (H, W, 3) float [0, 1] or uint8 image as PNG.
+
+  Also accepts (H, W) grey or (H, W, 4) RGBA floats/uint8.
+  """
+  from PIL import Image
+
+  path = os.fspath(path)
+  a = np.asarray(image)
+  if a.ndim == 2:
+    img = to_uint8(np.repeat(a[..., None], 3, axis=2), path)
+  elif a.ndim == 3 and a.shape[2] == 4:
+    rgb = to_uint8(a[..., :3], path)
+    alpha = to_uint8(np.repeat(a[..., 3:], 3, axis=2), path)[..., :1]
+    img = np.concatenate([rgb, alpha], axis=2)
+  else:
+    img = to_uint8(a, path)
+  _makedirs_for(path)
+  Image.fromarray(img).save(path)
+
+
+def load_png(path: PathLike) -> np.ndarray:
+  """Reads a PNG as (H, W, 3) uint8 RGB (for checks)."""
+  from PIL import Image
+
+  with Image.open(os.fspath(path)) as im:
+    return np.asarray(im.convert('RGB'))
+
+
+class PngFrameWriter:
+  """Writes frames as ``directory/frame_0000.png``, ... (streaming).
+
+  Attributes:
+    directory: output folder (created).
+    pattern: printf-style file name with one integer field.
+    num_frames: frames written so far.
+    paths: files written.
+  """
+
+  def __init__(self, directory: PathLike, pattern: str = PNG_PATTERN,
+               start: int = 0):
+    try:
+      pattern % 0
+    except (TypeError, ValueError) as e:
+      raise VideoError(
+        f'pattern {pattern!r} needs one integer field such as %04d'
+      ) from e
+    self.directory = os.fspath(directory)
+    self.pattern = pattern
+    self._next = int(start)
+    self.num_frames = 0
+    self.paths: list[str] = []
+
+  def __enter__(self) -> PngFrameWriter:
+    return self
+
+  def __exit__(self, exc_type, exc, tb) -> None:
+    self.close()
+
+  def append(self, frame) -> str:
+    """Writes the next frame; returns its path."""
+    path = os.path.join(self.directory, self.pattern % self._next)
+    img = to_uint8(frame, f'{path}')
+    os.makedirs(self.directory, exist_ok=True)
+    save_png(path, img)
+    self._next += 1
+    self.num_frames += 1
+    self.paths.append(path)
+    return path
+
+  def close(self) -> None:
+    """Nothing to flush (each PNG is complete when written)."""
+
+
+def write_png_frames(directory: PathLike, frames,
+                     pattern: str = PNG_PATTERN) -> list[str]:
+  """Writes (T, H, W, 3) frames as ``directory/frame_%04d.png``.
+
+  Returns:
+    The paths written, in order.
+  """
+  frames = _frames_array(frames, os.fspath(directory))
+  with PngFrameWriter(directory, pattern) as w:
+    for f in frames:
+      w.append(f)
+  return w.paths
