@@ -1,0 +1,240 @@
+"""Boundary conditions: grid-node constraints and particle velocity rules.
+
+Grid conditions act on node velocities after the grid update (PhysGaussian's
+``grid_postprocess``): the domain box (always on), ``SurfaceCollider`` and
+``Cuboid``. Particle conditions act on particle velocities before P2G
+(PhysGaussian's ``pre_p2g_operations`` and velocity modifiers):
+``ParticleImpulse``, ``PointForce``, ``EnforceTranslation``,
+``EnforceRotation`` and ``SequentialRelease``. Particle selections are made
+once from the initial positions (``particle_bc_data``), as PhysGaussian's
+selection kernels do.
+
+Time windows are half-open, ``start <= t < end``, with ``t`` the time at the
+start of the substep.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from physsplat_jax.mpm import base
+
+# Width of the domain-box border in cells (PhysGaussian's bounding_box
+# padding).
+BORDER = 3
+
+
+def _active(t, start, end):
+  return (t >= start) & (t < end)
+
+
+def particle_bc_data(config: base.SimConfig, x0) -> tuple:
+  """Per-particle data of the particle boundary conditions.
+
+  Args:
+    config: static config.
+    x0: (N, 3) initial positions [m].
+
+  Returns:
+    tuple of (N,) float arrays, one per ``config.particle_bcs`` entry: a 0/1
+    mask, or for ``SequentialRelease`` the release time [s] (-inf: never
+    held).
+  """
+  dtype = x0.dtype
+  out = []
+  for i in config.particle_bcs:
+    bc = config.boundary_conditions[i]
+    if isinstance(bc, (ParticleImpulse, EnforceTranslation)):
+      if getattr(bc, 'point', None) is None:
+        m = jnp.ones(x0.shape[:1], bool)
+      else:
+        m = jnp.all(jnp.abs(x0 - jnp.asarray(bc.point, dtype))
+                    < jnp.asarray(bc.size, dtype), axis=-1)
+    elif isinstance(bc, PointForce):
+      r = x0 - jnp.asarray(bc.point, dtype)
+      m = jnp.sum(r * r, -1) < bc.radius ** 2
+    elif isinstance(bc, EnforceRotation):
+      n = jnp.asarray(bc.normal, dtype)
+      r = x0 - jnp.asarray(bc.point, dtype)
+      h = r @ n
+      rh = r - h[:, None] * n
+      m = (jnp.abs(h) < bc.half_height) & (
+        jnp.sum(rh * rh, -1) < bc.radius ** 2)
+    elif isinstance(bc, SequentialRelease):
+      L = bc.num_layers
+      hl = abs(bc.start_position - bc.end_position) / L
+      d = jnp.abs(x0[:, bc.axis] - bc.end_position)
+      # Other axes: PhysGaussian's boxes span |x - 1| < 1 there.
+      others = [a for a in range(3) if a != bc.axis]
+      inside = jnp.all(jnp.abs(x0[:, others] - 1.0) < 1.0, axis=-1)
+      held = inside & (d < L * hl) if hl > 0 else jnp.zeros_like(inside)
+      layers = jnp.ceil(L - d / max(hl, 1e-30))
+      t_rel = bc.end_time * layers / L
+      out.append(jnp.where(held, t_rel, -jnp.inf).astype(dtype))
+      continue
+    else:  # pragma: no cover
+      raise TypeError(type(bc))
+    out.append(m.astype(dtype))
+  return tuple(out)
+
+
+ParticleImpulse = base.ParticleImpulse
+PointForce = base.PointForce
+EnforceTranslation = base.EnforceTranslation
+EnforceRotation = base.EnforceRotation
+SequentialRelease = base.SequentialRelease
+SurfaceCollider = base.SurfaceCollider
+Cuboid = base.Cuboid
+
+
+def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v,
+                       mass):
+  """Particle velocity rules before P2G.
+
+  Args:
+    config: static config.
+    forces: ``Forces``.
+    bc_data: tuple from ``particle_bc_data`` (same particle order as x).
+    t: () time [s].
+    x, v: 3-tuples of (N,) positions [m] and velocities [m/s].
+    mass: (N,) [kg].
+
+  Returns:
+    3-tuple of (N,) velocities.
+  """
+  dt = config.dt
+  v = list(v)
+  k = 0
+  for i, bc in enumerate(config.boundary_conditions):
+    if not isinstance(bc, base.PARTICLE_BCS):
+      continue
+    data = bc_data[k]
+    k += 1
+    val = forces.values[i]
+    if isinstance(bc, ParticleImpulse):
+      on = _active(t, bc.start_time, bc.start_time + bc.num_dt * dt)
+      s = jnp.where(on, dt, 0.0) * data / mass
+      v = [v[d] + s * val[d] for d in range(3)]
+    elif isinstance(bc, PointForce):
+      on = _active(t, bc.start_time, bc.end_time)
+      if bc.per_particle:
+        s = jnp.where(on, dt, 0.0) * data / mass
+      else:
+        total = jnp.sum(data * mass)
+        s = jnp.where(on, dt, 0.0) * data / jnp.maximum(
+          total, jnp.finfo(mass.dtype).tiny)
+      v = [v[d] + s * val[d] for d in range(3)]
+    elif isinstance(bc, EnforceTranslation):
+      on = _active(t, bc.start_time, bc.end_time) & (data > 0.5)
+      v = [jnp.where(on, val[d], v[d]) for d in range(3)]
+    elif isinstance(bc, EnforceRotation):
+      on = _active(t, bc.start_time, bc.end_time) & (data > 0.5)
+      n = bc.normal
+      r = [x[d] - bc.point[d] for d in range(3)]
+      h = r[0] * n[0] + r[1] * n[1] + r[2] * n[2]
+      rh = [r[d] - h * n[d] for d in range(3)]
+      cross = (rh[1] * n[2] - rh[2] * n[1], rh[2] * n[0] - rh[0] * n[2],
+               rh[0] * n[1] - rh[1] * n[0])
+      w = [val[0] * cross[d] + val[1] * n[d] for d in range(3)]
+      v = [jnp.where(on, w[d], v[d]) for d in range(3)]
+    elif isinstance(bc, SequentialRelease):
+      on = (t >= bc.start_time) & (t < data)
+      v = [jnp.where(on, 0.0, v[d]) for d in range(3)]
+  return tuple(v)
+
+
+def node_coords(grid: base.GridSpec, dtype):
+  """Broadcastable node coordinates: (G,1,1), (1,G,1), (1,1,G) [m]."""
+  G = grid.res
+  i = jnp.arange(G, dtype=dtype) * grid.dx
+  return (grid.lower[0] + i[:, None, None], grid.lower[1] + i[None, :, None],
+          grid.lower[2] + i[None, None, :])
+
+
+def _friction(v, vn, n, mu):
+  """Coulomb friction on the tangential part after a contact.
+
+  ``v`` is the velocity with the normal part already removed, ``vn < 0`` the
+  removed approach speed; ``|v_t|`` shrinks by ``mu |vn|`` (not below 0).
+  """
+  if mu == 0:
+    return v
+  vt2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+  vt = jnp.sqrt(jnp.maximum(vt2, jnp.finfo(vt2.dtype).tiny))
+  s = jnp.where(vn < 0, jnp.maximum(0.0, 1.0 + mu * vn / vt), 1.0)
+  return [v[d] * s for d in range(3)]
+
+
+def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
+  """Grid-node constraints after the grid update.
+
+  Args:
+    config: static config.
+    forces: ``Forces``.
+    t: () time [s].
+    gv: 3-tuple of (G, G, G) node velocities [m/s].
+
+  Returns:
+    3-tuple of (G, G, G) node velocities.
+  """
+  grid = config.grid
+  G = grid.res
+  dt = config.dt
+  gv = list(gv)
+  xs = node_coords(grid, gv[0].dtype)
+  for i, bc in enumerate(config.boundary_conditions):
+    if isinstance(bc, SurfaceCollider):
+      on = _active(t, bc.start_time, bc.end_time)
+      n = bc.normal
+      side = sum((xs[d] - bc.point[d]) * n[d] for d in range(3)) < 0
+      hit = on & side
+      if bc.surface == 'sticky':
+        gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
+        continue
+      vn = gv[0] * n[0] + gv[1] * n[1] + gv[2] * n[2]
+      if bc.surface == 'slip':
+        rem = vn
+      else:  # separate: only the approaching part
+        rem = jnp.minimum(vn, 0.0)
+      w = [gv[d] - rem * n[d] for d in range(3)]
+      w = _friction(w, vn, n, bc.friction)
+      gv = [jnp.where(hit, w[d], gv[d]) for d in range(3)]
+    elif isinstance(bc, Cuboid):
+      vel = forces.values[i]
+      on = _active(t, bc.start_time, bc.end_time)
+      moved = jnp.clip(t, bc.start_time, bc.end_time) - bc.start_time
+      inside = None
+      for d in range(3):
+        c = bc.point[d] + moved * vel[d]
+        m = jnp.abs(xs[d] - c) < bc.size[d]
+        inside = m if inside is None else inside & m
+      hit = on & inside
+      gv = [jnp.where(hit, vel[d], gv[d]) for d in range(3)]
+      if bc.reset:
+        off = (~on) & (t < bc.end_time + 15.0 * dt)
+        gv = [jnp.where(off, 0.0, gv[d]) for d in range(3)]
+  # Domain box (always on): no velocity out of the 3-cell border.
+  idx = jnp.arange(G)
+  for d in range(3):
+    shape = [1, 1, 1]
+    shape[d] = G
+    ii = idx.reshape(shape)
+    out = ((ii < BORDER) & (gv[d] < 0)) | ((ii >= G - BORDER) & (gv[d] > 0))
+    gv[d] = jnp.where(out, 0.0, gv[d])
+  return tuple(gv)
+
+
+def collider_summary(config: base.SimConfig) -> str:
+  """One line per boundary condition, for logs."""
+  lines = []
+  for bc in config.boundary_conditions:
+    lines.append(f'{type(bc).__name__}: ' + ', '.join(
+      f'{k}={v}' for k, v in vars(bc).items()
+      if not (isinstance(v, float) and math.isinf(v))))
+  return '; '.join(lines) or 'domain box only'
+
+
+del np

@@ -1,0 +1,339 @@
+"""Constitutive models: plastic return maps and Kirchhoff stresses.
+
+Every model maps the trial deformation gradient of a particle (after the
+latest G2P, ``F_tr``) and its plastic state to an elastic ``F_e``, an updated
+plastic state and the Kirchhoff stress ``tau = P F_e^T`` that MLS-MPM
+scatters (Hu et al. 2018). Fields are structure-of-arrays nested tuples
+(``linalg``); ``mu, lam`` are the Lame parameters from (E, nu).
+
+Elastic models:
+
+- ``fixed_corotated``: ``tau = 2 mu (F - R) F^T + lam J (J - 1) I`` with the
+  polar rotation R (Newton iteration, ``linalg.polar_mat``).
+- ``neo_hookean`` (compressible, Bonet & Wood):
+  ``tau = mu (F F^T - I) + lam log(J) I``.
+- ``stvk``: St. Venant-Kirchhoff with the *Hencky* (logarithmic) strain, as
+  PhysGaussian's "StVK": ``tau = U diag(2 mu eps + lam tr(eps)) U^T`` with
+  ``eps = log(s)`` from ``F = U diag(s) V^T``.
+
+Plastic models (return maps on the log singular values ``eps``; ``eps^`` is
+the deviatoric part, ``|.|`` the Euclidean norm):
+
+- ``von_mises`` (metal; PhysGaussian ``von_mises_return_mapping``): yield
+  when ``|eps^| > tau_Y / (2 mu)``, project ``eps -= dg eps^/|eps^|`` with
+  ``dg = |eps^| - tau_Y / (2 mu)``; hardening
+  ``tau_Y = yield_stress + (hardening 2 mu xi - softening) ep`` with ``ep``
+  the accumulated ``dg``; Hencky stress.
+- ``plasticine`` (PhysGaussian ``..._with_damage``): the same return map with
+  softening; a particle whose yield stress reaches 0 is damaged (no stress,
+  no further return map); fixed-corotated stress on ``F_e``.
+- ``drucker_prager`` (sand; Klar et al. 2016): with
+  ``alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``,
+  ``dg = |eps^| + (3 lam + 2 mu) / (2 mu) tr(eps) alpha``:
+  ``tr(eps) > 0`` projects to the tip (``eps = 0``, cohesionless),
+  ``dg <= 0`` is elastic, otherwise ``eps -= dg eps^/|eps^|``. Hardening
+  ``phi(q) = friction_angle + (h1 q - h3) exp(-h2 q)`` [deg] with ``q`` the
+  accumulated plastic strain (``q += dg``, or ``|eps|`` at the tip). Hencky
+  stress.
+- ``snow`` (Stomakhin et al. 2013): singular values clamped to
+  ``[1 - theta_c, 1 + theta_s]``, ``Jp *= J_tr / J_e``; fixed-corotated
+  stress with ``mu, lam`` scaled by ``h = exp(xi (1 - Jp))`` (clamped to
+  [0.1, 5] as taichi_elements does, so a crushed particle cannot make the
+  step unstable).
+- ``foam`` (PhysGaussian ``viscoplasticity_return_mapping_with_StVK``):
+  ``s = 2 mu eps^``, ``y = |s| - sqrt(2/3) tau_Y``; if ``y > 0``:
+  ``|s_new| = |s| - y / (1 + eta_p / (2 mu_hat dt))`` with
+  ``mu_hat = mu tr(b) / 3``, ``b = diag(s_i^2)``. Hencky stress.
+- ``bingham`` (Bingham / Herschel-Bulkley-type viscoplastic fluid): the same
+  regularised von Mises flow with ``mu_hat = mu`` and the dynamic
+  ``viscosity`` as ``eta``: rigid-elastic below the yield stress, flowing with
+  viscosity ``eta`` above it. Hencky stress (bulk modulus
+  ``lam + 2 mu / 3``).
+- ``newtonian`` (weakly compressible fluid): ``F_e = J^{1/3} I`` (no shear
+  memory), Tait pressure ``p = K (J^{-7} - 1) / 7`` with
+  ``K = E / (3 (1 - 2 nu))``, viscous stress from the velocity gradient
+  ``C``: ``tau = -J p I + J eta (C + C^T - 2/3 tr(C) I)``.
+- ``rigid``: no stress (rigid particles move with their body, solver.py).
+
+Singular values are floored at 0.01 inside the logarithms (PhysGaussian does
+the same "to prevent NaN in extreme cases") and ``J`` at 1e-3 in ``log J``
+(``safe_J``), so every branch is finite for every particle: several models
+are blended with ``jnp.where`` and a NaN in an unused branch would poison
+the gradient.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from physsplat_jax.mpm import linalg as la
+
+SVD_MODELS = ('stvk', 'von_mises', 'plasticine', 'drucker_prager', 'snow',
+              'foam', 'bingham')
+_SIG_FLOOR = 1e-2
+_J_FLOOR = 1e-3
+_TAIT_GAMMA = 7.0
+_SNOW_H = (0.1, 5.0)
+_SQRT23 = math.sqrt(2.0 / 3.0)
+
+
+def safe_J(J):
+  """``J`` floored at 1e-3 where a logarithm or power of it is taken.
+
+  A particle compressed below 1/1000 of its volume has blown up anyway; the
+  floor keeps the blended branches finite (run() reports the blow-up).
+  """
+  return jnp.maximum(J, _J_FLOOR)
+
+
+def _log_sig(s):
+  """Hencky strain ``log(max(s, 0.01))`` of a 3-tuple of singular values."""
+  return tuple(jnp.log(jnp.maximum(x, _SIG_FLOOR)) for x in s)
+
+
+def _dev(e):
+  tr = e[0] + e[1] + e[2]
+  eh = tuple(x - tr / 3.0 for x in e)
+  # Norm with a floor so that d|e^| stays finite at e^ = 0 (F = I).
+  n = jnp.sqrt(eh[0] * eh[0] + eh[1] * eh[1] + eh[2] * eh[2]
+               + jnp.finfo(tr.dtype).tiny)
+  return tr, eh, n
+
+
+def _hencky_k(e, mu, lam):
+  tr = e[0] + e[1] + e[2]
+  return tuple(2.0 * mu * x + lam * tr for x in e)
+
+
+def _fcr_k(s, mu, lam):
+  """Principal Kirchhoff stress of fixed corotated, ``F = U diag(s) V^T``."""
+  J = s[0] * s[1] * s[2]
+  return tuple(2.0 * mu * (x - 1.0) * x + lam * J * (J - 1.0) for x in s)
+
+
+def _exp3(e):
+  return tuple(jnp.exp(x) for x in e)
+
+
+# --- per-model spectral functions fn(s, p) -> (s_e, k, aux) ----------------
+# p holds (N,) arrays: mu, lam, the model's parameters, Jp, ep, dt.
+
+
+def _stvk(s, p):
+  e = _log_sig(s)
+  return s, _hencky_k(e, p['mu'], p['lam']), {'Jp': p['Jp'], 'ep': p['ep']}
+
+
+def _von_mises_core(s, p, softening):
+  mu = p['mu']
+  e = _log_sig(s)
+  tr, eh, n = _dev(e)
+  ys = p['yield_stress'] + (p['hardening'] * 2.0 * mu * p['xi']
+                            - softening) * p['ep']
+  dg = n - ys / (2.0 * mu)
+  alive = ys > 0.0
+  plastic = (dg > 0.0) & alive
+  f = jnp.where(plastic, dg / n, 0.0)
+  e_new = tuple(x - f * y for x, y in zip(e, eh))
+  s_new = tuple(jnp.where(plastic, jnp.exp(x), y) for x, y in zip(e_new, s))
+  ep = p['ep'] + jnp.where(plastic, dg, 0.0)
+  return s_new, e_new, ep, alive
+
+
+def _von_mises(s, p):
+  s_new, e_new, ep, _ = _von_mises_core(s, p, 0.0)
+  return s_new, _hencky_k(e_new, p['mu'], p['lam']), {'Jp': p['Jp'],
+                                                      'ep': ep}
+
+
+def _plasticine(s, p):
+  s_new, _, ep, alive = _von_mises_core(s, p, p['softening'])
+  k = _fcr_k(s_new, p['mu'], p['lam'])
+  k = tuple(jnp.where(alive, x, 0.0) for x in k)
+  return s_new, k, {'Jp': p['Jp'], 'ep': ep}
+
+
+def _drucker_prager(s, p):
+  mu, lam, q = p['mu'], p['lam'], p['ep']
+  phi = p['friction_angle'] + (p['dp_h1'] * q - p['dp_h3']) * jnp.exp(
+    -p['dp_h2'] * q)
+  sin_phi = jnp.sin(jnp.deg2rad(phi))
+  alpha = _SQRT23 * 2.0 * sin_phi / (3.0 - sin_phi)
+  e = _log_sig(s)
+  tr, eh, n = _dev(e)
+  dg = n + (3.0 * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+  tip = tr > 0.0
+  cone = (~tip) & (dg > 0.0)
+  f = jnp.where(cone, dg / n, 0.0)
+  e_new = tuple(jnp.where(tip, 0.0, x - f * y) for x, y in zip(e, eh))
+  e_norm = jnp.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+                    + jnp.finfo(tr.dtype).tiny)
+  dq = jnp.where(tip, e_norm, jnp.where(cone, dg, 0.0))
+  s_new = tuple(jnp.where(tip | cone, jnp.exp(x), y)
+                for x, y in zip(e_new, s))
+  return s_new, _hencky_k(e_new, mu, lam), {'Jp': p['Jp'], 'ep': q + dq}
+
+
+def _snow(s, p):
+  lo = 1.0 - p['theta_c']
+  hi = 1.0 + p['theta_s']
+  s_new = tuple(jnp.clip(x, lo, hi) for x in s)
+  J_tr = s[0] * s[1] * s[2]
+  J_e = s_new[0] * s_new[1] * s_new[2]
+  Jp = p['Jp'] * J_tr / J_e
+  h = jnp.clip(jnp.exp(p['xi'] * (1.0 - Jp)), *_SNOW_H)
+  k = _fcr_k(s_new, p['mu'] * h, p['lam'] * h)
+  return s_new, k, {'Jp': Jp, 'ep': p['ep']}
+
+
+def _viscoplastic(s, p, eta, mu_hat_from_b):
+  mu = p['mu']
+  e = _log_sig(s)
+  tr, eh, n = _dev(e)
+  s_norm = 2.0 * mu * n
+  y = s_norm - _SQRT23 * p['yield_stress']
+  plastic = y > 0.0
+  if mu_hat_from_b:
+    sc = tuple(jnp.maximum(x, _SIG_FLOOR) for x in s)
+    mu_hat = mu * (sc[0] * sc[0] + sc[1] * sc[1] + sc[2] * sc[2]) / 3.0
+  else:
+    mu_hat = mu
+  new_norm = s_norm - y / (1.0 + eta / (2.0 * mu_hat * p['dt']))
+  f = jnp.where(plastic, new_norm / s_norm, 1.0)
+  e_new = tuple(f * y_ + tr / 3.0 for y_ in eh)
+  s_new = tuple(jnp.where(plastic, jnp.exp(x), y_) for x, y_ in zip(e_new, s))
+  ep = p['ep'] + jnp.where(plastic, (1.0 - f) * n, 0.0)
+  return s_new, _hencky_k(e_new, mu, p['lam']), {'Jp': p['Jp'], 'ep': ep}
+
+
+def _foam(s, p):
+  return _viscoplastic(s, p, p['plastic_viscosity'], True)
+
+
+def _bingham(s, p):
+  return _viscoplastic(s, p, p['viscosity'], False)
+
+
+_SPECTRAL = {
+  'stvk': _stvk, 'von_mises': _von_mises, 'plasticine': _plasticine,
+  'drucker_prager': _drucker_prager, 'snow': _snow, 'foam': _foam,
+  'bingham': _bingham,
+}
+_PARAMS = {
+  'stvk': (),
+  'von_mises': ('yield_stress', 'hardening', 'xi'),
+  'plasticine': ('yield_stress', 'hardening', 'xi', 'softening'),
+  'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3'),
+  'snow': ('xi', 'theta_c', 'theta_s'),
+  'foam': ('yield_stress', 'plastic_viscosity'),
+  'bingham': ('yield_stress', 'viscosity'),
+}
+
+
+@functools.lru_cache(maxsize=None)
+def _spectral_map(models: tuple[str, ...]):
+  """One spectral map blending the SVD models in ``models`` (static)."""
+
+  def fn(s, p):
+    out = None
+    for m in models:
+      r = _SPECTRAL[m](s, p)
+      if out is None:
+        out = r
+      else:
+        sel = p['sel_' + m] > 0.5
+        out = jax_tree_where(sel, r, out)
+    return out
+
+  return la.make_spectral_map(fn)
+
+
+def jax_tree_where(c, a, b):
+  """``where(c, a, b)`` leaf by leaf."""
+  return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
+
+
+def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
+                        zero_stress=None):
+  """Return mapping and Kirchhoff stress for all models present.
+
+  Args:
+    models: static tuple of canonical model names (``SimConfig.models``).
+    model_id: (N,) int32 index into ``models``.
+    F: nested-tuple trial deformation gradients.
+    C: nested-tuple affine velocity matrices [1/s] (fluid viscosity).
+    Jp, ep: (N,) plastic state.
+    mat: ``Materials`` (leaves (N,)).
+    dt: substep [s] (python float).
+    zero_stress: optional (N,) bool, particles without stress (rigid).
+
+  Returns:
+    ``(F_e, Jp, ep, tau)``; F_e and tau nested tuples.
+  """
+  mu, lam = mat.lame()
+  single = len(models) == 1
+
+  def pick(results):
+    """Blend per-model results by model id (static list)."""
+    if single:
+      return results[0][1]
+    out = results[0][1]
+    for k, r in results[1:]:
+      out = jax_tree_where(model_id == k, r, out)
+    return out
+
+  results = []
+  svd_models = tuple(m for m in models if m in SVD_MODELS)
+  if svd_models:
+    p = {'mu': mu, 'lam': lam, 'Jp': Jp, 'ep': ep,
+         'dt': jnp.full_like(mu, dt)}
+    for m in svd_models:
+      for f in _PARAMS[m]:
+        p[f] = getattr(mat, f)
+      if len(svd_models) > 1:
+        p['sel_' + m] = (model_id == models.index(m)).astype(mu.dtype)
+    Fe, tau, aux = _spectral_map(svd_models)(F, p)
+    r = (Fe, aux['Jp'], aux['ep'], tau)
+    for m in svd_models:
+      results.append((models.index(m), r))
+  for k, m in enumerate(models):
+    if m in SVD_MODELS:
+      continue
+    if m == 'fixed_corotated':
+      R = la.polar_mat(F)
+      J = la.det(F)
+      t = la.matmul_t(la.scale(la.sub(F, R), 2.0 * mu), F)
+      tau = la.add_diag(t, lam * J * (J - 1.0))
+      results.append((k, (F, Jp, ep, tau)))
+    elif m == 'neo_hookean':
+      J = la.det(F)
+      t = la.scale(la.matmul_t(F, F), mu)
+      tau = la.add_diag(t, -mu + lam * jnp.log(safe_J(J)))
+      results.append((k, (F, Jp, ep, tau)))
+    elif m == 'newtonian':
+      J = safe_J(la.det(F))
+      Jc = jnp.cbrt(J)
+      z = jnp.zeros_like(J)
+      Fe = ((Jc, z, z), (z, Jc, z), (z, z, Jc))
+      K = mat.E / (3.0 * (1.0 - 2.0 * mat.nu))
+      pres = K / _TAIT_GAMMA * (J ** (-_TAIT_GAMMA) - 1.0)
+      eta = mat.viscosity
+      trC = la.trace(C)
+      visc = la.add(C, la.transpose(C))
+      visc = la.add_diag(visc, -2.0 / 3.0 * trC)
+      tau = la.add_diag(la.scale(visc, J * eta), -J * pres)
+      results.append((k, (Fe, Jp, ep, tau)))
+    elif m == 'rigid':
+      results.append((k, (F, Jp, ep, la.zeros(Jp))))
+    else:
+      raise ValueError(f'unknown model {m!r}')
+  results.sort(key=lambda r: r[0])
+  Fe, Jp, ep, tau = pick(results)
+  if zero_stress is not None:
+    tau = tuple(tuple(jnp.where(zero_stress, 0.0, t) for t in row)
+                for row in tau)
+  return Fe, Jp, ep, tau

@@ -1,0 +1,435 @@
+"""Batched 3x3 algebra written per component, polar decomposition and SVD.
+
+Matrices inside the solver are *structure of arrays*: a 3x3 field over N
+particles is a nested tuple ``M[i][j]`` of (N,) arrays (or an array of shape
+(3, 3, N), which converts with :func:`to_mat` / :func:`from_mat`). XLA on CPU
+handles arrays whose last axis is 3 or 9 badly (REFERENCE.md section 13), so
+every product is written out by hand and unrolled at trace time.
+
+Polar decomposition ``F = R S`` (R orthogonal, S symmetric positive definite)
+by the scaled Newton iteration of Higham (1986)::
+
+  R_0 = F,  R_{k+1} = (g_k R_k + g_k^{-1} R_k^{-T}) / 2,
+  g_k = (|R_k^{-1}|_F / |R_k|_F)^{1/2}.
+
+Its custom VJP differentiates the converged factor, not the iteration: with
+``dR = R [w]_x`` and ``R^T dF - dF^T R = [(tr(S) I - S) w]_x`` one gets, for a
+cotangent ``Rbar``::
+
+  a = axial(R^T Rbar - Rbar^T R),  b = (tr(S) I - S)^{-1} a,
+  Fbar = R [b]_x.
+
+``tr(S) I - S`` has eigenvalues ``s_i + s_j > 0``, so the gradient is finite
+everywhere ``F`` is invertible, including at ``F = I`` where SVD-based
+gradients divide by ``s_i^2 - s_j^2 = 0`` (REFERENCE.md section 13: a plain
+``jnp.linalg.svd`` gave NaN gradients there).
+
+SVD ``F = U diag(s) V^T``: the forward pass is ``jnp.linalg.svd`` with signs
+fixed so that ``U, V`` are rotations (a reflection goes into the smallest
+singular value, Irving et al. 2004). ``svd`` has Townsend's (2016) VJP, split
+into a ``1 / (s_j - s_i)`` part (its denominator clamped away from zero) and
+a regular ``1 / (s_j + s_i)`` part: finite everywhere, exact for distinct
+singular values and for ``U V^T``, but at exactly repeated singular values it
+drops limits of the form ``(g_j - g_i) / (s_j - s_i)`` (the factors U, V are
+not differentiable there; only functions of F are).
+
+For the constitutive models use :func:`make_spectral_map` instead: it
+differentiates whole matrix functions
+
+  F -> (U diag(h(s)) V^T,  U diag(k(s)) U^T,  aux(s))
+
+of a permutation-symmetric map ``s -> (h, k, aux)`` (return maps on the
+singular values, principal Kirchhoff stresses), with the divided
+differences ``(h_j - h_i) / (s_j - s_i)`` replaced by their limit
+``dh_i/ds_i - dh_i/ds_j`` (from the Jacobian of the map) when the singular
+values are (nearly) equal. Its gradient is exact, including at F = I
+(a Daleckii-Krein formula for the SVD).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+Array = Any
+Mat = tuple  # tuple[tuple[Array, Array, Array], ...] of (N,) arrays
+
+_POLAR_ITERS = 8
+# Smallest |s_i^2 - s_j^2| used in the SVD gradient (relative to s^2).
+_SVD_GAP = 1e-6
+
+
+def to_mat(a: Array) -> Mat:
+  """(3, 3, ...) array -> nested tuple ``M[i][j]``."""
+  return tuple(tuple(a[i, j] for j in range(3)) for i in range(3))
+
+
+def from_mat(m: Mat) -> Array:
+  """Nested tuple ``M[i][j]`` -> (3, 3, ...) array."""
+  return jnp.stack([jnp.stack(list(r)) for r in m])
+
+
+def eye(like: Array) -> Mat:
+  """Identity field shaped like ``like``."""
+  o, z = jnp.ones_like(like), jnp.zeros_like(like)
+  return ((o, z, z), (z, o, z), (z, z, o))
+
+
+def zeros(like: Array) -> Mat:
+  z = jnp.zeros_like(like)
+  return ((z, z, z), (z, z, z), (z, z, z))
+
+
+def add(a: Mat, b: Mat) -> Mat:
+  return tuple(tuple(a[i][j] + b[i][j] for j in range(3)) for i in range(3))
+
+
+def sub(a: Mat, b: Mat) -> Mat:
+  return tuple(tuple(a[i][j] - b[i][j] for j in range(3)) for i in range(3))
+
+
+def scale(a: Mat, s) -> Mat:
+  return tuple(tuple(a[i][j] * s for j in range(3)) for i in range(3))
+
+
+def transpose(a: Mat) -> Mat:
+  return tuple(tuple(a[j][i] for j in range(3)) for i in range(3))
+
+
+def matmul(a: Mat, b: Mat) -> Mat:
+  return tuple(
+    tuple(a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j]
+          for j in range(3))
+    for i in range(3)
+  )
+
+
+def matmul_t(a: Mat, b: Mat) -> Mat:
+  """``a @ b^T``."""
+  return tuple(
+    tuple(a[i][0] * b[j][0] + a[i][1] * b[j][1] + a[i][2] * b[j][2]
+          for j in range(3))
+    for i in range(3)
+  )
+
+
+def t_matmul(a: Mat, b: Mat) -> Mat:
+  """``a^T @ b``."""
+  return tuple(
+    tuple(a[0][i] * b[0][j] + a[1][i] * b[1][j] + a[2][i] * b[2][j]
+          for j in range(3))
+    for i in range(3)
+  )
+
+
+def add_diag(a: Mat, d) -> Mat:
+  """``a + d I`` (d a scalar field)."""
+  return tuple(
+    tuple(a[i][j] + d if i == j else a[i][j] for j in range(3))
+    for i in range(3)
+  )
+
+
+def diag(d0, d1, d2) -> Mat:
+  z = jnp.zeros_like(d0)
+  return ((d0, z, z), (z, d1, z), (z, z, d2))
+
+
+def trace(a: Mat):
+  return a[0][0] + a[1][1] + a[2][2]
+
+
+def frob2(a: Mat):
+  return sum(a[i][j] * a[i][j] for i in range(3) for j in range(3))
+
+
+def cofactor(a: Mat) -> Mat:
+  """Cofactor matrix: ``cof(A) = det(A) A^{-T}``."""
+  return (
+    (a[1][1] * a[2][2] - a[1][2] * a[2][1],
+     a[1][2] * a[2][0] - a[1][0] * a[2][2],
+     a[1][0] * a[2][1] - a[1][1] * a[2][0]),
+    (a[0][2] * a[2][1] - a[0][1] * a[2][2],
+     a[0][0] * a[2][2] - a[0][2] * a[2][0],
+     a[0][1] * a[2][0] - a[0][0] * a[2][1]),
+    (a[0][1] * a[1][2] - a[0][2] * a[1][1],
+     a[0][2] * a[1][0] - a[0][0] * a[1][2],
+     a[0][0] * a[1][1] - a[0][1] * a[1][0]),
+  )
+
+
+def det(a: Mat):
+  return (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+          - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+          + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+
+
+def skew_from(w) -> Mat:
+  """``[w]_x`` for a vector field ``w = (w0, w1, w2)``."""
+  z = jnp.zeros_like(w[0])
+  return ((z, -w[2], w[1]), (w[2], z, -w[0]), (-w[1], w[0], z))
+
+
+def axial(a: Mat):
+  """``(a21 - a12, a02 - a20, a10 - a01)`` (twice the axial vector)."""
+  return (a[2][1] - a[1][2], a[0][2] - a[2][0], a[1][0] - a[0][1])
+
+
+def solve_sym(a: Mat, b):
+  """``a^{-1} b`` for a symmetric positive definite field (cofactors)."""
+  c = cofactor(a)
+  d = det(a)
+  return tuple((c[i][0] * b[0] + c[i][1] * b[1] + c[i][2] * b[2]) / d
+               for i in range(3))
+
+
+def _polar_newton(F: Mat, iters: int) -> Mat:
+  X = F
+  for _ in range(iters):
+    c = cofactor(X)
+    d = det(X)
+    # A singular F has no polar factor; keep the iteration finite (the
+    # solver never lets det F reach 0, see constitutive.safe_J).
+    tiny = jnp.asarray(1e-30 if d.dtype == jnp.float64 else 1e-20, d.dtype)
+    d = jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
+    # X^{-T} = cof(X) / det(X); scale by (|X^{-1}| / |X|)^{1/2}.
+    n1 = frob2(X)
+    n2 = frob2(c) / (d * d)
+    g = jnp.sqrt(jnp.sqrt(n2 / n1))
+    gi = 0.5 / (g * d)
+    X = tuple(tuple(0.5 * g * X[i][j] + gi * c[i][j] for j in range(3))
+              for i in range(3))
+  return X
+
+
+@jax.custom_vjp
+def polar_mat(F: Mat) -> Mat:
+  """Rotation factor ``R`` of ``F = R S`` (nested-tuple fields).
+
+  Args:
+    F: nested tuple of (N,) arrays, invertible matrices (det F > 0 gives a
+      rotation; det F < 0 the orthogonal factor, a reflection).
+
+  Returns:
+    R as a nested tuple.
+  """
+  return _polar_newton(F, _POLAR_ITERS)
+
+
+def _polar_fwd(F):
+  R = _polar_newton(F, _POLAR_ITERS)
+  return R, (F, R)
+
+
+def _polar_bwd(res, Rbar):
+  F, R = res
+  S = t_matmul(R, F)
+  S = tuple(tuple(0.5 * (S[i][j] + S[j][i]) for j in range(3))
+            for i in range(3))
+  A = add_diag(scale(S, -1.0), trace(S))
+  M = t_matmul(R, Rbar)
+  a = axial(M)
+  b = solve_sym(A, a)
+  return (matmul(R, skew_from(b)),)
+
+
+polar_mat.defvjp(_polar_fwd, _polar_bwd)
+
+
+def polar(F: Array) -> Array:
+  """Rotation ``R`` of the polar decomposition ``F = R S``.
+
+  Scaled Newton iteration with a custom VJP that is finite at ``F = I``.
+
+  Args:
+    F: (..., 3, 3) invertible matrices.
+
+  Returns:
+    (..., 3, 3) orthogonal matrices.
+  """
+  F = jnp.asarray(F)
+  m = to_mat(jnp.moveaxis(F, (-2, -1), (0, 1)))
+  return jnp.moveaxis(from_mat(polar_mat(m)), (0, 1), (-2, -1))
+
+
+@jax.custom_vjp
+def svd(F: Array):
+  """Rotation-variant SVD ``F = U diag(s) V^T`` of (..., 3, 3) matrices.
+
+  ``U`` and ``V`` are rotations (det +1); if ``det F < 0`` the smallest
+  singular value is negative. The VJP is finite for repeated singular values.
+
+  Args:
+    F: (..., 3, 3) matrices.
+
+  Returns:
+    U (..., 3, 3), s (..., 3) in descending |s| order, V (..., 3, 3).
+  """
+  return _svd_fwd_impl(F)
+
+
+def _svd_fwd_impl(F):
+  U, s, Vt = jnp.linalg.svd(F)
+  V = jnp.swapaxes(Vt, -1, -2)
+  du = jnp.linalg.det(U)
+  dv = jnp.linalg.det(V)
+  fu = jnp.where(du < 0, -1.0, 1.0).astype(F.dtype)
+  fv = jnp.where(dv < 0, -1.0, 1.0).astype(F.dtype)
+  one = jnp.ones_like(fu)
+  U = U * jnp.stack([one, one, fu], -1)[..., None, :]
+  V = V * jnp.stack([one, one, fv], -1)[..., None, :]
+  s = s * jnp.stack([one, one, fu * fv], -1)
+  return U, s, V
+
+
+def _svd_fwd(F):
+  out = _svd_fwd_impl(F)
+  return out, out
+
+
+def _svd_bwd(res, cot):
+  U, s, V = res
+  Ub, sb, Vb = cot
+  # Off-diagonal (i, j) of Townsend's inner matrix,
+  #   (a s_j + b s_i) / (s_j^2 - s_i^2)
+  #   = (a + b) / (2 (s_j - s_i)) + (a - b) / (2 (s_j + s_i)),
+  # a = (U^T Ubar)_ij - (U^T Ubar)_ji, b likewise for V. Only the first term
+  # is singular, and a + b -> 0 there for any isotropic function of F, so
+  # clamping its denominator keeps gradients right and finite.
+  eye3 = jnp.eye(3, dtype=s.dtype)
+  Ut = jnp.swapaxes(U, -1, -2)
+  Vt = jnp.swapaxes(V, -1, -2)
+  J = Ut @ Ub
+  K = Vt @ Vb
+  a = J - jnp.swapaxes(J, -1, -2)
+  b = K - jnp.swapaxes(K, -1, -2)
+  sj = s[..., None, :]
+  si = s[..., :, None]
+  dm = sj - si
+  dp = sj + si
+  ref = jnp.maximum(jnp.max(jnp.abs(s), -1), 1e-30)[..., None, None]
+  gap = _SVD_GAP * ref
+  dm = jnp.where(jnp.abs(dm) < gap, jnp.where(dm < 0, -gap, gap), dm)
+  dp = jnp.where(jnp.abs(dp) < gap, jnp.where(dp < 0, -gap, gap), dp)
+  off = 0.5 * (a + b) / dm + 0.5 * (a - b) / dp
+  inner = jnp.where(eye3 > 0, 0.0, off) + sb[..., None, :] * eye3
+  return (U @ inner @ Vt,)
+
+
+svd.defvjp(_svd_fwd, _svd_bwd)
+
+
+# ------------------------------------------------------------ spectral maps
+
+
+def svd_mat(F: Mat):
+  """Rotation-variant SVD of a nested-tuple field (forward only).
+
+  Returns:
+    ``(U, s, V)``: U, V nested tuples (rotations), s a 3-tuple of (N,)
+    singular values in descending order (the last negative if det F < 0).
+  """
+  A = jnp.moveaxis(from_mat(F), (0, 1), (-2, -1))
+  U, s, V = _svd_fwd_impl(A)
+  U = to_mat(jnp.moveaxis(U, (-2, -1), (0, 1)))
+  V = to_mat(jnp.moveaxis(V, (-2, -1), (0, 1)))
+  s = tuple(s[..., i] for i in range(3))
+  return U, s, V
+
+
+def _gap(s):
+  """Smallest |s_i - s_j| (relative) resolved by divided differences."""
+  eps = jnp.finfo(s[0].dtype).eps
+  return jnp.sqrt(eps)  # ~3e-4 (f32) / 1.5e-8 (f64)
+
+
+def _safe_den(d, ref, gap):
+  """``d`` pushed away from zero by ``gap * ref`` keeping its sign."""
+  g = gap * ref
+  return jnp.where(jnp.abs(d) < g, jnp.where(d < 0, -g, g), d)
+
+
+def make_spectral_map(fn):
+  """Differentiable matrix functions of the singular values of F.
+
+  Args:
+    fn: ``fn(s, p) -> (h, k, aux)`` with ``s`` a 3-tuple of (N,) singular
+      values, ``p`` a pytree of (N,) float parameters, ``h`` and ``k``
+      3-tuples of (N,) arrays and ``aux`` a pytree of (N,) arrays. It must be
+      symmetric under permutations of ``s`` (isotropic material models are).
+
+  Returns:
+    ``apply(F, p) -> (Fh, Tk, aux)`` for a nested-tuple field ``F``:
+    ``Fh = U diag(h(s)) V^T``, ``Tk = U diag(k(s)) U^T`` and ``aux(s)``, with
+    a custom VJP that is exact at repeated singular values (module doc).
+  """
+
+  def forward(F, p):
+    U, s, V = svd_mat(F)
+    h, k, aux = fn(s, p)
+    Fh = matmul_t(scale_cols(U, h), V)
+    Tk = matmul_t(scale_cols(U, k), U)
+    return (Fh, Tk, aux), (U, s, V, h, k, p)
+
+  @jax.custom_vjp
+  def apply(F, p):
+    return forward(F, p)[0]
+
+  def fwd(F, p):
+    return forward(F, p)
+
+  def bwd(res, cts):
+    U, s, V, h, k, p = res
+    Fh_bar, Tk_bar, aux_bar = cts
+    Ph = t_matmul(U, matmul(Fh_bar, V))     # U^T Fh_bar V
+    Pk = t_matmul(U, matmul(Tk_bar, U))     # U^T Tk_bar U
+    _, vjp_fn = jax.vjp(fn, s, p)
+    s_bar, p_bar = vjp_fn((tuple(Ph[i][i] for i in range(3)),
+                           tuple(Pk[i][i] for i in range(3)), aux_bar))
+    # Jacobians dh_i/ds_j, dk_i/ds_j for the repeated-value limits.
+    zero_p = jax.tree.map(jnp.zeros_like, p)
+    Jh, Jk = [], []
+    for j in range(3):
+      e = tuple(jnp.ones_like(s[0]) if i == j else jnp.zeros_like(s[0])
+                for i in range(3))
+      _, (dh, dk, _) = jax.jvp(fn, (s, p), (e, zero_p))
+      Jh.append(dh)
+      Jk.append(dk)
+    # Jh[j][i] = dh_i / ds_j.
+    ref = jnp.maximum(jnp.maximum(jnp.abs(s[0]), jnp.abs(s[1])),
+                      jnp.abs(s[2]))
+    ref = jnp.maximum(ref, jnp.finfo(s[0].dtype).tiny)
+    gap = _gap(s)
+    P = [[None] * 3 for _ in range(3)]
+    for i in range(3):
+      P[i][i] = s_bar[i]
+    for i in range(3):
+      for j in range(3):
+        if i == j:
+          continue
+        dm = s[j] - s[i]
+        close = jnp.abs(dm) < gap * ref
+        dm = _safe_den(dm, ref, gap)
+        dp = _safe_den(s[j] + s[i], ref, gap)
+        lim_h = 0.5 * (Jh[i][i] - Jh[j][i] + Jh[j][j] - Jh[i][j])
+        lim_k = 0.5 * (Jk[i][i] - Jk[j][i] + Jk[j][j] - Jk[i][j])
+        Dh = jnp.where(close, lim_h, (h[j] - h[i]) / dm)
+        Dk = jnp.where(close, lim_k, (k[j] - k[i]) / dm)
+        Sh = (h[j] + h[i]) / dp
+        sym_h = 0.5 * (Ph[i][j] + Ph[j][i])
+        skw_h = 0.5 * (Ph[i][j] - Ph[j][i])
+        P[i][j] = (Dh * sym_h + Sh * skw_h
+                   + Dk * s[j] * (Pk[i][j] + Pk[j][i]) / dp)
+    P = tuple(tuple(r) for r in P)
+    F_bar = matmul_t(matmul(U, P), V)
+    return F_bar, p_bar
+
+  apply.defvjp(fwd, bwd)
+  return apply
+
+
+def scale_cols(a: Mat, d) -> Mat:
+  """``a @ diag(d)`` for a 3-tuple ``d`` of fields."""
+  return tuple(tuple(a[i][j] * d[j] for j in range(3)) for i in range(3))

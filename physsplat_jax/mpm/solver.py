@@ -1,0 +1,511 @@
+"""MLS-MPM time stepping: substep, frame, rollout and the host-loop run.
+
+One substep (Hu et al. 2018, with PhysGaussian's ordering)::
+
+  1. particle rules      impulses, point forces, enforced velocities
+  2. constitutive update F_e, plastic state = return_map(F); tau(F_e)
+  3. P2G                 mass, momentum with A = m C - dt V0 (4/dx^2) tau
+  4. grid update         v = p / m + dt g, damping, boundary conditions
+  5. G2P                 v, C from the grid; rigid projection;
+                         x += dt v, F = (I + dt C) F_e; x clamped to the grid
+
+Inside a frame the state is held as structure of arrays (particle index
+last) and, with ``SimConfig.sort_particles``, permuted so that particles are
+sorted by grid cell (gathers and the scatter then walk memory in order); the
+permutation is undone at the end of the frame, so callers never see it.
+
+``rollout`` is the differentiable path (nested ``lax.scan`` with
+``jax.checkpoint`` per frame and per substep); ``run`` is the host loop with
+progress logging, a stability check per frame and timing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import logging
+
+from physsplat_jax.mpm import base
+from physsplat_jax.mpm import boundary
+from physsplat_jax.mpm import constitutive
+from physsplat_jax.mpm import linalg as la
+from physsplat_jax.mpm import rigid as rigid_lib
+from physsplat_jax.mpm import transfer
+
+Array = jax.Array
+
+
+# ------------------------------------------------------------------- set-up
+
+
+def _host(a):
+  try:
+    return np.asarray(a)
+  except (jax.errors.TracerArrayConversionError,
+          jax.errors.ConcretizationTypeError):
+    return None
+
+
+def init_state(x, v, volume, materials: base.Materials,
+               config: base.SimConfig, body_id=None, F=None) -> base.MPMState:
+  """Initial particle state.
+
+  Args:
+    x: (N, 3) positions [m], inside the grid.
+    v: (N, 3) or (3,) initial velocities [m/s].
+    volume: (N,) or scalar particle volumes [m^3].
+    materials: ``Materials`` with (N,) leaves (``mass = rho * volume``).
+    config: static config (grid, boundary conditions, bodies).
+    body_id: (N,) int rigid body per particle (-1: not rigid) or None.
+    F: optional (N, 3, 3) initial deformation gradients (default I).
+
+  Returns:
+    ``MPMState`` at t = 0.
+
+  Raises:
+    ValueError: wrong shapes, particles outside the grid, bad body ids or
+      model ids (checked when the inputs are concrete).
+  """
+  dtype = config.jnp_dtype
+  x = jnp.asarray(x, dtype)
+  if x.ndim != 2 or x.shape[1] != 3:
+    raise ValueError(f'init_state: x has shape {x.shape}; expected (N, 3) '
+                     'positions.')
+  n = x.shape[0]
+  v = jnp.broadcast_to(jnp.asarray(v, dtype), (n, 3)) if np.ndim(v) <= 1 \
+      else jnp.asarray(v, dtype)
+  if v.shape != (n, 3):
+    raise ValueError(f'init_state: v has shape {v.shape}; expected ({n}, 3) '
+                     'or (3,).')
+  volume = jnp.broadcast_to(jnp.asarray(volume, dtype), (n,))
+  for f in base.FLOAT_FIELDS + ('model_id',):
+    a = getattr(materials, f)
+    if np.shape(a) != (n,):
+      raise ValueError(
+        f'init_state: materials.{f} has shape {np.shape(a)}; expected '
+        f'({n},) (one value per particle; use make_materials).')
+  if body_id is None:
+    body_id = jnp.full((n,), -1, jnp.int32)
+  body_id = jnp.asarray(body_id, jnp.int32)
+  if body_id.shape != (n,):
+    raise ValueError(f'init_state: body_id has shape {body_id.shape}; '
+                     f'expected ({n},).')
+  xh, bh, mh = _host(x), _host(body_id), _host(materials.model_id)
+  if xh is not None and n:
+    lo, hi = config.grid.particle_bounds
+    rel = xh - np.asarray(config.grid.lower)
+    bad = np.any((rel < lo) | (rel > hi), axis=1)
+    if np.any(~np.isfinite(xh)):
+      raise ValueError('init_state: x contains NaN/inf.')
+    if np.any(bad):
+      i = int(np.argmax(bad))
+      raise ValueError(
+        f'init_state: {int(bad.sum())} particles lie outside the simulation '
+        f'grid (e.g. particle {i} at {xh[i].tolist()}; the usable domain is '
+        f'[{np.add(config.grid.lower, lo).tolist()}, '
+        f'{np.add(config.grid.lower, hi).tolist()}] m). Enlarge '
+        'GridSpec.size, move GridSpec.lower, or rescale the scene.')
+  if bh is not None and n:
+    if bh.max() >= config.num_bodies or bh.min() < -1:
+      raise ValueError(
+        f'init_state: body_id values in [{bh.min()}, {bh.max()}] but '
+        f'config.num_bodies = {config.num_bodies}; use -1 (not rigid) or '
+        '0..num_bodies-1.')
+  if mh is not None and n:
+    if mh.min() < 0 or mh.max() >= len(config.models):
+      raise ValueError(
+        f'init_state: materials.model_id in [{mh.min()}, {mh.max()}] but '
+        f'config.models has {len(config.models)} entries {config.models}.')
+    if 'rigid' in config.models and bh is not None:
+      rid = config.models.index('rigid')
+      orphan = (mh == rid) & (bh < 0)
+      if np.any(orphan):
+        raise ValueError(
+          f'init_state: {int(orphan.sum())} particles have model "rigid" but '
+          'no body (body_id = -1); give each rigid object a body id and set '
+          'SimConfig.num_bodies.')
+  if F is None:
+    F = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (n, 3, 3))
+  F = jnp.asarray(F, dtype)
+  return base.MPMState(
+    x=x, v=v, F=F, C=jnp.zeros((n, 3, 3), dtype),
+    Jp=jnp.ones((n,), dtype), ep=jnp.zeros((n,), dtype),
+    vol0=volume, mass=materials.rho.astype(dtype) * volume,
+    body_id=body_id, bc_data=boundary.particle_bc_data(config, x),
+    t=jnp.zeros((), dtype), step=jnp.zeros((), jnp.int32),
+  )
+
+
+# ------------------------------------------------------- SoA substep kernel
+
+
+def _to_soa(state: base.MPMState):
+  carry = dict(
+    x=state.x.T, v=state.v.T, F=jnp.transpose(state.F, (1, 2, 0)),
+    C=jnp.transpose(state.C, (1, 2, 0)), Jp=state.Jp, ep=state.ep,
+    t=state.t, step=state.step,
+  )
+  aux = dict(mass=state.mass, vol0=state.vol0, body_id=state.body_id,
+             bc_data=state.bc_data)
+  return carry, aux
+
+
+def _from_soa(carry, aux) -> base.MPMState:
+  return base.MPMState(
+    x=carry['x'].T, v=carry['v'].T, F=jnp.transpose(carry['F'], (2, 0, 1)),
+    C=jnp.transpose(carry['C'], (2, 0, 1)), Jp=carry['Jp'], ep=carry['ep'],
+    vol0=aux['vol0'], mass=aux['mass'], body_id=aux['body_id'],
+    bc_data=aux['bc_data'], t=carry['t'], step=carry['step'],
+  )
+
+
+def _make_soa_substep(config: base.SimConfig):
+  """``substep(carry, aux, materials, forces) -> carry`` on SoA fields."""
+  grid = config.grid
+  dt = config.dt
+  models = config.models
+  G = grid.res
+  inv_dx = grid.inv_dx
+  lo, hi = grid.particle_bounds
+  stress_scale = -dt * 4.0 * inv_dx * inv_dx
+  rp = config.rpic_damping
+  damp = 1.0
+  if config.grid_v_damping_scale < 1.0:
+    damp *= config.grid_v_damping_scale
+  if config.velocity_damping > 0.0:
+    damp *= float(np.exp(-config.velocity_damping * dt))
+  g = config.gravity
+  has_bodies = config.num_bodies > 0
+
+  def substep(c, aux, mat, forces):
+    x = tuple(c['x'][d] for d in range(3))
+    v = tuple(c['v'][d] for d in range(3))
+    F = la.to_mat(c['F'])
+    C = la.to_mat(c['C'])
+    t = c['t']
+    mass, vol0 = aux['mass'], aux['vol0']
+    rigid = aux['body_id'] >= 0 if has_bodies else None
+
+    with jax.named_scope('particle_bcs'):
+      v = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x, v,
+                                      mass)
+    with jax.named_scope('constitutive'):
+      Fe, Jp, ep, tau = constitutive.constitutive_update(
+        models, mat.model_id, F, C, c['Jp'], c['ep'], mat, dt,
+        zero_stress=rigid)
+    with jax.named_scope('p2g'):
+      if rp > 0:
+        C = la.sub(C, la.scale(la.add(C, la.transpose(C)), 0.5 * rp))
+      k = stress_scale * vol0
+      A = tuple(tuple(mass * C[i][j] + k * tau[i][j] for j in range(3))
+                for i in range(3))
+      st = transfer.Stencil(grid, x)
+      gm = transfer.p2g(grid, st, v, mass, A)
+    with jax.named_scope('grid_update'):
+      m = gm[:, 0]
+      has = m > 0
+      inv_m = 1.0 / jnp.where(has, m, 1.0)
+      gv = tuple(jnp.where(has, gm[:, d + 1] * inv_m + dt * g[d], 0.0)
+                 for d in range(3))
+      if damp != 1.0:
+        gv = tuple(a * damp for a in gv)
+      gv = tuple(a.reshape(G, G, G) for a in gv)
+      gv = boundary.apply_grid_bcs(config, forces, t, gv)
+      gv = jnp.stack([a.reshape(-1) for a in gv], axis=-1)
+    with jax.named_scope('g2p'):
+      v_new, C_new = transfer.g2p(grid, st, gv)
+      x_new = tuple(x[d] + dt * v_new[d] for d in range(3))
+      F_new = la.add(Fe, la.scale(la.matmul(C_new, Fe), dt))
+      if has_bodies:
+        rb, xr, vr, Cr, Fr = rigid_lib.project(
+          config.num_bodies, config.body_fixed, grid.dx, dt, aux['body_id'],
+          mass, x, v_new, Fe)
+        sel = lambda a, b: jnp.where(rb, a, b)  # noqa: E731
+        x_new = tuple(sel(a, b) for a, b in zip(xr, x_new))
+        v_new = tuple(sel(a, b) for a, b in zip(vr, v_new))
+        C_new = jax.tree.map(sel, Cr, C_new)
+        F_new = jax.tree.map(sel, Fr, F_new)
+      x_new = tuple(jnp.clip(x_new[d], grid.lower[d] + lo, grid.lower[d] + hi)
+                    for d in range(3))
+    step = c['step'] + 1
+    return dict(
+      x=jnp.stack(x_new), v=jnp.stack(v_new), F=la.from_mat(F_new),
+      C=la.from_mat(C_new), Jp=Jp, ep=ep,
+      t=(step.astype(t.dtype) * dt).astype(t.dtype), step=step,
+    )
+
+  return substep
+
+
+def _check_inputs(state, materials, forces, config):
+  if not isinstance(state, base.MPMState):
+    raise TypeError('expected an MPMState (mpm.init_state) as the state.')
+  if not isinstance(materials, base.Materials):
+    raise TypeError('expected Materials (mpm.make_materials).')
+  if forces is None:
+    forces = base.make_forces(config, state.x.dtype)
+  if len(forces.values) != len(config.boundary_conditions):
+    raise ValueError(
+      f'forces has {len(forces.values)} entries but the config has '
+      f'{len(config.boundary_conditions)} boundary conditions; build it with '
+      'mpm.make_forces(config).')
+  return forces
+
+
+def make_substep(config: base.SimConfig) -> Callable:
+  """Returns ``substep_fn(state, materials, forces) -> state`` (pure).
+
+  The function converts to structure of arrays and back on every call; use
+  ``make_frame`` for many substeps.
+  """
+  soa = _make_soa_substep(config)
+
+  def substep_fn(state, materials, forces=None):
+    forces = _check_inputs(state, materials, forces, config)
+    carry, aux = _to_soa(state)
+    return _from_soa(soa(carry, aux, materials, forces), aux)
+
+  return substep_fn
+
+
+def _cell_key(grid: base.GridSpec, x):
+  q = jnp.floor((x - jnp.asarray(grid.lower, x.dtype)) * grid.inv_dx)
+  q = jnp.clip(q, 0, grid.res - 1).astype(jnp.int32)
+  return (q[:, 0] * grid.res + q[:, 1]) * grid.res + q[:, 2]
+
+
+def _permute(tree, perm):
+  return jax.tree.map(lambda a: a[perm] if a.ndim and a.shape[0] ==
+                      perm.shape[0] else a, tree)
+
+
+def make_frame(config: base.SimConfig) -> Callable:
+  """Returns ``frame_fn(state, materials, forces) -> state``.
+
+  A ``lax.scan`` over ``config.substeps_per_frame`` substeps. With
+  ``config.remat_frames`` the frame is ``jax.checkpoint``-ed and so is each
+  substep inside it, so the backward pass of a rollout stores one carry per
+  frame plus, while a frame is replayed, one carry per substep.
+  """
+  soa = _make_soa_substep(config)
+  n_sub = config.substeps_per_frame
+
+  def frame_fn(state, materials, forces=None):
+    forces = _check_inputs(state, materials, forces, config)
+    n = state.x.shape[0]
+    if config.sort_particles and n > 1:
+      perm = jnp.argsort(_cell_key(config.grid, jax.lax.stop_gradient(
+        state.x)))
+      inv = jnp.argsort(perm)
+      state = _permute(state, perm)
+      materials = _permute(materials, perm)
+    carry, aux = _to_soa(state)
+    body = lambda c, _: (soa(c, aux, materials, forces), None)  # noqa: E731
+    if config.remat_frames:
+      body = jax.checkpoint(body)
+    carry, _ = jax.lax.scan(body, carry, None, length=n_sub)
+    out = _from_soa(carry, aux)
+    if config.sort_particles and n > 1:
+      out = _permute(out, inv)
+    return out
+
+  if config.remat_frames:
+    return jax.checkpoint(frame_fn)
+  return frame_fn
+
+
+def rollout(state: base.MPMState, materials: base.Materials,
+            forces: base.Forces | None, config: base.SimConfig,
+            num_frames: int | None = None):
+  """Differentiable rollout over frames (``lax.scan``; jit-able).
+
+  Args:
+    state: initial state.
+    materials: per-particle materials.
+    forces: boundary-condition parameters (None: ``make_forces(config)``).
+    config: static config.
+    num_frames: frames T (default ``config.num_frames``).
+
+  Returns:
+    ``(final_state, xs, Fs)``: xs (T+1, N, 3) positions [m] and Fs
+    (T+1, N, 3, 3) deformation gradients, frame 0 the initial state.
+  """
+  num_frames = config.num_frames if num_frames is None else num_frames
+  if num_frames is None or num_frames < 0:
+    raise ValueError('rollout: pass num_frames (or set config.num_frames).')
+  forces = _check_inputs(state, materials, forces, config)
+  frame_fn = make_frame(config)
+
+  def body(s, _):
+    s = frame_fn(s, materials, forces)
+    return s, (s.x, s.F)
+
+  final, (xs, Fs) = jax.lax.scan(body, state, None, length=num_frames)
+  xs = jnp.concatenate([state.x[None], xs])
+  Fs = jnp.concatenate([state.F[None], Fs])
+  return final, xs, Fs
+
+
+# ----------------------------------------------------------------- host loop
+
+
+@dataclasses.dataclass
+class RunResult:
+  """Output of ``run``.
+
+  Attributes:
+    state: final ``MPMState``.
+    positions: (T+1, N, 3) float32 host positions (None when not kept).
+    times: (T+1,) frame times [s].
+    frames: frames simulated.
+    compile_s: seconds to compile the frame function.
+    run_s: seconds simulating (excluding compilation).
+    substeps_per_s: particle-substeps per second over the run.
+  """
+
+  state: base.MPMState
+  positions: np.ndarray | None
+  times: np.ndarray
+  frames: int
+  compile_s: float
+  run_s: float
+  substeps_per_s: float
+
+
+def _stats(config: base.SimConfig, state: base.MPMState):
+  grid = config.grid
+  lo, hi = grid.particle_bounds
+  rel = state.x - jnp.asarray(grid.lower, state.x.dtype)
+  finite = (jnp.all(jnp.isfinite(state.x), 1) & jnp.all(jnp.isfinite(state.v),
+                                                         1)
+            & jnp.all(jnp.isfinite(state.F), (1, 2)))
+  speed = jnp.sqrt(jnp.sum(state.v * state.v, 1))
+  eps = 1e-3 * grid.dx
+  at_wall = jnp.any((rel <= lo + eps) | (rel >= hi - eps), axis=1)
+  fast = speed > 0.1 * grid.dx / config.dt
+  Fn = jnp.sqrt(jnp.sum(state.F * state.F, (1, 2)))
+  J = jnp.linalg.det(state.F)
+  big = jnp.where(finite, Fn, 0.0)
+  return dict(
+    nonfinite=jnp.sum(~finite), wall=jnp.sum(at_wall & fast & finite),
+    too_fast=jnp.sum((speed > grid.dx / config.dt) & finite),
+    max_F=jnp.max(big, initial=0.0),
+    min_J=jnp.min(jnp.where(finite, J, 1.0), initial=1.0),
+    max_J=jnp.max(jnp.where(finite, J, 1.0), initial=1.0),
+    max_speed=jnp.max(jnp.where(finite, speed, 0.0), initial=0.0),
+  )
+
+
+MAX_F = 100.0
+J_RANGE = (1e-2, 1e2)
+
+
+def check_state(config: base.SimConfig, stats: dict, frame: int,
+                t: float) -> None:
+  """Raises ``SimulationError`` for a blown-up frame (see ``run``)."""
+  fix = (f'Use a smaller dt (now {config.dt:.3g} s; mpm.choose_substeps picks '
+         'a stable one), lower E, add damping, or enlarge the domain.')
+  where = f'frame {frame} (t = {t:.4g} s)'
+  if stats['nonfinite'] > 0:
+    raise base.SimulationError(
+      f'{where}: {int(stats["nonfinite"])} particles have NaN/inf positions, '
+      'velocities or F: the simulation blew up, most likely because the time '
+      f'step is too large for the stiffest material. {fix}', frame, 'nan')
+  if stats['wall'] > 0:
+    raise base.SimulationError(
+      f'{where}: {int(stats["wall"])} particles are pinned at the domain wall '
+      f'at speed (max speed {float(stats["max_speed"]):.3g} m/s): the '
+      'simulation is unstable or the object is thrown out of the grid. '
+      f'{fix}', frame, 'wall')
+  if stats['too_fast'] > 0:
+    raise base.SimulationError(
+      f'{where}: {int(stats["too_fast"])} particles move more than a cell per '
+      f'substep (max speed {float(stats["max_speed"]):.3g} m/s > dx/dt = '
+      f'{config.grid.dx / config.dt:.3g} m/s). {fix}', frame, 'speed')
+  if stats['max_F'] > MAX_F:
+    raise base.SimulationError(
+      f'{where}: |F| reached {float(stats["max_F"]):.3g} (> {MAX_F}): the '
+      f'deformation is exploding. {fix}', frame, 'F')
+  if not (J_RANGE[0] <= stats['min_J'] and stats['max_J'] <= J_RANGE[1]):
+    raise base.SimulationError(
+      f'{where}: det F left [{J_RANGE[0]}, {J_RANGE[1]}] (min '
+      f'{float(stats["min_J"]):.3g}, max {float(stats["max_J"]):.3g}): '
+      f'particles are crushed or torn apart. {fix}', frame, 'J')
+
+
+def run(state: base.MPMState, materials: base.Materials,
+        forces: base.Forces | None, config: base.SimConfig,
+        num_frames: int | None = None,
+        on_frame: Callable[[int, base.MPMState], Any] | None = None,
+        keep_positions: bool = True, check: bool = True,
+        log_every: int = 1) -> RunResult:
+  """Host loop: one jitted frame call per frame, with checks and progress.
+
+  Args:
+    state: initial state.
+    materials: per-particle materials.
+    forces: boundary-condition parameters (None: defaults).
+    config: static config.
+    num_frames: frames (default ``config.num_frames``).
+    on_frame: optional ``callback(frame_index, state)`` after every frame
+      (frame 0 = initial state), e.g. to stream output to disk.
+    keep_positions: collect the (T+1, N, 3) positions on the host.
+    check: stability check per frame (NaN/inf, particles at the wall at
+      speed, more than a cell per substep, |F| > 100, det F outside
+      [0.01, 100]).
+    log_every: log progress every this many frames.
+
+  Returns:
+    ``RunResult``.
+
+  Raises:
+    SimulationError: with the frame, the likely cause and the fix.
+  """
+  num_frames = config.num_frames if num_frames is None else num_frames
+  if num_frames is None:
+    raise ValueError('run: pass num_frames (or set config.num_frames).')
+  forces = _check_inputs(state, materials, forces, config)
+  frame_jit = jax.jit(make_frame(config))
+  stats_jit = jax.jit(lambda s: _stats(config, s))
+  t0 = time.perf_counter()
+  compiled = frame_jit.lower(state, materials, forces).compile()
+  compile_s = time.perf_counter() - t0
+  logging.info('mpm.run: %d particles, grid %d^3, dt %.3g s x %d substeps '
+               'per frame, %d frames; compiled in %.2f s',
+               state.num, config.grid.res, config.dt,
+               config.substeps_per_frame, num_frames, compile_s)
+  positions = [np.asarray(state.x, np.float32)] if keep_positions else None
+  times = [0.0]
+  if on_frame is not None:
+    on_frame(0, state)
+  run_s = 0.0
+  for f in range(1, num_frames + 1):
+    t1 = time.perf_counter()
+    state = compiled(state, materials, forces)
+    jax.block_until_ready(state.x)
+    run_s += time.perf_counter() - t1
+    t = f * config.frame_dt
+    if check:
+      stats = jax.device_get(stats_jit(state))
+      check_state(config, stats, f, t)
+    if keep_positions:
+      positions.append(np.asarray(state.x, np.float32))
+    times.append(t)
+    if on_frame is not None:
+      on_frame(f, state)
+    if f % log_every == 0 or f == num_frames:
+      rate = state.num * config.substeps_per_frame * f / max(run_s, 1e-9)
+      logging.info('mpm.run: frame %d/%d t=%.4g s (%.3g particle-substeps/s)',
+                   f, num_frames, t, rate)
+  total = state.num * config.substeps_per_frame * num_frames
+  return RunResult(
+    state=state,
+    positions=np.stack(positions) if keep_positions else None,
+    times=np.asarray(times), frames=num_frames, compile_s=compile_s,
+    run_s=run_s, substeps_per_s=total / max(run_s, 1e-9),
+  )

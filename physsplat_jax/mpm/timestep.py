@@ -1,0 +1,179 @@
+"""Time-step bounds: elastic-wave CFL, particle speed and fluid viscosity.
+
+Explicit MLS-MPM is stable while an elastic wave crosses less than a cell
+per substep::
+
+  dt <= cfl * dx / c_p,   c_p = sqrt((lam + 2 mu) / rho)
+
+(``c_p`` the P-wave speed; for the Newtonian fluid the sound speed
+``sqrt(K / rho)``, ``K = E / (3 (1 - 2 nu))``). PhysGaussian's own configs
+sit at ``cfl = 0.35-0.37`` (REFERENCE.md 1.4: 2e6 Pa / 200 kg/m^3 / dx 0.04
+-> 1e-4 s; 5e7 / 2000 / dx 0.01 -> 2e-5 s; 7e10 / 2700 / dx 0.0167 -> 1e-6
+s), which is ``DEFAULT_CFL``. ``check_dt`` raises above ``UNSTABLE_CFL``
+(measured on a fixed-corotated block: see docs/mpm.md). Further bounds: a
+particle speed ``v_max`` must not cross more than ``cfl`` cells per substep,
+and explicit Newtonian viscosity needs ``dt <= rho dx^2 / (6 eta)``.
+
+Rigid particles (``body_id >= 0`` or model 'rigid') are ignored: their
+stiffness never enters the solver.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from physsplat_jax.mpm import base
+
+DEFAULT_CFL = 0.35
+UNSTABLE_CFL = 0.7
+
+
+def wave_speed(E, nu, rho, fluid=False):
+  """Elastic wave speed [m/s] (P-wave, or bulk sound speed for fluids)."""
+  E, nu, rho = (np.asarray(a, np.float64) for a in (E, nu, rho))
+  nu = np.minimum(nu, 0.499)
+  if fluid:
+    m = E / (3.0 * (1.0 - 2.0 * nu))
+  else:
+    m = E * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+  return np.sqrt(m / rho)
+
+
+def cfl_dt(E, nu, rho, dx, cfl: float = DEFAULT_CFL, fluid=False) -> float:
+  """Largest substep with ``cfl`` cells per elastic wave crossing [s].
+
+  Args:
+    E, nu, rho: scalars or arrays (the stiffest entry wins) [Pa, -, kg/m^3].
+    dx: cell size [m].
+    cfl: Courant number.
+    fluid: scalar or array flag, use the bulk sound speed.
+
+  Returns:
+    dt [s] (inf for an empty array).
+  """
+  c = np.atleast_1d(wave_speed(E, nu, rho, fluid))
+  if c.size == 0:
+    return math.inf
+  return float(cfl * dx / np.max(c))
+
+
+def _active(materials: base.Materials, models, body_id):
+  """Host arrays of the non-rigid particles: (E, nu, rho, eta, fluid)."""
+  E = np.asarray(materials.E, np.float64)
+  nu = np.asarray(materials.nu, np.float64)
+  rho = np.asarray(materials.rho, np.float64)
+  eta = np.asarray(materials.viscosity, np.float64)
+  mid = np.asarray(materials.model_id)
+  names = np.asarray(list(models) if models else ['fixed_corotated'])
+  keep = np.ones(E.shape, bool)
+  if models:
+    keep &= names[mid] != 'rigid'
+  if body_id is not None:
+    keep &= np.asarray(body_id) < 0
+  fluid = np.zeros(E.shape, bool)
+  if models:
+    fluid = np.isin(names[mid], base.FLUID_MODELS)
+  return E[keep], nu[keep], rho[keep], eta[keep], fluid[keep]
+
+
+def stable_dt(materials: base.Materials, dx: float, models=None,
+              body_id=None, max_speed: float = 0.0,
+              cfl: float = DEFAULT_CFL) -> tuple[float, str]:
+  """Smallest of the time-step bounds and the name of the binding one.
+
+  Args:
+    materials: per-particle materials (host-readable).
+    dx: cell size [m].
+    models: ``SimConfig.models`` (to skip rigid and treat fluids).
+    body_id: (N,) rigid body ids or None.
+    max_speed: expected largest particle speed [m/s].
+    cfl: Courant number.
+
+  Returns:
+    ``(dt, reason)`` with reason 'elastic', 'speed', 'viscosity' or 'none'.
+  """
+  E, nu, rho, eta, fluid = _active(materials, models, body_id)
+  cands = [(math.inf, 'none')]
+  if E.size:
+    c = wave_speed(E, nu, rho, fluid)
+    cands.append((cfl * dx / float(np.max(c)), 'elastic'))
+    visc = fluid & (eta > 0)
+    if np.any(visc):
+      cands.append((float(np.min(rho[visc] * dx * dx / (6.0 * eta[visc]))),
+                    'viscosity'))
+  if max_speed > 0:
+    cands.append((cfl * dx / max_speed, 'speed'))
+  return min(cands)
+
+
+def choose_substeps(config: base.SimConfig | float, frame_dt: float,
+                    materials: base.Materials, body_id=None,
+                    max_speed: float = 0.0,
+                    cfl: float = DEFAULT_CFL) -> int:
+  """Substeps per frame so that ``frame_dt / n`` meets every bound.
+
+  Args:
+    config: a ``SimConfig`` (its grid and models) or the cell size dx [m].
+    frame_dt: time between frames [s].
+    materials: per-particle materials.
+    body_id: (N,) rigid body ids (rigid particles are ignored) or None.
+    max_speed: expected largest particle speed [m/s] (e.g. from impulses or
+      a drop height: sqrt(2 g h)).
+    cfl: Courant number.
+
+  Returns:
+    n >= 1; the substep is ``frame_dt / n``.
+  """
+  if isinstance(config, base.SimConfig):
+    dx, models = config.grid.dx, config.models
+  else:
+    dx, models = float(config), None
+  dt, _ = stable_dt(materials, dx, models, body_id, max_speed, cfl)
+  if not frame_dt > 0:
+    raise ValueError(f'choose_substeps: frame_dt = {frame_dt} must be > 0.')
+  return max(1, int(math.ceil(frame_dt / dt * (1.0 - 1e-9))))
+
+
+def check_dt(config: base.SimConfig, materials: base.Materials,
+             body_id=None, max_speed: float = 0.0,
+             limit: float = UNSTABLE_CFL) -> float:
+  """Raises ``SimulationError`` if ``config.dt`` is unstable.
+
+  Args:
+    config: the config whose ``dt`` is checked.
+    materials: per-particle materials.
+    body_id: (N,) rigid body ids or None.
+    max_speed: expected largest particle speed [m/s].
+    limit: Courant number above which the run is called unstable.
+
+  Returns:
+    The Courant number ``config.dt / stable_dt(cfl=1)``.
+
+  Raises:
+    SimulationError (reason 'dt'): the message names the bound, the largest
+      stable dt and the substeps per frame that would meet it.
+  """
+  dx = config.grid.dx
+  dt1, why = stable_dt(materials, dx, config.models, body_id, max_speed, 1.0)
+  courant = config.dt / dt1 if math.isfinite(dt1) else 0.0
+  if courant > limit:
+    ok = limit * dt1
+    n = max(1, math.ceil(config.frame_dt / (DEFAULT_CFL * dt1)))
+    E, nu, rho, eta, _ = _active(materials, config.models, body_id)
+    detail = ''
+    if why == 'elastic':
+      i = int(np.argmax(wave_speed(E, nu, rho)))
+      detail = (f' (stiffest particle: E={E[i]:.3g} Pa, nu={nu[i]:.3g}, '
+                f'rho={rho[i]:.3g} kg/m^3, dx={dx:.3g} m)')
+    elif why == 'viscosity':
+      detail = f' (viscosity up to {float(np.max(eta)):.3g} Pa s)'
+    raise base.SimulationError(
+      f'dt = {config.dt:.3g} s is unstable: the {why} bound allows at most '
+      f'{ok:.3g} s{detail}, Courant number {courant:.2f} > {limit}. Use '
+      f'dt <= {DEFAULT_CFL * dt1:.3g} s, i.e. substeps_per_frame >= {n} '
+      f'for frame_dt = {config.frame_dt:.3g} s (mpm.choose_substeps), or '
+      'lower E, raise the density, or coarsen the grid.',
+      frame=None, reason='dt')
+  return courant
