@@ -1,0 +1,498 @@
+"""Scenes in and out: ``load_scene(name_or_path)`` and ``save_scene(path)``.
+
+``load_scene`` accepts
+
+* a built-in scene name (:func:`physsplat_jax.scenes.list_scenes`), built
+  with :func:`physsplat_jax.scenes.make_scene` and its options;
+* a 3DGS file: an INRIA PLY (binary LE/BE or ASCII), a PlayCanvas
+  ``compressed.ply`` or an antimatter15 ``.splat``;
+* a 3DGS output folder (``point_cloud/iteration_<N>/point_cloud.ply``, the
+  highest ``N``, or the folder's only ``.ply``).
+
+For a file, the scene is assembled from what lies next to it, in this order:
+
+1. The sidecar ``<stem>.scene.json`` written by :func:`save_scene`: object
+   names/materials/fixed flags/tags, up axis, metres per unit, scene name and
+   the exact cameras. With it, ``load_scene(save_scene(p, s))`` gives ``s``
+   back exactly (same arrays, same static fields).
+2. Object ids: the first per-Gaussian property (kept by
+   :func:`~physsplat_jax.io.ply.load_ply` in ``Gaussians.extras``) named one
+   of :data:`ID_PROPERTIES` (case-insensitive), or ``object_property=``.
+   Values must be integers (floats holding integers are accepted); negative
+   values mean background (id -1). Distinct ids ``>= 0`` become objects
+   ``0..n-1`` in increasing order, named ``object_<id>`` (tag ``ply_id=<id>``).
+   The property is removed from ``extras`` (it lives in ``object_ids``).
+   Without such a property every Gaussian is object 0, named after the file.
+3. Cameras: the sidecar's; else ``cameras=`` (a camera file path); else an
+   INRIA ``cameras.json`` or a ``transforms*.json`` next to the file or in
+   the 3DGS output folder above ``point_cloud/iteration_<N>/`` (read with
+   :func:`~physsplat_jax.io.cameras.load_cameras`); else ``num_cameras``
+   orbit cameras fitted to the scene (:func:`physsplat_jax.cameras.
+   fit_camera` around the 1st-99th percentile box of the centres, so
+   floaters do not shrink the object).
+4. Up axis: ``up_axis=`` if given; else the sidecar's; else, with cameras
+   from a file, the signed world axis closest to the cameras' mean up
+   direction (captures are shot upright: that is ``-y`` for typical COLMAP
+   scenes); else ``'z'``.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import math
+import os
+import re
+
+import jax.numpy as jnp
+import numpy as np
+
+from physsplat_jax import cameras as _cameras
+from physsplat_jax.io.cameras import load_cameras
+from physsplat_jax.io.ply import PlyError, load_ply, save_ply
+from physsplat_jax.io.splat import load_splat
+from physsplat_jax.types import Camera, Gaussians, ObjectInfo, Scene
+from physsplat_jax.types import make_camera, up_vector
+
+PathLike = str | os.PathLike
+
+# Per-Gaussian properties read as object ids, in order of preference.
+ID_PROPERTIES = (
+  'object_id', 'objectid', 'obj_id', 'instance_id', 'instance', 'segment_id',
+  'segment', 'seg_id', 'segmentation', 'label', 'labels', 'class_id',
+)  # fmt: skip
+SIDECAR_SUFFIX = '.scene.json'
+SCENE_FORMAT = 'physsplat_jax.scene'
+SCENE_VERSION = 1
+DEFAULT_WIDTH, DEFAULT_HEIGHT, DEFAULT_FOV_DEG = 384, 288, 40.0
+_FILE_OPTIONS = (
+  'up_axis', 'meters_per_unit', 'object_property', 'cameras', 'num_cameras',
+  'width', 'height', 'fov_deg', 'name', 'dtype',
+)  # fmt: skip
+
+
+class SceneFileError(ValueError):
+  """A scene name, file or sidecar that cannot be loaded or written."""
+
+
+def sidecar_path(path: PathLike) -> str:
+  """``scene.ply`` -> ``scene.scene.json`` (the metadata next to a file)."""
+  root, _ = os.path.splitext(os.fspath(path))
+  return root + SIDECAR_SUFFIX
+
+
+# ----------------------------------------------------------------------------
+# Loading.
+
+
+def load_scene(name_or_path: str | PathLike, **options) -> Scene:
+  """Loads a built-in scene by name, or a 3DGS file or folder.
+
+  Args:
+    name_or_path: a built-in name (``'tabletop'``, ``'ficus'``,
+      ``'donut'``), a ``.ply`` / ``.splat`` path, or a 3DGS output folder.
+    **options: for a built-in scene, the options of
+      :func:`physsplat_jax.scenes.make_scene`; for a file:
+      ``up_axis`` ('x', 'y', 'z', '-x', '-y', '-z'), ``meters_per_unit``
+      (> 0, default 1 or the sidecar's), ``object_property`` (a property
+      name, or False to ignore ids), ``cameras`` (a camera file path, or
+      False to skip camera files and fit an orbit), ``num_cameras`` (fitted
+      orbit size, default 8), ``width`` / ``height`` (image size of fitted
+      cameras, default 384x288; file cameras are resized when given),
+      ``fov_deg`` (fitted cameras), ``name``, ``dtype`` (float32).
+
+  Returns:
+    A :class:`~physsplat_jax.types.Scene`.
+
+  Raises:
+    SceneFileError: unknown name / missing path (the message lists the
+      built-in scenes), unsupported file type, bad sidecar or ids.
+    PlyError, SplatError, CameraFileError: unreadable files (named).
+    TypeError: unknown options.
+  """
+  from physsplat_jax import scenes  # built-ins import io; import lazily
+
+  if isinstance(name_or_path, str) and name_or_path in scenes.list_scenes():
+    return scenes.make_scene(name_or_path, **options)
+  if not isinstance(name_or_path, (str, os.PathLike)):
+    raise SceneFileError(
+      f'load_scene: expected a built-in scene name or a path, got '
+      f'{type(name_or_path).__name__}'
+    )
+  path = os.fspath(name_or_path)
+  if not os.path.exists(path):
+    raise SceneFileError(
+      f'load_scene: {path!r} is neither a built-in scene '
+      f'({", ".join(scenes.list_scenes())}) nor an existing .ply/.splat '
+      'file or 3DGS output folder'
+    )
+  bad = sorted(set(options) - set(_FILE_OPTIONS))
+  if bad:
+    raise TypeError(
+      f'load_scene({path!r}): unknown option(s) {bad}; a scene file takes '
+      f'{", ".join(_FILE_OPTIONS)}'
+    )
+  if os.path.isdir(path):
+    path = _find_ply_in_dir(path)
+  return load_scene_file(path, **options)
+
+
+def _find_ply_in_dir(folder: str) -> str:
+  its = glob.glob(os.path.join(folder, 'point_cloud', 'iteration_*',
+                               'point_cloud.ply'))
+  num = lambda p: int(re.sub(r'\D', '', os.path.basename(os.path.dirname(p)))
+                      or -1)
+  if its:
+    return max(its, key=num)
+  plys = sorted(glob.glob(os.path.join(folder, '*.ply')))
+  if len(plys) == 1:
+    return plys[0]
+  raise SceneFileError(
+    f'load_scene: folder {folder!r} has no point_cloud/iteration_*/'
+    f'point_cloud.ply and {len(plys)} .ply files at its top level; pass the '
+    '.ply file itself'
+  )
+
+
+def load_scene_file(
+  path: PathLike,
+  *,
+  up_axis: str | None = None,
+  meters_per_unit: float | None = None,
+  object_property: str | bool | None = None,
+  cameras: PathLike | bool | None = None,
+  num_cameras: int = 8,
+  width: int | None = None,
+  height: int | None = None,
+  fov_deg: float = DEFAULT_FOV_DEG,
+  name: str | None = None,
+  dtype=jnp.float32,
+) -> Scene:
+  """Loads a ``.ply`` / ``.splat`` file as a scene; see :func:`load_scene`."""
+  path = os.fspath(path)
+  ext = os.path.splitext(path)[1].lower()
+  if ext == '.ply':
+    g = load_ply(path, dtype=dtype)
+  elif ext == '.splat':
+    g = load_splat(path, dtype=dtype)
+  else:
+    raise SceneFileError(
+      f'{path}: unsupported scene file type {ext or "(none)"!r}; expected '
+      '.ply (INRIA or compressed) or .splat'
+    )
+  if up_axis is not None:
+    up_vector(up_axis)  # validates
+  if meters_per_unit is not None and not (
+    math.isfinite(float(meters_per_unit)) and float(meters_per_unit) > 0
+  ):
+    raise SceneFileError(
+      f'meters_per_unit must be a finite number > 0, got {meters_per_unit}'
+    )
+  side = _read_sidecar(path)
+  stem = os.path.splitext(os.path.basename(path))[0]
+
+  # Object ids.
+  prop = side.get('id_property') if side else None
+  if object_property is False:
+    prop = None
+  elif isinstance(object_property, str):
+    if object_property not in g.extras:
+      raise SceneFileError(
+        f'{path}: object_property={object_property!r} is not a property of '
+        f'the file; per-Gaussian extras: {sorted(g.extras) or "none"}'
+      )
+    prop = object_property
+  elif object_property is not None:
+    raise SceneFileError(
+      f'object_property must be a property name or False, got '
+      f'{object_property!r}'
+    )
+  elif prop is None or prop not in g.extras:
+    lower = {k.lower(): k for k in g.extras}
+    prop = next((lower[p] for p in ID_PROPERTIES if p in lower), None)
+  if prop is not None:
+    raw = g.extras[prop]
+    extras = {k: v for k, v in g.extras.items() if k != prop}
+    g = g.replace(extras=extras)
+    ids, objects = _ids_from_property(np.asarray(raw), prop, path, side)
+  else:
+    ids = np.zeros(g.num, np.int32)
+    objects = None
+  if side and 'objects' in side:
+    objects = _objects_from_json(side['objects'], path)
+    if ids.size and ids.max() >= len(objects):
+      raise SceneFileError(
+        f'{path}: object id {int(ids.max())} but the sidecar '
+        f'{sidecar_path(path)} lists {len(objects)} objects'
+      )
+  if objects is None:
+    objects = (ObjectInfo(stem),)
+
+  # Cameras and up axis.
+  cams, from_file, exact = (), False, False
+  if side and 'cameras' in side:
+    cams = _cameras_from_json(side['cameras'], path)
+    exact = True  # even an empty list is what was saved
+  elif cameras is not None and cameras is not False and cameras is not True:
+    cams = tuple(load_cameras(cameras))
+    from_file = True
+  elif cameras is None or cameras is True:
+    found = _find_camera_file(path)
+    if found:
+      cams = tuple(load_cameras(found))
+      from_file = True
+  if up_axis is None:
+    up_axis = side.get('up_axis') if side else None
+  if up_axis is None:
+    up_axis = _up_from_cameras(cams) if from_file and cams else 'z'
+  if cams and (width is not None or height is not None):
+    cams = tuple(
+      c.resized(width or c.width, height or c.height) for c in cams
+    )
+  if not cams and not exact:
+    cams = fitted_orbit(
+      np.asarray(g.means), up_axis, num_cameras,
+      width or DEFAULT_WIDTH, height or DEFAULT_HEIGHT, fov_deg,
+    )
+  if meters_per_unit is None:
+    meters_per_unit = side.get('meters_per_unit', 1.0) if side else 1.0
+  if name is None:
+    name = side.get('name', stem) if side else stem
+  return Scene(
+    gaussians=g,
+    object_ids=jnp.asarray(ids, jnp.int32),
+    objects=tuple(objects),
+    cameras=tuple(cams),
+    up_axis=up_axis,
+    meters_per_unit=float(meters_per_unit),
+    name=name,
+  )
+
+
+def _ids_from_property(raw, prop, path, side):
+  if raw.dtype.kind == 'f':
+    if not np.all(np.isfinite(raw)) or np.any(raw != np.round(raw)):
+      raise SceneFileError(
+        f'{path}: per-Gaussian property {prop!r} is read as object ids but '
+        'holds non-integer values; pass object_property=False to ignore it '
+        'or object_property=<name> to use another property'
+      )
+  raw = np.round(raw).astype(np.int64)
+  if side and 'objects' in side:
+    ids = np.where(raw < 0, -1, raw)
+    return ids.astype(np.int32), None
+  uniq = np.unique(raw[raw >= 0])
+  ids = np.full(raw.shape, -1, np.int32)
+  ids[raw >= 0] = np.searchsorted(uniq, raw[raw >= 0])
+  objects = tuple(
+    ObjectInfo(f'object_{u}', tags=(f'ply_id={u}',)) for u in uniq
+  )
+  return ids, objects
+
+
+def _find_camera_file(path: str) -> str | None:
+  folders = [os.path.dirname(os.path.abspath(path))]
+  # INRIA output: <model>/point_cloud/iteration_N/point_cloud.ply
+  up2 = os.path.dirname(os.path.dirname(folders[0]))
+  if os.path.basename(os.path.dirname(folders[0])) == 'point_cloud':
+    folders.append(up2)
+  for folder in folders:
+    for pattern in ('cameras.json', 'transforms.json', 'transforms_train.json',
+                    'transforms*.json'):
+      hits = sorted(glob.glob(os.path.join(folder, pattern)))
+      if hits:
+        return hits[0]
+  return None
+
+
+def _up_from_cameras(cams) -> str:
+  """Signed world axis nearest to the mean camera up (``-y`` camera row)."""
+  ups = np.stack([-np.asarray(c.viewmat, np.float64)[1, :3] for c in cams])
+  m = ups.mean(0)
+  if np.linalg.norm(m) < 0.3:  # cameras disagree: no reliable up
+    return 'z'
+  a = int(np.argmax(np.abs(m)))
+  return ('-' if m[a] < 0 else '') + 'xyz'[a]
+
+
+def fitted_orbit(
+  means, up_axis: str = 'z', num_cameras: int = 8,
+  width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT,
+  fov_deg: float = DEFAULT_FOV_DEG, elevation_deg: float = 25.0,
+) -> tuple[Camera, ...]:
+  """``num_cameras`` cameras around the scene, each framing all of it.
+
+  The box is the 1st-99th percentile box of the centres (robust to
+  floaters); see :func:`physsplat_jax.cameras.fit_camera`.
+  """
+  if int(num_cameras) < 1:
+    raise SceneFileError(f'num_cameras must be >= 1, got {num_cameras}')
+  m = np.asarray(means, np.float64)
+  if m.size == 0:
+    lo = hi = np.zeros(3)
+  else:
+    lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
+  up = up_vector(up_axis)
+  cams = []
+  for i in range(int(num_cameras)):
+    c = _cameras.fit_camera(
+      lo, hi, up=up, width=int(width), height=int(height), fov_deg=fov_deg,
+      azimuth=360.0 * i / int(num_cameras), elevation=elevation_deg,
+      near=None, far=None,
+    )
+    cams.append(c.replace(name=f'orbit_{i:04d}'))
+  return tuple(cams)
+
+
+# ----------------------------------------------------------------------------
+# The sidecar.
+
+
+def _read_sidecar(path: str) -> dict | None:
+  sp = sidecar_path(path)
+  if not os.path.exists(sp):
+    return None
+  try:
+    with open(sp) as f:
+      data = json.load(f)
+  except (OSError, ValueError) as e:
+    raise SceneFileError(f'{sp}: cannot read the scene sidecar: {e}') from None
+  if not isinstance(data, dict) or data.get('format') != SCENE_FORMAT:
+    raise SceneFileError(
+      f'{sp}: not a physsplat_jax scene sidecar (expected a JSON object '
+      f'with "format": "{SCENE_FORMAT}"); rename or delete it'
+    )
+  if int(data.get('version', 0)) > SCENE_VERSION:
+    raise SceneFileError(
+      f'{sp}: sidecar version {data.get("version")} is newer than this '
+      f'physsplat_jax reads ({SCENE_VERSION}); upgrade physsplat_jax'
+    )
+  return data
+
+
+def _objects_from_json(items, path) -> tuple[ObjectInfo, ...]:
+  if not isinstance(items, list):
+    raise SceneFileError(f'{sidecar_path(path)}: "objects" must be a list')
+  out = []
+  for i, o in enumerate(items):
+    if not isinstance(o, dict) or 'name' not in o:
+      raise SceneFileError(
+        f'{sidecar_path(path)}: object {i} must be an object with a "name"'
+      )
+    out.append(ObjectInfo(
+      name=str(o['name']),
+      material=o.get('material'),
+      fixed=bool(o.get('fixed', False)),
+      tags=tuple(str(t) for t in o.get('tags', ())),
+    ))
+  return tuple(out)
+
+
+def _camera_to_json(c: Camera) -> dict:
+  f = lambda x: float(np.asarray(x))
+  return {
+    'name': c.name,
+    'width': int(c.width),
+    'height': int(c.height),
+    'fx': f(c.fx), 'fy': f(c.fy), 'cx': f(c.cx), 'cy': f(c.cy),
+    'near': float(c.near), 'far': float(c.far),
+    'viewmat': np.asarray(c.viewmat, np.float64).tolist(),
+    'dtype': str(np.asarray(c.viewmat).dtype),
+  }  # fmt: skip
+
+
+def _cameras_from_json(items, path) -> tuple[Camera, ...]:
+  sp = sidecar_path(path)
+  if not isinstance(items, list):
+    raise SceneFileError(f'{sp}: "cameras" must be a list')
+  out = []
+  for i, c in enumerate(items):
+    need = ('width', 'height', 'fx', 'fy', 'cx', 'cy', 'viewmat')
+    missing = [k for k in need if not isinstance(c, dict) or k not in c]
+    if missing:
+      raise SceneFileError(f'{sp}: camera {i} is missing {missing}')
+    vm = np.asarray(c['viewmat'], np.float64)
+    if vm.shape != (4, 4) or not np.all(np.isfinite(vm)):
+      raise SceneFileError(f'{sp}: camera {i} viewmat must be a finite 4x4')
+    out.append(make_camera(
+      vm, c['fx'], c['fy'], int(c['width']), int(c['height']),
+      cx=c['cx'], cy=c['cy'], near=float(c.get('near', 0.01)),
+      far=float(c.get('far', 1e10)), name=str(c.get('name', '')),
+      dtype=np.dtype(c.get('dtype', 'float32')),
+    ))
+  return tuple(out)
+
+
+# ----------------------------------------------------------------------------
+# Saving.
+
+
+def save_scene(path: PathLike, scene: Scene, *, binary: bool = True) -> str:
+  """Writes a scene as a 3DGS PLY with an ``object_id`` property + sidecar.
+
+  The PLY is a standard INRIA file (any 3DGS viewer opens it; the extra
+  int ``object_id`` property is ignored by viewers). The sidecar
+  ``<stem>.scene.json`` holds the objects, up axis, metres per unit, name
+  and cameras, so that :func:`load_scene` restores the scene exactly.
+
+  Args:
+    path: output ``.ply`` path (parent folders are created).
+    scene: the scene.
+    binary: binary little-endian (True) or ASCII PLY.
+
+  Returns:
+    The sidecar path.
+
+  Raises:
+    SceneFileError: not a ``.ply`` path, or object ids inconsistent with
+      the objects.
+    PlyError: Gaussians that cannot be written (non-finite values...).
+  """
+  path = os.fspath(path)
+  if os.path.splitext(path)[1].lower() != '.ply':
+    raise SceneFileError(
+      f'save_scene: {path!r} must end in .ply (the object ids need a PLY '
+      'property; export .splat with physsplat_jax.io.save_splat)'
+    )
+  g = scene.gaussians
+  ids = np.asarray(scene.object_ids)
+  if ids.shape != (g.num,) or ids.dtype.kind not in 'iu':
+    raise SceneFileError(
+      f'save_scene: object_ids must be ({g.num},) integers, got '
+      f'{ids.dtype} {ids.shape}'
+    )
+  n = len(scene.objects)
+  if ids.size and (ids.min() < -1 or ids.max() >= max(n, 1)):
+    raise SceneFileError(
+      f'save_scene: object ids span [{ids.min()}, {ids.max()}] but the '
+      f'scene has {n} objects (ids must be -1 or 0..{n - 1})'
+    )
+  up_vector(scene.up_axis)
+  extras = dict(g.extras)
+  extras['object_id'] = jnp.asarray(ids.astype(np.int32))
+  save_ply(path, g.replace(extras=extras), binary=binary)
+  side = {
+    'format': SCENE_FORMAT,
+    'version': SCENE_VERSION,
+    'name': scene.name,
+    'up_axis': scene.up_axis,
+    'meters_per_unit': float(scene.meters_per_unit),
+    'id_property': 'object_id',
+    'objects': [
+      {'name': o.name, 'material': o.material, 'fixed': bool(o.fixed),
+       'tags': list(o.tags)}
+      for o in scene.objects
+    ],
+    'cameras': [_camera_to_json(c) for c in scene.cameras],
+  }
+  sp = sidecar_path(path)
+  with open(sp, 'w') as f:
+    json.dump(side, f, indent=1)
+    f.write('\n')
+  return sp
+
+
+__all__ = [
+  'ID_PROPERTIES', 'PlyError', 'SceneFileError', 'fitted_orbit',
+  'load_scene', 'load_scene_file', 'save_scene', 'sidecar_path',
+]  # fmt: skip

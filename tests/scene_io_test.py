@@ -1,0 +1,247 @@
+"""Tests of load_scene / save_scene (physsplat_jax.io.scene)."""
+
+import json
+import os
+import pathlib
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+
+from physsplat_jax import cameras as cam_lib
+from physsplat_jax import scenes
+from physsplat_jax import test_util
+from physsplat_jax.io.cameras import save_inria_cameras
+from physsplat_jax.io.ply import load_ply, save_ply
+from physsplat_jax.io.scene import SceneFileError, load_scene, save_scene
+from physsplat_jax.io.scene import sidecar_path
+from physsplat_jax.io.splat import save_splat
+from physsplat_jax.types import ObjectInfo, Scene
+
+DATA = pathlib.Path(__file__).resolve().parent / 'data'
+
+
+def _assert_scenes_identical(test, a: Scene, b: Scene):
+  la, ta = jax.tree.flatten(a)
+  lb, tb = jax.tree.flatten(b)
+  test.assertEqual(ta, tb)  # includes every static field (objects, names...)
+  for i, (x, y) in enumerate(zip(la, lb, strict=True)):
+    x, y = np.asarray(x), np.asarray(y)
+    test.assertEqual(x.dtype, y.dtype, f'leaf {i}')
+    np.testing.assert_array_equal(x, y, err_msg=f'leaf {i}')
+  test.assertEqual(a.objects, b.objects)
+  test.assertEqual((a.up_axis, a.meters_per_unit, a.name),
+                   (b.up_axis, b.meters_per_unit, b.name))
+  test.assertEqual([c.name for c in a.cameras], [c.name for c in b.cameras])
+
+
+def _tiny_scene(ids, cameras=()):
+  g = test_util.random_gaussians(jax.random.key(0), len(ids), sh_degree=1)
+  return Scene(
+    gaussians=g,
+    object_ids=jnp.asarray(ids, jnp.int32),
+    objects=(ObjectInfo('cup', 'terracotta', True, ('support',)),
+             ObjectInfo('jelly', 'jelly')),
+    cameras=tuple(cameras),
+    up_axis='-y',
+    meters_per_unit=0.37,
+    name='tiny',
+  )
+
+
+class SceneIOTest(parameterized.TestCase):
+
+  def setUp(self):
+    super().setUp()
+    self.dir = tempfile.mkdtemp()
+
+  def test_builtin_round_trip_is_exact(self):
+    sc = scenes.make_scene('tabletop', detail=0.5, num_cameras=3)
+    path = os.path.join(self.dir, 'sub', 'tabletop.ply')
+    side = save_scene(path, sc)
+    self.assertEqual(side, sidecar_path(path))
+    self.assertTrue(os.path.exists(side))
+    back = load_scene(path)
+    _assert_scenes_identical(self, sc, back)
+    # The PLY is a standard 3DGS file with an extra int object_id.
+    g = load_ply(path)
+    np.testing.assert_array_equal(np.asarray(g.extras['object_id']),
+                                  np.asarray(sc.object_ids))
+
+  @parameterized.named_parameters(('_binary', True), ('_ascii', False))
+  def test_round_trip_background_ids_sh1(self, binary):
+    cams = cam_lib.orbit_cameras((0, 0, 0), 3.0, 10.0, 2, up=(0, -1, 0),
+                                 width=40, height=30)
+    sc = _tiny_scene([0, 1, -1, 1, 0, -1, 1], cams)
+    path = os.path.join(self.dir, 'tiny.ply')
+    save_scene(path, sc, binary=binary)
+    _assert_scenes_identical(self, sc, load_scene(path))
+
+  def test_round_trip_without_cameras(self):
+    sc = _tiny_scene([0, 1, 1])
+    path = os.path.join(self.dir, 'nocam.ply')
+    save_scene(path, sc)
+    back = load_scene(path)
+    self.assertEqual(back.cameras, ())
+    _assert_scenes_identical(self, sc, back)
+
+  def test_builtin_names(self):
+    sc = load_scene('tabletop', detail=0.5, num_cameras=1)
+    self.assertEqual(sc.name, 'tabletop')
+    self.assertLen(sc.cameras, 1)
+
+  @parameterized.named_parameters(
+    ('_udon', 'udon_crop.ply'), ('_train', 'train_1000.ply')
+  )
+  def test_load_test_data_ply(self, fname):
+    path = DATA / fname
+    sc = load_scene(path)
+    g = load_ply(path)
+    self.assertEqual(sc.gaussians.num, g.num)
+    np.testing.assert_array_equal(np.asarray(sc.gaussians.means),
+                                  np.asarray(g.means))
+    self.assertEqual(sc.objects, (ObjectInfo(fname[:-4]),))
+    np.testing.assert_array_equal(np.asarray(sc.object_ids), 0)
+    self.assertEqual(sc.up_axis, 'z')
+    self.assertEqual(sc.meters_per_unit, 1.0)
+    self.assertLen(sc.cameras, 8)
+    # Fitted cameras see the (robust) centre of the scene.
+    lo, hi = np.percentile(np.asarray(g.means), [1, 99], axis=0)
+    for cam in sc.cameras:
+      (u, v), z = (np.asarray(x) for x in cam.project(0.5 * (lo + hi)))
+      self.assertGreater(z, 0)
+      np.testing.assert_allclose([u, v], [cam.width / 2, cam.height / 2],
+                                 atol=1e-2)
+    sc2 = load_scene(path, num_cameras=2, width=64, height=48,
+                     up_axis='-y', meters_per_unit=0.5)
+    self.assertLen(sc2.cameras, 2)
+    self.assertEqual((sc2.cameras[0].width, sc2.cameras[0].height), (64, 48))
+    self.assertEqual((sc2.up_axis, sc2.meters_per_unit), ('-y', 0.5))
+
+  def test_object_id_property(self):
+    g = test_util.random_gaussians(jax.random.key(1), 6)
+    seg = jnp.asarray([7.0, 3.0, 3.0, -1.0, 7.0, 3.0], jnp.float32)
+    g = g.replace(extras={'segment': seg, 'confidence': jnp.ones(6)})
+    path = os.path.join(self.dir, 'seg.ply')
+    save_ply(path, g)
+    sc = load_scene(path)
+    np.testing.assert_array_equal(np.asarray(sc.object_ids),
+                                  [1, 0, 0, -1, 1, 0])
+    self.assertEqual([o.name for o in sc.objects], ['object_3', 'object_7'])
+    self.assertEqual(sc.objects[0].tags, ('ply_id=3',))
+    self.assertEqual(sorted(sc.gaussians.extras), ['confidence'])
+    # Ignoring the ids, or naming another property.
+    sc = load_scene(path, object_property=False)
+    np.testing.assert_array_equal(np.asarray(sc.object_ids), 0)
+    self.assertIn('segment', sc.gaussians.extras)
+    sc = load_scene(path, object_property='confidence')  # all 1.0
+    np.testing.assert_array_equal(np.asarray(sc.object_ids), 0)
+    self.assertEqual([o.name for o in sc.objects], ['object_1'])
+
+  def test_object_id_int_property_named_object_id(self):
+    g = test_util.random_gaussians(jax.random.key(2), 4)
+    g = g.replace(extras={'object_id': jnp.asarray([0, 1, 2, 1], jnp.int32)})
+    path = os.path.join(self.dir, 'ids.ply')
+    save_ply(path, g)
+    sc = load_scene(path)
+    np.testing.assert_array_equal(np.asarray(sc.object_ids), [0, 1, 2, 1])
+    self.assertEqual(sc.num_objects, 3)
+    self.assertEqual(sc.gaussians.extras, {})
+
+  def test_non_integer_ids(self):
+    g = test_util.random_gaussians(jax.random.key(3), 3)
+    g = g.replace(extras={'label': jnp.asarray([0.5, 1.0, 2.0])})
+    path = os.path.join(self.dir, 'frac.ply')
+    save_ply(path, g)
+    with self.assertRaisesRegex(SceneFileError, "'label'.*non-integer"):
+      load_scene(path)
+
+  def test_cameras_json_next_to_file_sets_cameras_and_up(self):
+    g = test_util.random_gaussians(jax.random.key(4), 50)
+    path = os.path.join(self.dir, 'cap.ply')
+    save_ply(path, g)
+    # A capture shot upright in a -y-up world (typical COLMAP).
+    cams = cam_lib.orbit_cameras((0, 0, 0), 4.0, 20.0, 5, up=(0, -1, 0),
+                                 width=80, height=60)
+    cams = [c.replace(name=f'img_{i}') for i, c in enumerate(cams)]
+    save_inria_cameras(os.path.join(self.dir, 'cameras.json'), cams)
+    sc = load_scene(path)
+    self.assertEqual([c.name for c in sc.cameras],
+                     [f'img_{i}' for i in range(5)])
+    np.testing.assert_allclose(np.asarray(sc.cameras[2].viewmat),
+                               np.asarray(cams[2].viewmat), atol=1e-5)
+    self.assertEqual(sc.up_axis, '-y')
+    self.assertEqual(load_scene(path, up_axis='z').up_axis, 'z')
+    # cameras=False skips the file and fits an orbit.
+    fitted = load_scene(path, cameras=False, num_cameras=3)
+    self.assertEqual(fitted.cameras[0].name, 'orbit_0000')
+    self.assertEqual(fitted.up_axis, 'z')
+
+  def test_inria_output_folder(self):
+    g = test_util.random_gaussians(jax.random.key(5), 20)
+    for it, n in ((7000, 10), (30000, 20)):
+      save_ply(os.path.join(self.dir, 'point_cloud', f'iteration_{it}',
+                            'point_cloud.ply'), g.subset(np.arange(n)))
+    cams = cam_lib.orbit_cameras((0, 0, 0), 4.0, 20.0, 2, width=32,
+                                 height=32)
+    save_inria_cameras(os.path.join(self.dir, 'cameras.json'), cams)
+    sc = load_scene(self.dir)
+    self.assertEqual(sc.gaussians.num, 20)  # the latest iteration
+    self.assertLen(sc.cameras, 2)
+    self.assertEqual(sc.up_axis, 'z')
+
+  def test_splat_file(self):
+    g = test_util.random_gaussians(jax.random.key(6), 10)
+    path = os.path.join(self.dir, 'x.splat')
+    save_splat(path, g)
+    sc = load_scene(path, num_cameras=1)
+    self.assertEqual(sc.gaussians.num, 10)
+    self.assertEqual(sc.objects[0].name, 'x')
+
+  def test_errors(self):
+    with self.assertRaisesRegex(SceneFileError,
+                                'built-in scene .donut, ficus, tabletop'):
+      load_scene('teapot')
+    with self.assertRaisesRegex(SceneFileError, 'donut, ficus, tabletop'):
+      load_scene(os.path.join(self.dir, 'missing.ply'))
+    with self.assertRaisesRegex(SceneFileError, 'name or a path'):
+      load_scene(3)
+    obj = os.path.join(self.dir, 'mesh.obj')
+    pathlib.Path(obj).write_text('v 0 0 0\n')
+    with self.assertRaisesRegex(SceneFileError, r"'\.obj'.*\.ply"):
+      load_scene(obj)
+    with self.assertRaisesRegex(SceneFileError, 'no point_cloud'):
+      load_scene(self.dir)
+    ply = str(DATA / 'train_1000.ply')
+    with self.assertRaisesRegex(TypeError, 'unknown option.*detail'):
+      load_scene(ply, detail=2)
+    with self.assertRaisesRegex(ValueError, 'up axis'):
+      load_scene(ply, up_axis='w')
+    with self.assertRaisesRegex(SceneFileError, 'meters_per_unit'):
+      load_scene(ply, meters_per_unit=0)
+    with self.assertRaisesRegex(SceneFileError, "'nope' is not a property"):
+      load_scene(ply, object_property='nope')
+    sc = _tiny_scene([0, 1, 0])
+    with self.assertRaisesRegex(SceneFileError, r'\.ply'):
+      save_scene(os.path.join(self.dir, 'a.splat'), sc)
+    with self.assertRaisesRegex(SceneFileError, 'ids must be -1 or 0..1'):
+      save_scene(os.path.join(self.dir, 'a.ply'),
+                 sc.replace(object_ids=jnp.asarray([0, 2, 0], jnp.int32)))
+    # A bad sidecar is named in the error.
+    path = os.path.join(self.dir, 'b.ply')
+    save_scene(path, sc)
+    with open(sidecar_path(path), 'w') as f:
+      json.dump({'hello': 1}, f)
+    with self.assertRaisesRegex(SceneFileError, r'b\.scene\.json.*sidecar'):
+      load_scene(path)
+    with open(sidecar_path(path), 'w') as f:
+      f.write('{not json')
+    with self.assertRaisesRegex(SceneFileError, 'cannot read'):
+      load_scene(path)
+
+
+if __name__ == '__main__':
+  absltest.main()
