@@ -1,0 +1,75 @@
+"""One entry point that picks a segmentation method."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from physsplat_jax.segmentation.attributes import find_attribute
+from physsplat_jax.segmentation.attributes import segment_by_attribute
+from physsplat_jax.segmentation.base import Segmentation
+from physsplat_jax.segmentation.boxes import segment_by_boxes
+from physsplat_jax.segmentation.geometric import segment_geometric
+from physsplat_jax.segmentation.masks import lift_masks
+from physsplat_jax.types import Gaussians
+
+METHODS = ('auto', 'attribute', 'boxes', 'masks', 'geometric')
+
+
+def segment(
+  gaussians: Gaussians,
+  method: str = 'auto',
+  *,
+  names: Sequence[str] | None = None,
+  boxes=None,
+  cameras=None,
+  masks=None,
+  up=(0.0, 0.0, 1.0),
+  **kwargs,
+) -> Segmentation:
+  """Segments with the given method, or the best available one.
+
+  'auto' uses, in order: an object-id PLY property if present, ``boxes`` if
+  given, ``masks`` (with ``cameras``) if given, else the geometric method.
+
+  Args:
+    gaussians: the scene's Gaussians.
+    method: one of ``METHODS``.
+    names: object names for the chosen method (optional).
+    boxes: (n, 6) boxes for 'boxes'.
+    cameras, masks: views and label masks for 'masks'.
+    up: world up for 'geometric'.
+    **kwargs: passed to the method's function.
+
+  Returns:
+    A :class:`Segmentation`.
+  """
+  if method not in METHODS:
+    raise ValueError(f'segmentation method {method!r} is not one of '
+                     f'{METHODS}')
+  if method == 'auto':
+    if find_attribute(gaussians) is not None:
+      method = 'attribute'
+    elif boxes is not None:
+      method = 'boxes'
+    elif masks is not None:
+      method = 'masks'
+    else:
+      method = 'geometric'
+  if method == 'attribute':
+    return segment_by_attribute(gaussians, names=names, **kwargs)
+  if method == 'boxes':
+    if boxes is None:
+      raise ValueError("segmentation method 'boxes' needs boxes=")
+    return segment_by_boxes(gaussians, boxes, names=names, **kwargs)
+  if method == 'masks':
+    if masks is None or cameras is None:
+      raise ValueError("segmentation method 'masks' needs cameras= and "
+                       'masks=')
+    return lift_masks(gaussians, cameras, masks, names=names, **kwargs)
+  seg = segment_geometric(gaussians, up=up, **kwargs)
+  if names is not None:
+    if len(names) != seg.num_objects:
+      raise ValueError(f'{len(names)} names for {seg.num_objects} objects '
+                       f'found ({seg.names})')
+    seg = Segmentation(seg.object_ids, tuple(names), seg.fixed, seg.method)
+  return seg
