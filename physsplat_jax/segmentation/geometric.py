@@ -207,6 +207,7 @@ def segment_geometric(
   min_plane_fraction: float = 0.05,
   below_is_support: bool = True,
   max_tilt_deg: float | None = 30.0,
+  reclaim_passes: int = 3,
   seed: int = 0,
 ) -> Segmentation:
   """Support plane + clusters of the remaining Gaussians.
@@ -225,6 +226,11 @@ def segment_geometric(
     below_is_support: Gaussians below the plane (beyond the threshold)
       belong to the support too (table legs, floor under a table top).
     max_tilt_deg: largest support tilt from horizontal.
+    reclaim_passes: region-growing passes that give plane-band Gaussians
+      back to an object: a Gaussian within the plane threshold whose
+      nearest object Gaussian is closer than ``eps`` and of similar colour
+      (``color_threshold``) is the object's base, not the support (objects
+      rest ON the plane, so their bottoms fall inside the band).
     seed: RANSAC seed.
 
   Returns:
@@ -233,7 +239,9 @@ def segment_geometric(
   """
   x = np.asarray(gaussians.means, np.float64)
   K = x.shape[0]
+  colors_all = np.clip(np.asarray(gaussians.rgb_dc, np.float64), 0, 1)
   support = np.zeros(K, bool)
+  band = np.zeros(K, bool)
   have_plane = False
   if K >= 3:
     try:
@@ -241,7 +249,8 @@ def segment_geometric(
                                    max_tilt_deg=max_tilt_deg, seed=seed)
       if inl.sum() >= min_plane_fraction * K:
         have_plane = True
-        support = inl
+        support = inl.copy()
+        band = inl
         if below_is_support:
           support |= (x @ n + d) < 0
     except ValueError:
@@ -257,8 +266,7 @@ def segment_geometric(
     xr = x[rest]
     if eps is None:
       eps = 0.02 * _diag(xr)
-    colors = np.clip(np.asarray(gaussians.rgb_dc, np.float64), 0, 1)[rest]
-    lab = cluster_points(xr, eps, colors, color_threshold,
+    lab = cluster_points(xr, eps, colors_all[rest], color_threshold,
                          min_cluster_points=min_cluster_points)
     base = len(names)
     sub = np.where(lab >= 0, lab + base, BACKGROUND)
@@ -266,4 +274,28 @@ def segment_geometric(
     for i in range(int(lab.max()) + 1 if lab.size and lab.max() >= 0 else 0):
       names.append(f'object_{base + i}')
       fixed.append(False)
+    if have_plane:
+      _reclaim_bases(x, colors_all, ids, band, base, eps, color_threshold,
+                     reclaim_passes)
   return Segmentation(ids, tuple(names), tuple(fixed), method='geometric')
+
+
+def _reclaim_bases(x, colors, ids, band, first_object, eps, color_threshold,
+                   passes):
+  """Gives plane-band Gaussians next to an object (same colour) to it."""
+  import scipy.spatial
+
+  for _ in range(passes):
+    obj = ids >= first_object
+    cand = np.nonzero(band & (ids < first_object))[0]
+    if not obj.any() or cand.size == 0:
+      return
+    src = np.nonzero(obj)[0]
+    tree = scipy.spatial.cKDTree(x[src])
+    d, j = tree.query(x[cand], distance_upper_bound=eps)
+    hit = np.isfinite(d)
+    jj = src[np.where(hit, j, 0)]
+    hit &= np.linalg.norm(colors[cand] - colors[jj], axis=1) < color_threshold
+    if not hit.any():
+      return
+    ids[cand[hit]] = ids[jj[hit]]
