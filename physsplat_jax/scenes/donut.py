@@ -93,7 +93,7 @@ def make_donut(
     board, keys[0], surface_spacing=0.005 / d, interior_spacing=0.014 / d,
     face_mask=np.asarray(board.face_normals)[:, 2] > -0.5,  # no bottom
     color=_board_color(np.random.default_rng(keys[1])), color_noise=0.05,
-    opacity=0.98, shading=0.15,
+    opacity=0.98, shading=0.15, interior_scale=0.3, tangent_scale=0.75,
   )
   board_g = board_g.astype(donut.means.dtype)
   cams = build.orbit_rig(

@@ -150,7 +150,7 @@ def make_tabletop(
     table, keys[0], surface_spacing=0.007 / d, interior_spacing=0.02 / d,
     face_mask=np.asarray(table.face_normals)[:, 2] > -0.5,  # no bottom
     color=_wood(np.random.default_rng(keys[1])), color_noise=0.05,
-    opacity=0.98, shading=0.15,
+    opacity=0.98, shading=0.15, interior_scale=0.3, tangent_scale=0.75,
   )
 
   cx, cy = LAYOUT['jelly cube']
