@@ -1,4 +1,4 @@
-"""Tests of the material library: schema, physical sanity, preset law, lookup."""
+"""Tests of the material library: schema, physics, preset law, lookup."""
 
 import copy
 import json
@@ -196,7 +196,8 @@ class ParseErrorTest(parameterized.TestCase):
   def test_duplicate_alias(self):
     def m(d):
       d['materials']['steel']['aliases'].append('aluminium')
-    self._bad(m, r"'aluminium' of materials.steel is already .*materials.aluminum")
+    self._bad(m, r"'aluminium' of materials.steel is already "
+              r'.*materials.aluminum')
 
   def test_unknown_source(self):
     def m(d):

@@ -11,7 +11,8 @@ explains every column and lists the sources). Each entry has
   file)::
 
     E_sim = clip(sqrt(E_mid * E_ref), 1e3, 1e7) Pa,  E_mid = sqrt(E_min E_max),
-    E_ref = 1e5 Pa,  nu_sim = min(mean(nu), 0.45),  rho_sim = sqrt(rho_min rho_max)
+    E_ref = 1e5 Pa,  nu_sim = min(mean(nu), 0.45),
+    rho_sim = sqrt(rho_min rho_max)
 
   which keeps the stiffness ORDER of the real materials (softer real ->
   softer simulated) while landing in the 1e4-1e7 Pa band where peers

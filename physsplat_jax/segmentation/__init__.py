@@ -11,11 +11,15 @@ from physsplat_jax.segmentation.auto import METHODS as METHODS
 from physsplat_jax.segmentation.auto import segment as segment
 from physsplat_jax.segmentation.base import BACKGROUND as BACKGROUND
 from physsplat_jax.segmentation.base import Segmentation as Segmentation
-from physsplat_jax.segmentation.boxes import segment_by_boxes as segment_by_boxes
+from physsplat_jax.segmentation.boxes import (
+  segment_by_boxes as segment_by_boxes,
+)
 from physsplat_jax.segmentation.boxes import (
   segment_from_physgaussian as segment_from_physgaussian,
 )
-from physsplat_jax.segmentation.geometric import cluster_points as cluster_points
+from physsplat_jax.segmentation.geometric import (
+  cluster_points as cluster_points,
+)
 from physsplat_jax.segmentation.geometric import (
   fit_plane_ransac as fit_plane_ransac,
 )

@@ -27,12 +27,11 @@ in place the copies are hidden underneath it.
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import scipy.ndimage
 import scipy.spatial
-import jax.numpy as jnp
 
-from physsplat_jax.types import Gaussians
 from physsplat_jax.types import Scene
 from physsplat_jax.types import concatenate_gaussians
 
