@@ -39,7 +39,8 @@ def _fit_directions(degree: int) -> tuple[np.ndarray, np.ndarray]:
   phi = np.pi * (1.0 + 5.0**0.5) * i
   r = np.sqrt(1.0 - z * z)
   dirs = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-  with jax.enable_x64(True):
+  # Concrete NumPy even when first called while tracing (under jit).
+  with jax.ensure_compile_time_eval(), jax.enable_x64(True):
     Y = np.asarray(gs.sh_basis(degree, jnp.asarray(dirs, jnp.float64)))
   return dirs, np.linalg.pinv(Y)
 

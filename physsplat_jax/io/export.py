@@ -1,0 +1,400 @@
+"""Export of deformed Gaussians: per-frame INRIA PLY and antimatter15 .splat.
+
+A simulation moves each Gaussian's centre and changes its covariance to
+``Sigma' = F Sigma F^T`` (:func:`physsplat_jax.deform.deform`), with a local
+rotation ``R = polar(F)`` that turns its view-dependent colour. The renderer
+takes ``Sigma'`` and ``R`` directly; viewers (SuperSplat, antimatter15,
+mkkellogg, Spark) only read scale + quaternion + SH files, so export:
+
+1. splits ``Sigma'`` (float64, on the host) into ``Q diag(s^2) Q^T`` by an
+   eigen-decomposition; eigenvalues below ``min_variance`` (flattened or
+   degenerate Gaussians, round-off negatives) are floored;
+2. orders and signs the eigenvectors to follow the Gaussian's own axes
+   carried by the motion, ``R Q_0`` (``Q_0`` its rest rotation): the
+   permutation of the eigenvectors that best matches those axes is chosen,
+   each axis flipped to point the same way, and the last column flipped if
+   that left a reflection. So ``det Q = +1`` always, and a rigid motion
+   gives exactly the rotated quaternion ``q_R * q_0`` and the rest scales
+   (a bare eigen-decomposition would sort the axes by size and could flip
+   them from frame to frame);
+3. rotates the SH coefficients by ``R`` (:func:`rotate_sh`), so that a
+   viewer evaluating them at the world view direction ``d`` sees
+   ``SH(R^T d)``, which is what the renderer computes with
+   ``view_rotations=R``;
+4. writes the INRIA layout (``x y z nx ny nz f_dc_* f_rest_* opacity
+   scale_* rot_*``, 62 float32 properties with SH degree 3, normals zero) or
+   the 32-byte ``.splat`` rows.
+
+For sequences, :class:`DeformedFrameWriter` writes ``frame_0000.ply``,
+``frame_0001.ply``, ... (what PhysGaussian ships with ``--output_ply``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from physsplat_jax.io.ply import PlyError
+from physsplat_jax.io.ply import save_ply
+from physsplat_jax.io.splat import save_splat
+from physsplat_jax.render.sh_rotation import rotate_sh
+from physsplat_jax.types import Gaussians
+
+PathLike = str | os.PathLike
+
+# Variance floor [scene units^2]: exp(0.5 log(1e-20)) = 1e-10, a flat but
+# finite Gaussian.
+MIN_VARIANCE = 1e-20
+# Gaussians per SH-rotation batch (bounds memory: ~4 kB per Gaussian at SH
+# degree 3).
+_SH_BATCH = 32768
+PLY_PATTERN = 'frame_%04d.ply'
+SPLAT_PATTERN = 'frame_%04d.splat'
+_PERMS = np.array(list(itertools.permutations(range(3))))  # (6, 3)
+
+
+class ExportError(PlyError):
+  """Deformed Gaussians that cannot be exported (a PlyError/ValueError)."""
+
+
+def _as_f64(a, shape, name) -> np.ndarray:
+  a = np.asarray(a, np.float64)
+  if a.shape != shape:
+    raise ExportError(
+      f'export: {name} has shape {a.shape}; expected {shape}'
+    )
+  bad = ~np.isfinite(a)
+  if bad.any():
+    rows = np.unique(np.nonzero(bad.reshape(shape[0], -1))[0])
+    raise ExportError(
+      f'export: {name} has non-finite values in {rows.size} Gaussians '
+      f'(first: {rows[:5].tolist()}); the simulation blew up or the inputs '
+      'are wrong'
+    )
+  return a
+
+
+def decompose_aligned(
+  covariances, reference=None, min_variance: float = MIN_VARIANCE
+) -> tuple[np.ndarray, np.ndarray]:
+  """Covariances -> log-scales and proper rotations, following given axes.
+
+  Args:
+    covariances: (K, 3, 3) symmetric PSD matrices.
+    reference: (K, 3, 3) rotations whose columns the output axes should
+      follow (order and sign), e.g. the rest axes carried by the motion; None
+      keeps eigh's ascending order.
+    min_variance: floor of the eigenvalues.
+
+  Returns:
+    (log_scales (K, 3), rotations (K, 3, 3)) float64 with
+    ``rot diag(exp(2 log_scales)) rot^T == covariance`` (up to the floor) and
+    ``det(rot) == +1``.
+  """
+  C = np.asarray(covariances, np.float64)
+  C = 0.5 * (C + np.swapaxes(C, -1, -2))
+  w, V = np.linalg.eigh(C)
+  if reference is not None:
+    ref = np.asarray(reference, np.float64)
+    M = np.abs(np.einsum('kai,kaj->kij', V, ref))  # |<v_i, ref_j>|
+    score = M[:, _PERMS, np.arange(3)].sum(-1)  # (K, 6)
+    perm = _PERMS[np.argmax(score, axis=1)]  # (K, 3): axis j <- eigvec p_j
+    V = np.take_along_axis(V, perm[:, None, :], axis=2)
+    w = np.take_along_axis(w, perm, axis=1)
+    dots = np.einsum('kai,kai->ki', V, ref)
+    V = V * np.where(dots < 0, -1.0, 1.0)[:, None, :]
+    align = np.abs(dots)
+  else:
+    align = np.broadcast_to([1.0, 1.0, 0.0], w.shape)
+  # Still a reflection (only where the axes matched badly): flip the worst
+  # aligned axis.
+  det = np.linalg.det(V)
+  worst = np.argmin(align, axis=1)
+  flip = np.ones_like(w)
+  flip[np.arange(len(w)), worst] = np.where(det < 0, -1.0, 1.0)
+  V = V * flip[:, None, :]
+  log_scales = 0.5 * np.log(np.maximum(w, min_variance))
+  return log_scales, V
+
+
+def quat_to_rotmat_np(q) -> np.ndarray:
+  """(K, 4) wxyz quaternions (any norm; zero -> identity) -> (K, 3, 3).
+
+  NumPy float64 twin of :func:`physsplat_jax.gaussians.quat_to_rotmat`
+  (host-side export runs op by op, where JAX would dispatch every op).
+  """
+  q = np.asarray(q, np.float64)
+  n = np.linalg.norm(q, axis=-1, keepdims=True)
+  q = np.where(n > 1e-12, q / np.where(n > 1e-12, n, 1.0), [1.0, 0, 0, 0])
+  w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+  return np.stack([
+    np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z),
+              2 * (x * z + w * y)], -1),
+    np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z),
+              2 * (y * z - w * x)], -1),
+    np.stack([2 * (x * z - w * y), 2 * (y * z + w * x),
+              1 - 2 * (x * x + y * y)], -1),
+  ], -2)
+
+
+def rotmat_to_quat_np(R) -> np.ndarray:
+  """(K, 3, 3) proper rotations -> (K, 4) unit wxyz quaternions, w >= 0.
+
+  NumPy float64 twin of :func:`physsplat_jax.gaussians.rotmat_to_quat`
+  (Shepperd's method: the largest of 4w^2, 4x^2, 4y^2, 4z^2 picks the
+  branch).
+  """
+  R = np.asarray(R, np.float64)
+  m = lambda i, j: R[..., i, j]
+  tr = m(0, 0) + m(1, 1) + m(2, 2)
+  cands = np.stack([
+    np.stack([1 + tr, m(2, 1) - m(1, 2), m(0, 2) - m(2, 0),
+              m(1, 0) - m(0, 1)], -1),
+    np.stack([m(2, 1) - m(1, 2), 1 + m(0, 0) - m(1, 1) - m(2, 2),
+              m(0, 1) + m(1, 0), m(0, 2) + m(2, 0)], -1),
+    np.stack([m(0, 2) - m(2, 0), m(0, 1) + m(1, 0),
+              1 - m(0, 0) + m(1, 1) - m(2, 2), m(1, 2) + m(2, 1)], -1),
+    np.stack([m(1, 0) - m(0, 1), m(0, 2) + m(2, 0), m(1, 2) + m(2, 1),
+              1 - m(0, 0) - m(1, 1) + m(2, 2)], -1),
+  ], -2)
+  best = np.argmax(np.stack([cands[..., i, i] for i in range(4)], -1), -1)
+  q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
+  q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+  return np.where(q[..., :1] < 0, -q, q)
+
+
+def rotate_sh_batched(sh, rotations, batch: int = _SH_BATCH) -> np.ndarray:
+  """:func:`~physsplat_jax.render.sh_rotation.rotate_sh` in fixed batches.
+
+  Args:
+    sh: (K, B, 3) coefficients.
+    rotations: (K, 3, 3) rotations.
+    batch: Gaussians per call (one compile; bounded memory).
+
+  Returns:
+    (K, B, 3) float32 rotated coefficients.
+  """
+  sh = np.asarray(sh, np.float32)
+  K, B, _ = sh.shape
+  if B == 1:
+    return sh
+  R = np.asarray(rotations, np.float32)
+  n = min(batch, K)
+  fn = jax.jit(rotate_sh)
+  out = np.empty_like(sh)
+  for i in range(0, K, n):
+    s, r = sh[i:i + n], R[i:i + n]
+    m = s.shape[0]
+    if m < n:  # pad so every call has one shape
+      s = np.concatenate([s, np.zeros((n - m, B, 3), s.dtype)])
+      r = np.concatenate([r, np.broadcast_to(np.eye(3, dtype=r.dtype),
+                                             (n - m, 3, 3))])
+    out[i:i + m] = np.asarray(fn(jnp.asarray(s), jnp.asarray(r)))[:m]
+  return out
+
+
+def deformed_gaussians(
+  gaussians: Gaussians,
+  means,
+  covariances,
+  rotations=None,
+  *,
+  rotate_colors: bool = True,
+  min_variance: float = MIN_VARIANCE,
+) -> Gaussians:
+  """Deformed Gaussians as plain scale/quaternion/SH Gaussians (host side).
+
+  Args:
+    gaussians: the rest Gaussians (opacity, SH and rest axes are taken from
+      them).
+    means: (K, 3) deformed centres.
+    covariances: (K, 3, 3) deformed covariances ``F Sigma F^T``.
+    rotations: (K, 3, 3) local rotations ``polar(F)`` (as returned by
+      :func:`physsplat_jax.deform.deform`) or None (no rotation: the axes
+      follow the rest axes and the SH are unchanged).
+    rotate_colors: rotate the SH by ``rotations`` (view-dependent colour
+      follows the object).
+    min_variance: eigenvalue floor [scene units^2].
+
+  Returns:
+    :class:`~physsplat_jax.types.Gaussians` (float32, NumPy leaves) with the
+    new means, log-scales, unit wxyz quaternions (``w >= 0``, proper) and
+    SH; opacity and extras unchanged; normals cleared.
+
+  Raises:
+    ExportError: shapes that do not match ``gaussians`` or non-finite
+      inputs.
+  """
+  K = gaussians.num
+  x = _as_f64(means, (K, 3), 'means')
+  C = _as_f64(covariances, (K, 3, 3), 'covariances')
+  R = None if rotations is None else _as_f64(rotations, (K, 3, 3),
+                                              'rotations')
+  Q0 = quat_to_rotmat_np(gaussians.quats)
+  ref = Q0 if R is None else R @ Q0
+  log_scales, Q = decompose_aligned(C, ref, min_variance)
+  quats = rotmat_to_quat_np(Q)
+  sh = np.asarray(gaussians.sh, np.float32)
+  if rotate_colors and R is not None:
+    sh = rotate_sh_batched(sh, R)
+  f32 = lambda a: np.asarray(a, np.float32)
+  return gaussians.replace(
+    means=f32(x), log_scales=f32(log_scales), quats=f32(quats),
+    opacity_logits=f32(gaussians.opacity_logits), sh=sh, normals=None,
+  )
+
+
+def _for_viewers(g: Gaussians, sh_degree: int | None,
+                 keep_extras: bool) -> Gaussians:
+  if sh_degree is not None:
+    g = g.with_sh_degree(int(sh_degree))
+  g = g.replace(normals=np.zeros((g.num, 3), np.float32))
+  return g if keep_extras else g.replace(extras={})
+
+
+def save_deformed_ply(
+  path: PathLike,
+  gaussians: Gaussians,
+  means,
+  covariances,
+  rotations=None,
+  *,
+  sh_degree: int | None = 3,
+  keep_extras: bool = False,
+  rotate_colors: bool = True,
+) -> Gaussians:
+  """Writes deformed Gaussians as an INRIA 3DGS PLY (SuperSplat, viewers).
+
+  Args:
+    path: output ``.ply`` (parent folders are created).
+    gaussians, means, covariances, rotations, rotate_colors: as
+      :func:`deformed_gaussians`.
+    sh_degree: SH degree written (zero-padded or truncated); 3 gives the
+      exact INRIA layout of 62 properties; None keeps the scene's.
+    keep_extras: also write extra per-Gaussian properties (object ids...).
+
+  Returns:
+    The Gaussians written.
+  """
+  g = deformed_gaussians(gaussians, means, covariances, rotations,
+                         rotate_colors=rotate_colors)
+  g = _for_viewers(g, sh_degree, keep_extras)
+  save_ply(path, g)
+  return g
+
+
+def save_deformed_splat(
+  path: PathLike, gaussians: Gaussians, means, covariances, rotations=None,
+  *, sort: bool = True,
+) -> Gaussians:
+  """Writes deformed Gaussians as an antimatter15 ``.splat`` (SH dropped).
+
+  Only the DC colour survives in ``.splat``, so the SH are not rotated.
+  Returns the Gaussians written (before 8-bit quantisation).
+  """
+  g = deformed_gaussians(gaussians, means, covariances, rotations,
+                         rotate_colors=False)
+  save_splat(path, g.replace(extras={}), sort=sort)
+  return g
+
+
+class DeformedFrameWriter:
+  """Writes one file per simulated frame: ``frame_0000.ply``, ...
+
+  Example::
+
+    with DeformedFrameWriter('out/ply', scene.gaussians) as frames:
+      for t in range(T):
+        means, covs, rots = deform.deform(binding, g, x[t])
+        frames.append(means, covs, rots)
+
+  Attributes:
+    directory: output folder.
+    format: ``'ply'`` or ``'splat'``.
+    paths: files written so far.
+  """
+
+  def __init__(
+    self,
+    directory: PathLike,
+    gaussians: Gaussians,
+    *,
+    format: str = 'ply',  # noqa: A002
+    pattern: str | None = None,
+    start: int = 0,
+    **kwargs,
+  ):
+    """Args:
+      directory: output folder (created).
+      gaussians: the rest Gaussians.
+      format: ``'ply'`` (INRIA, SH rotated) or ``'splat'``.
+      pattern: file name with one integer field (default
+        ``frame_%04d.ply`` / ``.splat``).
+      start: index of the first frame.
+      **kwargs: passed to :func:`save_deformed_ply` (``sh_degree``,
+        ``keep_extras``, ``rotate_colors``) or :func:`save_deformed_splat`
+        (``sort``).
+    """
+    if format not in ('ply', 'splat'):
+      raise ExportError(f"format must be 'ply' or 'splat', got {format!r}")
+    pattern = pattern or (PLY_PATTERN if format == 'ply' else SPLAT_PATTERN)
+    try:
+      pattern % 0
+    except (TypeError, ValueError) as e:
+      raise ExportError(
+        f'pattern {pattern!r} needs one integer field such as %04d'
+      ) from e
+    self.directory = os.fspath(directory)
+    self.format = format
+    self.pattern = pattern
+    self._gaussians = gaussians
+    self._kwargs = kwargs
+    self._next = int(start)
+    self.paths: list[str] = []
+
+  def __enter__(self) -> DeformedFrameWriter:
+    return self
+
+  def __exit__(self, exc_type, exc, tb) -> None:
+    self.close()
+
+  def append(self, means, covariances, rotations=None) -> str:
+    """Writes the next frame; returns its path."""
+    path = os.path.join(self.directory, self.pattern % self._next)
+    save = save_deformed_ply if self.format == 'ply' else save_deformed_splat
+    save(path, self._gaussians, means, covariances, rotations,
+         **self._kwargs)
+    self._next += 1
+    self.paths.append(path)
+    return path
+
+  def close(self) -> None:
+    """Nothing to flush (every file is complete when written)."""
+
+
+def save_deformed_sequence(
+  directory: PathLike, gaussians: Gaussians, means, covariances,
+  rotations=None, **kwargs,
+) -> list[str]:
+  """Writes a (T, K, ...) trajectory of deformed Gaussians, one file a frame.
+
+  Args:
+    directory: output folder.
+    gaussians: the rest Gaussians.
+    means: (T, K, 3); covariances: (T, K, 3, 3); rotations: (T, K, 3, 3) or
+      None.
+    **kwargs: as :class:`DeformedFrameWriter`.
+
+  Returns:
+    The paths written.
+  """
+  T = np.shape(means)[0]
+  with DeformedFrameWriter(directory, gaussians, **kwargs) as w:
+    for t in range(T):
+      w.append(means[t], covariances[t],
+               None if rotations is None else rotations[t])
+  return w.paths
