@@ -351,6 +351,18 @@ class OfflineTest(parameterized.TestCase):
     self.assertEqual((c.source, c.material_key, c.E), ('config', 'jelly',
                                                        2e4))
 
+  def test_physgaussian_config(self):
+    from physsplat_jax.configs.physgaussian import parse_config
+    cfg = parse_config({'material': 'metal', 'E': 1e5, 'nu': 0.3,
+                        'density': 1000, 'yield_stress': 1e2})
+    spec = perception.spec_from_physgaussian(cfg)
+    (c,) = perception.perceive_scene(
+      _scene(('plane',)),
+      perception.PerceptionOptions(config_materials={'*': spec}))
+    self.assertEqual((c.source, c.model, c.E, c.nu, c.rho),
+                     ('config', 'von_mises', 1e5, 0.3, 1000.0))
+    self.assertEqual(c.params_dict['yield_stress'], 1e2)
+
   def test_override_beats_mllm(self):
     scene = _scene(('metal can',))
     with ScriptedChatServer(_script(_answers())) as s:

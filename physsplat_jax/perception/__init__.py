@@ -9,6 +9,9 @@ from physsplat_jax.perception.choice import apply_spec as apply_spec
 from physsplat_jax.perception.choice import (
   simulation_values as simulation_values,
 )
+from physsplat_jax.perception.choice import (
+  spec_from_physgaussian as spec_from_physgaussian,
+)
 from physsplat_jax.perception.flags import define_flags as define_flags
 from physsplat_jax.perception.flags import (
   options_from_flags as options_from_flags,

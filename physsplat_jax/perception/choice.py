@@ -276,3 +276,39 @@ def apply_spec(
     ))
   except ValueError as e:
     raise ValueError(f'{where}: {e}') from None
+
+
+# A representative library key per constitutive model (for labelling a
+# PhysGaussian config's single material).
+MODEL_KEYS = {
+  'fixed_corotated': 'jelly', 'neo_hookean': 'rubber', 'stvk': 'fabric',
+  'von_mises': 'sheet_metal', 'drucker_prager': 'sand', 'snow': 'snow',
+  'foam': 'foam', 'plasticine': 'plasticine', 'newtonian': 'water',
+  'bingham': 'ketchup', 'rigid': 'wood',
+}
+
+
+def spec_from_physgaussian(config) -> dict[str, Any]:
+  """A config-material spec (for ``PerceptionOptions.config_materials``)
+  from a PhysGaussian config: its model, E, nu, density and the plasticity
+  parameters that model uses, labelled with a representative library key.
+
+  Args:
+    config: a :class:`~physsplat_jax.configs.physgaussian.PhysGaussianConfig`.
+
+  Returns:
+    ``{'material': key, 'model': ..., 'E': ..., 'nu': ..., 'rho': ...,
+    <params>}``; use as ``config_materials={'*': spec}``.
+  """
+  model = config.material
+  spec: dict[str, Any] = {
+    'material': MODEL_KEYS.get(model, 'jelly'), 'model': model,
+    'E': float(config.E), 'nu': float(config.nu),
+    'rho': float(config.density), 'rigid': model == 'rigid',
+  }
+  # PhysGaussian's snow has no parameters of its own (its 'hardening' is the
+  # von Mises one): keep the library's Stomakhin values.
+  for p in MODEL_PARAMS.get(model, ()) if model != 'snow' else ():
+    if hasattr(config, p):
+      spec[p] = float(getattr(config, p))
+  return spec
