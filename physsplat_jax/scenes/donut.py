@@ -13,8 +13,11 @@ A real donut is about 9.5 cm across, so ``meters_per_unit = 0.45`` (the
 donut is then 9.5 x 9.5 x 4.3 cm).
 
 The support is a round wooden board (radius 0.16 units = 7.2 cm, 0.025
-units thick) built from a cylinder mesh, centred under the donut, with its top face
-``gap`` below the lowest Gaussian centre of the donut (floaters included).
+units thick) built from a cylinder mesh, centred under the donut, with its
+top face ``GAP`` (0.001 units) below the lowest Gaussian centre of the donut,
+near-transparent floaters included: the lowest centres (down to z = -0.0091)
+have opacity < 0.01, the lowest with opacity > 0.05 is at z = -0.0006, so
+the visible base hovers about 0.0085 units (3.8 mm) above the board.
 """
 
 from __future__ import annotations

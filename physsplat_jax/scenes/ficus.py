@@ -5,10 +5,10 @@ Built in metres (``meters_per_unit = 1``), z up, the pot standing on
 
 | object | shape | material | fixed |
 |---|---|---|---|
-| ``pot`` | hollow terracotta pot of revolution, 8 mm wall, rim | terracotta | yes |
-| ``soil`` | fills the pot to 2 cm below the rim, slight mound | soil | yes |
-| ``stem`` | tapered trunk (S-curve) and arching branches (tubes) | plant_stem | no |
-| ``leaves`` | ~280 curved, folded elliptic leaves, single layer | leaf | no |
+| ``pot`` | hollow pot of revolution, 8 mm wall, rim | terracotta | yes |
+| ``soil`` | fills the pot to 1.7 cm below the rim, mound | soil | yes |
+| ``stem`` | tapered S-curved trunk, arching branches | plant_stem | no |
+| ``leaves`` | ~280 curved, folded elliptic leaves | leaf | no |
 
 The trunk starts 2.5 cm below the soil surface (rooted), branches leave it
 at golden-angle azimuths; leaves sit along the outer 75 % of each branch and

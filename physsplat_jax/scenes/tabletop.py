@@ -5,17 +5,18 @@ Built in metres (``meters_per_unit = 1``), z up, the table's top face at
 
 | object | shape | size | material | fixed |
 |---|---|---|---|---|
-| ``table top`` | box | 0.70 x 0.45 x 0.03 m | wood | yes |
+| ``table top`` | box | 0.60 x 0.40 x 0.03 m | wood | yes |
 | ``jelly cube`` | box | 5 cm | jelly | no |
 | ``rubber ball`` | sphere | 6 cm diameter | rubber | no |
-| ``sand pile`` | cone of revolution, 35 deg slope | 10 cm base | sand | no |
+| ``sand pile`` | rounded, uneven cone | 10 cm base, ~3 cm high | sand | no |
 | ``metal can`` | cylinder | 6.6 cm x 12.2 cm (a 355 ml can) | aluminum | no |
 
-The movable objects' lowest points lie ``gap`` (2 mm) above the table and
-at least 10 cm apart horizontally, so they can fall, bounce and spread
-without touching at once. The jelly is drawn translucent (lower opacity,
-brighter interior), the can has a red label, a white band and silver ends,
-the ball a yellow stripe (so its rotation shows), the table a wood grain.
+The movable objects' lowest points lie ``GAP`` (2 mm) above the table and
+their horizontal bounding boxes are at least 6.7 cm apart, so they can fall,
+bounce and spread without touching at once. The jelly is drawn translucent
+(lower opacity, brighter interior), the can has a red label, a white band
+and silver ends, the ball a yellow stripe (so its rotation shows), the table
+wood streaks.
 """
 
 from __future__ import annotations
