@@ -16,6 +16,8 @@ from physsplat_jax import test_util
 from physsplat_jax.render import raster
 from physsplat_jax.render import reference
 from physsplat_jax.render import sh_rotation
+from physsplat_jax.render import views
+from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera
 
 _IMAGE_TOL = 1e-4  # float32 renderer vs float64 reference, max abs
@@ -300,6 +302,32 @@ class ShRotationTest(absltest.TestCase):
     got = gs.eval_sh(rot, d)
     np.testing.assert_allclose(got, want, atol=1e-4)
     np.testing.assert_allclose(rot[:, 0], sh[:, 0], atol=1e-6)
+
+
+class ViewsTest(absltest.TestCase):
+
+  def test_render_scene_fitted_camera_and_helpers(self):
+    g = _scene(seed=31, num=60)
+    out = views.render_scene(g, width=40, background='white',
+                             return_output=True)
+    self.assertEqual(out.image.shape, (30, 40, 3))
+    # The fitted camera frames the scene: the centre is covered, the
+    # corners show the white background.
+    self.assertGreater(float(out.alpha[15, 20]), 0.5)
+    np.testing.assert_allclose(out.image[0, 0], 1.0, atol=1e-3)
+    img = views.render_scene(g, width=40, background=(1.0, 1.0, 1.0))
+    np.testing.assert_allclose(img, np.clip(out.image, 0, 1), atol=1e-6)
+    self.assertEqual(views.parse_background('0.1, 0.2,0.3'), (0.1, 0.2, 0.3))
+    with self.assertRaisesRegex(ValueError, 'background'):
+      views.parse_background('blue-ish')
+    # Resizing to another aspect keeps the vertical field of view.
+    cam = _camera(64, 48)
+    wide = views.resize_camera(cam, 96, 48)
+    self.assertEqual((wide.width, wide.height), (96, 48))
+    np.testing.assert_allclose(wide.fy, cam.fy)
+    np.testing.assert_allclose(wide.cx, 48.0)
+    with self.assertRaisesRegex(ValueError, 'has 0 cameras'):
+      views.scene_camera(Scene(gaussians=g, object_ids=jnp.zeros(60)), 2)
 
 
 if __name__ == '__main__':

@@ -1,0 +1,57 @@
+"""Renders a scene to a PNG.
+
+  python -m experiments.render --scene=donut --out=/tmp/donut.png
+  python -m experiments.render --scene=path/to/point_cloud.ply \
+      --camera_file=path/to/cameras.json --camera_index=3 --out=view.png
+
+--scene is a built-in name (tabletop, ficus, donut) or a 3DGS .ply/.splat
+file or output folder (physsplat_jax.io.scene.load_scene). The camera is one
+of the scene's (--camera_index; -1 fits one to the scene) or one from
+--camera_file (INRIA cameras.json or transforms.json).
+"""
+
+import time
+
+import jax
+from absl import app
+from absl import flags
+from absl import logging
+
+from physsplat_jax.io import cameras as camera_io
+from physsplat_jax.io import video
+from physsplat_jax.io.scene import load_scene
+from physsplat_jax.render import views
+
+_SCENE = flags.DEFINE_string('scene', None, 'Built-in name or 3DGS path.')
+_OUT = flags.DEFINE_string('out', None, 'Output PNG.')
+_CAMERA_FILE = flags.DEFINE_string('camera_file', None,
+                                   'cameras.json or transforms.json.')
+_CAMERA_INDEX = flags.DEFINE_integer('camera_index', 0,
+                                     'Camera index; -1: fitted to the scene.')
+_WIDTH = flags.DEFINE_integer('width', None, 'Width [px] (default: camera).')
+_HEIGHT = flags.DEFINE_integer('height', None, 'Height [px].')
+_BACKGROUND = flags.DEFINE_string('background', 'white',
+                                  'white, black, grey or "r,g,b" in [0, 1].')
+_SH_DEGREE = flags.DEFINE_integer('sh_degree', None, 'SH degree (0..3).')
+
+
+def main(argv):
+  del argv
+  logging.info('devices %s', jax.devices())
+  scene = load_scene(_SCENE.value)
+  camera = _CAMERA_INDEX.value
+  if _CAMERA_FILE.value:
+    cams = camera_io.load_cameras(_CAMERA_FILE.value)
+    camera = cams[camera if camera >= 0 else 0]
+  t0 = time.perf_counter()
+  image = views.render_scene(scene, camera, _WIDTH.value, _HEIGHT.value,
+                             _BACKGROUND.value, sh_degree=_SH_DEGREE.value)
+  video.save_png(_OUT.value, image)
+  logging.info('%s: %dx%d, %d Gaussians, %.2f s (incl. compile) -> %s',
+               scene.name, image.shape[1], image.shape[0],
+               scene.gaussians.num, time.perf_counter() - t0, _OUT.value)
+
+
+if __name__ == '__main__':
+  flags.mark_flags_as_required(['scene', 'out'])
+  app.run(main)
