@@ -640,7 +640,7 @@ def make_materials(
     raise ValueError(f'make_materials: inconsistent particle counts {sizes}.')
   n = sizes[0]
   if dtype is None:
-    dtype = (E.dtype if hasattr(E, 'dtype') and jnp.issubdtype(
+    dtype = (E.dtype if isinstance(E, jax.Array) and jnp.issubdtype(
       E.dtype, jnp.floating) else jnp.float32)
   if single is not None:
     names = [single] * n

@@ -9,8 +9,15 @@ Grid conditions act on node velocities after the grid update (PhysGaussian's
 once from the initial positions (``particle_bc_data``), as PhysGaussian's
 selection kernels do.
 
-Time windows are half-open, ``start <= t < end``, with ``t`` the time at the
-start of the substep.
+Time windows are half-open, ``start <= t < end``, with ``t = k dt`` the time
+at the start of substep ``k`` (compared with a half-substep margin so that
+round-off in ``t`` never adds or drops a substep).
+
+Enforced velocities (``EnforceTranslation``, ``EnforceRotation``,
+``SequentialRelease``) also set the particles' affine matrix ``C`` to the
+gradient of the prescribed velocity field (0, or ``-rotation_scale [n]_x``),
+so that the prescribed rigid motion survives the APIC transfer exactly
+(PhysGaussian sets only ``v``, which the transfer then smooths).
 """
 
 from __future__ import annotations
@@ -27,8 +34,8 @@ from physsplat_jax.mpm import base
 BORDER = 3
 
 
-def _active(t, start, end):
-  return (t >= start) & (t < end)
+def _active(t, start, end, dt):
+  return (t >= start - 0.5 * dt) & (t < end - 0.5 * dt)
 
 
 def particle_bc_data(config: base.SimConfig, x0) -> tuple:
@@ -90,7 +97,7 @@ SurfaceCollider = base.SurfaceCollider
 Cuboid = base.Cuboid
 
 
-def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v,
+def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
                        mass):
   """Particle velocity rules before P2G.
 
@@ -100,13 +107,21 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v,
     bc_data: tuple from ``particle_bc_data`` (same particle order as x).
     t: () time [s].
     x, v: 3-tuples of (N,) positions [m] and velocities [m/s].
+    C: nested-tuple affine matrices [1/s].
     mass: (N,) [kg].
 
   Returns:
-    3-tuple of (N,) velocities.
+    ``(v, C)``.
   """
   dt = config.dt
   v = list(v)
+  C = [list(r) for r in C]
+
+  def set_C(on, G):
+    for a in range(3):
+      for b in range(3):
+        C[a][b] = jnp.where(on, G[a][b], C[a][b])
+
   k = 0
   for i, bc in enumerate(config.boundary_conditions):
     if not isinstance(bc, base.PARTICLE_BCS):
@@ -115,11 +130,11 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v,
     k += 1
     val = forces.values[i]
     if isinstance(bc, ParticleImpulse):
-      on = _active(t, bc.start_time, bc.start_time + bc.num_dt * dt)
+      on = _active(t, bc.start_time, bc.start_time + bc.num_dt * dt, dt)
       s = jnp.where(on, dt, 0.0) * data / mass
       v = [v[d] + s * val[d] for d in range(3)]
     elif isinstance(bc, PointForce):
-      on = _active(t, bc.start_time, bc.end_time)
+      on = _active(t, bc.start_time, bc.end_time, dt)
       if bc.per_particle:
         s = jnp.where(on, dt, 0.0) * data / mass
       else:
@@ -128,10 +143,11 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v,
           total, jnp.finfo(mass.dtype).tiny)
       v = [v[d] + s * val[d] for d in range(3)]
     elif isinstance(bc, EnforceTranslation):
-      on = _active(t, bc.start_time, bc.end_time) & (data > 0.5)
+      on = _active(t, bc.start_time, bc.end_time, dt) & (data > 0.5)
       v = [jnp.where(on, val[d], v[d]) for d in range(3)]
+      set_C(on, ((0.0,) * 3,) * 3)
     elif isinstance(bc, EnforceRotation):
-      on = _active(t, bc.start_time, bc.end_time) & (data > 0.5)
+      on = _active(t, bc.start_time, bc.end_time, dt) & (data > 0.5)
       n = bc.normal
       r = [x[d] - bc.point[d] for d in range(3)]
       h = r[0] * n[0] + r[1] * n[1] + r[2] * n[2]
@@ -140,10 +156,15 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v,
                rh[0] * n[1] - rh[1] * n[0])
       w = [val[0] * cross[d] + val[1] * n[d] for d in range(3)]
       v = [jnp.where(on, w[d], v[d]) for d in range(3)]
+      # grad v = -rotation_scale [n]_x.
+      s = val[0]
+      set_C(on, ((0.0, s * n[2], -s * n[1]), (-s * n[2], 0.0, s * n[0]),
+                 (s * n[1], -s * n[0], 0.0)))
     elif isinstance(bc, SequentialRelease):
-      on = (t >= bc.start_time) & (t < data)
+      on = (t >= bc.start_time - 0.5 * dt) & (t < data - 0.5 * dt)
       v = [jnp.where(on, 0.0, v[d]) for d in range(3)]
-  return tuple(v)
+      set_C(on, ((0.0,) * 3,) * 3)
+  return tuple(v), tuple(tuple(r) for r in C)
 
 
 def node_coords(grid: base.GridSpec, dtype):
@@ -187,7 +208,7 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
   xs = node_coords(grid, gv[0].dtype)
   for i, bc in enumerate(config.boundary_conditions):
     if isinstance(bc, SurfaceCollider):
-      on = _active(t, bc.start_time, bc.end_time)
+      on = _active(t, bc.start_time, bc.end_time, dt)
       n = bc.normal
       side = sum((xs[d] - bc.point[d]) * n[d] for d in range(3)) < 0
       hit = on & side
@@ -204,7 +225,7 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
       gv = [jnp.where(hit, w[d], gv[d]) for d in range(3)]
     elif isinstance(bc, Cuboid):
       vel = forces.values[i]
-      on = _active(t, bc.start_time, bc.end_time)
+      on = _active(t, bc.start_time, bc.end_time, dt)
       moved = jnp.clip(t, bc.start_time, bc.end_time) - bc.start_time
       inside = None
       for d in range(3):
@@ -214,7 +235,7 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
       hit = on & inside
       gv = [jnp.where(hit, vel[d], gv[d]) for d in range(3)]
       if bc.reset:
-        off = (~on) & (t < bc.end_time + 15.0 * dt)
+        off = (~on) & (t < bc.end_time + 14.5 * dt)
         gv = [jnp.where(off, 0.0, gv[d]) for d in range(3)]
   # Domain box (always on): no velocity out of the 3-cell border.
   idx = jnp.arange(G)

@@ -192,8 +192,8 @@ def _make_soa_substep(config: base.SimConfig):
     rigid = aux['body_id'] >= 0 if has_bodies else None
 
     with jax.named_scope('particle_bcs'):
-      v = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x, v,
-                                      mass)
+      v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
+                                         v, C, mass)
     with jax.named_scope('constitutive'):
       Fe, Jp, ep, tau = constitutive.constitutive_update(
         models, mat.model_id, F, C, c['Jp'], c['ep'], mat, dt,

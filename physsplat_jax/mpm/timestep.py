@@ -34,11 +34,9 @@ def wave_speed(E, nu, rho, fluid=False):
   """Elastic wave speed [m/s] (P-wave, or bulk sound speed for fluids)."""
   E, nu, rho = (np.asarray(a, np.float64) for a in (E, nu, rho))
   nu = np.minimum(nu, 0.499)
-  if fluid:
-    m = E / (3.0 * (1.0 - 2.0 * nu))
-  else:
-    m = E * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
-  return np.sqrt(m / rho)
+  bulk = E / (3.0 * (1.0 - 2.0 * nu))
+  p_wave = E * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+  return np.sqrt(np.where(fluid, bulk, p_wave) / rho)
 
 
 def cfl_dt(E, nu, rho, dx, cfl: float = DEFAULT_CFL, fluid=False) -> float:

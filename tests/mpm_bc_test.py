@@ -1,0 +1,281 @@
+"""Tests for rigid bodies, boundary conditions and errors of physsplat_jax.mpm."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from scipy.spatial.distance import pdist
+
+from physsplat_jax import mpm
+
+_GRID = mpm.GridSpec(res=16, size=1.0)
+_SP = _GRID.dx / 2
+
+
+def _box(n, corner, spacing=_SP):
+  n = (n, n, n) if np.isscalar(n) else n
+  i = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing='ij'), -1)
+  return np.asarray(corner) + (i.reshape(-1, 3) + 0.5) * spacing
+
+
+def _run(x, mat, cfg, frames, v=(0.0, 0.0, 0.0), body_id=None, forces=None):
+  s = mpm.init_state(x, v, _SP ** 3, mat, cfg, body_id=body_id)
+  return s, mpm.run(s, mat, forces, cfg, frames)
+
+
+class RigidTest(absltest.TestCase):
+
+  def test_rigid_stays_rigid_fixed_stays_put(self):
+    """A spinning rigid cube falls on a jelly block resting on a fixed slab."""
+    slab = _box((10, 10, 2), (0.25, 0.25, 0.2))
+    jelly = _box(4, (0.4, 0.4, 0.25))
+    cube = _box(4, (0.42, 0.42, 0.45))
+    x = np.concatenate([slab, jelly, cube])
+    names = ['rigid'] * len(slab) + ['fixed_corotated'] * len(jelly) + [
+      'rigid'] * len(cube)
+    body = np.array([0] * len(slab) + [-1] * len(jelly) + [1] * len(cube))
+    v = np.zeros_like(x)
+    c = cube.mean(0)
+    w = np.array([0.0, 0.0, 6.0])
+    v[body == 1] = np.cross(w, cube - c) + np.array([0, 0, -1.0])
+    # Absurdly stiff rigid material: must not limit the time step.
+    E = np.where(body >= 0, 1e12, 2e4)
+    mat = mpm.make_materials(names, E, 0.3, 1000.0,
+                             config_models=('fixed_corotated', 'rigid'))
+    cfg = mpm.SimConfig(grid=_GRID, dt=1e-3,
+                        models=('fixed_corotated', 'rigid'), num_bodies=2,
+                        body_fixed=(True, False))
+    n = mpm.choose_substeps(cfg, 0.02, mat, body_id=body, max_speed=3.0)
+    self.assertLess(n, 20)  # the 1e12 Pa rigid particles are ignored
+    cfg = cfg.replace(dt=0.02 / n, substeps_per_frame=n)
+    s = mpm.init_state(x, v, _SP ** 3, mat, cfg, body_id=body)
+    res = mpm.run(s, mat, None, cfg, 8)
+    xf = np.asarray(res.state.x)
+    # Fixed slab: not moved at all.
+    np.testing.assert_allclose(xf[body == 0], slab, atol=1e-7)
+    # Free cube: pairwise distances preserved, it moved and turned.
+    np.testing.assert_allclose(pdist(xf[body == 1]), pdist(cube), atol=2e-5)
+    self.assertGreater(np.abs(xf[body == 1] - cube).max(), 0.02)
+    F = np.asarray(res.state.F[body == 1])
+    np.testing.assert_allclose(np.swapaxes(F, 1, 2) @ F,
+                               np.broadcast_to(np.eye(3), F.shape),
+                               atol=1e-5)
+    self.assertGreater(np.abs(F - np.eye(3)).max(), 0.05)  # it rotated
+    # The jelly got squeezed between them but stayed above the slab.
+    self.assertGreater(xf[body == -1][:, 2].min(), 0.2)
+
+  def test_free_rigid_body_conserves_momenta(self):
+    with jax.enable_x64(True):
+      cube = _box((4, 3, 2), (0.4, 0.4, 0.4))
+      c = cube.mean(0)
+      w = np.array([1.0, -2.0, 3.0])
+      v = np.cross(w, cube - c) + np.array([0.2, 0.0, 0.1])
+      mat = mpm.make_materials('rigid', 1e6, 0.3, 500.0, num=len(cube),
+                               dtype=jnp.float64)
+      cfg = mpm.SimConfig(grid=_GRID, dt=1e-3, substeps_per_frame=20,
+                          models=('rigid',), num_bodies=1, gravity=(0, 0, 0),
+                          dtype='float64')
+      s = mpm.init_state(cube, v, _SP ** 3, mat, cfg,
+                         body_id=np.zeros(len(cube), int))
+      s1 = jax.jit(mpm.make_frame(cfg))(s, mat, None)
+      m = np.asarray(s.mass)[:, None]
+      P0, P1 = (m * s.v).sum(0), (m * np.asarray(s1.v)).sum(0)
+      np.testing.assert_allclose(P1, P0, atol=1e-10)
+      x1 = np.asarray(s1.x)
+      np.testing.assert_allclose(x1.mean(0), c + 0.02 * np.array(
+        [0.2, 0.0, 0.1]), atol=1e-10)
+      np.testing.assert_allclose(pdist(x1), pdist(cube), atol=1e-12)
+
+
+class BoundaryTest(absltest.TestCase):
+
+  def _jelly(self, n):
+    return mpm.make_materials('fixed_corotated', 2e4, 0.3, 1000.0, num=n)
+
+  def test_colliders_sticky_slip_separate(self):
+    x0 = _box(3, (0.3, 0.45, 0.28))
+    out = {}
+    for surface in ('sticky', 'slip', 'separate'):
+      cfg = mpm.SimConfig(
+        grid=_GRID, dt=5e-4, substeps_per_frame=20, gravity=(0, 0, 0),
+        boundary_conditions=(mpm.SurfaceCollider(
+          point=(0, 0, 0.28), normal=(0, 0, 1), surface=surface),))
+      # Sliding along +x while pressed into the floor.
+      _, res = _run(x0, self._jelly(len(x0)), cfg, 6, v=(1.0, 0.0, -0.5))
+      out[surface] = np.asarray(res.state.x)
+    dx = {k: v[:, 0].mean() - x0[:, 0].mean() for k, v in out.items()}
+    bottom = x0[:, 2] < x0[:, 2].min() + 1e-6
+    free = 0.06  # 1 m/s for 0.06 s
+    # Sticky: the bottom layer is held; slip/separate: frictionless sliding.
+    self.assertLess(
+      np.mean(out['sticky'][bottom, 0] - x0[bottom, 0]), 0.4 * free)
+    self.assertLess(dx['sticky'], 0.75 * free)
+    np.testing.assert_allclose(dx['slip'], free, rtol=0.05)
+    np.testing.assert_allclose(dx['separate'], free, rtol=0.05)
+    for k, v in out.items():
+      self.assertGreater(v[:, 2].min(), 0.28 - _GRID.dx, msg=k)
+
+  def test_separating_wall_lets_go_but_slip_holds(self):
+    x0 = _box(3, (0.4, 0.4, 0.2))
+    z = {}
+    for surface in ('slip', 'separate'):
+      cfg = mpm.SimConfig(
+        grid=_GRID, dt=5e-4, substeps_per_frame=20, gravity=(0, 0, 0),
+        boundary_conditions=(mpm.SurfaceCollider(
+          point=(0, 0, 0.24), normal=(0, 0, 1), surface=surface),))
+      _, res = _run(x0, self._jelly(len(x0)), cfg, 4, v=(0, 0, 0.5))
+      z[surface] = float(np.asarray(res.state.x)[:, 2].mean())
+    # Moving away from the wall: 'separate' lets it leave, 'slip' keeps the
+    # particles behind the plane at zero normal velocity.
+    self.assertGreater(z['separate'], z['slip'] + 0.01)
+
+  def test_fixed_cuboid_holds_and_impulse_adds_momentum(self):
+    x = _box((6, 3, 3), (0.3, 0.4, 0.4))
+    pot = (0.31, 0.45, 0.45)  # a box reaching x = 0.43
+    force = np.array([0.0, 0.2, 0.0])
+    cfg = mpm.SimConfig(
+      grid=_GRID, dt=2e-4, substeps_per_frame=1, gravity=(0, 0, 0),
+      sort_particles=False,
+      boundary_conditions=(
+        mpm.ParticleImpulse(force=tuple(force), num_dt=3,
+                            point=(0.45, 0.45, 0.45), size=(0.02, 1, 1)),))
+    mat = self._jelly(len(x))
+    s = mpm.init_state(x, np.zeros(3), _SP ** 3, mat, cfg)
+    sel = np.asarray(s.bc_data[0]) > 0.5
+    self.assertTrue(0 < sel.sum() < len(x))
+    step = jax.jit(mpm.make_substep(cfg))
+    for _ in range(4):
+      s = step(s, mat, None)
+    # Total momentum = count * force * 3 dt (no gravity, no walls hit).
+    P = np.sum(np.asarray(s.mass)[:, None] * np.asarray(s.v), 0)
+    np.testing.assert_allclose(P, sel.sum() * force * 3 * cfg.dt, rtol=1e-4,
+                               atol=1e-12)
+    # Fixed cuboid: the particles inside a zero-velocity box stay still.
+    cfg2 = cfg.replace(substeps_per_frame=50, boundary_conditions=(
+      mpm.Cuboid(point=pot, size=(0.12, 0.2, 0.2)),))
+    s0 = mpm.init_state(x, (0.0, 0.0, -0.5), _SP ** 3, mat, cfg2)
+    res = mpm.run(s0, mat, None, cfg2, 2)
+    held = np.abs(x[:, 0] - pot[0]) < 0.12 - 1.5 * _GRID.dx
+    self.assertTrue(held.any())
+    np.testing.assert_allclose(np.asarray(res.state.x)[held], x[held],
+                               atol=1e-6)
+
+  def test_point_force_enforced_velocities_and_release(self):
+    # Block A is translated; block B is released layer by layer and pushed.
+    xa = _box((3, 3, 3), (0.6, 0.6, 0.4))
+    xb = _box((6, 3, 3), (0.2, 0.3, 0.4))
+    x = np.concatenate([xa, xb])
+    a = np.arange(len(x)) < len(xa)
+    f = (0.0, 0.0, 0.01)
+    bcs = (
+      mpm.PointForce(point=tuple(xb[0]), radius=0.03, force=f,
+                     end_time=0.01, per_particle=False),
+      mpm.EnforceTranslation(point=(0.65, 0.65, 0.45), size=(0.1, 0.1, 0.1),
+                             velocity=(0.0, 0.3, 0.0), end_time=1.0),
+      mpm.SequentialRelease(axis=0, start_position=0.35, end_position=0.2,
+                            num_layers=3, end_time=1.0),
+    )
+    cfg = mpm.SimConfig(grid=_GRID, dt=2e-4, substeps_per_frame=25,
+                        gravity=(0, 0, 0), boundary_conditions=bcs)
+    mat = self._jelly(len(x))
+    s0 = mpm.init_state(x, np.zeros(3), _SP ** 3, mat, cfg)
+    pf, tr, rel = (np.asarray(a_) for a_ in s0.bc_data)
+    near = np.linalg.norm(x - xb[0], axis=1) < 0.03
+    np.testing.assert_array_equal(pf > 0.5, near)
+    np.testing.assert_array_equal(tr > 0.5, a)
+    res = mpm.run(s0, mat, None, cfg, 2)
+    xf = np.asarray(res.state.x)
+    t = res.times[-1]
+    np.testing.assert_allclose(xf[a] - x[a], np.broadcast_to(
+      [0.0, 0.3 * t, 0.0], xa.shape), atol=5e-6)
+    held = rel > t
+    self.assertTrue(held.any())
+    np.testing.assert_allclose(xf[held], x[held], atol=1e-6)
+    # Release times: farthest from end_position first (1/3 s) .. nearest
+    # last (1 s); the particles beyond start_position are never held.
+    xs = x[~a, 0]
+    self.assertAlmostEqual(float(rel[~a][np.argmin(xs)]), 1.0, places=5)
+    far = (~a) & (x[:, 0] == x[held, 0].max())
+    self.assertAlmostEqual(float(rel[far][0]), 1 / 3, places=5)
+    self.assertTrue(np.all(np.isneginf(rel[(~a) & (x[:, 0] > 0.35)])))
+
+  def test_enforced_rotation_spins_the_cylinder(self):
+    x = _box((4, 4, 2), (0.42, 0.42, 0.45))
+    c = x.mean(0)
+    bc = mpm.EnforceRotation(point=tuple(c), normal=(0, 0, 1),
+                             half_height=0.1, radius=0.2,
+                             rotation_scale=2.0, translation_scale=0.1)
+    cfg = mpm.SimConfig(grid=_GRID, dt=2e-4, substeps_per_frame=1,
+                        gravity=(0, 0, 0), boundary_conditions=(bc,),
+                        dtype='float32')
+    mat = self._jelly(len(x))
+    s = mpm.init_state(x, np.zeros(3), _SP ** 3, mat, cfg)
+    forces = mpm.make_forces(cfg)
+    s1 = jax.jit(mpm.make_substep(cfg))(s, mat, forces)
+    # The prescribed v = rotation_scale (r_h x n) + 0.1 n and C = grad v
+    # are a rigid motion, which one APIC transfer reproduces exactly.
+    r = x - c
+    want = 2.0 * np.cross(r * [1, 1, 0], [0, 0, 1]) + [0, 0, 0.1]
+    np.testing.assert_allclose(np.asarray(s1.v), want, atol=1e-4)
+
+  def test_domain_box_keeps_particles_in_the_grid(self):
+    x = _box(3, (0.1, 0.45, 0.45))
+    cfg = mpm.SimConfig(grid=_GRID, dt=5e-4, substeps_per_frame=20,
+                        gravity=(0, 0, 0))
+    _, res = _run(x, self._jelly(len(x)), cfg, 5, v=(-2.0, 0, 0))
+    xf = np.asarray(res.state.x)
+    lo, hi = _GRID.particle_bounds
+    self.assertTrue(np.all((xf >= lo) & (xf <= hi)))
+    self.assertTrue(np.all(np.isfinite(xf)))
+
+
+class ErrorTest(absltest.TestCase):
+
+  def test_unstable_dt_raises_with_fix(self):
+    mat = mpm.make_materials('fixed_corotated', 1e8, 0.3, 1000.0, num=10)
+    cfg = mpm.SimConfig(grid=_GRID, dt=1e-3)
+    with self.assertRaisesRegex(mpm.SimulationError, 'substeps_per_frame'):
+      mpm.check_dt(cfg, mat)
+    ok = cfg.replace(dt=mpm.cfl_dt(1e8, 0.3, 1000.0, _GRID.dx))
+    self.assertLess(mpm.check_dt(ok, mat), 0.5)
+
+  def test_blow_up_is_reported_with_frame(self):
+    x = _box(3, (0.4, 0.4, 0.4))
+    mat = mpm.make_materials('fixed_corotated', 1e7, 0.3, 100.0, num=len(x))
+    cfg = mpm.SimConfig(grid=_GRID, dt=2e-3, substeps_per_frame=10,
+                        gravity=(0, 0, 0))
+    s = mpm.init_state(x, np.random.default_rng(0).normal(size=x.shape),
+                       _SP ** 3, mat, cfg)
+    with self.assertRaises(mpm.SimulationError) as cm:
+      mpm.run(s, mat, None, cfg, 20)
+    self.assertIsNotNone(cm.exception.frame)
+    self.assertIn('frame', str(cm.exception))
+    self.assertIn('dt', str(cm.exception))
+
+  def test_bad_names_and_shapes(self):
+    with self.assertRaisesRegex(ValueError, 'unknown model'):
+      mpm.SimConfig(models=('jello',))
+    with self.assertRaisesRegex(ValueError, 'unknown model'):
+      mpm.make_materials('jello', 1e5, 0.3, 1e3, num=3)
+    with self.assertRaisesRegex(ValueError, 'unknown field'):
+      mpm.make_materials('snow', 1e5, 0.3, 1e3, num=3, yeild_stress=1.0)
+    mat = mpm.make_materials('fixed_corotated', 1e5, 0.3, 1e3, num=3)
+    cfg = mpm.SimConfig(grid=_GRID)
+    with self.assertRaisesRegex(ValueError, r'expected \(N, 3\)'):
+      mpm.init_state(np.zeros((3, 2)), 0.0, 1e-6, mat, cfg)
+    with self.assertRaisesRegex(ValueError, 'outside the simulation grid'):
+      mpm.init_state(np.full((3, 3), 2.0), 0.0, 1e-6, mat, cfg)
+    with self.assertRaisesRegex(ValueError, 'materials.E has shape'):
+      mpm.init_state(np.full((4, 3), 0.5), 0.0, 1e-6, mat, cfg)
+    with self.assertRaisesRegex(ValueError, 'num_bodies'):
+      mpm.init_state(np.full((3, 3), 0.5), 0.0, 1e-6, mat, cfg,
+                     body_id=[0, 0, 0])
+    with self.assertRaisesRegex(ValueError, 'boundary conditions'):
+      mpm.make_frame(cfg.replace(boundary_conditions=(
+        mpm.SurfaceCollider(point=(0, 0, 0.1)),)))(
+          mpm.init_state(np.full((3, 3), 0.5), 0.0, 1e-6, mat, cfg), mat,
+          mpm.Forces(values=()))
+
+
+if __name__ == '__main__':
+  absltest.main()

@@ -1,0 +1,312 @@
+"""Tests for the constitutive models of physsplat_jax.mpm."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+from scipy.spatial.transform import Rotation
+
+from physsplat_jax import mpm
+from physsplat_jax.mpm import constitutive
+from physsplat_jax.mpm import linalg as la
+
+_E, _NU = 1e5, 0.3
+_MU = _E / (2 * (1 + _NU))
+_LAM = _E * _NU / ((1 + _NU) * (1 - 2 * _NU))
+_ELASTIC = ('fixed_corotated', 'neo_hookean', 'stvk', 'von_mises',
+            'drucker_prager', 'snow', 'foam', 'plasticine', 'bingham')
+_ALL = _ELASTIC + ('newtonian', 'rigid')
+
+
+def _update(model, F, C=None, Jp=None, ep=None, dt=1e-4, **overrides):
+  """constitutive_update for one model on (n, 3, 3) F; returns AoS arrays."""
+  F = jnp.asarray(F)
+  n = F.shape[0]
+  mat = mpm.make_materials(model, _E, _NU, 1000.0, num=n, dtype=F.dtype,
+                           **overrides)
+  soa = lambda a: la.to_mat(jnp.moveaxis(a, (1, 2), (0, 1)))  # noqa: E731
+  aos = lambda m: jnp.moveaxis(la.from_mat(m), (0, 1), (1, 2))  # noqa: E731
+  C = jnp.zeros_like(F) if C is None else jnp.asarray(C)
+  Jp = jnp.ones((n,), F.dtype) if Jp is None else jnp.asarray(Jp)
+  ep = jnp.zeros((n,), F.dtype) if ep is None else jnp.asarray(ep)
+  Fe, Jp, ep, tau = constitutive.constitutive_update(
+    (model,), mat.model_id, soa(F), soa(C), Jp, ep, mat, dt)
+  return aos(Fe), Jp, ep, aos(tau)
+
+
+def _rotations(n, seed=0):
+  return Rotation.random(n, random_state=seed).as_matrix()
+
+
+class ElasticTest(parameterized.TestCase):
+
+  @parameterized.parameters(*_ALL)
+  def test_rigid_rotation_gives_zero_stress(self, model):
+    with jax.enable_x64(True):
+      R = _rotations(5)
+      _, _, _, tau = _update(model, R)
+      np.testing.assert_allclose(tau, 0.0, atol=1e-9 * _E)
+
+  @parameterized.parameters(*_ELASTIC)
+  def test_small_strain_is_linear_elasticity(self, model):
+    """tau -> lam tr(eps) I + 2 mu eps for |eps| << 1 (high yield)."""
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(1)
+      eps = 1e-5 * rng.normal(size=(4, 3, 3))
+      eps = 0.5 * (eps + np.swapaxes(eps, 1, 2))
+      if model == 'drucker_prager':
+        # Cohesionless sand: elastic only inside the cone, i.e. under
+        # compression with a small deviatoric part.
+        eps = -2e-5 * np.eye(3) + 0.2 * eps
+      R = _rotations(4, seed=2)
+      F = R @ (np.eye(3) + eps)
+      _, _, _, tau = _update(model, F, yield_stress=1e12,
+                             friction_angle=89.0, theta_c=0.5, theta_s=0.5)
+      lin = _LAM * np.trace(eps, axis1=1, axis2=2)[:, None, None] * np.eye(
+        3) + 2 * _MU * eps
+      ref = R @ lin @ np.swapaxes(R, 1, 2)
+      np.testing.assert_allclose(tau, ref, atol=1e-3 * _E * 1e-5)
+
+  @parameterized.parameters('fixed_corotated', 'neo_hookean', 'stvk')
+  def test_stress_is_objective(self, model):
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(3)
+      F = np.eye(3) + 0.2 * rng.normal(size=(4, 3, 3))
+      R = _rotations(4, seed=4)
+      _, _, _, t1 = _update(model, F)
+      _, _, _, t2 = _update(model, R @ F)
+      np.testing.assert_allclose(t2, R @ t1 @ np.swapaxes(R, 1, 2),
+                                 atol=1e-8 * _E)
+
+  def test_fixed_corotated_uniaxial_reference(self):
+    with jax.enable_x64(True):
+      a = 1.2
+      _, _, _, tau = _update('fixed_corotated', np.diag([a, 1., 1.])[None])
+      J = a
+      t11 = 2 * _MU * (a - 1) * a + _LAM * J * (J - 1)
+      t22 = _LAM * J * (J - 1)
+      np.testing.assert_allclose(np.diag(tau[0]), [t11, t22, t22],
+                                 rtol=1e-10)
+
+
+class PlasticityTest(absltest.TestCase):
+
+  def test_von_mises_caps_deviatoric_stress(self):
+    with jax.enable_x64(True):
+      ys = 2e3
+      F = np.diag([1.1, 0.95, 0.97])[None] @ _rotations(1, seed=5)
+      Fe, _, ep, tau = _update('von_mises', F, yield_stress=ys)
+      dev = tau[0] - np.trace(tau[0]) / 3 * np.eye(3)
+      np.testing.assert_allclose(np.linalg.norm(dev), ys, rtol=1e-8)
+      self.assertGreater(float(ep[0]), 0)
+      # Plastic flow is isochoric: det F_e = det F.
+      np.testing.assert_allclose(np.linalg.det(Fe), np.linalg.det(F),
+                                 rtol=1e-10)
+
+  def test_von_mises_hardening_raises_yield(self):
+    with jax.enable_x64(True):
+      F = np.diag([1.1, 0.95, 0.97])[None]
+      kw = dict(yield_stress=2e3, hardening=1.0, xi=0.1)
+      _, _, _, t0 = _update('von_mises', F, ep=np.zeros(1), **kw)
+      _, _, _, t1 = _update('von_mises', F, ep=np.full(1, 0.01), **kw)
+      dev = lambda t: np.linalg.norm(t - np.trace(t) / 3 * np.eye(3))  # noqa
+      np.testing.assert_allclose(dev(t1[0]) - dev(t0[0]),
+                                 2 * _MU * 0.1 * 0.01, rtol=1e-8)
+
+  def test_plasticine_damage_removes_stress(self):
+    with jax.enable_x64(True):
+      F = np.diag([1.1, 0.95, 0.97])[None]
+      _, _, _, tau = _update('plasticine', F, ep=np.full(1, 10.0),
+                             yield_stress=5e2, softening=100.0)
+      np.testing.assert_allclose(tau, 0.0, atol=1e-12)
+
+  def test_drucker_prager_tension_goes_to_tip(self):
+    with jax.enable_x64(True):
+      R = _rotations(1, seed=6)
+      F = R @ np.diag([1.05, 1.02, 0.99])
+      Fe, _, ep, tau = _update('drucker_prager', F)
+      # Cohesionless: no stress, F_e a rotation.
+      np.testing.assert_allclose(tau, 0.0, atol=1e-9)
+      np.testing.assert_allclose(np.swapaxes(Fe[0], 0, 1) @ Fe[0], np.eye(3),
+                                 atol=1e-10)
+      self.assertGreater(float(ep[0]), 0)
+
+  def test_drucker_prager_projects_onto_cone(self):
+    with jax.enable_x64(True):
+      phi = 30.0
+      F = np.diag([1.08, 1.0, 0.88])[None]
+      Fe, _, ep, _ = _update('drucker_prager', F, friction_angle=phi)
+      self.assertGreater(float(ep[0]), 0.0)  # outside the cone: it flowed
+      e = np.log(np.linalg.svd(Fe[0], compute_uv=False))
+      tr = e.sum()
+      s = np.sin(np.deg2rad(phi))
+      alpha = np.sqrt(2 / 3) * 2 * s / (3 - s)
+      self.assertLess(tr, 0)
+      np.testing.assert_allclose(
+        np.linalg.norm(e - tr / 3),
+        -(3 * _LAM + 2 * _MU) / (2 * _MU) * tr * alpha, rtol=1e-8)
+      # Inside the cone (pure compression) nothing changes.
+      F2 = np.diag([0.99, 0.99, 0.99])[None]
+      Fe2, _, ep2, _ = _update('drucker_prager', F2, friction_angle=phi)
+      np.testing.assert_allclose(Fe2, F2, atol=1e-12)
+      self.assertEqual(float(ep2[0]), 0.0)
+
+  def test_snow_clamps_and_hardens(self):
+    with jax.enable_x64(True):
+      tc, ts, xi = 2.5e-2, 7.5e-3, 10.0
+      F = np.diag([0.9, 0.9, 0.9])[None]
+      Fe, Jp, _, tau = _update('snow', F, theta_c=tc, theta_s=ts, xi=xi)
+      np.testing.assert_allclose(np.diag(Fe[0]), 1 - tc, rtol=1e-12)
+      Jp_ref = 0.9 ** 3 / (1 - tc) ** 3
+      np.testing.assert_allclose(Jp[0], Jp_ref, rtol=1e-12)
+      h = min(np.exp(xi * (1 - Jp_ref)), 5.0)
+      J = (1 - tc) ** 3
+      s = 1 - tc
+      ref = h * (2 * _MU * (s - 1) * s + _LAM * J * (J - 1))
+      np.testing.assert_allclose(np.diag(tau[0]), ref, rtol=1e-10)
+      # Stretch clamps at 1 + theta_s, Jp grows (softening).
+      Fe, Jp, _, _ = _update('snow', np.diag([1.1, 1.0, 1.0])[None])
+      np.testing.assert_allclose(Fe[0, 0, 0], 1 + ts, rtol=1e-12)
+      self.assertGreater(float(Jp[0]), 1.0)
+
+  def test_foam_and_bingham_relax_above_yield(self):
+    with jax.enable_x64(True):
+      F = np.diag([1.1, 0.95, 0.97])[None]
+      ys = 1e3
+      dev = lambda t: np.linalg.norm(t - np.trace(t) / 3 * np.eye(3))  # noqa
+      limit = np.sqrt(2 / 3) * ys
+      for model, field in (('foam', 'plastic_viscosity'),
+                           ('bingham', 'viscosity')):
+        _, _, _, t_rate_free = _update(model, F, yield_stress=ys,
+                                       **{field: 0.0})
+        _, _, _, t_visc = _update(model, F, yield_stress=ys,
+                                  **{field: 1e2}, dt=1e-3)
+        np.testing.assert_allclose(dev(t_rate_free[0]), limit, rtol=1e-6,
+                                   err_msg=model)
+        # Viscosity delays the flow: stress above the yield surface.
+        self.assertGreater(dev(t_visc[0]), 1.01 * limit, msg=model)
+
+  def test_newtonian_pressure_and_viscosity(self):
+    with jax.enable_x64(True):
+      K = _E / (3 * (1 - 2 * _NU))
+      F = np.diag([0.99, 1.0, 1.0])[None]
+      Fe, _, _, tau = _update('newtonian', F, viscosity=0.0)
+      np.testing.assert_allclose(Fe[0], np.cbrt(0.99) * np.eye(3),
+                                 rtol=1e-12)
+      p = K / 7 * (0.99 ** -7 - 1)
+      np.testing.assert_allclose(tau[0], -0.99 * p * np.eye(3), rtol=1e-10)
+      # Shear flow: tau = eta (C + C^T).
+      C = np.zeros((1, 3, 3))
+      C[0, 0, 1] = 2.0
+      _, _, _, tau = _update('newtonian', np.eye(3)[None], C=C,
+                             viscosity=0.5)
+      ref = np.zeros((3, 3))
+      ref[0, 1] = ref[1, 0] = 1.0
+      np.testing.assert_allclose(tau[0], ref, atol=1e-12)
+
+
+class SimulationTest(absltest.TestCase):
+
+  def test_every_material_runs_stable_in_one_scene(self):
+    """All 11 models side by side fall on a sticky floor (one compile)."""
+    grid = mpm.GridSpec(res=16, size=1.0)
+    models = _ALL
+    sp = grid.dx / 2
+    i = np.stack(np.meshgrid(*[np.arange(3)] * 3, indexing='ij'), -1)
+    i = i.reshape(-1, 3)
+    xs, names = [], []
+    for k, m in enumerate(models):
+      corner = np.array([0.2 + 0.18 * (k % 4), 0.2 + 0.2 * (k // 4), 0.3])
+      xs.append(corner + (i + 0.5) * sp)
+      names += [m] * len(i)
+    x = np.concatenate(xs)
+    names = np.array(names)
+    body = np.where(names == 'rigid', 0, -1)
+    mat = mpm.make_materials(list(names), 1e5, 0.3, 1000.0,
+                             config_models=models)
+    cfg = mpm.SimConfig(
+      grid=grid, dt=1e-3, models=models, num_bodies=1,
+      boundary_conditions=(mpm.SurfaceCollider(point=(0, 0, 0.15)),))
+    n = mpm.choose_substeps(cfg, 0.02, mat, body_id=body, max_speed=3.0)
+    cfg = cfg.replace(dt=0.02 / n, substeps_per_frame=n)
+    s = mpm.init_state(x, (0.0, 0.0, -1.0), sp ** 3, mat, cfg, body_id=body)
+    res = mpm.run(s, mat, None, cfg, 8)   # raises SimulationError on blow-up
+    st = res.state
+    self.assertTrue(np.all(np.isfinite(np.asarray(st.x))))
+    z = np.asarray(st.x[:, 2])
+    self.assertGreater(z.min(), 0.15 - grid.dx)     # not through the floor
+    self.assertLess(np.abs(np.asarray(st.v)).max(), 3.0)
+    J = np.linalg.det(np.asarray(st.F))
+    self.assertTrue(np.all((J > 0.5) & (J < 1.5)))
+    # Plastic models flowed on impact; snow compacted.
+    for m in ('von_mises', 'drucker_prager', 'foam', 'plasticine',
+              'bingham'):
+      self.assertGreater(float(st.ep[names == m].max()), 0.0, msg=m)
+    self.assertLess(float(st.Jp[names == 'snow'].min()), 1.0)
+    # Purely elastic models keep no plastic state.
+    for m in ('fixed_corotated', 'neo_hookean', 'stvk'):
+      self.assertEqual(float(np.abs(st.ep[names == m]).max()), 0.0)
+
+  def test_elastic_body_returns_to_rest_shape(self):
+    """A squashed block (F consistent) springs back when released."""
+    with jax.enable_x64(True):
+      grid = mpm.GridSpec(res=16, size=1.0)
+      models = ('fixed_corotated', 'neo_hookean', 'stvk')
+      sp = grid.dx / 2
+      i = np.stack(np.meshgrid(*[np.arange(6)] * 3, indexing='ij'), -1)
+      rest = (i.reshape(-1, 3) + 0.5) * sp
+      squash = np.diag([1.0, 1.0, 0.85])
+      xs, names, centres = [], [], []
+      for k, m in enumerate(models):
+        c = np.array([0.25 + 0.25 * k, 0.5, 0.5])
+        xs.append(c + (rest - rest.mean(0)) @ squash.T)
+        names += [m] * len(rest)
+        centres.append(c)
+      x = np.concatenate(xs)
+      names = np.array(names)
+      mat = mpm.make_materials(list(names), 2e4, 0.3, 1000.0,
+                               config_models=models, dtype=jnp.float64)
+      cfg = mpm.SimConfig(grid=grid, dt=1e-3, models=models,
+                          gravity=(0, 0, 0), velocity_damping=20.0,
+                          dtype='float64')
+      n = mpm.choose_substeps(cfg, 0.05, mat)
+      cfg = cfg.replace(dt=0.05 / n, substeps_per_frame=n)
+      F0 = np.broadcast_to(squash, (len(x), 3, 3))
+      s = mpm.init_state(x, np.zeros(3), sp ** 3 * 0.85, mat, cfg, F=F0)
+      res = mpm.run(s, mat, None, cfg, 10)
+      xf = np.asarray(res.state.x)
+      for m in models:
+        sel = names == m
+        ext0 = np.ptp(rest, 0)
+        ext = np.ptp(xf[sel], 0)
+        # Height recovered from 85% to within 3% of the rest height.
+        np.testing.assert_allclose(ext[2], ext0[2], rtol=0.03, err_msg=m)
+        J = np.linalg.det(np.asarray(res.state.F[sel]))
+        np.testing.assert_allclose(J, 1.0, atol=0.05, err_msg=m)
+
+  def test_sand_column_spreads(self):
+    grid = mpm.GridSpec(res=16, size=1.0)
+    sp = grid.dx / 2
+    i = np.stack(np.meshgrid(np.arange(4), np.arange(4), np.arange(12),
+                             indexing='ij'), -1).reshape(-1, 3)
+    x = np.array([0.45, 0.45, 0.2]) + (i + 0.5) * sp
+    mat = mpm.make_materials('drucker_prager', 2e5, 0.3, 2000.0,
+                             num=len(x), friction_angle=30.0)
+    cfg = mpm.SimConfig(
+      grid=grid, dt=1e-3, models=('drucker_prager',),
+      boundary_conditions=(mpm.SurfaceCollider(point=(0, 0, 0.2)),))
+    n = mpm.choose_substeps(cfg, 0.025, mat, max_speed=2.0)
+    cfg = cfg.replace(dt=0.025 / n, substeps_per_frame=n)
+    s = mpm.init_state(x, np.zeros(3), sp ** 3, mat, cfg)
+    res = mpm.run(s, mat, None, cfg, 12)
+    x0, x1 = np.asarray(s.x), np.asarray(res.state.x)
+    h0, h1 = np.ptp(x0[:, 2]), np.ptp(x1[:, 2])
+    w0 = np.ptp(x0[:, :2], 0).max()
+    w1 = np.ptp(x1[:, :2], 0).max()
+    self.assertLess(h1, 0.75 * h0)
+    self.assertGreater(w1, 1.4 * w0)
+
+
+if __name__ == '__main__':
+  absltest.main()
