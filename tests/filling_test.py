@@ -161,6 +161,61 @@ class FillingTest(absltest.TestCase):
     with self.assertRaisesRegex(ValueError, 'watertight'):
       filling.fill_mesh(box, 0.1)
 
+  def test_host_twin_matches_jit(self):
+    # The NumPy filler (fill_objects' default) computes the same grid,
+    # occupancy and interior as the jitted one (float64 vs float32: a cell
+    # exactly on the threshold may differ).
+    g = _shell(n=4000)
+    a = _run(g)
+    b = filling.fill_gaussians_host(
+      jax.random.PRNGKey(0), g.means, g.log_scales, g.quats, g.opacities,
+      40000, _CFG)
+    self.assertAlmostEqual(float(a.dx), float(b.dx), places=6)
+    np.testing.assert_allclose(np.asarray(a.origin), b.origin, atol=1e-6)
+    occ_diff = np.sum(np.asarray(a.occupied) != b.occupied)
+    self.assertLessEqual(occ_diff, 0.001 * b.occupied.size)
+    in_diff = np.sum(np.asarray(a.inside) != b.inside)
+    self.assertLessEqual(in_diff, 0.001 * b.inside.size)
+    self.assertEqual(int(b.count), int(np.sum(b.inside)))
+    self.assertEqual(len(b.points), int(b.count))
+    # Every host point lies in an interior cell.
+    ijk = np.floor((b.points - b.origin) / b.dx).astype(int)
+    self.assertTrue(np.all(b.inside[ijk[:, 0], ijk[:, 1], ijk[:, 2]]))
+    # Deterministic for a key, jittered differently for another.
+    c = filling.fill_gaussians_host(
+      jax.random.PRNGKey(0), g.means, g.log_scales, g.quats, g.opacities,
+      40000, _CFG)
+    np.testing.assert_array_equal(b.points, c.points)
+    d = filling.fill_gaussians_host(
+      jax.random.PRNGKey(5), g.means, g.log_scales, g.quats, g.opacities,
+      40000, _CFG)
+    self.assertFalse(np.array_equal(b.points, d.points))
+    occ = np.asarray(a.occupied)
+    np.testing.assert_array_equal(filling.interior_cells_host(occ, 5),
+                                  np.asarray(filling.interior_cells(occ, 5)))
+
+  def test_host_pathological_covariances_and_speed(self):
+    g = _shell(n=20000)
+    rng = np.random.default_rng(1)
+    ls = np.asarray(g.log_scales).copy()
+    bad = rng.choice(20000, 2000, replace=False)
+    ls[bad[:500]] = 80.0
+    ls[bad[500:1000]] = 30.0
+    ls[bad[1000:1500]] = -80.0
+    ls[bad[1500:]] = np.nan
+    q = np.asarray(g.quats).copy()
+    q[bad[:300]] = 0.0
+    g = g.replace(log_scales=jnp.asarray(ls, jnp.float32),
+                  quats=jnp.asarray(q, jnp.float32))
+    t0 = time.perf_counter()
+    pts, _ = filling.fill_objects(jax.random.PRNGKey(0), g,
+                                  np.zeros(20000, np.int32), config=_CFG)
+    elapsed = time.perf_counter() - t0
+    self.assertLess(elapsed, 20.0)  # ~0.3 s on a quiet core; no compile
+    self.assertTrue(np.all(np.isfinite(pts)))
+    self.assertGreater(len(pts), 1000)
+    self.assertLess(np.linalg.norm(pts, axis=1).max(), 1.0)
+
   def test_interior_cells_on_a_box(self):
     occ = np.zeros((10, 10, 10), bool)
     occ[2:8, 2:8, 2] = occ[2:8, 2:8, 7] = True

@@ -119,6 +119,123 @@ class PoissonTest(parameterized.TestCase):
     self.assertTrue(np.all(dist < 2 * r[valid]))
 
 
+def _radius_field(pts, kind):
+  if kind == 'two_levels':
+    return np.where(pts[:, 0] < 0.5, 0.06, 0.12).astype(np.float32)
+  if kind == 'continuous_5x':  # PGAS-like: r / 5 .. r
+    return (0.024 + 0.096 * pts[:, 1]).astype(np.float32)
+  return np.full(len(pts), 0.08, np.float32)
+
+
+class HostPoissonTest(parameterized.TestCase):
+
+  @parameterized.named_parameters(
+    ('_two_levels_thin', 'two_levels', True),
+    ('_continuous_thin', 'continuous_5x', True),
+    ('_uniform_thin', 'uniform', True),
+    ('_continuous_nothin', 'continuous_5x', False))
+  def test_host_equals_jit(self, kind, thin):
+    # Same key -> same priorities -> the identical kept set, in the same
+    # priority order, from the NumPy/SciPy and the jittable paths.
+    pts, _ = _cloud(n=2500, seed=3)
+    r = _radius_field(pts, kind)
+    valid = np.random.default_rng(4).uniform(size=len(pts)) > 0.1
+    key = jax.random.PRNGKey(7)
+    a = _poisson(key, pts, r, max_samples=2500, valid=valid, thin=thin,
+                 max_per_cell=64 if thin else 128)
+    b = poisson.poisson_disk_host(key, pts, r, max_samples=2500, valid=valid,
+                                  thin=thin)
+    self.assertFalse(bool(a.overflow))
+    self.assertEqual(int(b.overflow_code), 0)
+    np.testing.assert_array_equal(np.asarray(a.keep), b.keep)
+    np.testing.assert_array_equal(np.asarray(a.index), b.index)
+    np.testing.assert_array_equal(np.asarray(a.valid), b.valid)
+
+  def test_host_matches_sequential_greedy(self):
+    pts, r = _cloud(n=600, seed=5)
+    r = _radius_field(pts, 'continuous_5x')
+    prio = np.random.default_rng(6).permutation(600).astype(np.float32)
+    res = poisson.poisson_disk_host(None, pts, r, priority=prio, thin=False)
+    np.testing.assert_array_equal(res.keep, _sequential_greedy(pts, r, prio))
+    self.assertEqual(len(res.index), int(res.count))
+
+  def test_host_properties_on_a_dense_cloud(self):
+    # 40k points, radii varying 5x: separation (min convention), coverage
+    # within 2 r, and the thinning bound of 64 representatives per cell.
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0.0, 1.0, (40000, 3)).astype(np.float32)
+    r = (0.02 + 0.08 * pts[:, 2]).astype(np.float32)
+    res = poisson.poisson_disk_host(jax.random.PRNGKey(0), pts, r)
+    keep = res.keep
+    kp, kr = pts[keep], r[keep]
+    tree = spatial.cKDTree(kp)
+    pairs = tree.query_pairs(float(kr.max()), output_type='ndarray')
+    d = np.linalg.norm(kp[pairs[:, 0]] - kp[pairs[:, 1]], axis=1)
+    self.assertTrue(np.all(d >= np.minimum(kr[pairs[:, 0]],
+                                           kr[pairs[:, 1]])))
+    dist, _ = tree.query(pts)
+    self.assertTrue(np.all(dist < 2 * r))
+    prio = np.asarray(jax.random.uniform(jax.random.PRNGKey(0), (40000,)))
+    rank = np.argsort(np.argsort(-prio, kind='stable'))
+    rep, too_wide = poisson.thin_candidates_host(pts, r, rank,
+                                                 np.ones(40000, bool))
+    self.assertFalse(too_wide)
+    lvl, h, _ = poisson.radius_levels(r, np.ones(40000, bool), 3)
+    cell = np.floor((pts - pts.min(0)) / h[lvl][:, None]).astype(np.int64)
+    _, per_cell = np.unique(np.c_[lvl, cell][rep], axis=0, return_counts=True)
+    self.assertLessEqual(per_cell.max(), poisson.MAX_PER_CELL)
+    self.assertGreater(per_cell.max(), 8)  # the bound is exercised
+
+  def test_radius_levels_are_exact(self):
+    half_up = np.nextafter(np.float32(0.5), np.float32(1.0))
+    r = np.array([1.0, 0.5, half_up, 0.25, 0.1, 0.01], np.float32)
+    lvl, h, r_max = poisson.radius_levels(r, np.ones(6, bool), 3)
+    np.testing.assert_array_equal(lvl, [0, 1, 0, 2, 2, 2])
+    np.testing.assert_array_equal(h, np.float32([1.0, 0.5, 0.25]))
+    lvl_j, _, _ = poisson.radius_levels(jnp.asarray(r), jnp.ones(6, bool), 3)
+    np.testing.assert_array_equal(lvl_j, lvl)
+
+  def test_host_bad_radii_and_overflow(self):
+    pts, r = _cloud(n=500)
+    r = r.copy()
+    r[:10] = 0.0
+    r[10:20] = np.nan
+    res = poisson.poisson_disk_host(jax.random.PRNGKey(0), pts, r)
+    self.assertFalse(np.any(res.keep[:20]))
+    small = poisson.poisson_disk_host(jax.random.PRNGKey(0), pts, r,
+                                      max_samples=5)
+    self.assertEqual(int(small.overflow_code), 1)
+    np.testing.assert_array_equal(small.index, res.index[:5])
+    # Radii spanning 2^14: the voxel refinement of the last level runs out.
+    r2 = np.full(500, 1.0, np.float32)
+    r2[0] = 1e-5
+    wide = poisson.poisson_disk_host(jax.random.PRNGKey(0), pts, r2)
+    self.assertTrue(int(wide.overflow_code) & 16)
+    with self.assertRaisesRegex(ValueError, 'num_levels'):
+      sampling.check_overflow(wide)
+    with self.assertRaisesRegex(ValueError, 'PRNG key'):
+      poisson.poisson_disk_host(None, pts, r)
+
+  def test_budget_search_is_short(self):
+    # The secant search needs a handful of evaluations, not ~12 bisections.
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(0.0, 1.0, (30000, 3)).astype(np.float32)
+    r = (0.02 + 0.08 * pts[:, 2]).astype(np.float32)
+    fn = poisson.make_poisson_host(jax.random.PRNGKey(0), pts)
+    calls = []
+
+    def sample_fn(rad):
+      res = fn(np.asarray(rad), 3000)
+      calls.append(int(res.count))
+      return res
+
+    mult, res = pgas.scale_for_budget(sample_fn, r, 3000, rtol=0.02)
+    self.assertLessEqual(int(res.count), 3000)
+    self.assertGreaterEqual(int(res.count), 0.98 * 3000)
+    self.assertLessEqual(len(calls), 6, calls)
+    np.testing.assert_array_equal(res.keep, fn(r * mult, 3000).keep)
+
+
 class PGASTest(parameterized.TestCase):
 
   def setUp(self):
@@ -243,6 +360,28 @@ class DrivingTest(parameterized.TestCase):
     self.assertGreater(int((~c.is_surface).sum()), 100)
     per_obj = [c.volume[c.object_ids == o].sum() for o in (0, 1)]
     np.testing.assert_allclose(per_obj, 4 / 3 * np.pi, rtol=0.3)
+
+  @parameterized.named_parameters(('_pgas', 'pgas'), ('_uniform', 'uniform'))
+  def test_budget_search(self, method):
+    cfg = pgas.PGASConfig(base_radius=0.6)
+    d = sampling.select_drivers(
+      jax.random.PRNGKey(1), self.cand, method, E={0: 1e5, 1: 5e6},
+      config=cfg, budget=150)
+    self.assertLessEqual(len(d.x), 150)
+    self.assertGreaterEqual(len(d.x), 0.98 * 150)
+    np.testing.assert_allclose(d.volume.sum(), self.cand.volume.sum(),
+                               rtol=1e-9)
+    # The drivers are a Poisson-disk sample at the scaled radii.
+    dd = spatial.distance.cdist(d.x, d.x)
+    np.fill_diagonal(dd, np.inf)
+    self.assertTrue(np.all(dd >= np.minimum.outer(d.radius, d.radius)
+                           * (1 - 1e-6)))
+    # The jittable backend keeps the same drivers.
+    dj = sampling.select_drivers(
+      jax.random.PRNGKey(1), self.cand, method, E={0: 1e5, 1: 5e6},
+      config=cfg, budget=150, backend='jax')
+    np.testing.assert_array_equal(np.sort(d.candidate_index),
+                                  np.sort(dj.candidate_index))
 
   @parameterized.named_parameters(
     ('_pgas', 'pgas'), ('_uniform', 'uniform'), ('_kmeans', 'kmeans'))

@@ -63,10 +63,15 @@ def local_curvature(points, k: int = 16, query=None) -> np.ndarray:
     raise ValueError(f'points have shape {pts.shape}; expected (N, 3)')
   q = pts if query is None else np.asarray(query, np.float64)
   k = int(min(max(k, 4), len(pts)))
-  _, idx = spatial.cKDTree(pts).query(q, k=k)
+  _, idx = spatial.cKDTree(pts).query(q, k=k, workers=-1)
   nb = pts[idx.reshape(len(q), k)]
   d = nb - nb.mean(1, keepdims=True)
-  C = np.einsum('nka,nkb->nab', d, d) / k
+  # The 6 distinct entries of the neighbourhood covariance (faster than a
+  # batched einsum over (Q, k, 3, 3)).
+  C = np.empty((len(q), 3, 3))
+  for a in range(3):
+    for b in range(a, 3):
+      C[:, a, b] = C[:, b, a] = np.mean(d[..., a] * d[..., b], axis=1)
   return eigen_ratio(C)
 
 

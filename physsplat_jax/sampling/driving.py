@@ -79,7 +79,10 @@ def make_candidates(
   if len(sel) == 0:
     raise ValueError('make_candidates: no Gaussian has object_id >= 0')
   g = gaussians.subset(sel)
-  covs = np.asarray(g.covariances, np.float64)
+  # R S^2 R^T in NumPy (op-by-op JAX would compile per object size).
+  R = filling.quat_to_rotmat_host(g.quats)
+  s2 = np.exp(2.0 * np.asarray(g.log_scales, np.float64))
+  covs = (R * s2[:, None, :]) @ np.swapaxes(R, -1, -2)
   xs = [np.asarray(g.means, np.float64)]
   surf = [np.ones(len(sel), bool)]
   ids = [oid[sel]]
@@ -128,11 +131,33 @@ def _voronoi_volume(cand: Candidates, drivers_x, driver_obj):
   return vol
 
 
+def _first_multiplier(x, radius, budget: int, num: int = 2000):
+  """Radius multiplier expected to keep about ``budget`` points, and ``d``.
+
+  A greedy Poisson disk keeps about one point per ``n(r) / kappa``
+  candidates, ``n(r)`` the candidates within ``r`` of a point and
+  ``kappa`` ~ 2.2 on a surface (random sequential adsorption of discs) to
+  ~ 3.0 in a volume; the count then falls as ``m^-d`` with
+  ``d = log2 n(r) / n(r / 2)`` (2 on surfaces, 3 in volumes). Both from
+  ``num`` random candidates; only a starting point for the search.
+  """
+  n = len(x)
+  rng = np.random.default_rng(0)
+  sub = rng.choice(n, size=min(num, n), replace=False)
+  tree = spatial.cKDTree(x, balanced_tree=False)
+  n1 = tree.query_ball_point(x[sub], radius[sub], return_length=True)
+  n2 = tree.query_ball_point(x[sub], 0.5 * radius[sub], return_length=True)
+  d = float(np.clip(np.log2(n1.mean() / max(n2.mean(), 1.0)), 1.5, 3.0))
+  est = n / len(sub) * np.sum(np.minimum(1.0, 2.6 / np.maximum(n1, 1)))
+  return float((est / budget) ** (1.0 / d)), d
+
+
 def select_drivers(
   key, cand: Candidates, method: str = 'pgas', E=None,
   config: pgas.PGASConfig | None = None, budget: int | None = None,
-  max_per_cell: int = 256, max_neighbors: int = 256, kmeans_iters: int = 20,
-  bisect_iters: int = 12,
+  max_per_cell: int = poisson.MAX_PER_CELL, max_neighbors: int = 256,
+  kmeans_iters: int = 20, bisect_iters: int = 12,
+  backend: str = 'host', budget_rtol: float = 0.02,
 ) -> Drivers:
   """Chooses driving particles among the candidates.
 
@@ -145,10 +170,18 @@ def select_drivers(
     config: :class:`~physsplat_jax.sampling.pgas.PGASConfig` (its
       ``base_radius`` is the uniform radius for 'uniform').
     budget: target driver count; required for 'kmeans', optional otherwise
-      (the radius is then scaled to keep at most ``budget``).
-    max_per_cell, max_neighbors: Poisson-disk capacities.
+      (the radius is then scaled to keep at most ``budget``, and at least
+      ``(1 - budget_rtol) budget`` when the search gets there).
+    max_per_cell, max_neighbors: capacities of the jittable Poisson disk
+      (``backend='jax'`` only).
     kmeans_iters: Lloyd iterations.
-    bisect_iters: radius-multiplier bisection steps for ``budget``.
+    bisect_iters: most Poisson-disk evaluations of the budget search.
+    backend: Poisson disk implementation: 'host' (default;
+      :func:`~physsplat_jax.sampling.poisson.poisson_disk_host`, NumPy/SciPy,
+      ~0.1-0.3 s per 100k candidates, no capacities) or 'jax'
+      (:func:`~physsplat_jax.sampling.poisson.poisson_disk`, jitted, fixed
+      capacities). Both keep the same set for the same key and radii.
+    budget_rtol: relative tolerance of the budget search.
 
   Returns:
     :class:`Drivers`.
@@ -176,6 +209,9 @@ def select_drivers(
                    radius=np.zeros(len(x)))
   if config is None:
     raise ValueError(f"select_drivers: method={method!r} needs config=")
+  if backend not in ('host', 'jax'):
+    raise ValueError(f"select_drivers: backend={backend!r}; use 'host' or "
+                     "'jax'")
   if method == 'pgas':
     if E is None:
       raise ValueError("select_drivers: method='pgas' needs E=")
@@ -194,14 +230,22 @@ def select_drivers(
     raise ValueError(f"select_drivers: method={method!r}; use 'pgas', "
                      "'uniform' or 'kmeans'")
   cap = m if budget is None else min(m, budget)
-  fn = jax.jit(lambda r: poisson.poisson_disk(
-    key, x32, r, cap, max_per_cell=max_per_cell,
-    max_neighbors=max_neighbors))
+  if backend == 'host':
+    sample_fn = poisson.make_poisson_host(key, cand.x)
+
+    def fn(r):
+      return sample_fn(np.asarray(r), cap, cap if budget else None)
+  else:
+    fn = jax.jit(lambda r: poisson.poisson_disk(
+      key, x32, r, cap, max_per_cell=max_per_cell,
+      max_neighbors=max_neighbors))
   if budget is None:
     mult, res = 1.0, fn(jnp.asarray(radius, jnp.float32))
     poisson.check_overflow(res, 'select_drivers')
   else:
-    mult, res = pgas.scale_for_budget(fn, radius, budget, iters=bisect_iters)
+    x0, dim = _first_multiplier(cand.x, radius, budget)
+    mult, res = pgas.scale_for_budget(fn, radius, budget, iters=bisect_iters,
+                                      rtol=budget_rtol, x0=x0, dim=dim)
   v = np.asarray(res.valid)
   idx = np.asarray(res.index)[v]
   x = cand.x[idx]

@@ -172,39 +172,71 @@ def pgas_sample(
 
 def scale_for_budget(
   sample_fn, radius, budget: int, lo: float = 0.05, hi: float = 20.0,
-  iters: int = 18,
+  iters: int = 18, rtol: float = 0.0, x0: float = 1.0, dim: float = 2.5,
 ) -> tuple[float, poisson.PoissonResult]:
-  """Host bisection on a radius multiplier to keep about ``budget`` samples.
+  """Host search on a radius multiplier to keep at most ``budget`` samples.
+
+  The count falls about as ``m^-d`` with the multiplier ``m`` (``d`` = 2 on
+  surfaces, 3 in volumes), so a safeguarded secant on ``log count`` vs
+  ``log m`` (starting slope ``-dim``, then the slope through the last two
+  evaluations; a geometric bisection step whenever the secant leaves the
+  bracket) lands in ``[(1 - rtol) budget, budget]`` in 3-5 evaluations of
+  ``sample_fn`` from a reasonable ``x0``, instead of ~12 bisection steps.
 
   Args:
     sample_fn: ``radius (N,) -> PoissonResult`` (capacity >= budget).
     radius: (N,) radius field whose shape is kept.
-    budget: target count.
+    budget: the most samples to keep.
     lo, hi: bracket of the multiplier.
-    iters: bisection steps.
+    iters: most evaluations of ``sample_fn``.
+    rtol: stop as soon as ``(1 - rtol) budget <= count <= budget``
+      (0: only an exact hit stops early).
+    x0: first multiplier tried (clipped into the bracket).
+    dim: starting guess of ``d``.
 
   Returns:
-    (multiplier, result with count <= budget, the closest found).
+    (multiplier, result with count <= budget, the largest count found).
   """
   radius = np.asarray(radius)
   best = None
+  goal = budget * (1.0 - 0.5 * rtol) if rtol > 0 else budget - 0.5
+  lo_, hi_ = lo, hi
+  m = float(np.clip(x0, lo, hi))
+  prev = None  # (log m, log count) of the previous evaluation
   for _ in range(iters):
-    mid = math.sqrt(lo * hi)
-    res = sample_fn(jnp.asarray(radius * mid, jnp.float32))
+    res = sample_fn(jnp.asarray(radius * m, jnp.float32))
     cnt = int(res.count)
     if int(res.overflow_code) & 6:
-      # Radius too large for the hash-grid capacities: shrink it.
-      hi = mid
+      # Radius too large for the jittable path's capacities: shrink it.
+      hi = m
+      cnt = None
     elif cnt > budget:
-      lo = mid
+      lo = m
     else:
-      best = (mid, res)
-      hi = mid
-      if cnt == budget:
+      if best is None or cnt > int(best[1].count):
+        best = (m, res)
+      hi = m
+      if cnt >= (1.0 - rtol) * budget:
         break
+    nxt = None
+    if cnt:
+      cur = (math.log(m), math.log(cnt))
+      slope = -dim
+      if prev is not None and abs(cur[0] - prev[0]) > 1e-12:
+        s = (cur[1] - prev[1]) / (cur[0] - prev[0])
+        if -6.0 < s < -0.5:
+          slope = s
+      nxt = math.exp(cur[0] + (math.log(goal) - cur[1]) / slope)
+      prev = cur
+    # Bisect (geometrically) when the secant leaves the bracket.
+    if nxt is None or not lo * 1.0001 < nxt < hi * 0.9999:
+      nxt = math.sqrt(lo * hi)
+    if hi / lo < 1.0 + 1e-6:
+      break
+    m = nxt
   if best is None:
     raise ValueError(
-      f'scale_for_budget: no radius multiplier in [{lo:.3g}, {hi:.3g}] keeps '
-      f'<= {budget} samples within the capacities; raise hi, or the '
+      f'scale_for_budget: no radius multiplier in [{lo_:.3g}, {hi_:.3g}] '
+      f'keeps <= {budget} samples within the capacities; raise hi, or the '
       'max_per_cell / max_neighbors of sample_fn')
   return best
