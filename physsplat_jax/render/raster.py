@@ -101,6 +101,14 @@ class RenderConfig:
     sh_degree: SH degree to evaluate (None: all the coefficients given).
     prefix: 'matmul' (triangular-matrix prefix sum, fastest on CPU) or
       'cumsum'.
+    subtile_size: edge of the compositing sub-tiles [pixels], dividing
+      ``tile_size`` (None: the tile). Each sub-tile composites only the
+      Gaussians of its tile that can reach it (see ``tight_bounds``); the
+      image is the same, the work smaller for small splats.
+    tight_bounds: bin each Gaussian only where its alpha can reach
+      ``alpha_min``: inside the ellipse ``sigma <= log(opacity /
+      alpha_min)`` (per-axis box), intersected with gsplat's 3-sigma tile
+      rectangle. Exact: the pixels left out would all be skipped.
   """
 
   tile_size: int = 16
@@ -116,6 +124,13 @@ class RenderConfig:
   t_min: float = 1e-4
   sh_degree: int | None = None
   prefix: str = 'matmul'
+  subtile_size: int | None = 8
+  tight_bounds: bool = True
+
+  @property
+  def resolved_subtile(self) -> int:
+    """Edge of the compositing sub-tiles [pixels]."""
+    return self.tile_size if self.subtile_size is None else self.subtile_size
 
   def resolved_capacity(self, num_gaussians: int) -> int:
     """The slot count used for ``num_gaussians`` Gaussians."""
@@ -219,6 +234,13 @@ def _check_inputs(gaussians, camera, background, covariances, view_rotations,
       f'RenderConfig: tile_size ({config.tile_size}) and chunk_size '
       f'({config.chunk_size}) must be >= 1'
     )
+  st = config.resolved_subtile
+  if st < 1 or config.tile_size % st:
+    raise ValueError(
+      f'RenderConfig.subtile_size ({config.subtile_size}) must divide '
+      f'tile_size ({config.tile_size}); use e.g. 8 for 16-pixel tiles, or '
+      'None'
+    )
   if config.resolved_capacity(K) < 1:
     raise ValueError(
       f'RenderConfig.capacity must be >= 1, got {config.capacity}'
@@ -260,39 +282,84 @@ def gaussian_colors(
 
 class _Binned(struct.PyTreeNode):
   gid: Array  # (capacity,) Gaussian of each sorted slot
-  ranges: Array  # (num_tiles + 1,) start of each tile's slots
+  ranges: Array  # (num_subtiles + 1,) start of each sub-tile's slots
   total: Array  # () intersections needed
-  max_tile: Array  # () largest tile count
+  max_tile: Array  # () largest sub-tile count
 
 
-def _bin_and_sort(proj: Projected, tiles_x: int, tiles_y: int, tile: int,
+# Relative and absolute [pixels] slack of the tight bounds, far above float32
+# round-off of the alpha test at the boundary.
+_BOUND_RTOL = 1e-3
+_BOUND_ATOL = 1e-2
+
+
+def _bin_and_sort(proj: Projected, opacities: Array, tiles_x: int,
+                  tiles_y: int, config: RenderConfig,
                   capacity: int) -> _Binned:
-  """Static-capacity (tile, depth) binning; see the module docstring."""
+  """Static-capacity (sub-tile, depth) binning; see the module docstring.
+
+  Sub-tiles are numbered tile by tile (``tile * S + q``, ``S`` sub-tiles per
+  tile, ``q`` row-major inside the tile), so a tile's sub-tiles are
+  contiguous in the sorted list.
+  """
   K = proj.depths.shape[0]
-  num_tiles = tiles_x * tiles_y
+  tile = config.tile_size
+  st = config.resolved_subtile
+  sub = tile // st
+  S = sub * sub
   m = lax.stop_gradient(proj.means2d)
   r = proj.radii.astype(m.dtype)
+  # gsplat's tile rectangle [x0, x1) x [y0, y1) in tiles, in sub-tiles.
   fl = lambda v, hi: jnp.clip(jnp.floor(v / tile), 0, hi).astype(jnp.int32)
   ce = lambda v, hi: jnp.clip(jnp.ceil(v / tile), 0, hi).astype(jnp.int32)
-  x0, x1 = fl(m[:, 0] - r, tiles_x), ce(m[:, 0] + r, tiles_x)
-  y0, y1 = fl(m[:, 1] - r, tiles_y), ce(m[:, 1] + r, tiles_y)
-  w = x1 - x0
-  n = jnp.where(proj.valid, w * (y1 - y0), 0)
-  ends = jnp.cumsum(n)
+  x0, x1 = sub * fl(m[:, 0] - r, tiles_x), sub * ce(m[:, 0] + r, tiles_x)
+  y0, y1 = sub * fl(m[:, 1] - r, tiles_y), sub * ce(m[:, 1] + r, tiles_y)
+  valid = proj.valid
+  if config.tight_bounds:
+    # alpha = o exp(-sigma) >= alpha_min  <=>  sigma <= log(o / alpha_min);
+    # the ellipse 0.5 d^T Sigma2d^-1 d <= s spans +-sqrt(2 s Sigma2d_xx) in
+    # x (Sigma2d = conic^-1).
+    a, b, c = (lax.stop_gradient(proj.conics[:, i]) for i in range(3))
+    det = a * c - b * b
+    o = lax.stop_gradient(opacities)
+    s_max = jnp.log(jnp.maximum(o, 1e-30) / config.alpha_min)
+    valid = valid & (s_max > 0.0) & (det > 0.0)
+    inv_det = 1.0 / jnp.where(det > 0.0, det, 1.0)
+    two_s = 2.0 * jnp.maximum(s_max, 0.0)
+    ex = jnp.sqrt(two_s * c * inv_det) * (1 + _BOUND_RTOL) + _BOUND_ATOL
+    ey = jnp.sqrt(two_s * a * inv_det) * (1 + _BOUND_RTOL) + _BOUND_ATOL
+    sfl = lambda v, hi: jnp.clip(jnp.floor(v / st), 0, hi).astype(jnp.int32)
+    sce = lambda v, hi: jnp.clip(jnp.ceil(v / st), 0, hi).astype(jnp.int32)
+    x0 = jnp.maximum(x0, sfl(m[:, 0] - ex, sub * tiles_x))
+    x1 = jnp.minimum(x1, sce(m[:, 0] + ex, sub * tiles_x))
+    y0 = jnp.maximum(y0, sfl(m[:, 1] - ey, sub * tiles_y))
+    y1 = jnp.minimum(y1, sce(m[:, 1] + ey, sub * tiles_y))
+  w = jnp.maximum(x1 - x0, 0)
+  n = jnp.where(valid, w * jnp.maximum(y1 - y0, 0), 0)
+  # Emit the intersections in depth order (one sort of K depths), then a
+  # stable sort on the sub-tile id alone keeps each sub-tile front to back:
+  # cheaper than sorting (tile, depth) pairs.
+  depth = jnp.where(valid, lax.stop_gradient(proj.depths), jnp.inf)
+  order = jnp.argsort(depth).astype(jnp.int32)  # stable: ties by index
+  n_o = n[order]
+  ends = jnp.cumsum(n_o)
   total = ends[-1]
-  starts = ends - n
+  starts = ends - n_o
   slots = jnp.arange(capacity, dtype=jnp.int32)
-  g = jnp.searchsorted(ends, slots, side='right').astype(jnp.int32)
-  g = jnp.minimum(g, K - 1)
-  local = slots - starts[g]
+  k = jnp.searchsorted(ends, slots, side='right').astype(jnp.int32)
+  k = jnp.minimum(k, K - 1)
+  g = order[k]
+  local = slots - starts[k]
   wg = jnp.maximum(w[g], 1)
-  tile_id = (y0[g] + local // wg) * tiles_x + x0[g] + local % wg
-  used = slots < total
-  tile_id = jnp.where(used, tile_id, num_tiles)
-  depth = jnp.where(used, lax.stop_gradient(proj.depths)[g], jnp.inf)
-  tile_s, _, gid = lax.sort((tile_id, depth, g), num_keys=2)
+  X = x0[g] + local % wg
+  Y = y0[g] + local // wg
+  tile_id = (Y // sub) * tiles_x + X // sub
+  sub_id = tile_id * S + (Y % sub) * sub + X % sub
+  num_sub = tiles_x * tiles_y * S
+  sub_id = jnp.where(slots < total, sub_id, num_sub)
+  sub_s, gid = lax.sort((sub_id, g), num_keys=1, is_stable=True)
   ranges = jnp.searchsorted(
-    tile_s, jnp.arange(num_tiles + 1, dtype=jnp.int32), side='left'
+    sub_s, jnp.arange(num_sub + 1, dtype=jnp.int32), side='left'
   ).astype(jnp.int32)
   counts = ranges[1:] - ranges[:-1]
   return _Binned(gid=gid, ranges=ranges, total=total, max_tile=counts.max())
@@ -309,82 +376,88 @@ def _features(proj: Projected, colors: Array, opacities: Array) -> Array:
   )
 
 
-def _tile_pixels(tiles_x: int, tile: int, t: Array, dtype):
-  """Pixel-centre coordinates (P,) of tile ``t`` (row-major inside)."""
+def _tile_pixels(tiles_x: int, tile: int, st: int, t: Array, dtype):
+  """Pixel-centre coordinates (S, st * st) of tile ``t``, per sub-tile."""
+  sub = tile // st
   ty, tx = t // tiles_x, t % tiles_x
-  j = jnp.arange(tile * tile) % tile
-  i = jnp.arange(tile * tile) // tile
+  q = jnp.arange(sub * sub)[:, None]
+  p = jnp.arange(st * st)[None, :]
+  j = (q % sub) * st + p % st
+  i = (q // sub) * st + p // st
   px = (tx * tile + j).astype(dtype) + 0.5
   py = (ty * tile + i).astype(dtype) + 0.5
   return px, py
 
 
-def _composite_chunk(feat, gid, px, py, base, end, carry, config, upper):
-  """Blends Gaussians ``[base, base + C) & [.., end)`` of a tile's list.
+def _composite_chunk(feat, gid, px, py, base, end, carry, config, strict_upper,
+                     guard):
+  """Blends Gaussians ``[base, base + C) & [.., end)`` of each sub-tile.
 
-  carry = (log_T (P,), done (P,) bool, rgb (P, 3), depth (P,)).
+  base, end: (S,) per sub-tile; px, py: (S, P) pixel centres;
+  carry = (log_T (S, P), done (S, P) bool, acc (S, P, 4) rgb + depth).
+  guard: mask negative exponents before ``exp`` (keeps reverse-mode
+  gradients finite; not needed for the forward value).
   """
-  log_t, done, rgb, dep = carry
+  log_t, done, acc = carry
   C = config.chunk_size
-  idx = base + jnp.arange(C, dtype=jnp.int32)
-  inside = idx < end
-  f = feat[gid[jnp.clip(idx, 0, gid.shape[0] - 1)]]  # (C, 10)
-  dx = f[None, :, 0] - px[:, None]
-  dy = f[None, :, 1] - py[:, None]
-  sigma = 0.5 * (f[None, :, 2] * dx * dx + f[None, :, 4] * dy * dy)
-  sigma = sigma + f[None, :, 3] * dx * dy
-  ok = inside[None, :] & (sigma >= 0.0)
-  sigma = jnp.where(ok, sigma, _MASKED_SIGMA)
-  alpha = jnp.minimum(config.alpha_max, f[None, :, 5] * jnp.exp(-sigma))
-  use = ok & (alpha >= config.alpha_min)
-  a = jnp.where(use, alpha, 0.0)
-  la = jnp.log1p(-a)  # (P, C)
+  log_t_min = math.log(config.t_min)
+  idx = base[:, None] + jnp.arange(C, dtype=jnp.int32)  # (S, C)
+  inside = idx < end[:, None]
+  f = feat[gid[jnp.clip(idx, 0, gid.shape[0] - 1)]]  # (S, C, 10)
+  # Slots past the list get opacity 0 (alpha 0 < alpha_min: skipped).
+  opac = jnp.where(inside, f[..., 5], 0.0)[:, None, :]
+  fx = lambda c: f[:, None, :, c]
+  dx = fx(0) - px[..., None]  # (S, P, C)
+  dy = fx(1) - py[..., None]
+  sigma = 0.5 * (fx(2) * dx * dx + fx(4) * dy * dy) + fx(3) * dx * dy
+  ok = sigma >= 0.0
+  if guard:
+    sigma = jnp.where(ok, sigma, _MASKED_SIGMA)
+  alpha = jnp.minimum(config.alpha_max, opac * jnp.exp(-sigma))
+  a = jnp.where(ok & (alpha >= config.alpha_min), alpha, 0.0)
+  la = jnp.log1p(-a)  # (S, P, C); 0 for skipped Gaussians
   if config.prefix == 'matmul':
-    incl = log_t[:, None] + la @ upper
+    excl = log_t[..., None] + la @ strict_upper
   else:
-    incl = log_t[:, None] + jnp.cumsum(la, axis=1)
-  # gsplat: a Gaussian whose next_T would be <= t_min stops the pixel and is
-  # not blended; T is non-increasing so the live ones form a prefix.
-  live = (~done[:, None]) & (incl > math.log(config.t_min))
-  blend = use & live
-  vis = jnp.where(blend, a * jnp.exp(incl - la), 0.0)
-  rgb = rgb + vis @ f[:, 6:9]
-  dep = dep + vis @ f[:, 9]
-  log_t = log_t + jnp.sum(jnp.where(blend, la, 0.0), axis=1)
-  done = done | jnp.any(use & ~live, axis=1)
-  return log_t, done, rgb, dep
-
-
-def _init_carry(P, dtype):
-  return (
-    jnp.zeros((P,), dtype),
-    jnp.zeros((P,), bool),
-    jnp.zeros((P, 3), dtype),
-    jnp.zeros((P,), dtype),
-  )
+    excl = log_t[..., None] + jnp.cumsum(la, axis=-1) - la
+  incl = excl + la
+  # gsplat: the Gaussian whose next_T would be <= t_min stops the pixel and
+  # is not blended; T is non-increasing, so the live ones form a prefix and
+  # the pixel stops in this chunk iff the chunk's last incl is <= log t_min
+  # (skipped Gaussians have la = 0 and blend nothing).
+  live = (~done[..., None]) & (incl > log_t_min)
+  vis = jnp.where(live, a * jnp.exp(excl), 0.0)
+  acc = acc + jnp.einsum('spc,scf->spf', vis, f[..., 6:10])
+  log_t = log_t + jnp.sum(jnp.where(live, la, 0.0), axis=-1)
+  done = done | (incl[..., -1] <= log_t_min)
+  return log_t, done, acc
 
 
 def _rasterize(feat, binned, tiles_x, tiles_y, config, differentiable,
                max_chunks):
   tile = config.tile_size
+  st = config.resolved_subtile
+  S = (tile // st) ** 2
+  P = st * st
   C = config.chunk_size
-  P = tile * tile
   dtype = feat.dtype
-  upper = jnp.triu(jnp.ones((C, C), dtype))
-  chunk = functools.partial(_composite_chunk, config=config, upper=upper)
+  strict_upper = jnp.triu(jnp.ones((C, C), dtype), 1)
+  chunk = functools.partial(_composite_chunk, config=config,
+                            strict_upper=strict_upper, guard=differentiable)
 
   def tile_fn(t):
-    px, py = _tile_pixels(tiles_x, tile, t, dtype)
-    start = binned.ranges[t]
-    end = binned.ranges[t + 1]
-    carry = _init_carry(P, dtype)
+    px, py = _tile_pixels(tiles_x, tile, st, t, dtype)
+    start = lax.dynamic_slice(binned.ranges, (t * S,), (S,))
+    end = lax.dynamic_slice(binned.ranges, (t * S + 1,), (S,))
+    carry = (jnp.zeros((S, P), dtype), jnp.zeros((S, P), bool),
+             jnp.zeros((S, P, 4), dtype))
     if differentiable:
       body = jax.checkpoint(
         lambda i, c: chunk(feat, binned.gid, px, py, start + i * C, end, c)
       )
       carry = lax.fori_loop(0, max_chunks, body, carry)
     else:
-      num = (end - start + C - 1) // C
+      num = jnp.max((end - start + C - 1) // C)
 
       def cond(s):
         i, c = s
@@ -395,19 +468,21 @@ def _rasterize(feat, binned, tiles_x, tiles_y, config, differentiable,
         return i + 1, chunk(feat, binned.gid, px, py, start + i * C, end, c)
 
       _, carry = lax.while_loop(cond, body, (jnp.int32(0), carry))
-    log_t, _, rgb, dep = carry
-    return log_t, rgb, dep
+    log_t, _, acc = carry
+    return log_t, acc
 
   tiles = jnp.arange(tiles_x * tiles_y, dtype=jnp.int32)
   batch = config.tile_batch if config.tile_batch > 1 else None
   return lax.map(tile_fn, tiles, batch_size=batch)
 
 
-def _untile(x, tiles_x, tiles_y, tile, H, W):
-  """(T, P, ...) per-tile pixels -> (H, W, ...) image."""
-  rest = x.shape[2:]
-  x = x.reshape((tiles_y, tiles_x, tile, tile) + rest)
-  x = jnp.swapaxes(x, 1, 2)
+def _untile(x, tiles_x, tiles_y, tile, st, H, W):
+  """(T, S, P, ...) per-sub-tile pixels -> (H, W, ...) image."""
+  sub = tile // st
+  rest = x.shape[3:]
+  x = x.reshape((tiles_y, tiles_x, sub, sub, st, st) + rest)
+  # (ty, tx, qy, qx, i, j) -> (ty, qy, i, tx, qx, j)
+  x = jnp.transpose(x, (0, 2, 4, 1, 3, 5) + tuple(range(6, 6 + len(rest))))
   x = x.reshape((tiles_y * tile, tiles_x * tile) + rest)
   return x[:H, :W]
 
@@ -431,14 +506,16 @@ def _render(gaussians, camera, background, covariances, view_rotations,
                                config.sh_degree)
     feat = _features(proj, colors.astype(dtype), gaussians.opacities)
   with jax.named_scope('bin_sort'):
-    binned = _bin_and_sort(proj, tiles_x, tiles_y, tile, capacity)
+    binned = _bin_and_sort(proj, feat[:, 5], tiles_x, tiles_y, config,
+                           capacity)
   max_chunks = config.resolved_max_chunks(K) if differentiable else 0
   with jax.named_scope('composite'):
-    log_t, rgb, dep = _rasterize(feat, binned, tiles_x, tiles_y, config,
-                                 differentiable, max_chunks)
-  T = jnp.exp(_untile(log_t, tiles_x, tiles_y, tile, H, W))
-  rgb = _untile(rgb, tiles_x, tiles_y, tile, H, W)
-  dep = _untile(dep, tiles_x, tiles_y, tile, H, W)
+    log_t, acc = _rasterize(feat, binned, tiles_x, tiles_y, config,
+                            differentiable, max_chunks)
+  st = config.resolved_subtile
+  T = jnp.exp(_untile(log_t, tiles_x, tiles_y, tile, st, H, W))
+  acc = _untile(acc, tiles_x, tiles_y, tile, st, H, W)
+  rgb, dep = acc[..., :3], acc[..., 3]
   alpha = 1.0 - T
   bg = jnp.asarray(background, dtype)
   image = rgb + T[..., None] * bg
