@@ -610,8 +610,14 @@ def prepare_scene(
   dx = L / config.grid_res
   colliders = find_colliders(x_rs, ids, movable, fixed, names, tol=dx)
   ground = colliders.ground_z
-  lower = np.array([0.5 * (lo[0] + hi[0]) - L / 2, 0.5 * (lo[1] + hi[1]) - L / 2,
-                    min(lo[2], ground) - 4 * dx])
+  # With a ground the grid floor sits 4 cells under it (3 boundary cells);
+  # without one the objects may fall, so the grid is centred on them.
+  if config.ground == 'none':
+    z0 = 0.5 * (lo[2] + hi[2]) - L / 2
+  else:
+    z0 = min(lo[2], ground) - 4 * dx
+  lower = np.array([0.5 * (lo[0] + hi[0]) - L / 2,
+                    0.5 * (lo[1] + hi[1]) - L / 2, z0])
   shift = -lower
   colliders = dataclasses.replace(
     colliders, ground_z=ground + shift[2],
@@ -856,8 +862,10 @@ class Trajectory(struct.PyTreeNode):
   materials: tuple[Array, Array, Array]
 
 
-def make_sim_config(spec: SimSpec, config: PipelineConfig) -> mpm.SimConfig:
-  """The static MPM config of a prepared scene."""
+def make_sim_config(spec: SimSpec, config: PipelineConfig,
+                    dtype: str = 'float32') -> mpm.SimConfig:
+  """The static MPM config of a prepared scene (``dtype``: 'float32' or
+  'float64', that of the prepared arrays)."""
   col = spec.colliders
   bcs = []
   if config.ground != 'none' and col.ground_z is not None:
@@ -886,7 +894,7 @@ def make_sim_config(spec: SimSpec, config: PipelineConfig) -> mpm.SimConfig:
     num_frames=config.num_frames, gravity=(0.0, 0.0, -config.gravity),
     models=tuple(dict.fromkeys(spec.models)), boundary_conditions=tuple(bcs),
     num_bodies=nb, body_fixed=(False,) * nb,
-    remat_frames=config.remat_frames)
+    remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)))
 
 
 def driver_materials(params: Params, prepared: PreparedScene,
@@ -931,7 +939,7 @@ def initial_state(params: Params, prepared: PreparedScene,
                   config: PipelineConfig):
   """``(state, materials, forces, sim_config)`` at frame 0 (pure)."""
   spec = prepared.spec
-  sim_config = make_sim_config(spec, config)
+  sim_config = make_sim_config(spec, config, prepared.x0.dtype)
   E, nu, rho = driver_materials(params, prepared, config)
   materials = _mpm_materials(E, nu, rho, prepared, sim_config)
   v_obj = prepared.frame.vector_to_sim(params.velocity)  # (O, 3)
@@ -1108,7 +1116,7 @@ def run(
   timings = dict(compile=0.0, simulate=0.0, deform=0.0, render=0.0,
                  write=0.0)
   t0 = time.perf_counter()
-  sim_config = make_sim_config(prepared.spec, config)
+  sim_config = make_sim_config(prepared.spec, config, prepared.x0.dtype)
   state, materials, forces = jax.jit(
     lambda p, pr: initial_state(p, pr, config)[:3])(params, prepared)
   deform_jit = jax.jit(deformed_gaussians, static_argnames='config')
@@ -1184,10 +1192,25 @@ def run(
   timings['total'] = time.perf_counter() - t_start
   fr = prepared.frame
   x_scene = np.asarray(fr.to_scene(jnp.asarray(res.positions)), np.float32)
-  return RunOutput(
+  out = RunOutput(
     gaussian_positions=np.stack(g_pos), sim_rows=np.asarray(prepared.sim_rows),
     particle_positions=x_scene, times=res.times, files=files,
     timings=timings, particle_substeps_per_s=res.substeps_per_s)
+  if out_dir is not None:
+    files['trajectory'] = os.path.join(out_dir, 'trajectory.npz')
+    save_trajectory(files['trajectory'], out)
+  return out
+
+
+def save_trajectory(path: str, out: RunOutput) -> None:
+  """Writes ``trajectory.npz``: ``x`` float32 (T+1, Ks, 3) positions of the
+  simulated Gaussians in the input scene's coordinates (frame 0 = initial),
+  ``ids`` (Ks,) their row numbers in the input, ``t`` (T+1,) seconds, and
+  ``particles`` (T+1, N, 3) the driving particles."""
+  np.savez_compressed(
+    path, x=out.gaussian_positions.astype(np.float32),
+    ids=out.sim_rows.astype(np.int64), t=np.asarray(out.times, np.float64),
+    particles=out.particle_positions.astype(np.float32))
 
 
 def _assemble_scene(prepared: PreparedScene, means, covs, rots):
