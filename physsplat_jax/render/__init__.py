@@ -15,3 +15,9 @@ from physsplat_jax.render.raster import (
   render_differentiable as render_differentiable,
 )
 from physsplat_jax.render.raster import render_image as render_image
+from physsplat_jax.render.sh_rotation import rotate_sh as rotate_sh
+from physsplat_jax.render.slices import draw_line as draw_line
+from physsplat_jax.render.slices import space_time_slice as space_time_slice
+from physsplat_jax.render.views import render_scene as render_scene
+from physsplat_jax.render.views import resize_camera as resize_camera
+from physsplat_jax.render.views import scene_camera as scene_camera

@@ -5,15 +5,25 @@ unchanged on CPU and GPU):
 
 1. :func:`~physsplat_jax.render.project.project`: EWA projection to conics.
 2. Binning: each Gaussian covers the tiles ``[floor((m - r) / 16),
-   ceil((m + r) / 16))`` in x and y. The ``n_k`` intersections of Gaussian
-   ``k`` go to slots ``[s_k, s_k + n_k)`` of a buffer of STATIC size
-   ``capacity`` (``s = cumsum(n) - n``); slot ``s`` finds its Gaussian by a
-   binary search of ``cumsum(n)``. When ``sum(n) > capacity`` the output's
-   ``overflow`` flag is set (nothing is silently dropped: :func:`render_image`
-   re-runs with a larger capacity).
-3. ``lax.sort((tile, depth, id), num_keys=2)`` orders intersections by tile,
-   then front to back; per-tile ranges come from a ``searchsorted``.
-4. Compositing per 16x16 tile in chunks of ``C`` Gaussians, exactly as gsplat
+   ceil((m + r) / 16))`` in x and y (gsplat's 3-sigma rectangle). With
+   ``tight_bounds`` this is intersected with the box of the ellipse where
+   its alpha can reach 1/255, ``sigma <= log(255 o)``, whose half-widths are
+   ``sqrt(2 log(255 o) Sigma2d_xx)`` and ``.._yy`` (the opacity-aware,
+   per-axis extent of newer gsplat): every pixel left out would skip this
+   Gaussian anyway, so the image is unchanged. Binning is done on
+   ``subtile_size`` (8 px) sub-tiles, numbered tile by tile. The ``n_k``
+   intersections of Gaussian ``k`` (in depth order) go to slots ``[s_k, s_k
+   + n_k)`` of a buffer of STATIC size ``capacity`` (``s = cumsum(n) - n``);
+   slot ``s`` finds its Gaussian as ``#{k: s_k + n_k <= s}`` (a histogram
+   and a prefix sum). When ``sum(n) > capacity`` the output's ``overflow``
+   flag is set (nothing is silently dropped: :func:`render_image` re-runs
+   with a larger capacity).
+3. Gaussians are sorted by depth once (K keys); since slots are emitted in
+   depth order, one stable sort on the sub-tile id alone orders every
+   sub-tile's list front to back (cheaper than sorting (tile, depth)
+   pairs); per-sub-tile ranges come from a ``searchsorted``.
+4. Compositing per 16x16 tile, its four 8x8 sub-tiles side by side (each
+   walks its own list), in chunks of ``C`` Gaussians, exactly as gsplat
    ``rasterize_to_pixels``::
 
      sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,  dx = mean_x - (j + 0.5)
@@ -23,18 +33,18 @@ unchanged on CPU and GPU):
      image = C + T bg,  alpha_image = 1 - T.
 
    Inside a chunk the exclusive transmittance of every Gaussian is
-   ``T0 exp(sum_{k<i} log(1 - alpha_k))``; the prefix sum is a matmul with an
-   upper-triangular matrix of ones, which is much faster than ``cumprod`` on
-   CPU (REFERENCE 5.2) and identical up to rounding.
+   ``T0 exp(sum_{k<i} log(1 - alpha_k))``; the prefix sum is a matmul with a
+   strictly upper-triangular matrix of ones, which is much faster than
+   ``cumprod`` on CPU (REFERENCE 5.2) and identical up to rounding.
 
 Two compositing loops share this code:
 
 * :func:`render` (render-only): per tile, a ``lax.while_loop`` over chunks that
-  stops when the tile's list ends or every pixel has stopped. Exact, fast, not
-  reverse-differentiable.
+  stops when every sub-tile's list has ended or every pixel has stopped.
+  Exact, fast, not reverse-differentiable.
 * :func:`render_differentiable`: a static ``max_chunks`` per tile with a
-  ``jax.checkpoint``-ed chunk body (memory: one carry per chunk). Tiles with
-  more than ``max_chunks * C`` Gaussians set ``overflow``.
+  ``jax.checkpoint``-ed chunk body (memory: one carry per chunk). Sub-tiles
+  with more than ``max_chunks * C`` Gaussians set ``overflow``.
 
 Colour is ``max(SH(dir) + 0.5, 0)`` with ``dir = mean - camera_position``
 (world frame, INRIA ``computeColorFromSH``), or explicit per-Gaussian colours.
@@ -159,7 +169,8 @@ class RenderOutput(struct.PyTreeNode):
     overflow: () bool, True if intersections were dropped (capacity, or
       ``max_chunks`` on the differentiable path): the image is then wrong.
     num_intersections: () int32 (Gaussian, tile) pairs needed.
-    max_tile_count: () int32 largest number of Gaussians in one tile.
+    max_tile_count: () int32 largest number of Gaussians in one compositing
+      (sub-)tile.
     num_visible: () int32 Gaussians that survived culling.
   """
 
