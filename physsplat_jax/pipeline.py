@@ -303,12 +303,13 @@ class Colliders:
     ground_z: height of the support plane [m], or None.
     anchors: ((lo (3,), hi (3,)), ...) sticky boxes [m]: fixed objects that
       are not a plane under the movable ones (e.g. the pot of a plant).
-    notes: one line per fixed object saying what it became.
+    notes: one line per fixed object saying what it became (for reports;
+      not part of equality, so it never causes a recompilation).
   """
 
   ground_z: float | None
   anchors: tuple[tuple[tuple[float, ...], tuple[float, ...]], ...]
-  notes: tuple[str, ...]
+  notes: tuple[str, ...] = dataclasses.field(default=(), compare=False)
 
 
 def find_colliders(means_sim: np.ndarray, object_ids: np.ndarray,
@@ -532,6 +533,17 @@ def render_camera(scene: Scene, config: PipelineConfig) -> Camera:
   from physsplat_jax import cameras as cam_lib
 
   w, h = config.width, config.height
+  cam = _render_camera(scene, config, w, h)
+  # near/far are static fields of Camera: quantise them (near down, far up,
+  # 3 significant digits) so equal views compile once.
+  lo = lambda v: float(f'{v * (1 - 1e-3):.3g}')  # noqa: E731
+  hi = lambda v: float(f'{v * (1 + 1e-3):.3g}')  # noqa: E731
+  return cam.replace(near=lo(cam.near), far=hi(cam.far), name='')
+
+
+def _render_camera(scene: Scene, config: PipelineConfig, w: int, h: int):
+  from physsplat_jax import cameras as cam_lib
+
   if config.camera_index >= 0 and scene.cameras:
     if config.camera_index >= len(scene.cameras):
       raise PipelineError(
@@ -607,6 +619,10 @@ def prepare_scene(
   L = float(np.max(ext)) * (1 + 2 * config.margin)
   for _ in range(2):  # vertical room: 4 cells below, 4 above the objects
     L = max(L, float(ext[2]) + 8 * L / config.grid_res)
+  # Static values are quantised (grid side to 6 significant digits,
+  # positions to 0.1 um) so equal geometry gives an equal SimSpec, i.e. one
+  # compilation, whatever the rounding of the input coordinates.
+  L = float(f'{L:.6g}')
   dx = L / config.grid_res
   colliders = find_colliders(x_rs, ids, movable, fixed, names, tol=dx)
   ground = colliders.ground_z
@@ -619,10 +635,10 @@ def prepare_scene(
   lower = np.array([0.5 * (lo[0] + hi[0]) - L / 2,
                     0.5 * (lo[1] + hi[1]) - L / 2, z0])
   shift = -lower
+  q = lambda v: tuple(round(float(c), 7) for c in v)  # noqa: E731
   colliders = dataclasses.replace(
-    colliders, ground_z=ground + shift[2],
-    anchors=tuple((tuple(np.add(a, shift).tolist()),
-                   tuple(np.add(b, shift).tolist()))
+    colliders, ground_z=round(float(ground + shift[2]), 7),
+    anchors=tuple((q(np.add(a, shift)), q(np.add(b, shift)))
                   for a, b in colliders.anchors))
   frame = SimFrame(rotation=jnp.asarray(R, jnp.float32),
                    scale=jnp.asarray(s, jnp.float32),
@@ -747,7 +763,7 @@ def prepare_scene(
     else:
       sel = dobj == oi if oi >= 0 else np.ones(len(x0), bool)
       p = x0[sel].mean(0)
-    f_pts.append(tuple(float(v) for v in p))
+    f_pts.append(q(p))
   for name, _ in config.initial_velocity:
     if name and name not in [names[o] for o in movable]:
       raise PipelineError(
