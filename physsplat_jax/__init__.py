@@ -1,12 +1,24 @@
 """physsplat_jax: PhysSplat (ICCV 2025) in pure JAX.
 
 Turns a static 3D Gaussian Splatting scene into a physically simulated one
-(MLS-MPM) and renders it, differentiably, on CPU and GPU.
+(MLS-MPM) and renders it, differentiably, on CPU and GPU::
 
-The public API is re-exported here; import from ``physsplat_jax`` rather than
-from submodules.
+  import physsplat_jax as ps
+
+  scene = ps.load_scene('tabletop')                 # built-in name or PLY
+  materials = ps.perceive_scene(scene)              # MLLM-P3 or library
+  config = ps.PipelineConfig(num_frames=30)
+  prepared, report = ps.prepare_scene(scene, materials, config)
+  params = ps.init_params(prepared, config)
+  traj = ps.simulate_jit(params, prepared, config)  # pure, differentiable
+  ps.run(params, prepared, config, out_dir='out')   # video, PNG, PLY
+
+The public API is re-exported here; import from ``physsplat_jax`` (or the
+subpackages ``mpm``, ``render``, ``sampling``, ``perception``,
+``segmentation``, ``mpdp``, ``io``, ``scenes``) rather than from modules.
 """
 
+# Core types and Gaussian maths.
 from physsplat_jax.gaussians import covariance as covariance
 from physsplat_jax.gaussians import decompose_covariance as decompose_covariance
 from physsplat_jax.gaussians import eval_sh as eval_sh
@@ -18,5 +30,57 @@ from physsplat_jax.types import ObjectInfo as ObjectInfo
 from physsplat_jax.types import Scene as Scene
 from physsplat_jax.types import concatenate_gaussians as concatenate_gaussians
 from physsplat_jax.types import make_camera as make_camera
+
+# Scenes in and out.
+from physsplat_jax.io.cameras import load_cameras as load_cameras
+from physsplat_jax.io.export import save_deformed_ply as save_deformed_ply
+from physsplat_jax.io.ply import PlyError as PlyError
+from physsplat_jax.io.ply import load_ply as load_ply
+from physsplat_jax.io.ply import save_ply as save_ply
+from physsplat_jax.io.scene import SceneFileError as SceneFileError
+from physsplat_jax.io.scene import load_scene as load_scene
+from physsplat_jax.io.scene import save_scene as save_scene
+from physsplat_jax.io.splat import load_splat as load_splat
+from physsplat_jax.io.splat import save_splat as save_splat
+from physsplat_jax.io.video import VideoWriter as VideoWriter
+from physsplat_jax.io.video import write_video as write_video
+from physsplat_jax.scenes import gaussians_from_mesh as gaussians_from_mesh
+from physsplat_jax.scenes import list_scenes as list_scenes
+from physsplat_jax.scenes import make_scene as make_scene
+
+# Segmentation and material perception.
+from physsplat_jax.io.mllm import MLLMConfig as MLLMConfig
+from physsplat_jax.perception import MaterialChoice as MaterialChoice
+from physsplat_jax.perception import MaterialLibrary as MaterialLibrary
+from physsplat_jax.perception import PerceptionOptions as PerceptionOptions
+from physsplat_jax.perception import default_library as default_library
+from physsplat_jax.perception import perceive_scene as perceive_scene
+from physsplat_jax.segmentation import Segmentation as Segmentation
+from physsplat_jax.segmentation import fill_support_hole as fill_support_hole
+from physsplat_jax.segmentation import segment as segment
+
+# Rendering.
+from physsplat_jax.render import RenderConfig as RenderConfig
+from physsplat_jax.render import render as render
+from physsplat_jax.render import render_differentiable as render_differentiable
+from physsplat_jax.render import render_image as render_image
+from physsplat_jax.render import render_scene as render_scene
+from physsplat_jax.render import space_time_slice as space_time_slice
+
+# Simulation.
+from physsplat_jax.mpm import SimulationError as SimulationError
+from physsplat_jax.pipeline import ForceSpec as ForceSpec
+from physsplat_jax.pipeline import ObjectMaterial as ObjectMaterial
+from physsplat_jax.pipeline import Params as Params
+from physsplat_jax.pipeline import PipelineConfig as PipelineConfig
+from physsplat_jax.pipeline import PipelineError as PipelineError
+from physsplat_jax.pipeline import PreparedScene as PreparedScene
+from physsplat_jax.pipeline import RunOutput as RunOutput
+from physsplat_jax.pipeline import Trajectory as Trajectory
+from physsplat_jax.pipeline import init_params as init_params
+from physsplat_jax.pipeline import prepare_scene as prepare_scene
+from physsplat_jax.pipeline import run as run
+from physsplat_jax.pipeline import simulate as simulate
+from physsplat_jax.pipeline import simulate_jit as simulate_jit
 
 __version__ = '0.1.0'
