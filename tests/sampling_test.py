@@ -360,13 +360,22 @@ class DrivingTest(parameterized.TestCase):
     self.assertGreater(int((~c.is_surface).sum()), 100)
     per_obj = [c.volume[c.object_ids == o].sum() for o in (0, 1)]
     np.testing.assert_allclose(per_obj, 4 / 3 * np.pi, rtol=0.3)
+    # Uniform density: a fill point owns one fill cell (dx^3), the Gaussian
+    # centres of an object share half its shell cells equally.
+    for o in (0, 1):
+      fill = c.volume[(c.object_ids == o) & ~c.is_surface]
+      surf = c.volume[(c.object_ids == o) & c.is_surface]
+      np.testing.assert_allclose(fill, fill[0], rtol=1e-12)
+      np.testing.assert_allclose(surf, surf[0], rtol=1e-12)
+      dx = fill[0] ** (1.0 / 3.0)
+      self.assertAlmostEqual(dx, 2.0 / (12 - 4), delta=0.02)  # ext / inner
 
   @parameterized.named_parameters(('_pgas', 'pgas'), ('_uniform', 'uniform'))
   def test_budget_search(self, method):
     cfg = pgas.PGASConfig(base_radius=0.6)
     d = sampling.select_drivers(
       jax.random.PRNGKey(1), self.cand, method, E={0: 1e5, 1: 5e6},
-      config=cfg, budget=150)
+      config=cfg, budget=150, lloyd_steps=0)
     self.assertLessEqual(len(d.x), 150)
     self.assertGreaterEqual(len(d.x), 0.98 * 150)
     np.testing.assert_allclose(d.volume.sum(), self.cand.volume.sum(),
@@ -379,9 +388,61 @@ class DrivingTest(parameterized.TestCase):
     # The jittable backend keeps the same drivers.
     dj = sampling.select_drivers(
       jax.random.PRNGKey(1), self.cand, method, E={0: 1e5, 1: 5e6},
-      config=cfg, budget=150, backend='jax')
+      config=cfg, budget=150, backend='jax', lloyd_steps=0)
     np.testing.assert_array_equal(np.sort(d.candidate_index),
                                   np.sort(dj.candidate_index))
+
+  def test_pgas_budget_keeps_the_base_radius_first(self):
+    # A tight budget: the cap-first search keeps the stiff object at the
+    # base resolution and takes the soft object's extra drivers away; one
+    # factor on every radius starves the stiff object instead.
+    cfg = pgas.PGASConfig(base_radius=0.5)
+    E = {0: 1e5, 1: 5e6}
+    key = jax.random.PRNGKey(2)
+    cap = sampling.select_drivers(key, self.cand, 'pgas', E=E, config=cfg,
+                                  budget=120)
+    one = sampling.select_drivers(key, self.cand, 'pgas', E=E, config=cfg,
+                                  budget=120, pgas_cap_first=False)
+    n_cap = [np.sum(cap.object_ids == o) for o in (0, 1)]
+    n_one = [np.sum(one.object_ids == o) for o in (0, 1)]
+    self.assertGreater(n_cap[1], 1.5 * n_one[1], (n_cap, n_one))
+    self.assertGreater(n_cap[0], n_cap[1])  # still more on the soft one
+    self.assertLessEqual(cap.radius.max(), cfg.base_radius * (1 + 1e-6))
+
+  def test_capped_family(self):
+    r = np.array([0.1, 0.2, 0.5])
+    fn = pgas.capped_family(r, 0.5)
+    np.testing.assert_allclose(fn(0.5), 0.5 * r)
+    np.testing.assert_allclose(fn(1.0), r)
+    np.testing.assert_allclose(fn(2.0), [0.2, 0.4, 0.5])  # capped
+    np.testing.assert_allclose(fn(10.0), [1.0, 1.0, 1.0])  # uniform beyond
+    ts = np.geomspace(0.1, 50, 200)
+    rs = np.stack([fn(t) for t in ts])
+    self.assertTrue(np.all(np.diff(rs, axis=0) >= -1e-15))
+
+  def test_lloyd_step_centres_the_drivers(self):
+    cfg = pgas.PGASConfig(base_radius=0.6)
+    kw = dict(E={0: 1e5, 1: 5e6}, config=cfg, budget=100)
+    d0 = sampling.select_drivers(jax.random.PRNGKey(1), self.cand, 'uniform',
+                                 lloyd_steps=0, **kw)
+    d1 = sampling.select_drivers(jax.random.PRNGKey(1), self.cand, 'uniform',
+                                 lloyd_steps=1, **kw)
+    np.testing.assert_array_equal(d0.candidate_index, d1.candidate_index)
+    np.testing.assert_array_equal(d0.x, self.cand.x[d0.candidate_index])
+    self.assertFalse(np.allclose(d0.x, d1.x))
+
+    def quantisation(d):  # volume-weighted squared distance to the driver
+      err = 0.0
+      for o in (0, 1):
+        c = self.cand.object_ids == o
+        dist, _ = spatial.cKDTree(d.x[d.object_ids == o]).query(
+          self.cand.x[c])
+        err += np.sum(self.cand.volume[c] * dist**2)
+      return err
+
+    self.assertLess(quantisation(d1), 0.9 * quantisation(d0))
+    np.testing.assert_allclose(d1.volume.sum(), self.cand.volume.sum(),
+                               rtol=1e-9)
 
   @parameterized.named_parameters(
     ('_pgas', 'pgas'), ('_uniform', 'uniform'), ('_kmeans', 'kmeans'))

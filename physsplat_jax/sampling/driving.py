@@ -8,7 +8,12 @@ driving particles are then chosen by one of
 - ``'uniform'``: Poisson disk with one radius everywhere,
 - ``'kmeans'``: K-means centres (PhysDreamer),
 
-optionally scaled to a fixed budget (bisection on the radius multiplier).
+optionally scaled to a fixed budget (a secant search on the radius scale,
+3-5 Poisson-disk evaluations; for PGAS the base radius stays an upper bound
+first, :func:`~physsplat_jax.sampling.pgas.capped_family`). The Poisson disk
+runs on the host by default
+(:func:`~physsplat_jax.sampling.poisson.poisson_disk_host`, the same kept
+set as the jittable :func:`~physsplat_jax.sampling.poisson.poisson_disk`).
 Each driver gets the volume of the candidates closest to it (a discrete
 Voronoi volume), so ``mass = rho * volume`` sums to the object's mass.
 Sampling is discrete and stays outside the gradient path.
@@ -36,9 +41,11 @@ class Candidates(struct.PyTreeNode):
     is_surface: (M,) bool, True for Gaussian centres.
     object_ids: (M,) int32 object per point.
     covariances: (M, 3, 3) Gaussian covariances (zero for fill points).
-    volume: (M,) volume per candidate [scene units^3]: the object's volume
-      (interior cells + half the shell cells of the fill grid; the convex
-      hull without fill) split evenly over its candidates.
+    volume: (M,) volume per candidate [scene units^3]. With fill: a fill
+      point owns ``dx^3 / particles_per_cell`` of its interior cell and the
+      object's Gaussian centres share half of its shell cells, so the object
+      volume is interior + half the shell and the density is uniform.
+      Without fill: the convex hull split evenly over the candidates.
     gaussian_index: (M,) int32 source Gaussian (-1 for fill points).
   """
 
@@ -100,35 +107,64 @@ def make_candidates(
     gidx.append(np.full(len(fp), -1, np.int32))
   x = np.concatenate(xs)
   ob = np.concatenate(ids)
+  is_surf = np.concatenate(surf)
   vol = np.zeros(len(x))
   for o in np.unique(ob):
     m = ob == o
     if int(o) in info and info[int(o)]['num_inside'] > 0:
-      # Interior cells plus half the shell cells (the surface cuts them).
+      # Each fill point owns its share of an interior cell; the Gaussian
+      # centres share half the shell cells (the surface cuts them), so the
+      # density is uniform rather than piled onto the densely splatted shell.
       f = info[int(o)]
-      v = (f['num_inside'] + 0.5 * f['num_occupied']) * f['dx'] ** 3
+      cell = f['dx'] ** 3
+      vol[m & ~is_surf] = cell / fill_config.particles_per_cell
+      ms = m & is_surf
+      vol[ms] = 0.5 * f['num_occupied'] * cell / max(int(ms.sum()), 1)
     else:
       try:
         v = spatial.ConvexHull(x[m]).volume
       except Exception:  # noqa: BLE001 - degenerate (flat) objects
         v = 0.0
-    vol[m] = v / m.sum()
-  return Candidates(x=x, is_surface=np.concatenate(surf), object_ids=ob,
+      vol[m] = v / m.sum()
+  return Candidates(x=x, is_surface=is_surf, object_ids=ob,
                     covariances=np.concatenate(cov_l), volume=vol,
                     gaussian_index=np.concatenate(gidx))
 
 
-def _voronoi_volume(cand: Candidates, drivers_x, driver_obj):
+def _voronoi_volume(cand: Candidates, drivers_x, driver_obj,
+                    return_centroid: bool = False):
+  """Volume (and volume centroid) of the candidates nearest to each driver.
+
+  Candidates go to the nearest driver of their own object (a discrete
+  Voronoi cell); drivers of an object that got no candidate keep volume 0.
+  """
   vol = np.zeros(len(drivers_x))
+  cen = np.zeros((len(drivers_x), 3))
   for o in np.unique(cand.object_ids):
     dm = np.nonzero(driver_obj == o)[0]
-    cm = cand.object_ids == o
+    cm = np.nonzero(cand.object_ids == o)[0]
     if len(dm) == 0:
       raise ValueError(f'object {o} got no driving particle; raise the '
                        'budget or lower the radius')
-    _, nn = spatial.cKDTree(drivers_x[dm]).query(cand.x[cm])
-    np.add.at(vol, dm[nn], cand.volume[cm])
+    _, nn = spatial.cKDTree(drivers_x[dm]).query(cand.x[cm], workers=-1)
+    w = cand.volume[cm]
+    vol[dm] = np.bincount(nn, w, minlength=len(dm))
+    if return_centroid:
+      for a in range(3):
+        cen[dm, a] = np.bincount(nn, w * cand.x[cm, a], minlength=len(dm))
+  if return_centroid:
+    ok = vol > 0
+    cen[ok] /= vol[ok, None]
+    cen[~ok] = drivers_x[~ok]
+    return vol, cen
   return vol
+
+
+def _lloyd(cand: Candidates, x, ob, steps: int):
+  """``steps`` Lloyd steps: each driver moves to its cell's mass centroid."""
+  for _ in range(steps):
+    _, x = _voronoi_volume(cand, x, ob, return_centroid=True)
+  return x
 
 
 def _first_multiplier(x, radius, budget: int, num: int = 2000):
@@ -158,6 +194,7 @@ def select_drivers(
   max_per_cell: int = poisson.MAX_PER_CELL, max_neighbors: int = 256,
   kmeans_iters: int = 20, bisect_iters: int = 12,
   backend: str = 'host', budget_rtol: float = 0.02,
+  pgas_cap_first: bool = True, lloyd_steps: int = 0,
 ) -> Drivers:
   """Chooses driving particles among the candidates.
 
@@ -182,6 +219,17 @@ def select_drivers(
       (:func:`~physsplat_jax.sampling.poisson.poisson_disk`, jitted, fixed
       capacities). Both keep the same set for the same key and radii.
     budget_rtol: relative tolerance of the budget search.
+    pgas_cap_first: for 'pgas' with a budget, search along
+      :func:`~physsplat_jax.sampling.pgas.capped_family` (the base radius
+      stays an upper bound as long as the budget allows it: refined
+      regions give up drivers first, so stiff objects are not starved);
+      False scales every PGAS radius by one factor.
+    lloyd_steps: for the Poisson-disk methods, move each driver this many
+      times to the volume centroid of the candidates nearest to it (Lloyd
+      steps towards a centroidal Voronoi sampling, as K-means ends at): the
+      driver then sits at the centre of the mass it carries. The drivers
+      stop being candidate points, and the Poisson-disk separation holds
+      only approximately.
 
   Returns:
     :class:`Drivers`.
@@ -240,16 +288,22 @@ def select_drivers(
       key, x32, r, cap, max_per_cell=max_per_cell,
       max_neighbors=max_neighbors))
   if budget is None:
+    radius_fn = lambda t: radius  # noqa: E731
     mult, res = 1.0, fn(jnp.asarray(radius, jnp.float32))
     poisson.check_overflow(res, 'select_drivers')
   else:
     x0, dim = _first_multiplier(cand.x, radius, budget)
-    mult, res = pgas.scale_for_budget(fn, radius, budget, iters=bisect_iters,
-                                      rtol=budget_rtol, x0=x0, dim=dim)
+    if method == 'pgas' and pgas_cap_first:
+      radius_fn = pgas.capped_family(radius, config.base_radius)
+    else:
+      radius_fn = lambda t: t * radius  # noqa: E731
+    mult, res = pgas.scale_for_budget(
+      fn, radius_fn, budget, iters=bisect_iters, rtol=budget_rtol, x0=x0,
+      dim=dim, lo=min(0.05, x0 / 20), hi=max(20.0, x0 * 20))
   v = np.asarray(res.valid)
   idx = np.asarray(res.index)[v]
-  x = cand.x[idx]
   ob = cand.object_ids[idx]
+  x = _lloyd(cand, cand.x[idx], ob, lloyd_steps)
   return Drivers(x=x, object_ids=ob, volume=_voronoi_volume(cand, x, ob),
                  candidate_index=idx.astype(np.int32),
-                 radius=radius[idx] * mult)
+                 radius=np.asarray(radius_fn(mult))[idx])

@@ -170,6 +170,35 @@ def pgas_sample(
                               max_samples, valid=valid, **capacities)
 
 
+def capped_family(radius, cap: float):
+  """PGAS radii for a budget that honour the cap ``r`` first.
+
+  ``r(t) = min(cap * max(1, t / T0), t * radius)`` with
+  ``T0 = cap / min(radius)``: for ``t <= 1`` every radius shrinks (more
+  drivers everywhere, PGAS shape kept); for ``1 < t <= T0`` only the
+  refined radii grow towards the cap (soft / curved regions lose their
+  extra drivers first; regions already at the cap, e.g. stiff ones, keep
+  the base resolution); beyond ``T0`` the uniform radius grows. This is the
+  paper's ``r_hat = min(r, .)`` with ``r`` an upper bound tied to the
+  grid, so a tight budget cannot starve stiff objects below the base
+  resolution while soft ones hold most of the drivers.
+
+  Args:
+    radius: (N,) PGAS radii (<= cap).
+    cap: the base radius ``r``.
+
+  Returns:
+    ``t -> (N,) radii``, monotone (non-decreasing) in ``t``.
+  """
+  radius = np.asarray(radius, np.float64)
+  t0 = cap / max(float(radius.min()), 1e-30)
+
+  def radius_fn(t):
+    return np.minimum(cap * max(1.0, t / t0), t * radius)
+
+  return radius_fn
+
+
 def scale_for_budget(
   sample_fn, radius, budget: int, lo: float = 0.05, hi: float = 20.0,
   iters: int = 18, rtol: float = 0.0, x0: float = 1.0, dim: float = 2.5,
@@ -185,7 +214,9 @@ def scale_for_budget(
 
   Args:
     sample_fn: ``radius (N,) -> PoissonResult`` (capacity >= budget).
-    radius: (N,) radius field whose shape is kept.
+    radius: (N,) radius field whose shape is kept (``m * radius``), or a
+      callable ``m -> (N,) radii`` for another monotone family (e.g.
+      :func:`capped_family`).
     budget: the most samples to keep.
     lo, hi: bracket of the multiplier.
     iters: most evaluations of ``sample_fn``.
@@ -197,14 +228,15 @@ def scale_for_budget(
   Returns:
     (multiplier, result with count <= budget, the largest count found).
   """
-  radius = np.asarray(radius)
+  radius_fn = radius if callable(radius) else (
+    lambda m, r=np.asarray(radius): m * r)
   best = None
   goal = budget * (1.0 - 0.5 * rtol) if rtol > 0 else budget - 0.5
   lo_, hi_ = lo, hi
   m = float(np.clip(x0, lo, hi))
   prev = None  # (log m, log count) of the previous evaluation
   for _ in range(iters):
-    res = sample_fn(jnp.asarray(radius * m, jnp.float32))
+    res = sample_fn(jnp.asarray(radius_fn(m), jnp.float32))
     cnt = int(res.count)
     if int(res.overflow_code) & 6:
       # Radius too large for the jittable path's capacities: shrink it.
@@ -222,11 +254,16 @@ def scale_for_budget(
     if cnt:
       cur = (math.log(m), math.log(cnt))
       slope = -dim
+      stalled = False
       if prev is not None and abs(cur[0] - prev[0]) > 1e-12:
         s = (cur[1] - prev[1]) / (cur[0] - prev[0])
-        if -6.0 < s < -0.5:
-          slope = s
+        # A flat stretch (e.g. capped_family near its cap) gives a shallow
+        # slope and long steps; a step that barely moved the count bisects.
+        slope = float(np.clip(s, -6.0, -0.05)) if s < 0 else slope
+        stalled = abs(cur[1] - prev[1]) < 0.005
       nxt = math.exp(cur[0] + (math.log(goal) - cur[1]) / slope)
+      if stalled:
+        nxt = None
       prev = cur
     # Bisect (geometrically) when the secant leaves the bracket.
     if nxt is None or not lo * 1.0001 < nxt < hi * 0.9999:
