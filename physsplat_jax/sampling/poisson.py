@@ -23,12 +23,13 @@ set, tested against each other and against a sequential greedy pass):
   undecided neighbour is kept and its neighbours dropped.
 - :func:`poisson_disk_host`: NumPy/SciPy, for host-side scene preparation
   (sampling is discrete and never differentiated). It visits the points in
-  priority order in geometrically growing blocks: a point still alive when
-  its block comes up asks a k-d tree for its conflicts once; the block is
-  decided by Luby rounds among its survivors, and the kept points kill their
-  conflicts in later blocks. Only the survivors are queried (a few times the
-  number kept), so it costs ``O(N log N)`` sorting plus ``O(kept)`` queries:
-  about 0.1-0.3 s for 100k candidates on one core.
+  priority order in geometrically growing blocks: the points of a block that
+  are still alive are decided by Luby rounds among themselves (pairs from a
+  k-d tree over those survivors), and the block's kept points then kill
+  their conflicts in later blocks (ball queries on a k-d tree over all
+  points). Pairs are enumerated only among survivors and around kept
+  points, so it costs ``O(N log N)`` sorting plus ``O(kept)`` queries:
+  about 0.1-0.3 CPU s for 100k candidates.
 
 Thinning (``thin=True``, both paths): radii fall in levels a factor 2
 apart, ``r in (h_l / 2, h_l]`` with ``h_l = r_max / 2^l`` (the last level
