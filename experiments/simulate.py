@@ -1,16 +1,33 @@
-"""Simulates a 3DGS scene with a PhysGaussian config; writes the trajectory.
+"""Simulates a 3DGS scene and writes video, frames, trajectory and report.
 
-python -m experiments.simulate --scene=PATH.ply --config=PATH.json --out=DIR
+The full pipeline (segmented scene -> perception -> MPDP -> PGAS -> MLS-MPM
+-> deformed Gaussians -> renders)::
 
-Writes DIR/trajectory.npz with ``x`` float32 (frames+1, K, 3): positions of
-the simulated input Gaussians in the PLY's coordinates (frame 0 = initial),
-``ids`` (K,) their row numbers in the PLY and ``t`` (frames+1,) seconds.
-The logic lives in :func:`simulate_file` (tested) and
-``physsplat_jax.mpm.physgaussian.simulate_config``.
+  python -m experiments.simulate --scene=tabletop --out=out/tabletop
+  python -m experiments.simulate --scene=ficus --frames=24 --ply --out=out/f
+  python -m experiments.simulate --scene=scene.ply --objects=donut \\
+      --velocity=donut:0,0,-1 --material_override=donut=jelly --out=out/d
+
+writes ``video.mp4``, ``frames/frame_%04d.png``, ``trajectory.npz``
+(``x`` float32 (frames+1, K, 3) positions of the simulated Gaussians in the
+input's coordinates, ``ids`` their rows, ``t`` seconds), ``report.json``
+(materials and which path chose them, particle counts, time of every stage)
+and, with ``--ply``, ``ply/frame_%04d.ply``.
+
+With a PhysGaussian JSON config (``--config=cfg.json``) it runs that
+config's physics as PhysGaussian does (every selected Gaussian is a
+particle, normalised domain) and writes ``trajectory.npz``::
+
+  python -m experiments.simulate --scene=PATH.ply --config=cfg.json --out=DIR
+
+Settings: ``--config=experiments/configs/simulate.py`` (default) holds the
+pipeline's defaults; flags override them. Material perception is offline
+(library by object name) unless ``--mllm_base_url`` is given.
 """
 
 import os
 import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -18,22 +35,123 @@ from absl import app
 from absl import flags
 from absl import logging
 
+from physsplat_jax import perception
+from physsplat_jax import pipeline as pl
 from physsplat_jax.configs import physgaussian as pg
 from physsplat_jax.io import ply
+from physsplat_jax.io import scene as scene_io
 from physsplat_jax.mpm import physgaussian as mpm_pg
 
-_SCENE = flags.DEFINE_string('scene', None, '3DGS .ply file')
-_CONFIG = flags.DEFINE_string('config', None, 'PhysGaussian JSON config')
+_SCENE = flags.DEFINE_string(
+  'scene', 'tabletop', 'built-in scene name (tabletop, ficus, donut) or a '
+  '3DGS .ply/.splat path')
+_CONFIG = flags.DEFINE_string(
+  'config', None, 'pipeline config (.py with get_config(); default '
+  'experiments/configs/simulate.py) or a PhysGaussian .json')
 _OUT = flags.DEFINE_string('out', None, 'output directory')
-_FRAMES = flags.DEFINE_integer('frames', None, 'override frame_num')
-_AUTO = flags.DEFINE_bool('auto_substeps', False,
+_FRAMES = flags.DEFINE_integer('frames', None, 'frames to simulate')
+_FPS = flags.DEFINE_float('fps', None, 'frames per second')
+_GRID = flags.DEFINE_integer('grid_res', None, 'MPM grid cells per axis')
+_PARTICLES = flags.DEFINE_integer('max_particles', None,
+                                  'upper bound on driving particles')
+_SUBSTEPS = flags.DEFINE_integer('substeps', None,
+                                 'substeps per frame (default: CFL)')
+_WIDTH = flags.DEFINE_integer('width', None, 'video width [px]')
+_HEIGHT = flags.DEFINE_integer('height', None, 'video height [px]')
+_CAMERA = flags.DEFINE_integer('camera', None,
+                               'scene camera index (-1: fitted)')
+_SAMPLING = flags.DEFINE_enum('sampling', None, ['pgas', 'uniform', 'kmeans'],
+                              'driving-particle method')
+_GRAVITY = flags.DEFINE_float('gravity', None, 'gravity [m/s^2], 0 = off')
+_NO_MPDP = flags.DEFINE_bool('no_mpdp', False,
+                             'uniform materials instead of MPDP fields')
+_OBJECTS = flags.DEFINE_list(
+  'objects', None, 'only these objects move (the others are fixed)')
+_VELOCITY = flags.DEFINE_multi_string(
+  'velocity', None, 'NAME:vx,vy,vz initial velocity [m/s] ("*" = all)')
+_IMPULSE = flags.DEFINE_multi_string(
+  'impulse', None, 'NAME:dvx,dvy,dvz[@t] velocity change over one frame')
+_POKE = flags.DEFINE_multi_string(
+  'poke', None, 'NAME:ax,ay,az@x,y,z/r[@t0-t1] acceleration [m/s^2] of the '
+  "object's particles within r [m] of a point (scene coordinates)")
+_PLY = flags.DEFINE_bool('ply', False, 'write per-frame PLY files')
+_VIDEO = flags.DEFINE_bool('video', True, 'write video.mp4 and PNG frames')
+_AUTO = flags.DEFINE_bool('auto_substeps', False, 'PhysGaussian configs: '
                           'replace an unstable substep_dt by a stable one')
-_FILL = flags.DEFINE_bool('fill', True, 'honour particle_filling')
+_FILL = flags.DEFINE_bool('fill', True, 'fill object interiors')
+perception.define_flags()
+
+DEFAULT_CONFIG = os.path.join(os.path.dirname(__file__), 'configs',
+                              'simulate.py')
+
+
+def _vec(text, what, n=3):
+  try:
+    v = tuple(float(c) for c in text.split(','))
+  except ValueError:
+    v = ()
+  if len(v) != n:
+    raise app.UsageError(f'{what}: expected {n} comma-separated numbers, '
+                         f'got {text!r}')
+  return v
+
+
+def _split_name(item, flag):
+  if ':' not in item:
+    raise app.UsageError(f'--{flag}={item!r}: expected NAME:values')
+  name, rest = item.split(':', 1)
+  return ('' if name in ('*', '') else name), rest
+
+
+def motion_from_flags(velocity=(), impulse=(), poke=()) -> dict:
+  """Pipeline-config fields from --velocity/--impulse/--poke values."""
+  out = {}
+  if velocity:
+    out['initial_velocity'] = [
+      (n, _vec(v, f'--velocity {n}'))
+      for n, v in (_split_name(i, 'velocity') for i in velocity)]
+  forces = []
+  for item in impulse or ():
+    name, rest = _split_name(item, 'impulse')
+    vec, _, t = rest.partition('@')
+    forces.append(dict(kind='impulse', object=name,
+                       vector=_vec(vec, f'--impulse {item}'),
+                       start=float(t or 0.0)))
+  for item in poke or ():
+    name, rest = _split_name(item, 'poke')
+    parts = rest.split('@')
+    if len(parts) < 2 or '/' not in parts[1]:
+      raise app.UsageError(f'--poke={item!r}: expected '
+                           'NAME:ax,ay,az@x,y,z/r[@t0-t1]')
+    point, radius = parts[1].split('/')
+    t0, t1 = 0.0, 0.25
+    if len(parts) > 2:
+      t0, t1 = _vec(parts[2].replace('-', ',', 1), f'--poke {item} time', 2)
+    forces.append(dict(kind='point', object=name,
+                       vector=_vec(parts[0], f'--poke {item}'),
+                       point=_vec(point, f'--poke {item} point'),
+                       radius=float(radius), start=t0, end=t1))
+  if forces:
+    out['forces'] = forces
+  return out
+
+
+def load_pipeline_config(path=None) -> dict:
+  """The ``get_config()`` dict of a .py config file."""
+  import importlib.util
+
+  path = path or DEFAULT_CONFIG
+  spec = importlib.util.spec_from_file_location('_sim_config', path)
+  if spec is None or not os.path.exists(path):
+    raise app.UsageError(f'--config={path!r}: no such .py config file')
+  mod = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(mod)
+  return dict(mod.get_config().to_dict()), getattr(mod, 'SCENE_MOTIONS', {})
 
 
 def simulate_file(scene: str, config: str, out: str, frames=None,
                   auto_substeps=False, fill=True) -> str:
-  """Loads, simulates and writes ``out/trajectory.npz``; returns its path."""
+  """PhysGaussian mode: simulate a JSON config, write trajectory.npz."""
   cfg = pg.load_config(config)
   gaussians = ply.load_ply(scene)
   x, ids, t = mpm_pg.simulate_config(
@@ -48,6 +166,17 @@ def simulate_file(scene: str, config: str, out: str, frames=None,
   return path
 
 
+def build_config(scene_name: str, config_path=None, overrides=None,
+                 motion=None) -> pl.PipelineConfig:
+  """Config file defaults < scene motion < command-line overrides."""
+  d, motions = load_pipeline_config(config_path)
+  if not motion:
+    motion = motions.get(scene_name, {})
+  d.update(motion)
+  d.update({k: v for k, v in (overrides or {}).items() if v is not None})
+  return pl.config_from_dict(d)
+
+
 def _git_sha() -> str:
   try:
     return subprocess.check_output(
@@ -60,11 +189,32 @@ def _git_sha() -> str:
 
 def main(argv):
   del argv
-  logging.info('devices %s, git %s', jax.devices(), _git_sha())
-  simulate_file(_SCENE.value, _CONFIG.value, _OUT.value, _FRAMES.value,
-                _AUTO.value, _FILL.value)
+  if not _OUT.value:
+    raise app.UsageError('--out=DIR is required')
+  sha = _git_sha()
+  logging.info('devices %s, git %s', jax.devices(), sha)
+  if _CONFIG.value and _CONFIG.value.endswith('.json'):
+    simulate_file(_SCENE.value, _CONFIG.value, _OUT.value, _FRAMES.value,
+                  _AUTO.value, _FILL.value)
+    return
+  scene = scene_io.load_scene(_SCENE.value)
+  if _OBJECTS.value:
+    scene = pl.select_objects(scene, _OBJECTS.value)
+  overrides = dict(
+    num_frames=_FRAMES.value, fps=_FPS.value, grid_res=_GRID.value,
+    max_particles=_PARTICLES.value, substeps_per_frame=_SUBSTEPS.value,
+    width=_WIDTH.value, height=_HEIGHT.value, camera_index=_CAMERA.value,
+    sampling=_SAMPLING.value, gravity=_GRAVITY.value, fill=_FILL.value,
+    use_mpdp=False if _NO_MPDP.value else None,
+    render=None if _VIDEO.value else 'none')
+  motion = motion_from_flags(_VELOCITY.value, _IMPULSE.value, _POKE.value)
+  config = build_config(scene.name, _CONFIG.value, overrides, motion)
+  options = perception.options_from_flags()
+  _, report = pl.simulate_scene(
+    scene, config, _OUT.value, perception_options=options, ply=_PLY.value,
+    extra_report=dict(command=' '.join(sys.argv), git=sha))
+  print(pl.summary(report))
 
 
 if __name__ == '__main__':
-  flags.mark_flags_as_required(['scene', 'config', 'out'])
   app.run(main)

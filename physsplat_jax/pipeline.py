@@ -1248,3 +1248,166 @@ def _write_ply_frame(path, prepared: PreparedScene, means, covs, rots):
   g_all, covs_all, rots_all = _assemble_scene(prepared, means, covs, rots)
   export_lib.save_deformed_ply(path, prepared.gaussians, g_all.means,
                                covs_all, rots_all)
+
+
+# ------------------------------------------------------------- whole scene
+
+
+def config_from_dict(d) -> PipelineConfig:
+  """A :class:`PipelineConfig` from a dict / ConfigDict (lists -> tuples).
+
+  ``forces`` is a list of dicts with :class:`ForceSpec` fields;
+  ``initial_velocity`` a list of ``(name, (vx, vy, vz))`` pairs or a dict
+  name -> velocity. Unknown keys raise :class:`PipelineError`.
+  """
+  d = dict(d.to_dict() if hasattr(d, 'to_dict') else d)
+  fields = {f.name: f for f in dataclasses.fields(PipelineConfig)}
+  unknown = sorted(set(d) - set(fields))
+  if unknown:
+    raise PipelineError(f'unknown pipeline config fields {unknown}; valid: '
+                        f'{sorted(fields)}')
+  if 'forces' in d:
+    fs = []
+    for i, f in enumerate(d['forces'] or ()):
+      if isinstance(f, ForceSpec):
+        fs.append(f)
+        continue
+      f = dict(f)
+      bad = sorted(set(f) - {x.name for x in dataclasses.fields(ForceSpec)})
+      if bad:
+        raise PipelineError(f'forces[{i}] has unknown fields {bad}')
+      for k in ('vector', 'point'):
+        if f.get(k) is not None:
+          f[k] = tuple(float(v) for v in f[k])
+      fs.append(ForceSpec(**f))
+    d['forces'] = tuple(fs)
+  if 'initial_velocity' in d:
+    iv = d['initial_velocity'] or ()
+    items = iv.items() if isinstance(iv, dict) else iv
+    d['initial_velocity'] = tuple(
+      (str(n), tuple(float(c) for c in v)) for n, v in items)
+  for k in ('background',):
+    if k in d:
+      d[k] = tuple(float(v) for v in d[k])
+  if isinstance(d.get('render_config'), dict):
+    d['render_config'] = raster.RenderConfig(**d['render_config'])
+  return PipelineConfig(**d)
+
+
+def select_objects(scene: Scene, names: Sequence[str]) -> Scene:
+  """Marks every object not in ``names`` as fixed (only these move)."""
+  known = [o.name for o in scene.objects]
+  missing = [n for n in names if n not in known]
+  if missing:
+    raise PipelineError(f'objects {missing} are not in scene {scene.name!r}; '
+                        f'objects: {known}')
+  objs = tuple(dataclasses.replace(o, fixed=o.fixed or o.name not in names)
+               for o in scene.objects)
+  return scene.replace(objects=objs)
+
+
+def simulate_scene(
+  scene: Scene,
+  config: PipelineConfig,
+  out_dir: str | None = None,
+  *,
+  materials: Sequence[Any] | None = None,
+  perception_options: Any = None,
+  ply: bool = False,
+  extra_report: dict | None = None,
+) -> tuple[RunOutput, dict]:
+  """The whole job on one scene: perceive, prepare, simulate, write.
+
+  Args:
+    scene: the scene (``physsplat_jax.load_scene``).
+    config: pipeline settings.
+    out_dir: where ``video.mp4``, ``frames/``, ``trajectory.npz``,
+      ``report.json`` (and ``ply/``) go; None writes nothing.
+    materials: one material per object; None runs perception
+      (``physsplat_jax.perception.perceive_scene`` with
+      ``perception_options``; offline library by default).
+    perception_options: ``perception.PerceptionOptions``.
+    ply: also write per-frame PLY files.
+    extra_report: merged into ``report.json`` (e.g. the command line).
+
+  Returns:
+    (:class:`RunOutput`, the report dict).
+  """
+  import json
+  import os
+  import time
+
+  from physsplat_jax import perception
+
+  t0 = time.perf_counter()
+  if materials is None:
+    materials = perception.perceive_scene(scene, perception_options)
+  t_perc = time.perf_counter() - t0
+  t1 = time.perf_counter()
+  prepared, prep = prepare_scene(scene, materials, config)
+  params = init_params(prepared, config)
+  t_prep = time.perf_counter() - t1
+  out = run(params, prepared, config, out_dir=out_dir, ply=ply)
+  stages = {'perception': t_perc, 'prepare': t_prep,
+            **{f'prepare.{k[:-2]}': v for k, v in prep.timings.items()},
+            **out.timings}
+  stages['total'] = time.perf_counter() - t0
+  objects = []
+  for o, m in zip(prep.objects, materials):
+    d = m.to_dict() if hasattr(m, 'to_dict') else dataclasses.asdict(m)
+    objects.append({**o, 'material': d})
+  report = dict(
+    scene=scene.name, num_frames=config.num_frames, fps=config.fps,
+    objects=objects, colliders=prep.colliders,
+    num_gaussians=prep.num_gaussians,
+    num_simulated_gaussians=prep.num_simulated_gaussians,
+    num_candidates=prep.num_candidates, num_particles=prep.num_particles,
+    grid=prep.grid, time_step=prep.time_step,
+    particle_substeps_per_s=out.particle_substeps_per_s,
+    stage_seconds={k: round(v, 3) for k, v in stages.items()},
+    files=out.files, devices=[str(d) for d in jax.devices()],
+    jax_version=jax.__version__, config=_jsonable(dataclasses.asdict(config)),
+    **(extra_report or {}))
+  if out_dir is not None:
+    path = os.path.join(out_dir, 'report.json')
+    with open(path, 'w') as f:
+      json.dump(_jsonable(report), f, indent=1)
+    out.files['report'] = path
+    report['files'] = dict(out.files)
+  logging.info('%s', summary(report))
+  return out, report
+
+
+def summary(report: dict) -> str:
+  """A short human summary of a :func:`simulate_scene` report."""
+  st = report['stage_seconds']
+  total = max(st.get('total', 0.0), 1e-9)
+  main = ['perception', 'prepare', 'compile', 'simulate', 'deform', 'render',
+          'write']
+  parts = ', '.join(f'{k} {st.get(k, 0.0):.1f} s ({100 * st.get(k, 0.0) / total:.0f}%)'
+                    for k in main if k in st)
+  lines = [
+    f'{report["scene"]}: {report["num_frames"]} frames, '
+    f'{report["num_particles"]} particles driving '
+    f'{report["num_simulated_gaussians"]} of {report["num_gaussians"]} '
+    f'Gaussians, {report["time_step"]["substeps_per_frame"]} substeps/frame, '
+    f'{report["particle_substeps_per_s"] / 1e6:.2f} M particle-substeps/s',
+    f'time {total:.1f} s: {parts}',
+  ]
+  for f, p in sorted(report.get('files', {}).items()):
+    lines.append(f'  {f}: {p}')
+  return '\n'.join(lines)
+
+
+def _jsonable(x):
+  if isinstance(x, dict):
+    return {str(k): _jsonable(v) for k, v in x.items()}
+  if isinstance(x, (list, tuple)):
+    return [_jsonable(v) for v in x]
+  if isinstance(x, (np.floating, np.integer)):
+    return x.item()
+  if isinstance(x, np.ndarray):
+    return x.tolist()
+  if isinstance(x, float) and not math.isfinite(x):
+    return str(x)
+  return x
