@@ -6,6 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out/demo
+SCENE ?= tabletop
 
 .PHONY: demo test test-slow bench venv clean
 
@@ -18,7 +19,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m experiments.demo --out=$(OUT)
+	$(PY) -m experiments.demo --scene=$(SCENE) --out=$(OUT)
 
 # pytest exits 5 when it collects nothing: treat that as a failure too.
 test: $(STAMP)

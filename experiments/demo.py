@@ -1,65 +1,41 @@
-"""Interim demo: build a scene, render an orbit, write PNG frames and a video.
+"""The main job on a built-in scene: simulate it and write a video.
 
-  python -m experiments.demo --scene=tabletop --out=out/demo
+  python -m experiments.demo                     # tabletop -> out/demo
+  python -m experiments.demo --scene=ficus --out=out/ficus
 
-``--scene`` is a built-in name (``tabletop``, ``ficus``, ``donut``) or a 3DGS
-``.ply`` / ``.splat`` file or output folder (see ``physsplat_jax.io.scene``).
-Writes ``<out>/frames/frame_0000.png``..., ``<out>/orbit.mp4`` (a GIF if no
-ffmpeg is available) and ``<out>/scene.ply`` (+ ``scene.scene.json``). The
-full pipeline (simulation) will replace the orbit.
+Runs the whole pipeline (perception from the material library, MPDP, PGAS,
+MLS-MPM, deformed Gaussians, rendering) with the CPU-sized settings of
+experiments/configs/demo.py and the scene's motion from
+experiments/configs/simulate.py, then prints where the video is and where
+the time went. ``make demo`` runs it.
 """
 
-from __future__ import annotations
-
 import os
-import time
 
 from absl import app
 from absl import flags
-from absl import logging
 
-from physsplat_jax.io import video
-from physsplat_jax.io.scene import load_scene, save_scene
-from physsplat_jax.render import render_image
+from experiments import simulate as sim
+from physsplat_jax import pipeline as pl
+from physsplat_jax.io import scene as scene_io
 
-_SCENE = flags.DEFINE_string('scene', 'tabletop', 'Built-in name or path.')
-_OUT = flags.DEFINE_string('out', 'out/demo', 'Output folder.')
-_FRAMES = flags.DEFINE_integer('frames', 24, 'Orbit frames.')
-_WIDTH = flags.DEFINE_integer('width', 384, 'Image width [px].')
-_HEIGHT = flags.DEFINE_integer('height', 288, 'Image height [px].')
-_FPS = flags.DEFINE_float('fps', 12.0, 'Video frame rate.')
-_BACKGROUND = flags.DEFINE_list('background', ['0.92', '0.93', '0.95'],
-                                'Background RGB in [0, 1].')
+_SCENE = flags.DEFINE_string('scene', 'tabletop',
+                             'built-in scene (tabletop, ficus, donut) or PLY')
+_OUT = flags.DEFINE_string('out', 'out/demo', 'output directory')
+_FRAMES = flags.DEFINE_integer('frames', None, 'frames (default: config)')
+
+DEMO_CONFIG = os.path.join(os.path.dirname(__file__), 'configs', 'demo.py')
 
 
 def main(argv):
   del argv
-  t0 = time.perf_counter()
-  scene = load_scene(_SCENE.value, num_cameras=_FRAMES.value,
-                     width=_WIDTH.value, height=_HEIGHT.value)
-  logging.info('scene %s: %d Gaussians, objects %s', scene.name,
-               scene.gaussians.num, scene.object_names)
-  ply = os.path.join(_OUT.value, 'scene.ply')
-  sidecar = save_scene(ply, scene)
-  step = max(1, len(scene.cameras) // _FRAMES.value)
-  # Camera names are static jit arguments: drop them to compile once.
-  cams = [c.replace(name='') for c in scene.cameras[::step][:_FRAMES.value]]
-  bg = tuple(float(x) for x in _BACKGROUND.value)
-  frames_dir = os.path.join(_OUT.value, 'frames')
-  with video.PngFrameWriter(frames_dir) as pngs, video.VideoWriter(
-    os.path.join(_OUT.value, 'orbit.mp4'), _FPS.value
-  ) as mp4:
-    for i, cam in enumerate(cams):
-      img = render_image(scene.gaussians, cam, background=bg).image
-      pngs.append(img)
-      mp4.append(img)
-      logging.log_every_n(logging.INFO, 'frame %d/%d', 6, i + 1, len(cams))
-  print(f'scene {scene.name!r} ({scene.gaussians.num} Gaussians, objects '
-        f'{", ".join(scene.object_names)}) in '
-        f'{time.perf_counter() - t0:.1f} s; wrote:')
-  print(f'  {ply} and {sidecar}')
-  print(f'  {pngs.num_frames} frames {frames_dir}/frame_0000.png ...')
-  print(f'  {mp4.path} ({mp4.format}, {mp4.num_frames} frames)')
+  scene = scene_io.load_scene(_SCENE.value)
+  config = sim.build_config(scene.name, DEMO_CONFIG,
+                            dict(num_frames=_FRAMES.value))
+  _, report = pl.simulate_scene(scene, config, _OUT.value,
+                                extra_report=dict(command='make demo'))
+  print(pl.summary(report))
+  print(f'\nvideo: {report["files"].get("video")}')
 
 
 if __name__ == '__main__':
