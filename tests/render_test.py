@@ -135,6 +135,21 @@ class CapacityTest(parameterized.TestCase):
     ref, _, _ = _reference(g, cam, raster.gaussian_colors(g, cam))
     np.testing.assert_allclose(exact.image, ref, atol=_IMAGE_TOL)
 
+  def test_count_and_binning_variants_agree(self):
+    # The host-side count sizes the capacity exactly; sub-tiles and tight
+    # bounds change the work, not the image.
+    g = _scene(seed=6, num=150)
+    cam = _camera(48, 40)
+    out = raster.render_image(g, cam)
+    self.assertEqual(raster.count_intersections(g, cam),
+                     int(out.num_intersections))
+    plain = raster.RenderConfig(subtile_size=None, tight_bounds=False)
+    base = raster.render_image(g, cam, config=plain)
+    self.assertGreater(int(base.num_intersections), 0)
+    np.testing.assert_allclose(out.image, base.image, atol=1e-6)
+    with self.assertRaisesRegex(ValueError, 'must divide'):
+      raster.render(g, cam, config=raster.RenderConfig(subtile_size=6))
+
   def test_differentiable_max_chunks_overflow(self):
     g = _scene(seed=4, num=100)
     cam = _camera(32, 32)

@@ -304,20 +304,12 @@ _BOUND_RTOL = 1e-3
 _BOUND_ATOL = 1e-2
 
 
-def _bin_and_sort(proj: Projected, opacities: Array, tiles_x: int,
-                  tiles_y: int, config: RenderConfig,
-                  capacity: int) -> _Binned:
-  """Static-capacity (sub-tile, depth) binning; see the module docstring.
-
-  Sub-tiles are numbered tile by tile (``tile * S + q``, ``S`` sub-tiles per
-  tile, ``q`` row-major inside the tile), so a tile's sub-tiles are
-  contiguous in the sorted list.
-  """
-  K = proj.depths.shape[0]
+def _footprints(proj: Projected, opacities: Array, tiles_x: int,
+                tiles_y: int, config: RenderConfig):
+  """Per-Gaussian sub-tile rectangles [x0, x0 + w) x [y0, ..) and counts n."""
   tile = config.tile_size
   st = config.resolved_subtile
   sub = tile // st
-  S = sub * sub
   m = lax.stop_gradient(proj.means2d)
   r = proj.radii.astype(m.dtype)
   # gsplat's tile rectangle [x0, x1) x [y0, y1) in tiles, in sub-tiles.
@@ -347,6 +339,23 @@ def _bin_and_sort(proj: Projected, opacities: Array, tiles_x: int,
     y1 = jnp.minimum(y1, sce(m[:, 1] + ey, sub * tiles_y))
   w = jnp.maximum(x1 - x0, 0)
   n = jnp.where(valid, w * jnp.maximum(y1 - y0, 0), 0)
+  return x0, y0, w, n, valid
+
+
+def _bin_and_sort(proj: Projected, opacities: Array, tiles_x: int,
+                  tiles_y: int, config: RenderConfig,
+                  capacity: int) -> _Binned:
+  """Static-capacity (sub-tile, depth) binning; see the module docstring.
+
+  Sub-tiles are numbered tile by tile (``tile * S + q``, ``S`` sub-tiles per
+  tile, ``q`` row-major inside the tile), so a tile's sub-tiles are
+  contiguous in the sorted list.
+  """
+  K = proj.depths.shape[0]
+  sub = config.tile_size // config.resolved_subtile
+  S = sub * sub
+  x0, y0, w, n, valid = _footprints(proj, opacities, tiles_x, tiles_y,
+                                    config)
   # Emit the intersections in depth order (one sort of K depths), then a
   # stable sort on the sub-tile id alone keeps each sub-tile front to back:
   # cheaper than sorting (tile, depth) pairs.
@@ -619,9 +628,46 @@ _render_diff_jit = jax.jit(render_differentiable, static_argnames=('config',))
 
 
 def _next_capacity(needed: int) -> int:
-  """A roomy power-of-two-ish size, so re-runs rarely recompile."""
-  needed = max(int(needed), 1)
-  return int(2 ** math.ceil(math.log2(needed * 1.25)))
+  """``needed`` plus 10-25 % head-room, on a coarse grid of sizes.
+
+  Sizes are multiples of 1/8 of a power of two (8 per octave), so similar
+  frames share one compiled renderer, while the sort (which runs over the
+  whole buffer) stays within 25 % of the work needed.
+  """
+  x = max(int(math.ceil(max(int(needed), 1) * 1.1)), 1024)
+  step = 2 ** max(int(math.floor(math.log2(x))) - 3, 0)
+  return int(-(-x // step) * step)
+
+
+def _count_intersections(gaussians, camera, covariances, config):
+  tile = config.tile_size
+  tiles_x = -(-camera.width // tile)
+  tiles_y = -(-camera.height // tile)
+  dtype = gaussians.means.dtype
+  covs = gaussians.covariances if covariances is None else covariances
+  proj = project(gaussians.means, covs.astype(dtype), camera, config.eps2d)
+  n = _footprints(proj, gaussians.opacities, tiles_x, tiles_y, config)[3]
+  return jnp.sum(n)
+
+
+_count_jit = jax.jit(_count_intersections, static_argnames=('config',))
+
+
+def count_intersections(
+  gaussians: Gaussians,
+  camera: Camera,
+  *,
+  covariances: Array | None = None,
+  config: RenderConfig = RenderConfig(),
+) -> int:
+  """(Gaussian, sub-tile) pairs a render needs (host side, cheap).
+
+  Projection and counting only (no sort, no compositing), to size
+  ``RenderConfig.capacity`` before the first render.
+  """
+  _check_inputs(gaussians, camera, (0.0, 0.0, 0.0), covariances, None, None,
+                config)
+  return int(_count_jit(gaussians, camera, covariances, config))
 
 
 def fit_render_config(
@@ -671,8 +717,11 @@ def render_image(
 ) -> RenderOutput:
   """Host wrapper: jitted render that never drops Gaussians; NumPy outputs.
 
-  Re-runs with a larger ``capacity`` (and ``max_chunks`` on the
-  differentiable path) when the first pass overflows.
+  Without ``config.capacity``, scenes larger than ``min_capacity /
+  capacity_factor`` Gaussians are first counted (:func:`count_intersections`)
+  and rendered with that capacity plus head-room. Re-runs with a larger
+  ``capacity`` (and ``max_chunks`` on the differentiable path) when a pass
+  overflows.
 
   Args:
     gaussians, camera, background, covariances, view_rotations, colors,
@@ -689,6 +738,14 @@ def render_image(
   """
   fn = _render_diff_jit if differentiable else _render_jit
   K = gaussians.means.shape[0]
+  if config.capacity is None and (
+    config.capacity_factor * K > config.min_capacity
+  ):
+    # Count first (cheap): one render at a fitting size instead of a render
+    # that overflows and a second one (small scenes fit the minimum).
+    need = count_intersections(gaussians, camera, covariances=covariances,
+                               config=config)
+    config = dataclasses.replace(config, capacity=_next_capacity(need))
   for _ in range(max_retries + 1):
     out = fn(gaussians, camera, background=jnp.asarray(background),
              covariances=covariances, view_rotations=view_rotations,
