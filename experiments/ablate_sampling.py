@@ -38,20 +38,6 @@ from physsplat_jax import mpm
 from physsplat_jax import sampling
 from physsplat_jax.types import Gaussians
 
-_BUDGETS = flags.DEFINE_list('budgets', ['500', '1000', '2000'],
-                             'driver counts (both objects together)')
-_SEED = flags.DEFINE_integer('seed', 0, 'PRNG seed')
-_NUM = flags.DEFINE_integer('num_gaussians', 3000, 'Gaussians per object')
-_FILL = flags.DEFINE_integer('fill_res', 24, 'fill grid cells per object')
-_RES = flags.DEFINE_integer('grid_res', 24, 'MPM grid cells per axis (2 m)')
-_FRAMES = flags.DEFINE_integer('num_frames', 12, 'frames of 1/60 s')
-_METHODS = flags.DEFINE_list(
-  'methods', ['pgas', 'pgas-scaled', 'uniform', 'kmeans'],
-  "driver selection methods ('pgas-scaled': pgas_cap_first=False)")
-_PPC = flags.DEFINE_float('particles_per_cell', 4.0,
-                          'sets the base radius dx (1.24 / ppc)^(1/3), as '
-                          'the pipeline does')
-
 E_OBJ = {0: 1e5, 1: 2e6}
 NU, RHO = 0.3, 1000.0
 RADIUS = 0.25
@@ -203,16 +189,40 @@ def run(budgets, seed=0, num=3000, grid_res=24, num_frames=12,
   return rows
 
 
-def main(argv):
+def _define_flags():
+  """Flags, defined only when run as a script (importing this module from
+  tests must not register flags that other experiment scripts also use)."""
+  return dict(
+    budgets=flags.DEFINE_list('budgets', ['500', '1000', '2000'],
+                              'driver counts (both objects together)'),
+    seed=flags.DEFINE_integer('seed', 0, 'PRNG seed'),
+    num=flags.DEFINE_integer('num_gaussians', 3000, 'Gaussians per object'),
+    fill_res=flags.DEFINE_integer('fill_res', 24,
+                                  'fill grid cells per object'),
+    grid_res=flags.DEFINE_integer('grid_res', 24,
+                                  'MPM grid cells per axis (2 m)'),
+    num_frames=flags.DEFINE_integer('num_frames', 12, 'frames of 1/60 s'),
+    methods=flags.DEFINE_list(
+      'methods', ['pgas', 'pgas-scaled', 'uniform', 'kmeans'],
+      "driver selection methods ('pgas-scaled': pgas_cap_first=False; "
+      "'+lloyd': lloyd_steps=1)"),
+    ppc=flags.DEFINE_float('particles_per_cell', 4.0,
+                           'sets the base radius dx (1.24 / ppc)^(1/3), as '
+                           'the pipeline does'))
+
+
+def main(argv, f):
   del argv
   print('devices:', jax.devices())
   print('| budget | method | drivers (soft/stiff) | err soft | err stiff | '
         'err all | err last frame | select s | simulate s |')
   print('|---|---|---|---|---|---|---|---|---|')
-  run([int(b) for b in _BUDGETS.value], _SEED.value, _NUM.value, _RES.value,
-      _FRAMES.value, tuple(_METHODS.value), _PPC.value, _FILL.value,
+  run([int(b) for b in f['budgets'].value], f['seed'].value, f['num'].value,
+      f['grid_res'].value, f['num_frames'].value, tuple(f['methods'].value),
+      f['ppc'].value, f['fill_res'].value,
       log=lambda s: print(s, flush=True))
 
 
 if __name__ == '__main__':
-  app.run(main)
+  _f = _define_flags()
+  app.run(lambda argv: main(argv, _f))
