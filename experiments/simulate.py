@@ -28,6 +28,7 @@ pipeline's defaults; flags override them. Material perception is offline
 import os
 import subprocess
 import sys
+import types
 
 import jax
 import numpy as np
@@ -42,44 +43,72 @@ from physsplat_jax.io import ply
 from physsplat_jax.io import scene as scene_io
 from physsplat_jax.mpm import physgaussian as mpm_pg
 
-_SCENE = flags.DEFINE_string(
-  'scene', 'tabletop', 'built-in scene name (tabletop, ficus, donut) or a '
-  '3DGS .ply/.splat path')
-_CONFIG = flags.DEFINE_string(
-  'config', None, 'pipeline config (.py with get_config(); default '
-  'experiments/configs/simulate.py) or a PhysGaussian .json')
-_OUT = flags.DEFINE_string('out', None, 'output directory')
-_FRAMES = flags.DEFINE_integer('frames', None, 'frames to simulate')
-_FPS = flags.DEFINE_float('fps', None, 'frames per second')
-_GRID = flags.DEFINE_integer('grid_res', None, 'MPM grid cells per axis')
-_PARTICLES = flags.DEFINE_integer('max_particles', None,
-                                  'upper bound on driving particles')
-_SUBSTEPS = flags.DEFINE_integer('substeps', None,
-                                 'substeps per frame (default: CFL)')
-_WIDTH = flags.DEFINE_integer('width', None, 'video width [px]')
-_HEIGHT = flags.DEFINE_integer('height', None, 'video height [px]')
-_CAMERA = flags.DEFINE_integer('camera', None,
-                               'scene camera index (-1: fitted)')
-_SAMPLING = flags.DEFINE_enum('sampling', None, ['pgas', 'uniform', 'kmeans'],
-                              'driving-particle method')
-_GRAVITY = flags.DEFINE_float('gravity', None, 'gravity [m/s^2], 0 = off')
-_NO_MPDP = flags.DEFINE_bool('no_mpdp', False,
-                             'uniform materials instead of MPDP fields')
-_OBJECTS = flags.DEFINE_list(
-  'objects', None, 'only these objects move (the others are fixed)')
-_VELOCITY = flags.DEFINE_multi_string(
-  'velocity', None, 'NAME:vx,vy,vz initial velocity [m/s] ("*" = all)')
-_IMPULSE = flags.DEFINE_multi_string(
-  'impulse', None, 'NAME:dvx,dvy,dvz[@t] velocity change over one frame')
-_POKE = flags.DEFINE_multi_string(
-  'poke', None, 'NAME:ax,ay,az@x,y,z/r[@t0-t1] acceleration [m/s^2] of the '
-  "object's particles within r [m] of a point (scene coordinates)")
-_PLY = flags.DEFINE_bool('ply', False, 'write per-frame PLY files')
-_VIDEO = flags.DEFINE_bool('video', True, 'write video.mp4 and PNG frames')
-_AUTO = flags.DEFINE_bool('auto_substeps', False, 'PhysGaussian configs: '
-                          'replace an unstable substep_dt by a stable one')
-_FILL = flags.DEFINE_bool('fill', True, 'fill object interiors')
-perception.define_flags()
+def define_flags():
+  """Defines the command-line flags (only when run as a script, so that
+  importing this module never clashes with other scripts' flags)."""
+  scene = flags.DEFINE_string(
+    'scene', 'tabletop', 'built-in scene name (tabletop, ficus, donut) or a '
+    '3DGS .ply/.splat path')
+  config = flags.DEFINE_string(
+    'config', None, 'pipeline config (.py with get_config(); default '
+    'experiments/configs/simulate.py) or a PhysGaussian .json')
+  out = flags.DEFINE_string('out', None, 'output directory')
+  frames = flags.DEFINE_integer('frames', None, 'frames to simulate')
+  fps = flags.DEFINE_float('fps', None, 'frames per second')
+  grid = flags.DEFINE_integer('grid_res', None, 'MPM grid cells per axis')
+  particles = flags.DEFINE_integer('max_particles', None,
+                                    'upper bound on driving particles')
+  substeps = flags.DEFINE_integer('substeps', None,
+                                   'substeps per frame (default: CFL)')
+  width = flags.DEFINE_integer('width', None, 'video width [px]')
+  height = flags.DEFINE_integer('height', None, 'video height [px]')
+  camera = flags.DEFINE_integer('camera', None,
+                                 'scene camera index (-1: fitted)')
+  sampling = flags.DEFINE_enum('sampling', None, ['pgas', 'uniform', 'kmeans'],
+                                'driving-particle method')
+  gravity = flags.DEFINE_float('gravity', None, 'gravity [m/s^2], 0 = off')
+  no_mpdp = flags.DEFINE_bool('no_mpdp', False,
+                               'uniform materials instead of MPDP fields')
+  objects = flags.DEFINE_list(
+    'objects', None, 'only these objects move (the others are fixed)')
+  velocity = flags.DEFINE_multi_string(
+    'velocity', None, 'NAME:vx,vy,vz initial velocity [m/s] ("*" = all)')
+  impulse = flags.DEFINE_multi_string(
+    'impulse', None, 'NAME:dvx,dvy,dvz[@t] velocity change over one frame')
+  poke = flags.DEFINE_multi_string(
+    'poke', None, 'NAME:ax,ay,az@x,y,z/r[@t0-t1] acceleration [m/s^2] of the '
+    "object's particles within r [m] of a point (scene coordinates)")
+  ply = flags.DEFINE_bool('ply', False, 'write per-frame PLY files')
+  video = flags.DEFINE_bool('video', True, 'write video.mp4 and PNG frames')
+  auto = flags.DEFINE_bool('auto_substeps', False, 'PhysGaussian configs: '
+                            'replace an unstable substep_dt by a stable one')
+  fill = flags.DEFINE_bool('fill', True, 'fill object interiors')
+  perception.define_flags()
+  return types.SimpleNamespace(
+    scene=scene,
+    config=config,
+    out=out,
+    frames=frames,
+    fps=fps,
+    grid=grid,
+    particles=particles,
+    substeps=substeps,
+    width=width,
+    height=height,
+    camera=camera,
+    sampling=sampling,
+    gravity=gravity,
+    objects=objects,
+    velocity=velocity,
+    impulse=impulse,
+    poke=poke,
+    ply=ply,
+    video=video,
+    auto=auto,
+    fill=fill,
+    no_mpdp=no_mpdp,
+  )
+
 
 DEFAULT_CONFIG = os.path.join(os.path.dirname(__file__), 'configs',
                               'simulate.py')
@@ -187,34 +216,38 @@ def _git_sha() -> str:
     return 'unknown'
 
 
-def main(argv):
+def main(argv, f=None):
   del argv
-  if not _OUT.value:
+  f = f or _FLAGS
+  if not f.out.value:
     raise app.UsageError('--out=DIR is required')
   sha = _git_sha()
   logging.info('devices %s, git %s', jax.devices(), sha)
-  if _CONFIG.value and _CONFIG.value.endswith('.json'):
-    simulate_file(_SCENE.value, _CONFIG.value, _OUT.value, _FRAMES.value,
-                  _AUTO.value, _FILL.value)
+  if f.config.value and f.config.value.endswith('.json'):
+    simulate_file(f.scene.value, f.config.value, f.out.value, f.frames.value,
+                  f.auto.value, f.fill.value)
     return
-  scene = scene_io.load_scene(_SCENE.value)
-  if _OBJECTS.value:
-    scene = pl.select_objects(scene, _OBJECTS.value)
+  scene = scene_io.load_scene(f.scene.value)
+  if f.objects.value:
+    scene = pl.select_objects(scene, f.objects.value)
   overrides = dict(
-    num_frames=_FRAMES.value, fps=_FPS.value, grid_res=_GRID.value,
-    max_particles=_PARTICLES.value, substeps_per_frame=_SUBSTEPS.value,
-    width=_WIDTH.value, height=_HEIGHT.value, camera_index=_CAMERA.value,
-    sampling=_SAMPLING.value, gravity=_GRAVITY.value, fill=_FILL.value,
-    use_mpdp=False if _NO_MPDP.value else None,
-    render=None if _VIDEO.value else 'none')
-  motion = motion_from_flags(_VELOCITY.value, _IMPULSE.value, _POKE.value)
-  config = build_config(scene.name, _CONFIG.value, overrides, motion)
+    num_frames=f.frames.value, fps=f.fps.value, grid_res=f.grid.value,
+    max_particles=f.particles.value, substeps_per_frame=f.substeps.value,
+    width=f.width.value, height=f.height.value, camera_index=f.camera.value,
+    sampling=f.sampling.value, gravity=f.gravity.value, fill=f.fill.value,
+    use_mpdp=False if f.no_mpdp.value else None,
+    render=None if f.video.value else 'none')
+  motion = motion_from_flags(f.velocity.value, f.impulse.value, f.poke.value)
+  config = build_config(scene.name, f.config.value, overrides, motion)
   options = perception.options_from_flags()
   _, report = pl.simulate_scene(
-    scene, config, _OUT.value, perception_options=options, ply=_PLY.value,
+    scene, config, f.out.value, perception_options=options, ply=f.ply.value,
     extra_report=dict(command=' '.join(sys.argv), git=sha))
   print(pl.summary(report))
 
 
+_FLAGS = None
+
 if __name__ == '__main__':
+  _FLAGS = define_flags()
   app.run(main)
