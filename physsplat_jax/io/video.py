@@ -71,6 +71,8 @@ def to_uint8(frame, what: str = 'frame') -> np.ndarray:
     )
   if a.dtype == np.uint8:
     return np.ascontiguousarray(a)
+  if a.dtype.name == 'bfloat16':
+    a = a.astype(np.float32)
   if a.dtype == np.bool_ or not (
     np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
   ):
