@@ -33,7 +33,9 @@ from physsplat_jax.types import make_camera as make_camera
 
 # Scenes in and out.
 from physsplat_jax.io.cameras import load_cameras as load_cameras
+from physsplat_jax.io.export import DeformedFrameWriter as DeformedFrameWriter
 from physsplat_jax.io.export import save_deformed_ply as save_deformed_ply
+from physsplat_jax.io.export import save_deformed_splat as save_deformed_splat
 from physsplat_jax.io.ply import PlyError as PlyError
 from physsplat_jax.io.ply import load_ply as load_ply
 from physsplat_jax.io.ply import save_ply as save_ply
@@ -43,6 +45,7 @@ from physsplat_jax.io.scene import save_scene as save_scene
 from physsplat_jax.io.splat import load_splat as load_splat
 from physsplat_jax.io.splat import save_splat as save_splat
 from physsplat_jax.io.video import VideoWriter as VideoWriter
+from physsplat_jax.io.video import write_png_frames as write_png_frames
 from physsplat_jax.io.video import write_video as write_video
 from physsplat_jax.scenes import gaussians_from_mesh as gaussians_from_mesh
 from physsplat_jax.scenes import list_scenes as list_scenes
@@ -61,6 +64,8 @@ from physsplat_jax.segmentation import segment as segment
 
 # Rendering.
 from physsplat_jax.render import RenderConfig as RenderConfig
+from physsplat_jax.render import RenderOutput as RenderOutput
+from physsplat_jax.render import fit_render_config as fit_render_config
 from physsplat_jax.render import render as render
 from physsplat_jax.render import render_differentiable as render_differentiable
 from physsplat_jax.render import render_image as render_image

@@ -1,7 +1,9 @@
 """File I/O: 3DGS scenes (PLY, compressed PLY, .splat) and camera files.
 
-The filesystem is touched only here (and in ``experiments/``). Render outputs
-(video, frames) live in ``io.video`` and ``io.frames``; import them from there.
+The filesystem is touched only here (and in ``experiments/``). Outputs live
+in ``io.video`` (MP4/GIF/PNG, space-time slices), ``io.export`` (deformed
+Gaussians as per-frame PLY / .splat) and ``io.scene`` (scenes with object
+ids); the MLLM client is ``io.mllm``.
 """
 
 from physsplat_jax.io.cameras import CameraFileError as CameraFileError
@@ -21,3 +23,6 @@ from physsplat_jax.io.ply import write_ply as write_ply
 from physsplat_jax.io.splat import SplatError as SplatError
 from physsplat_jax.io.splat import load_splat as load_splat
 from physsplat_jax.io.splat import save_splat as save_splat
+from physsplat_jax.io.scene import SceneFileError as SceneFileError
+from physsplat_jax.io.scene import load_scene as load_scene
+from physsplat_jax.io.scene import save_scene as save_scene
