@@ -39,7 +39,7 @@ from absl import logging
 from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
 from physsplat_jax.configs import physgaussian as pg
-from physsplat_jax.io import ply
+from physsplat_jax.io import ply as ply_io
 from physsplat_jax.io import scene as scene_io
 from physsplat_jax.mpm import physgaussian as mpm_pg
 
@@ -179,19 +179,111 @@ def load_pipeline_config(path=None) -> dict:
 
 
 def simulate_file(scene: str, config: str, out: str, frames=None,
-                  auto_substeps=False, fill=True) -> str:
-  """PhysGaussian mode: simulate a JSON config, write trajectory.npz."""
+                  auto_substeps=False, fill=True, video=False, ply=False,
+                  width=512, height=384, camera_index=0) -> str:
+  """PhysGaussian mode: simulate a JSON config as PhysGaussian does.
+
+  Writes ``out/trajectory.npz`` and ``out/report.json``; with ``video``
+  also ``video.mp4`` and ``frames/`` (every Gaussian rendered, the simulated
+  ones with ``Sigma' = F Sigma F^T`` and their SH view direction rotated by
+  ``polar(F)``), with ``ply`` per-frame PLY files. Returns the trajectory
+  path.
+  """
+  import json
+  import time
+
+  t0 = time.perf_counter()
   cfg = pg.load_config(config)
-  gaussians = ply.load_ply(scene)
-  x, ids, t = mpm_pg.simulate_config(
-    gaussians, cfg, num_frames=frames, auto_substeps=auto_substeps,
-    fill=fill)
+  gaussians = ply_io.load_ply(scene)
   os.makedirs(out, exist_ok=True)
+  files = {}
+  times = dict(render=0.0, write=0.0)
+  cb = None
+  writers = []
+  if video or ply:
+    import jax.numpy as jnp
+
+    from physsplat_jax import deform
+    from physsplat_jax.io import export
+    from physsplat_jax.io import video as video_lib
+    from physsplat_jax.render import raster
+
+    # PhysGaussian removes Gaussians under opacity_threshold from the scene;
+    # those outside sim_area stay, static.
+    faint = np.asarray(gaussians.opacities) < cfg.opacity_threshold
+    shown = gaussians.replace(opacity_logits=jnp.where(
+      jnp.asarray(faint), -30.0, gaussians.opacity_logits))
+    cam_scene = scene_io.load_scene(scene)
+    cam = pl.render_camera(cam_scene, pl.PipelineConfig(
+      width=width, height=height, camera_index=camera_index))
+    covs0 = gaussians.covariances
+    state = {}
+
+    @jax.jit
+    def assemble(ids, x, F):
+      c = F @ covs0[ids] @ jnp.swapaxes(F, -1, -2)
+      eye = jnp.broadcast_to(jnp.eye(3, dtype=c.dtype), covs0.shape)
+      return (gaussians.means.at[ids].set(x), covs0.at[ids].set(c),
+              eye.at[ids].set(deform.polar_rotation(F)))
+
+    if video:
+      vw = video_lib.VideoWriter(os.path.join(out, 'video.mp4'), fps=1.0 /
+                                 cfg.frame_dt)
+      pw = video_lib.PngFrameWriter(os.path.join(out, 'frames'))
+      writers += [vw, pw]
+      files['frames'] = os.path.join(out, 'frames')
+
+    def cb(f, x, F):
+      t1 = time.perf_counter()
+      ids = state.setdefault('ids', None)
+      if ids is None:  # the selected rows: the Gaussians at their x
+        # Exactly the selection of mpm.physgaussian.prepare_config.
+        op = np.asarray(jax.nn.sigmoid(jnp.asarray(
+          gaussians.opacity_logits, jnp.float32)), np.float64)
+        ids = state['ids'] = jnp.asarray(pg.select_particles(
+          cfg, np.asarray(gaussians.means, np.float64), op))
+      means, covs, rots = assemble(ids, jnp.asarray(x), jnp.asarray(F))
+      if video:
+        img = raster.render_image(shown.replace(means=means), cam,
+                                  background=(1.0, 1.0, 1.0),
+                                  covariances=covs, view_rotations=rots)
+        times['render'] += time.perf_counter() - t1
+        t2 = time.perf_counter()
+        frame = np.clip(img.image, 0.0, 1.0)
+        vw.append(frame)
+        pw.append(frame)
+        times['write'] += time.perf_counter() - t2
+      if ply:
+        t2 = time.perf_counter()
+        export.save_deformed_ply(
+          os.path.join(out, 'ply', f'frame_{f:04d}.ply'), gaussians, means,
+          covs, rots)
+        files['ply'] = os.path.join(out, 'ply')
+        times['write'] += time.perf_counter() - t2
+      logging.log_every_n(logging.INFO, 'frame %d written', 1, f)
+
+  try:
+    x, ids, t = mpm_pg.simulate_config(
+      gaussians, cfg, num_frames=frames, auto_substeps=auto_substeps,
+      fill=fill, on_frame_F=cb)
+  finally:
+    for w in writers:
+      w.close()
+  if video:
+    files['video'] = writers[0].path
   path = os.path.join(out, 'trajectory.npz')
   np.savez(path, x=x.astype(np.float32), ids=ids.astype(np.int64),
            t=t.astype(np.float64))
-  logging.info('wrote %s: x %s, %d Gaussians, t = 0..%.3g s', path, x.shape,
-               len(ids), t[-1])
+  files['trajectory'] = path
+  times['total'] = time.perf_counter() - t0
+  report = dict(scene=scene, config=config, material=cfg.material,
+                num_gaussians=int(len(ids)), num_frames=int(len(t) - 1),
+                stage_seconds={k: round(v, 3) for k, v in times.items()},
+                files=files)
+  with open(os.path.join(out, 'report.json'), 'w') as fh:
+    json.dump(report, fh, indent=1)
+  logging.info('wrote %s: x %s, %d Gaussians, t = 0..%.3g s (%.1f s)', path,
+               x.shape, len(ids), t[-1], times['total'])
   return path
 
 
@@ -225,7 +317,10 @@ def main(argv, f=None):
   logging.info('devices %s, git %s', jax.devices(), sha)
   if f.config.value and f.config.value.endswith('.json'):
     simulate_file(f.scene.value, f.config.value, f.out.value, f.frames.value,
-                  f.auto.value, f.fill.value)
+                  f.auto.value, f.fill.value, video=f.video.value,
+                  ply=f.ply.value, width=f.width.value or 512,
+                  height=f.height.value or 384,
+                  camera_index=0 if f.camera.value is None else f.camera.value)
     return
   scene = scene_io.load_scene(f.scene.value)
   if f.objects.value:

@@ -348,6 +348,7 @@ def simulate_config(
   auto_substeps: bool = False,
   on_frame: Callable[[int, np.ndarray], Any] | None = None,
   dtype=jnp.float32, fill: bool = True,
+  on_frame_F: Callable[[int, np.ndarray, np.ndarray], Any] | None = None,
 ):
   """Simulates a PhysGaussian config and returns the Gaussians' trajectory.
 
@@ -362,6 +363,10 @@ def simulate_config(
       initial).
     dtype: simulation float dtype.
     fill: honour ``particle_filling``.
+    on_frame_F: optional ``callback(frame, x, F)`` with also the (K, 3, 3)
+      deformation gradients of the simulated Gaussians in the input frame
+      (``R^T F_n R``; the normalisation's scale cancels), for rendering
+      ``Sigma' = F Sigma F^T`` as PhysGaussian does.
 
   Returns:
     ``(x, ids, t)``: x (T+1, K, 3) float32 positions of the simulated
@@ -396,11 +401,16 @@ def simulate_config(
 
   traj = []
 
+  R = th[0]
+
   def collect(f, state):
     x = to_input(state)
     traj.append(x)
     if on_frame is not None:
       on_frame(f, x)
+    if on_frame_F is not None:
+      Fn = np.asarray(state.F[:k], np.float64)
+      on_frame_F(f, x, (R.T @ Fn @ R).astype(np.float32))
 
   logging.info('%s: %s, %d Gaussians + %d fill particles, grid %d^3, '
                'dt %.3g s x %d substeps/frame, %d frames.', config.source,
