@@ -36,69 +36,51 @@ def _directional(f, args, seed):
 
 class GradTest(absltest.TestCase):
 
-  def test_fixed_corotated_rollout_grads(self):
-    """d loss / d (E, nu, v0, impulse force) on a 2 x 4-substep rollout."""
+  def test_rollout_grads_match_finite_differences(self):
+    """d loss / d (E, nu, rho, v0, impulse force) on a 2 x 4-substep rollout.
+
+    Four models share the block (fixed corotated through the polar VJP,
+    StVK, snow and sand through the spectral-map VJP); one compile.
+    """
     with jax.enable_x64(True):
       grid, x0, vol = _scene()
       n = len(x0)
+      models = ('fixed_corotated', 'stvk', 'snow', 'drucker_prager')
+      names = [models[i % 4] for i in range(n)]
       cfg = mpm.SimConfig(
-        grid=grid, dt=1e-3, substeps_per_frame=4, dtype='float64',
+        grid=grid, dt=1e-3, substeps_per_frame=4, models=models,
+        dtype='float64',
         boundary_conditions=(
-          mpm.SurfaceCollider(point=(0, 0, 0.3), surface='slip',
+          mpm.SurfaceCollider(point=(0, 0, 0.31), surface='slip',
                               friction=0.3),
           mpm.ParticleImpulse(force=(0.0, 0.0, 0.0), num_dt=3)),
       )
       w = jnp.asarray(np.random.default_rng(1).normal(size=(3, n, 3)))
 
       @jax.jit
-      def loss(E, nu, v0, force):
-        # E, nu per particle (the MPDP field); force of the impulse.
-        mat = mpm.make_materials('fixed_corotated', E, nu, 1000.0,
-                                 dtype=jnp.float64)
+      def loss(E, nu, rho, v0, force):
+        # Per-particle E, nu, rho (the MPDP field); force of the impulse.
+        mat = mpm.make_materials(names, E, nu, rho, config_models=models,
+                                 dtype=jnp.float64, theta_c=0.01)
         s = mpm.init_state(x0, v0, vol, mat, cfg)
         forces = mpm.Forces(values=(jnp.zeros(0), force))
         _, xs, Fs = mpm.rollout(s, mat, forces, cfg, 2)
         return jnp.sum(w * xs) + jnp.sum(Fs[-1] ** 2)
 
-      v0 = jnp.tile(jnp.asarray([[0.3, -0.2, -1.0]]), (n, 1))
-      args = (jnp.full((n,), 3e4), jnp.full((n,), 0.3), v0,
-              jnp.asarray([1e-3, 0.0, 2e-3]))
+      # A non-uniform v0 so that no particle sits at F = I after a substep:
+      # cohesionless sand's return map is not differentiable there (the apex
+      # of its cone), so finite differences and AD need not agree.
+      v0 = jnp.tile(jnp.asarray([[0.3, -0.2, -1.5]]), (n, 1)) + 0.1 * (
+        jnp.asarray(np.random.default_rng(5).normal(size=(n, 3))))
+      args = (jnp.full((n,), 3e4), jnp.full((n,), 0.3),
+              jnp.full((n,), 800.0), v0, jnp.asarray([1e-3, 0.0, 2e-3]))
       for seed in range(2):
         ad, fd, g = _directional(loss, args, seed)
         np.testing.assert_allclose(ad, fd, rtol=_RTOL, err_msg=f'{seed}')
       # Each parameter really matters (no silently zero gradient).
-      for name, gi in zip(('E', 'nu', 'v0', 'force'), g):
+      for name, gi in zip(('E', 'nu', 'rho', 'v0', 'force'), g):
         self.assertGreater(float(jnp.abs(gi).max()), 0.0, msg=name)
         self.assertTrue(bool(jnp.all(jnp.isfinite(gi))), msg=name)
-
-  def test_plastic_and_svd_models_grads(self):
-    """Snow + sand + StVK in one rollout: gradients through the SVD maps."""
-    with jax.enable_x64(True):
-      grid, x0, vol = _scene()
-      n = len(x0)
-      models = ('stvk', 'snow', 'drucker_prager')
-      names = [models[i % 3] for i in range(n)]
-      cfg = mpm.SimConfig(
-        grid=grid, dt=1e-3, substeps_per_frame=4, models=models,
-        dtype='float64',
-        boundary_conditions=(mpm.SurfaceCollider(point=(0, 0, 0.33)),))
-      w = jnp.asarray(np.random.default_rng(2).normal(size=(3, n, 3)))
-
-      @jax.jit
-      def loss(E, nu, rho):
-        mat = mpm.make_materials(names, E, nu, rho, config_models=models,
-                                 dtype=jnp.float64, theta_c=0.01)
-        s = mpm.init_state(x0, (0.0, 0.0, -1.5), vol, mat, cfg)
-        _, xs, _ = mpm.rollout(s, mat, None, cfg, 2)
-        return jnp.sum(w * xs)
-
-      args = (jnp.full((n,), 5e4), jnp.full((n,), 0.25),
-              jnp.full((n,), 800.0))
-      ad, fd, g = _directional(loss, args, 3)
-      np.testing.assert_allclose(ad, fd, rtol=_RTOL)
-      for name, gi in zip(('E', 'nu', 'rho'), g):
-        self.assertTrue(bool(jnp.all(jnp.isfinite(gi))), msg=name)
-        self.assertGreater(float(jnp.abs(gi).max()), 0.0, msg=name)
 
 
 if __name__ == '__main__':

@@ -50,12 +50,13 @@ class TransferTest(absltest.TestCase):
       # Any affine matrix (APIC C and stress): adds no net momentum.
       A = la.to_mat(jnp.asarray(rng.normal(size=(3, 3, n))))
       st = transfer.Stencil(grid, x)
-      g = transfer.p2g(grid, st, v, m, A)
-      np.testing.assert_allclose(jnp.sum(g[:, 0]), jnp.sum(m), rtol=_TOL64)
+      g = transfer.p2g(grid, st, v, m, A).reshape(-1, 4).T
+      np.testing.assert_allclose(jnp.sum(g[0]), jnp.sum(m), rtol=_TOL64)
       p = np.array([float(jnp.sum(m * v[d])) for d in range(3)])
-      np.testing.assert_allclose(jnp.sum(g[:, 1:], 0), p, atol=_TOL64)
-      gv = jnp.where(g[:, :1] > 0, g[:, 1:] / jnp.where(g[:, :1] > 0,
-                                                        g[:, :1], 1), 0)
+      np.testing.assert_allclose(jnp.sum(g[1:], 1), p, atol=_TOL64)
+      has = g[0] > 0
+      gv = tuple(jnp.where(has, g[d + 1] / jnp.where(has, g[0], 1), 0)
+                 for d in range(3))
       v2, _ = transfer.g2p(grid, st, gv)
       p2 = np.array([float(jnp.sum(m * v2[d])) for d in range(3)])
       np.testing.assert_allclose(p2, p, atol=1e-9)

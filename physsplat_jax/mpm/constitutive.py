@@ -79,6 +79,7 @@ _J_FLOOR = 1e-3
 _TAIT_GAMMA = 7.0
 _SNOW_H = (0.1, 5.0)
 _SQRT23 = math.sqrt(2.0 / 3.0)
+_N2_MIN = 1e-30  # |e^|^2 below this is zero deviatoric strain
 
 
 def safe_J(J):
@@ -167,7 +168,11 @@ def _drucker_prager(s, p):
   tr, eh, n = _dev(e)
   dg = n + (3.0 * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
   tip = tr > 0.0
-  cone = (~tip) & (dg > 0.0)
+  # F = I (zero strain) is the apex of the cone, where the return map has no
+  # derivative; call it elastic (the floor in ``n`` would otherwise make
+  # dg > 0 there and select the cone formula, whose derivative at the apex
+  # is meaningless).
+  cone = (~tip) & (dg > 0.0) & (jax.lax.stop_gradient(n * n) > _N2_MIN)
   f = jnp.where(cone, dg / n, 0.0)
   e_new = tuple(jnp.where(tip, 0.0, x - f * y) for x, y in zip(e, eh))
   e_norm = jnp.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]

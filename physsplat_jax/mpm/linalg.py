@@ -56,7 +56,9 @@ import jax.numpy as jnp
 Array = Any
 Mat = tuple  # tuple[tuple[Array, Array, Array], ...] of (N,) arrays
 
-_POLAR_ITERS = 8
+# Scaled Newton iterations: 6 reach float32 round-off even for condition
+# numbers ~4e4 (measured); float64 gets 9.
+_POLAR_ITERS = {4: 6, 8: 9}
 # Smallest |s_i^2 - s_j^2| used in the SVD gradient (relative to s^2).
 _SVD_GAP = 1e-6
 
@@ -215,11 +217,15 @@ def polar_mat(F: Mat) -> Mat:
   Returns:
     R as a nested tuple.
   """
-  return _polar_newton(F, _POLAR_ITERS)
+  return _polar_newton(F, _iters(F))
+
+
+def _iters(F):
+  return _POLAR_ITERS.get(jnp.dtype(F[0][0].dtype).itemsize, 9)
 
 
 def _polar_fwd(F):
-  R = _polar_newton(F, _POLAR_ITERS)
+  R = _polar_newton(F, _iters(F))
   return R, (F, R)
 
 

@@ -22,6 +22,7 @@ progress logging, a stability check per frame and timing.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Any, Callable
 
@@ -207,16 +208,15 @@ def _make_soa_substep(config: base.SimConfig):
       st = transfer.Stencil(grid, x)
       gm = transfer.p2g(grid, st, v, mass, A)
     with jax.named_scope('grid_update'):
-      m = gm[:, 0]
+      m = gm[..., 0]
       has = m > 0
       inv_m = 1.0 / jnp.where(has, m, 1.0)
-      gv = tuple(jnp.where(has, gm[:, d + 1] * inv_m + dt * g[d], 0.0)
+      gv = tuple(jnp.where(has, gm[..., d + 1] * inv_m + dt * g[d], 0.0)
                  for d in range(3))
       if damp != 1.0:
         gv = tuple(a * damp for a in gv)
-      gv = tuple(a.reshape(G, G, G) for a in gv)
       gv = boundary.apply_grid_bcs(config, forces, t, gv)
-      gv = jnp.stack([a.reshape(-1) for a in gv], axis=-1)
+      gv = tuple(a.reshape(-1) for a in gv)
     with jax.named_scope('g2p'):
       v_new, C_new = transfer.g2p(grid, st, gv)
       x_new = tuple(x[d] + dt * v_new[d] for d in range(3))
@@ -363,7 +363,8 @@ class RunResult:
     positions: (T+1, N, 3) float32 host positions (None when not kept).
     times: (T+1,) frame times [s].
     frames: frames simulated.
-    compile_s: seconds to compile the frame function.
+    compile_s: seconds to compile the frame function (0 when a previous run
+      with the same config and shapes already compiled it).
     run_s: seconds simulating (excluding compilation).
     substeps_per_s: particle-substeps per second over the run.
   """
@@ -438,6 +439,22 @@ def check_state(config: base.SimConfig, stats: dict, frame: int,
       f'particles are crushed or torn apart. {fix}', frame, 'J')
 
 
+# Compiled frame executables by (config, argument shapes and dtypes).
+_COMPILED: dict = {}
+
+
+@functools.lru_cache(maxsize=32)
+def _jitted(config: base.SimConfig):
+  """Jitted frame and stats functions per (hashable) config, reused by run.
+
+  A new ``jax.jit`` of a new closure would recompile on every ``run`` call;
+  caching by config lets repeated runs (and same-shape scenes) reuse the
+  compiled executables.
+  """
+  return (jax.jit(make_frame(config)),
+          jax.jit(functools.partial(_stats, config)))
+
+
 def run(state: base.MPMState, materials: base.Materials,
         forces: base.Forces | None, config: base.SimConfig,
         num_frames: int | None = None,
@@ -470,10 +487,17 @@ def run(state: base.MPMState, materials: base.Materials,
   if num_frames is None:
     raise ValueError('run: pass num_frames (or set config.num_frames).')
   forces = _check_inputs(state, materials, forces, config)
-  frame_jit = jax.jit(make_frame(config))
-  stats_jit = jax.jit(lambda s: _stats(config, s))
+  frame_jit, stats_jit = _jitted(config)
   t0 = time.perf_counter()
-  compiled = frame_jit.lower(state, materials, forces).compile()
+  leaves, tree = jax.tree.flatten((state, materials, forces))
+  key = (config, tree, tuple((np.shape(a), str(getattr(a, 'dtype', type(a))))
+                             for a in leaves))
+  compiled = _COMPILED.get(key)
+  if compiled is None:
+    compiled = frame_jit.lower(state, materials, forces).compile()
+    if len(_COMPILED) >= 32:
+      _COMPILED.pop(next(iter(_COMPILED)))
+    _COMPILED[key] = compiled
   compile_s = time.perf_counter() - t0
   logging.info('mpm.run: %d particles, grid %d^3, dt %.3g s x %d substeps '
                'per frame, %d frames; compiled in %.2f s',

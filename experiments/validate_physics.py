@@ -1,0 +1,227 @@
+"""Validates the MLS-MPM solver against analytic solutions (docs/validation.md).
+
+Cases (each at two resolutions unless --quick):
+
+- free_fall: centre of mass vs x0 + v0 t + g t^2 / 2.
+- bar_mode: first longitudinal mode of a free-free elastic bar,
+  f = sqrt(E / rho) / (2 L).
+- cantilever: first bending mode of a clamped cantilever vs Euler-Bernoulli,
+  f = 1.8751^2 / (2 pi L^2) sqrt(E I / (rho A)).
+- sand_slope: flank slope of a collapsed Drucker-Prager sand column vs the
+  friction angle (two angles).
+
+python -m experiments.validate_physics [--cases=free_fall,bar_mode] [--quick]
+  [--out=results.json]
+"""
+
+import json
+import math
+import time
+
+import numpy as np
+from absl import app
+from absl import flags
+from absl import logging
+
+from physsplat_jax import mpm
+
+_CASES = flags.DEFINE_list(
+  'cases', ['free_fall', 'bar_mode', 'cantilever', 'sand_slope'], 'cases')
+_QUICK = flags.DEFINE_bool('quick', False, 'one coarse resolution per case')
+_OUT = flags.DEFINE_string('out', None, 'optional JSON output path')
+
+
+def lattice(lo, hi, spacing):
+  """Particles on a lattice filling the box [lo, hi] (cell centres)."""
+  lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+  n = np.maximum(np.round((hi - lo) / spacing).astype(int), 1)
+  axes = [lo[d] + (np.arange(n[d]) + 0.5) * (hi[d] - lo[d]) / n[d]
+          for d in range(3)]
+  x = np.stack(np.meshgrid(*axes, indexing='ij'), -1).reshape(-1, 3)
+  return x, np.prod((hi - lo) / n)
+
+
+def frequency(t, y):
+  """Mean frequency from the zero crossings of y - mean(y) [Hz]."""
+  y = np.asarray(y) - np.mean(y)
+  s = np.sign(y)
+  idx = np.flatnonzero(s[:-1] * s[1:] < 0)
+  tz = t[idx] - y[idx] * (t[idx + 1] - t[idx]) / (y[idx + 1] - y[idx])
+  if len(tz) < 3:
+    return float('nan')
+  return 0.5 * (len(tz) - 1) / (tz[-1] - tz[0])
+
+
+def free_fall(res):
+  grid = mpm.GridSpec(res=res, size=1.0)
+  g = np.array([0.0, 0.0, -9.8])
+  v0 = np.array([0.5, 0.0, 1.0])
+  x, vol = lattice((0.3, 0.4, 0.3), (0.4, 0.5, 0.4), grid.dx / 2)
+  mat = mpm.make_materials('fixed_corotated', 1e5, 0.3, 1000.0, num=len(x))
+  frame_dt, frames = 0.02, 10
+  n = mpm.choose_substeps(grid.dx, frame_dt, mat)
+  cfg = mpm.SimConfig(grid=grid, dt=frame_dt / n, substeps_per_frame=n,
+                      gravity=tuple(g))
+  s = mpm.init_state(x, v0, vol, mat, cfg)
+  r = mpm.run(s, mat, None, cfg, frames)
+  t = r.times
+  com = r.positions.mean(1)
+  ref = x.mean(0) + v0 * t[:, None] + 0.5 * g * t[:, None] ** 2
+  err = float(np.abs(com - ref).max())
+  # Symplectic Euler: x_n = x0 + v0 t + g t^2/2 + g t dt/2 exactly.
+  disc = ref + 0.5 * g * t[:, None] * cfg.dt
+  return dict(
+    case='free_fall', res=res, particles=len(x), dt=cfg.dt,
+    metric='max |com - analytic| [m]', value=err,
+    reference='x0 + v0 t + g t^2/2',
+    rel_error=err / float(np.abs(ref - x.mean(0)).max()),
+    discrete_error=float(np.abs(com - disc).max()),
+    seconds=r.run_s + r.compile_s)
+
+
+def bar_mode(res):
+  grid = mpm.GridSpec(res=res, size=1.0)
+  E, rho, nu = 1e5, 1000.0, 0.3
+  L, h = 0.5, 0.06
+  lo = np.array([0.25, 0.47, 0.47])
+  x, vol = lattice(lo, lo + [L, h, h], grid.dx / 2)
+  xi = (x[:, 0] - lo[0]) / L
+  v = np.zeros_like(x)
+  v[:, 0] = 0.02 * np.cos(np.pi * xi)
+  mat = mpm.make_materials('fixed_corotated', E, nu, rho, num=len(x))
+  f_ref = math.sqrt(E / rho) / (2 * L)
+  frame_dt = 1.0 / (f_ref * 40)
+  n = mpm.choose_substeps(grid.dx, frame_dt, mat)
+  cfg = mpm.SimConfig(grid=grid, dt=frame_dt / n, substeps_per_frame=n,
+                      gravity=(0, 0, 0))
+  s = mpm.init_state(x, v, vol, mat, cfg)
+  frames = int(3.2 / f_ref / frame_dt)
+  end = x[:, 0] > lo[0] + L - grid.dx / 2
+  r = mpm.run(s, mat, None, cfg, frames)
+  y = r.positions[:, end, 0].mean(1) - r.positions[:, :, 0].mean(1)
+  f = frequency(r.times, y)
+  return dict(
+    case='bar_mode', res=res, particles=len(x), dt=cfg.dt,
+    metric='first longitudinal frequency [Hz]', value=f, reference=f_ref,
+    rel_error=(f - f_ref) / f_ref, seconds=r.run_s + r.compile_s,
+    cells_across=h / grid.dx)
+
+
+def cantilever(res):
+  grid = mpm.GridSpec(res=res, size=1.0)
+  E, rho, nu = 1e5, 1000.0, 0.3
+  L, h = 0.4, 0.08
+  root = 0.2
+  # The beam starts inside a clamped block of grid nodes x < root.
+  lo = np.array([root - 3 * grid.dx, 0.46, 0.46])
+  x, vol = lattice(lo, np.array([root + L, lo[1] + h, lo[2] + h]),
+                   grid.dx / 2)
+  bl, sg = 1.8751, 0.7341
+  xi = np.clip((x[:, 0] - root) / L, 0, None)
+  phi = (np.cosh(bl * xi) - np.cos(bl * xi)
+         - sg * (np.sinh(bl * xi) - np.sin(bl * xi)))
+  phi1 = (np.cosh(bl) - np.cos(bl) - sg * (np.sinh(bl) - np.sin(bl)))
+  v = np.zeros_like(x)
+  v[:, 2] = 0.05 * phi / phi1
+  mat = mpm.make_materials('fixed_corotated', E, nu, rho, num=len(x))
+  f_ref = bl ** 2 / (2 * math.pi * L ** 2) * math.sqrt(E * h ** 2
+                                                       / (12 * rho))
+  frame_dt = 1.0 / (f_ref * 40)
+  n = mpm.choose_substeps(grid.dx, frame_dt, mat)
+  # Clamp: grid nodes with x < root are held at zero velocity.
+  clamp = mpm.Cuboid(point=(root - 0.25, 0.5, 0.5), size=(0.25 + 1e-6, 0.5,
+                                                           0.5))
+  cfg = mpm.SimConfig(grid=grid, dt=frame_dt / n, substeps_per_frame=n,
+                      gravity=(0, 0, 0), boundary_conditions=(clamp,))
+  s = mpm.init_state(x, v, vol, mat, cfg)
+  frames = int(2.2 / f_ref / frame_dt)
+  tip = x[:, 0] > root + L - grid.dx / 2
+  r = mpm.run(s, mat, None, cfg, frames)
+  y = r.positions[:, tip, 2].mean(1)
+  f = frequency(r.times, y)
+  return dict(
+    case='cantilever', res=res, particles=len(x), dt=cfg.dt,
+    metric='first bending frequency [Hz]', value=f, reference=f_ref,
+    rel_error=(f - f_ref) / f_ref, seconds=r.run_s + r.compile_s,
+    cells_across=h / grid.dx, tip_amplitude=float(np.ptp(y) / 2))
+
+
+def sand_slope(res, phi=30.0, radius=0.2, height=0.12):
+  grid = mpm.GridSpec(res=res, size=1.0)
+  floor = 0.1
+  x, vol = lattice((0.5 - radius, 0.5 - radius, floor),
+                   (0.5 + radius, 0.5 + radius, floor + height), grid.dx / 2)
+  keep = np.hypot(x[:, 0] - 0.5, x[:, 1] - 0.5) < radius
+  x = x[keep]
+  mat = mpm.make_materials('drucker_prager', 3e5, 0.3, 2000.0, num=len(x),
+                           friction_angle=phi)
+  frame_dt, frames = 0.05, 16
+  n = mpm.choose_substeps(grid.dx, frame_dt, mat, max_speed=3.0)
+  cfg = mpm.SimConfig(
+    grid=grid, dt=frame_dt / n, substeps_per_frame=n,
+    models=('drucker_prager',),
+    boundary_conditions=(mpm.SurfaceCollider(point=(0, 0, floor)),))
+  s = mpm.init_state(x, np.zeros(3), vol, mat, cfg)
+  r = mpm.run(s, mat, None, cfg, frames)
+  xf = r.positions[-1]
+  rr = np.hypot(xf[:, 0] - 0.5, xf[:, 1] - 0.5)
+  # Height profile: the 95th percentile of z in radial bins; fit the flank
+  # between 20% and 80% of the pile height.
+  bins = np.arange(0, rr.max() + grid.dx, grid.dx)
+  prof = []
+  for a, b in zip(bins[:-1], bins[1:]):
+    m = (rr >= a) & (rr < b)
+    if m.sum() >= 5:
+      prof.append((0.5 * (a + b), np.percentile(xf[m, 2], 95) - floor))
+  prof = np.asarray(prof)
+  hmax = prof[:, 1].max()
+  sel = (prof[:, 1] > 0.2 * hmax) & (prof[:, 1] < 0.8 * hmax)
+  slope = -np.polyfit(prof[sel, 0], prof[sel, 1], 1)[0] if sel.sum() >= 2 \
+      else float('nan')
+  angle = math.degrees(math.atan(slope))
+  return dict(
+    case=f'sand_slope_phi{phi:g}', res=res, particles=len(x), dt=cfg.dt,
+    metric='flank slope angle [deg]', value=angle, reference=phi,
+    rel_error=(angle - phi) / phi, seconds=r.run_s + r.compile_s,
+    final_height=float(hmax), runout_radius=float(np.percentile(rr, 99)))
+
+
+def main(argv):
+  del argv
+  quick = _QUICK.value
+  plan = {
+    'free_fall': [(free_fall, dict(res=r)) for r in ((16,) if quick
+                                                     else (16, 32))],
+    'bar_mode': [(bar_mode, dict(res=r)) for r in ((32,) if quick
+                                                   else (32, 64))],
+    'cantilever': [(cantilever, dict(res=r)) for r in ((32,) if quick
+                                                       else (32, 64))],
+    'sand_slope': [(sand_slope, dict(res=r, phi=p))
+                   for r in ((32,) if quick else (32, 48))
+                   for p in (20.0, 35.0)],
+  }
+  results = []
+  for case in _CASES.value:
+    for fn, kw in plan[case]:
+      t0 = time.time()
+      row = fn(**kw)
+      row['wall_seconds'] = time.time() - t0
+      logging.info('%s', row)
+      print(json.dumps(row), flush=True)
+      results.append(row)
+  print('\n| case | grid | particles | dt [s] | value | reference | '
+        'rel. error | wall [s] |')
+  print('|---|---|---|---|---|---|---|---|')
+  for r in results:
+    ref = r['reference']
+    ref = f'{ref:.4g}' if isinstance(ref, float) else ref
+    print(f"| {r['case']} | {r['res']}^3 | {r['particles']} | {r['dt']:.3g} "
+          f"| {r['value']:.4g} | {ref} | {100 * r['rel_error']:+.2f}% | "
+          f"{r['wall_seconds']:.0f} |")
+  if _OUT.value:
+    with open(_OUT.value, 'w') as f:
+      json.dump(results, f, indent=1)
+
+
+if __name__ == '__main__':
+  app.run(main)
