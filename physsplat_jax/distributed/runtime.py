@@ -1,0 +1,234 @@
+"""Multi-process (multi-host) start-up through ``jax.distributed``.
+
+JAX is multi-controller: the same program runs once per process (usually one
+process per host, or per GPU under Slurm), every process sees all devices
+of the job through ``jax.devices()`` and its own through
+``jax.local_devices()``, and collectives between processes are inserted by
+XLA. ``jax.distributed.initialize`` must run before any JAX computation, so
+``initialize`` here is the first call of a main.
+
+Where the processes come from:
+
+- explicit flags: ``--coordinator_address=host:port --num_processes=P
+  --process_id=i`` (the address of process 0; any free port agreed by all);
+- auto-detected by JAX under Slurm (``srun``; one process per task), Open MPI
+  (``mpirun``) and Cloud TPU (JAX also reads ``JAX_COORDINATOR_ADDRESS``
+  and ``JAX_LOCAL_DEVICE_IDS`` when the flags leave them unset);
+- nothing: a single process, nothing to initialise.
+
+On CPU, processes exchange collectives over TCP with gloo
+(``jax_cpu_collectives_implementation``); ``--cpu_devices=N`` splits each
+process's CPU into N devices (``jax_num_cpu_devices``), which is how the
+tests check multi-device code on one machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Sequence
+
+import jax
+from absl import flags
+from absl import logging
+
+MODES = ('auto', 'on', 'off')
+CPU_COLLECTIVES = ('gloo', 'mpi', 'none')
+
+
+@dataclasses.dataclass(frozen=True)
+class RuntimeInfo:
+  """Where this process stands after :func:`initialize`.
+
+  Attributes:
+    process_index: this process, ``0 .. process_count - 1``.
+    process_count: processes in the job.
+    num_devices: devices of the whole job.
+    num_local_devices: devices of this process.
+    platform: 'cpu', 'gpu' or 'tpu'.
+    method: how the processes were found: 'explicit' (flags/arguments),
+      'auto' (cluster environment: Slurm, Open MPI, TPU, JAX_* variables)
+      or 'single' (no distributed runtime).
+  """
+
+  process_index: int
+  process_count: int
+  num_devices: int
+  num_local_devices: int
+  platform: str
+  method: str
+
+  @property
+  def is_main(self) -> bool:
+    """True on process 0 (the one that writes files and logs results)."""
+    return self.process_index == 0
+
+
+def cluster_environment() -> str | None:
+  """The multi-process launcher JAX can auto-detect, or None.
+
+  Returns 'slurm' inside an ``srun`` step with more than one task, 'ompi'
+  under ``mpirun`` with more than one rank, and None otherwise (a single
+  process: an ``sbatch`` script outside ``srun``, or a plain shell).
+  """
+  env = os.environ
+  slurm = ('SLURM_JOB_ID', 'SLURM_STEP_NODELIST', 'SLURM_NTASKS',
+           'SLURM_PROCID', 'SLURM_LOCALID')
+  if all(k in env for k in slurm) and int(env['SLURM_NTASKS']) > 1:
+    return 'slurm'
+  if 'OMPI_MCA_orte_hnp_uri' in env and int(
+      env.get('OMPI_COMM_WORLD_SIZE', '2')) > 1:
+    return 'ompi'
+  return None
+
+
+def initialize(
+  coordinator_address: str | None = None,
+  num_processes: int | None = None,
+  process_id: int | None = None,
+  local_device_ids: Sequence[int] | None = None,
+  mode: str = 'auto',
+  cpu_devices: int | None = None,
+  cpu_collectives: str = 'gloo',
+  initialization_timeout: int = 300,
+) -> RuntimeInfo:
+  """Starts JAX's distributed runtime when there is more than one process.
+
+  Must be called before any JAX computation (including ``jax.devices()``).
+
+  Args:
+    coordinator_address: ``host:port`` of process 0 (None: auto-detect).
+    num_processes: processes in the job (None: auto-detect).
+    process_id: this process's index (None: auto-detect).
+    local_device_ids: devices this process drives (None: all it sees; JAX
+      picks one GPU per process under Slurm/Open MPI).
+    mode: 'auto' initialises when an argument above is given or a cluster
+      launcher is detected (:func:`cluster_environment`); 'on' always
+      (JAX must then be able to auto-detect what is missing); 'off' never.
+    cpu_devices: split the CPU into this many devices per process
+      (``jax_num_cpu_devices``; for testing on one machine).
+    cpu_collectives: CPU collectives between processes: 'gloo' (TCP; works
+      everywhere), 'mpi' (needs an MPI library) or 'none'.
+    initialization_timeout: seconds to wait for all processes [s].
+
+  Returns:
+    :class:`RuntimeInfo`.
+
+  Raises:
+    ValueError: a bad argument (named, with the fix).
+    RuntimeError: JAX was already used before this call, or the processes
+      could not reach each other within the timeout.
+  """
+  if mode not in MODES:
+    raise ValueError(f'initialize: mode = {mode!r}; use one of {MODES}.')
+  if cpu_collectives not in CPU_COLLECTIVES:
+    raise ValueError(f'initialize: cpu_collectives = {cpu_collectives!r}; '
+                     f'use one of {CPU_COLLECTIVES}.')
+  if num_processes is not None and num_processes < 1:
+    raise ValueError(f'initialize: num_processes = {num_processes} must be '
+                     '>= 1.')
+  if process_id is not None and num_processes is not None and not (
+      0 <= process_id < num_processes):
+    raise ValueError(f'initialize: process_id = {process_id} must be in '
+                     f'[0, num_processes = {num_processes}).')
+  if cpu_devices is not None:
+    if cpu_devices < 1:
+      raise ValueError(f'initialize: cpu_devices = {cpu_devices} must be '
+                       '>= 1.')
+    try:
+      jax.config.update('jax_num_cpu_devices', int(cpu_devices))
+    except RuntimeError as e:
+      raise RuntimeError(
+        'initialize(cpu_devices=...) came after JAX was already used in this '
+        'process; call physsplat_jax.distributed.initialize first thing in '
+        'main (or set XLA_FLAGS=--xla_force_host_platform_device_count=N '
+        f'before Python starts). ({e})') from None
+  explicit = any(a is not None for a in (coordinator_address, num_processes,
+                                         process_id))
+  if explicit and num_processes == 1:
+    explicit, mode = False, 'off'
+  detected = cluster_environment()
+  if mode == 'on' or (mode == 'auto' and (explicit or detected)):
+    if cpu_collectives != 'none':
+      jax.config.update('jax_cpu_collectives_implementation', cpu_collectives)
+    if (explicit and coordinator_address is None and detected is None
+        and 'JAX_COORDINATOR_ADDRESS' not in os.environ):
+      raise ValueError(
+        'initialize: num_processes/process_id given without '
+        'coordinator_address and no cluster launcher detected; pass '
+        '--coordinator_address=HOST:PORT (process 0\'s host, a free port).')
+    try:
+      jax.distributed.initialize(
+        coordinator_address=coordinator_address, num_processes=num_processes,
+        process_id=process_id,
+        local_device_ids=(None if local_device_ids is None
+                          else list(local_device_ids)),
+        initialization_timeout=initialization_timeout)
+    except (RuntimeError, ValueError) as e:
+      raise RuntimeError(
+        f'jax.distributed.initialize failed ({e}). It must run before any '
+        'JAX computation, once per process, and every process needs the '
+        'same coordinator address and process count (check '
+        '--coordinator_address, --num_processes, --process_id, the '
+        'firewall and that process 0 is running).') from None
+    method = 'explicit' if explicit else 'auto'
+  else:
+    method = 'single'
+  info = RuntimeInfo(
+    process_index=jax.process_index(), process_count=jax.process_count(),
+    num_devices=jax.device_count(), num_local_devices=jax.local_device_count(),
+    platform=jax.default_backend(), method=method)
+  logging.info('distributed runtime (%s): process %d/%d, %d local / %d '
+               'global %s devices', info.method, info.process_index,
+               info.process_count, info.num_local_devices, info.num_devices,
+               info.platform)
+  return info
+
+
+def define_flags(flag_values: flags.FlagValues = flags.FLAGS) -> None:
+  """Defines the multi-host flags (call at import time of a main).
+
+  ``--coordinator_address``, ``--num_processes``, ``--process_id``,
+  ``--local_device_ids``, ``--distributed`` (auto|on|off),
+  ``--cpu_devices`` and ``--cpu_collectives``; read them with
+  :func:`initialize_from_flags`.
+  """
+  flags.DEFINE_string(
+    'coordinator_address', None, 'host:port of process 0 for '
+    'jax.distributed (auto-detected under Slurm/Open MPI/TPU).',
+    flag_values=flag_values)
+  flags.DEFINE_integer('num_processes', None, 'Processes in the job '
+                       '(auto-detected under Slurm/Open MPI/TPU).',
+                       flag_values=flag_values)
+  flags.DEFINE_integer('process_id', None, 'Index of this process in '
+                       '[0, num_processes).', flag_values=flag_values)
+  flags.DEFINE_list('local_device_ids', None, 'Devices this process drives '
+                    '(default: all it sees; one GPU per task under Slurm).',
+                    flag_values=flag_values)
+  flags.DEFINE_enum('distributed', 'auto', MODES, 'auto: start '
+                    'jax.distributed when flags are given or a launcher is '
+                    'detected; on: always; off: never.',
+                    flag_values=flag_values)
+  flags.DEFINE_integer('cpu_devices', None, 'Split the CPU into this many '
+                       'devices per process (testing sharding on one '
+                       'machine).', flag_values=flag_values)
+  flags.DEFINE_enum('cpu_collectives', 'gloo', CPU_COLLECTIVES,
+                    'CPU collectives between processes.',
+                    flag_values=flag_values)
+
+
+def initialize_from_flags(
+    flag_values: flags.FlagValues = flags.FLAGS) -> RuntimeInfo:
+  """:func:`initialize` with the values of :func:`define_flags`' flags."""
+  f = flag_values
+  ids = f.local_device_ids
+  try:
+    ids = None if ids is None else [int(i) for i in ids]
+  except ValueError:
+    raise ValueError(f'--local_device_ids={",".join(ids)}: give integers, '
+                     'e.g. --local_device_ids=0,1.') from None
+  return initialize(
+    coordinator_address=f.coordinator_address,
+    num_processes=f.num_processes, process_id=f.process_id,
+    local_device_ids=ids, mode=f.distributed, cpu_devices=f.cpu_devices,
+    cpu_collectives=f.cpu_collectives)

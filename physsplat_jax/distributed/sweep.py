@@ -1,0 +1,112 @@
+"""Parameter sweeps and scene batches of the pipeline, sharded over devices.
+
+A sweep is a batch of :class:`physsplat_jax.pipeline.Params` (axis 0 =
+item) for one prepared scene: the material means scaled per item (E, nu,
+rho multipliers through ``Params.log_scale``), initial velocities, force
+vectors. The MPDP network weights, when present, are shared by every item
+(replicated). A scene batch stacks prepared scenes of equal shapes and
+equal static ``SimSpec`` (:func:`physsplat_jax.distributed.stack_trees`).
+Both run as one ``jax.vmap`` of ``pipeline.simulate`` split over the mesh
+(:func:`physsplat_jax.distributed.sharded_vmap`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any, Callable, Sequence
+
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+
+from physsplat_jax import pipeline as pl
+from physsplat_jax.distributed import sharding as sh
+
+# vmap axes of a batch of Params: the MPDP weights are shared.
+PARAMS_AXES = pl.Params(mpdp=None, log_scale=0, velocity=0, forces=0)
+
+
+def sweep_params(
+  params: pl.Params,
+  E_scale: Sequence[float] = (1.0,),
+  nu_scale: Sequence[float] = (1.0,),
+  rho_scale: Sequence[float] = (1.0,),
+  velocity: Sequence[Sequence[float]] | None = None,
+) -> tuple[pl.Params, list[dict[str, Any]]]:
+  """The Cartesian product of material multipliers and velocities.
+
+  Args:
+    params: base parameters (one scene; e.g. ``pipeline.init_params``).
+    E_scale, nu_scale, rho_scale: multipliers of every movable object's
+      perceived mean Young's modulus, Poisson ratio and density (> 0).
+    velocity: initial velocities [m/s, scene axes] given to every movable
+      object, each 3 numbers; None keeps ``params.velocity``.
+
+  Returns:
+    ``(batch, table)``: ``Params`` whose ``log_scale``, ``velocity`` and
+    ``forces`` have a leading axis of ``B = len(E_scale) * len(nu_scale) *
+    len(rho_scale) * len(velocity)`` items (``mpdp`` shared: vmap with
+    ``PARAMS_AXES``), and one dict per item with its settings.
+
+  Raises:
+    ValueError: a non-positive multiplier or a velocity that is not 3
+      numbers.
+  """
+  for name, vals in (('E_scale', E_scale), ('nu_scale', nu_scale),
+                     ('rho_scale', rho_scale)):
+    if not len(vals) or any(not float(v) > 0 for v in vals):
+      raise ValueError(f'sweep_params: {name} = {list(vals)}; give one or '
+                       'more multipliers > 0.')
+  vels = [None] if velocity is None else [tuple(float(c) for c in v)
+                                          for v in velocity]
+  for v in vels:
+    if v is not None and len(v) != 3:
+      raise ValueError(f'sweep_params: velocity {v} must have 3 components '
+                       '[m/s].')
+  base_ls = np.asarray(params.log_scale)
+  base_v = np.asarray(params.velocity)
+  ls, vs, table = [], [], []
+  for e, n, r, v in itertools.product(E_scale, nu_scale, rho_scale, vels):
+    ls.append(base_ls + np.log([float(e), float(n), float(r)]))
+    vs.append(base_v if v is None else np.broadcast_to(v, base_v.shape))
+    table.append(dict(E_scale=float(e), nu_scale=float(n),
+                      rho_scale=float(r),
+                      velocity=None if v is None else list(v)))
+  B = len(table)
+  forces = np.broadcast_to(np.asarray(params.forces),
+                           (B,) + tuple(np.shape(params.forces)))
+  batch = params.replace(
+    log_scale=jnp.asarray(np.stack(ls), base_ls.dtype),
+    velocity=jnp.asarray(np.stack(vs), base_v.dtype),
+    forces=jnp.asarray(forces))
+  return batch, table
+
+
+def make_simulate_batch(config: pl.PipelineConfig, mesh: Mesh,
+                        batch_scenes: bool = False,
+                        select: Callable[[pl.Trajectory], Any] | None = None,
+                        axis_name: str | None = None) -> Callable:
+  """A sharded batch of ``pipeline.simulate`` runs (compiled once).
+
+  Args:
+    config: the pipeline config every item shares (static).
+    mesh: device mesh; the batch is split over ``axis_name``.
+    batch_scenes: the prepared scenes are batched too (a stacked
+      ``PreparedScene``, see ``stack_trees``); otherwise one scene is
+      shared (replicated) by every item.
+    select: keeps part of each ``Trajectory`` (e.g. ``lambda t: t.means``)
+      so that less comes back from the devices; default: all of it.
+    axis_name: the mesh axis (default: the only one).
+
+  Returns:
+    ``simulate_batch_fn(params_batch, prepared) -> pytree`` with a leading
+    batch axis, sharded over the mesh (see ``sharded_vmap`` for padding).
+  """
+  select = select or (lambda t: t)
+
+  def one(params, prepared):
+    return select(pl.simulate(params, prepared, config))
+
+  return sh.sharded_vmap(one, mesh, in_axes=(PARAMS_AXES,
+                                             0 if batch_scenes else None),
+                         axis_name=axis_name)
