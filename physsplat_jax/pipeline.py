@@ -636,8 +636,11 @@ def prepare_scene(
                     0.5 * (lo[1] + hi[1]) - L / 2, z0])
   shift = -lower
   q = lambda v: tuple(round(float(c), 7) for c in v)  # noqa: E731
+  # With ground='none' the plane is unused: keep it out of the static spec
+  # so scenes that differ only in their lowest point compile once.
   colliders = dataclasses.replace(
-    colliders, ground_z=round(float(ground + shift[2]), 7),
+    colliders, ground_z=(None if config.ground == 'none'
+                         else round(float(ground + shift[2]), 7)),
     anchors=tuple((q(np.add(a, shift)), q(np.add(b, shift)))
                   for a, b in colliders.anchors))
   frame = SimFrame(rotation=jnp.asarray(R, jnp.float32),
@@ -914,11 +917,25 @@ def make_sim_config(spec: SimSpec, config: PipelineConfig,
 
 
 def driver_materials(params: Params, prepared: PreparedScene,
-                     config: PipelineConfig) -> tuple[Array, Array, Array]:
-  """Per-driver (E, nu, rho): MPDP field times the (scaled) object means."""
+                     config: PipelineConfig,
+                     field: Array | None = None) -> tuple[Array, Array, Array]:
+  """Per-driver (E, nu, rho): MPDP field times the (scaled) object means.
+
+  ``field``, if given, is an (N, 3) array of per-driver multipliers of
+  (E, nu, rho) (driver order, e.g. a ground-truth or a fitted field) used
+  instead of the MPDP prediction; gradients flow into it as into
+  ``params``. Rigid objects keep their means either way.
+  """
   spec = prepared.spec
   means = prepared.means * jnp.exp(params.log_scale)  # (O, 3)
-  if config.use_mpdp and params.mpdp is not None:
+  if field is not None:
+    if tuple(field.shape) != (prepared.num_particles, 3):
+      raise PipelineError(
+        f'field has shape {tuple(field.shape)}; give (N, 3) = '
+        f'({prepared.num_particles}, 3) multipliers of (E, nu, rho) per '
+        'driving particle, in driver order.')
+    flat = field.astype(prepared.x0.dtype)
+  elif config.use_mpdp and params.mpdp is not None:
     pts = prepared.x0[prepared.mpdp_index]
     field = mpdp.predict(params.mpdp, pts, prepared.mpdp_means,
                          prepared.mpdp_mask)  # (O, Nmax, 3)
@@ -952,11 +969,12 @@ def _mpm_materials(E, nu, rho, prepared: PreparedScene,
 
 
 def initial_state(params: Params, prepared: PreparedScene,
-                  config: PipelineConfig):
-  """``(state, materials, forces, sim_config)`` at frame 0 (pure)."""
+                  config: PipelineConfig, field: Array | None = None):
+  """``(state, materials, forces, sim_config)`` at frame 0 (pure);
+  ``field`` as in :func:`driver_materials`."""
   spec = prepared.spec
   sim_config = make_sim_config(spec, config, prepared.x0.dtype)
-  E, nu, rho = driver_materials(params, prepared, config)
+  E, nu, rho = driver_materials(params, prepared, config, field)
   materials = _mpm_materials(E, nu, rho, prepared, sim_config)
   v_obj = prepared.frame.vector_to_sim(params.velocity)  # (O, 3)
   v0 = v_obj[prepared.driver_object]
@@ -1022,7 +1040,8 @@ def render_frame(prepared: PreparedScene, config: PipelineConfig, means,
 
 
 def simulate(params: Params, prepared: PreparedScene,
-             config: PipelineConfig) -> Trajectory:
+             config: PipelineConfig, field: Array | None = None
+             ) -> Trajectory:
   """MPDP -> materials -> MLS-MPM rollout -> deformed Gaussians -> frames.
 
   Pure and jit-able (``simulate_jit``); differentiable with respect to
@@ -1033,12 +1052,14 @@ def simulate(params: Params, prepared: PreparedScene,
     params: :class:`Params` (e.g. :func:`init_params`).
     prepared: from :func:`prepare_scene`.
     config: the static config ``prepare_scene`` used.
+    field: optional (N, 3) per-driver multipliers of (E, nu, rho) that
+      replace the MPDP prediction (see :func:`driver_materials`).
 
   Returns:
     :class:`Trajectory` with ``config.num_frames + 1`` frames.
   """
   state, materials, forces, sim_config = initial_state(params, prepared,
-                                                       config)
+                                                       config, field)
   _, xs, Fs = mpm.rollout(state, materials, forces, sim_config,
                           config.num_frames)
   per_frame = jax.vmap(lambda x, F: deformed_gaussians(prepared, config, x, F))

@@ -15,6 +15,7 @@ Public API (see docs/mpm.md):
 """
 
 from physsplat_jax.mpm.base import CANONICAL_MODELS as CANONICAL_MODELS
+from physsplat_jax.mpm.base import FLOAT_FIELDS as FLOAT_FIELDS
 from physsplat_jax.mpm.base import Cuboid as Cuboid
 from physsplat_jax.mpm.base import EnforceRotation as EnforceRotation
 from physsplat_jax.mpm.base import EnforceTranslation as EnforceTranslation
@@ -32,6 +33,7 @@ from physsplat_jax.mpm.base import SurfaceCollider as SurfaceCollider
 from physsplat_jax.mpm.base import lame as lame
 from physsplat_jax.mpm.base import make_forces as make_forces
 from physsplat_jax.mpm.base import make_materials as make_materials
+from physsplat_jax.mpm.base import model_default as model_default
 from physsplat_jax.mpm.solver import RunResult as RunResult
 from physsplat_jax.mpm.solver import init_state as init_state
 from physsplat_jax.mpm.solver import make_frame as make_frame

@@ -575,6 +575,24 @@ MODEL_DEFAULTS = {
 }
 
 
+def model_default(model: str, field: str) -> float:
+  """Default value of a ``Materials`` field for a model (``MODEL_DEFAULTS``).
+
+  Args:
+    model: canonical model name.
+    field: one of ``FLOAT_FIELDS[3:]`` (E, nu, rho have no default).
+
+  Raises:
+    ValueError: unknown model or field.
+  """
+  if model not in MODEL_DEFAULTS:
+    raise ValueError(f'model_default: unknown model {model!r}.')
+  if field not in _GENERIC:
+    raise ValueError(f'model_default: {field!r} has no default; fields with '
+                     f'defaults are {list(_GENERIC)}.')
+  return MODEL_DEFAULTS[model].get(field, _GENERIC[field])
+
+
 def lame(E, nu):
   """Lame parameters ``(mu, lam)`` from Young's modulus and Poisson ratio."""
   mu = E / (2.0 * (1.0 + nu))
@@ -673,8 +691,7 @@ def make_materials(
     if f in overrides:
       fields[f] = jnp.broadcast_to(jnp.asarray(overrides[f], dtype), (n,))
     else:
-      table = np.asarray(
-        [MODEL_DEFAULTS[m].get(f, _GENERIC[f]) for m in config_models])
+      table = np.asarray([model_default(m, f) for m in config_models])
       fields[f] = jnp.asarray(table[model_id], dtype)
   bc = lambda a: jnp.broadcast_to(jnp.asarray(a, dtype), (n,))  # noqa: E731
   del per_particle

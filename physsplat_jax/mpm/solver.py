@@ -9,6 +9,11 @@ One substep (Hu et al. 2018, with PhysGaussian's ordering)::
   5. G2P                 v, C from the grid; rigid projection;
                          x += dt v, F = (I + dt C) F_e; x clamped to the grid
 
+Step 2 of substep k + 1 is computed at the end of substep k (and once at the
+start of a frame) and carried, so that the stress reaches P2G as a
+materialised array (see ``constitute``); the public state keeps
+PhysGaussian's semantics (``F`` before its return mapping).
+
 Inside a frame the state is held as structure of arrays (particle index
 last) and, with ``SimConfig.sort_particles``, permuted so that particles are
 sorted by grid cell (gathers and the scatter then walk memory in order); the
@@ -183,22 +188,35 @@ def _make_soa_substep(config: base.SimConfig):
   g = config.gravity
   has_bodies = config.num_bodies > 0
 
+  def constitute(c, aux, mat):
+    """Adds the return-mapped state and stress of ``c['F']`` to the carry.
+
+    Computed at the end of the previous substep (and once at the start of a
+    frame), so the Kirchhoff stress enters the next P2G as a loop-carried,
+    materialised array: XLA:CPU otherwise fuses the whole stress
+    computation into the scatter's per-contribution loop and recomputes it
+    for each of the 108 contributions of a particle.
+    """
+    rigid = aux['body_id'] >= 0 if has_bodies else None
+    Fe, Jp, ep, tau = constitutive.constitutive_update(
+      models, mat.model_id, la.to_mat(c['F']), la.to_mat(c['C']), c['Jp'],
+      c['ep'], mat, dt, zero_stress=rigid)
+    return dict(c, Fe=la.from_mat(Fe), Jpe=Jp, epe=ep, tau=la.from_mat(tau))
+
   def substep(c, aux, mat, forces):
     x = tuple(c['x'][d] for d in range(3))
     v = tuple(c['v'][d] for d in range(3))
-    F = la.to_mat(c['F'])
     C = la.to_mat(c['C'])
     t = c['t']
     mass, vol0 = aux['mass'], aux['vol0']
-    rigid = aux['body_id'] >= 0 if has_bodies else None
+    # The return mapping of c['F'] (constitute) was done at the end of the
+    # previous substep.
+    Fe, Jp, ep, tau = (la.to_mat(c['Fe']), c['Jpe'], c['epe'],
+                       la.to_mat(c['tau']))
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
                                          v, C, mass)
-    with jax.named_scope('constitutive'):
-      Fe, Jp, ep, tau = constitutive.constitutive_update(
-        models, mat.model_id, F, C, c['Jp'], c['ep'], mat, dt,
-        zero_stress=rigid)
     with jax.named_scope('p2g'):
       if rp > 0:
         C = la.sub(C, la.scale(la.add(C, la.transpose(C)), 0.5 * rp))
@@ -233,13 +251,15 @@ def _make_soa_substep(config: base.SimConfig):
       x_new = tuple(jnp.clip(x_new[d], grid.lower[d] + lo, grid.lower[d] + hi)
                     for d in range(3))
     step = c['step'] + 1
-    return dict(
+    out = dict(
       x=jnp.stack(x_new), v=jnp.stack(v_new), F=la.from_mat(F_new),
       C=la.from_mat(C_new), Jp=Jp, ep=ep,
       t=(step.astype(t.dtype) * dt).astype(t.dtype), step=step,
     )
+    with jax.named_scope('constitutive'):
+      return constitute(out, aux, mat)
 
-  return substep
+  return substep, constitute
 
 
 def _check_inputs(state, materials, forces, config):
@@ -263,11 +283,12 @@ def make_substep(config: base.SimConfig) -> Callable:
   The function converts to structure of arrays and back on every call; use
   ``make_frame`` for many substeps.
   """
-  soa = _make_soa_substep(config)
+  soa, constitute = _make_soa_substep(config)
 
   def substep_fn(state, materials, forces=None):
     forces = _check_inputs(state, materials, forces, config)
     carry, aux = _to_soa(state)
+    carry = constitute(carry, aux, materials)
     return _from_soa(soa(carry, aux, materials, forces), aux)
 
   return substep_fn
@@ -292,7 +313,7 @@ def make_frame(config: base.SimConfig) -> Callable:
   substep inside it, so the backward pass of a rollout stores one carry per
   frame plus, while a frame is replayed, one carry per substep.
   """
-  soa = _make_soa_substep(config)
+  soa, constitute = _make_soa_substep(config)
   n_sub = config.substeps_per_frame
 
   def frame_fn(state, materials, forces=None):
@@ -305,6 +326,7 @@ def make_frame(config: base.SimConfig) -> Callable:
       state = _permute(state, perm)
       materials = _permute(materials, perm)
     carry, aux = _to_soa(state)
+    carry = constitute(carry, aux, materials)
     body = lambda c, _: (soa(c, aux, materials, forces), None)  # noqa: E731
     if config.remat_frames:
       body = jax.checkpoint(body)
