@@ -98,7 +98,7 @@ Cuboid = base.Cuboid
 
 
 def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
-                       mass):
+                       mass, reduce_fn=None):
   """Particle velocity rules before P2G.
 
   Args:
@@ -109,6 +109,8 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
     x, v: 3-tuples of (N,) positions [m] and velocities [m/s].
     C: nested-tuple affine matrices [1/s].
     mass: (N,) [kg].
+    reduce_fn: sums a per-shard partial sum over all particles (None: the
+      identity; ``lax.psum`` when the particles are split over devices).
 
   Returns:
     ``(v, C)``.
@@ -139,6 +141,8 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
         s = jnp.where(on, dt, 0.0) * data / mass
       else:
         total = jnp.sum(data * mass)
+        if reduce_fn is not None:
+          total = reduce_fn(total)
         s = jnp.where(on, dt, 0.0) * data / jnp.maximum(
           total, jnp.finfo(mass.dtype).tiny)
       v = [v[d] + s * val[d] for d in range(3)]

@@ -40,7 +40,8 @@ def _rodrigues(w):
   return la.add(la.eye(w[0]), la.add(la.scale(K, a), la.scale(K2, b)))
 
 
-def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F):
+def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
+            reduce_fn=None):
   """Rigid-body projection of the G2P result.
 
   Args:
@@ -52,6 +53,8 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F):
     x: 3-tuple of (N,) positions at the start of the substep [m].
     v: 3-tuple of (N,) G2P velocities [m/s].
     F: nested-tuple deformation gradients.
+    reduce_fn: sums per-body partial sums over all particles (None: the
+      identity; ``lax.psum`` when the particles are split over devices).
 
   Returns:
     ``(rigid, x_new, v_new, C_new, F_new)``: (N,) bool mask and the rigid
@@ -63,7 +66,8 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F):
   dtype = mass.dtype
 
   def ssum(a):
-    return jax.ops.segment_sum(a, seg, num_segments=B + 1)
+    out = jax.ops.segment_sum(a, seg, num_segments=B + 1)
+    return out if reduce_fn is None else reduce_fn(out)
 
   def at(a):  # per-body (B+1,) -> per-particle
     return a[seg]

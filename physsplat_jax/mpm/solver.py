@@ -170,8 +170,14 @@ def _from_soa(carry, aux) -> base.MPMState:
   )
 
 
-def _make_soa_substep(config: base.SimConfig):
-  """``substep(carry, aux, materials, forces) -> carry`` on SoA fields."""
+def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
+  """``substep(carry, aux, materials, forces) -> carry`` on SoA fields.
+
+  ``reduce_fn`` (None: identity) is applied to every sum over particles:
+  the P2G grid, rigid-body momentum sums and total-force masses; with
+  ``lax.psum`` the particles may be split over devices (docs/distributed.md).
+  """
+  red = (lambda a: a) if reduce_fn is None else reduce_fn  # noqa: E731
   grid = config.grid
   dt = config.dt
   models = config.models
@@ -216,7 +222,7 @@ def _make_soa_substep(config: base.SimConfig):
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
-                                         v, C, mass)
+                                         v, C, mass, reduce_fn)
     with jax.named_scope('p2g'):
       if rp > 0:
         C = la.sub(C, la.scale(la.add(C, la.transpose(C)), 0.5 * rp))
@@ -224,7 +230,7 @@ def _make_soa_substep(config: base.SimConfig):
       A = tuple(tuple(mass * C[i][j] + k * tau[i][j] for j in range(3))
                 for i in range(3))
       st = transfer.Stencil(grid, x)
-      gm = transfer.p2g(grid, st, v, mass, A)
+      gm = red(transfer.p2g(grid, st, v, mass, A))
     with jax.named_scope('grid_update'):
       m = gm[..., 0]
       has = m > 0
@@ -242,7 +248,7 @@ def _make_soa_substep(config: base.SimConfig):
       if has_bodies:
         rb, xr, vr, Cr, Fr = rigid_lib.project(
           config.num_bodies, config.body_fixed, grid.dx, dt, aux['body_id'],
-          mass, x, v_new, Fe)
+          mass, x, v_new, Fe, reduce_fn)
         sel = lambda a, b: jnp.where(rb, a, b)  # noqa: E731
         x_new = tuple(sel(a, b) for a, b in zip(xr, x_new))
         v_new = tuple(sel(a, b) for a, b in zip(vr, v_new))
@@ -305,15 +311,19 @@ def _permute(tree, perm):
                       perm.shape[0] else a, tree)
 
 
-def make_frame(config: base.SimConfig) -> Callable:
+def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
   """Returns ``frame_fn(state, materials, forces) -> state``.
 
   A ``lax.scan`` over ``config.substeps_per_frame`` substeps. With
   ``config.remat_frames`` the frame is ``jax.checkpoint``-ed and so is each
   substep inside it, so the backward pass of a rollout stores one carry per
   frame plus, while a frame is replayed, one carry per substep.
+
+  ``reduce_fn`` (default identity) sums partial particle sums across devices
+  when the particles are sharded (``lax.psum`` inside ``shard_map``, see
+  ``physsplat_jax.distributed.rollout_sharded``).
   """
-  soa, constitute = _make_soa_substep(config)
+  soa, constitute = _make_soa_substep(config, reduce_fn)
   n_sub = config.substeps_per_frame
 
   def frame_fn(state, materials, forces=None):
@@ -343,7 +353,7 @@ def make_frame(config: base.SimConfig) -> Callable:
 
 def rollout(state: base.MPMState, materials: base.Materials,
             forces: base.Forces | None, config: base.SimConfig,
-            num_frames: int | None = None):
+            num_frames: int | None = None, reduce_fn=None):
   """Differentiable rollout over frames (``lax.scan``; jit-able).
 
   Args:
@@ -352,6 +362,7 @@ def rollout(state: base.MPMState, materials: base.Materials,
     forces: boundary-condition parameters (None: ``make_forces(config)``).
     config: static config.
     num_frames: frames T (default ``config.num_frames``).
+    reduce_fn: sums over particles across devices (``make_frame``).
 
   Returns:
     ``(final_state, xs, Fs)``: xs (T+1, N, 3) positions [m] and Fs
@@ -361,7 +372,7 @@ def rollout(state: base.MPMState, materials: base.Materials,
   if num_frames is None or num_frames < 0:
     raise ValueError('rollout: pass num_frames (or set config.num_frames).')
   forces = _check_inputs(state, materials, forces, config)
-  frame_fn = make_frame(config)
+  frame_fn = make_frame(config, reduce_fn)
 
   def body(s, _):
     s = frame_fn(s, materials, forces)
