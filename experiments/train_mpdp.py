@@ -5,14 +5,15 @@ python experiments/train_mpdp.py --workdir=/tmp/mpdp \
   --config=experiments/configs/mpdp.py [--config.train.num_steps=500] \
   [--export=physsplat_jax/data/mpdp]
 
-Through the simulator (trajectory loss, from the mean-only baseline; writes
-workdir/simulator.json):
+Through the simulator (physsplat_jax.pipeline.simulate; trajectory loss
+against targets simulated from the ground-truth fields; config.sim; writes
+workdir/simulator.json, resumes from workdir/checkpoints):
 python experiments/train_mpdp.py --workdir=/tmp/mpdp_sim \
-  --config=experiments/configs/mpdp.py --mode=simulator --sim_steps=30
+  --config=experiments/configs/mpdp.py --mode=simulator \
+  [--config.sim.num_steps=30] [--config.sim.init=pretrained]
 """
 
 import json
-import os
 import subprocess
 
 import jax
@@ -31,7 +32,6 @@ _EXPORT = flags.DEFINE_string('export', None,
                               'if set, write the final params (npz) here')
 _MODE = flags.DEFINE_enum('mode', 'supervised', ['supervised', 'simulator'],
                           'training mode')
-_SIM_STEPS = flags.DEFINE_integer('sim_steps', 30, 'simulator-mode steps')
 _CONFIG = config_flags.DEFINE_config_file('config', None, 'config file',
                                           lock_config=True)
 flags.mark_flags_as_required(['workdir', 'config'])
@@ -41,37 +41,25 @@ def main(argv):
   del argv
   sha = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'],
                        capture_output=True, text=True).stdout.strip()
-  logging.info('devices %s, git %s, config %s', jax.devices(), sha,
-               _CONFIG.value.to_dict())
+  config = _CONFIG.value
+  if _MODE.value == 'simulator' and config.sim.task.dtype == 'float64':
+    jax.config.update('jax_enable_x64', True)
+  logging.info('devices %s, git %s, mode %s, config %s', jax.devices(), sha,
+               _MODE.value, config.to_dict())
   if _MODE.value == 'simulator':
-    run_simulator_mode(sha)
-    return
-  result = train.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
+    result = simtrain.train_and_evaluate(config.sim, _WORKDIR.value)
+  else:
+    result = train.train_and_evaluate(config, _WORKDIR.value)
   params = result.pop('params')
   logging.info('final: %s', result)
-  print({k: v for k, v in result.items()})
+  print(json.dumps(dict(result, git=sha), indent=1, default=str))
   if _EXPORT.value:
-    cfg = model_lib.ModelConfig.from_dict(_CONFIG.value.model.to_dict())
+    cfg = model_lib.ModelConfig.from_dict(config.model.to_dict())
+    if _MODE.value == 'simulator':
+      cfg = model_lib.ModelConfig()  # the pipeline's architecture
+      result = {'held_out': result['held_out'], 'mode': 'simulator'}
     pretrained.save_params(params, cfg, _EXPORT.value,
                            metadata=dict(result, git=sha))
-
-
-def run_simulator_mode(sha):
-  """Trajectory-loss training from the baseline; also scores the shipped
-  supervised params on the same held-out beams."""
-  os.makedirs(_WORKDIR.value, exist_ok=True)
-  r = simtrain.run_demo(
-    num_steps=_SIM_STEPS.value,
-    log_fn=lambda i, loss: logging.info('sim step %d loss %.5f', i, loss))
-  r.pop('params')
-  eval_scenes = simtrain.make_scenes((10, 11), 128, simtrain.SimConfig())
-  r['eval_pretrained_supervised'] = simtrain.trajectory_errors(
-    pretrained.load_pretrained(), eval_scenes, simtrain.SimConfig())
-  r['git'] = sha
-  logging.info('simulator mode: %s', r)
-  print(json.dumps(r))
-  with open(os.path.join(_WORKDIR.value, 'simulator.json'), 'w') as f:
-    json.dump(r, f, indent=1)
 
 
 if __name__ == '__main__':

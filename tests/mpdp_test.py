@@ -1,4 +1,7 @@
-"""Tests for physsplat_jax.mpdp: network properties, data, training, I/O."""
+"""Tests for physsplat_jax.mpdp: network properties, data, training, I/O.
+
+Training through the simulator is tested in tests/mpdp_sim_test.py.
+"""
 
 import functools
 import json
@@ -15,7 +18,6 @@ from absl.testing import absltest
 from experiments.configs import mpdp_test as test_config
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import pretrained
-from physsplat_jax.mpdp import simtrain
 from physsplat_jax.mpdp import synthetic
 from physsplat_jax.mpdp import train as train_lib
 
@@ -309,70 +311,6 @@ class PretrainedTest(absltest.TestCase):
     size = sum(os.path.getsize(os.path.join(pretrained.PRETRAINED_DIR, f))
                for f in os.listdir(pretrained.PRETRAINED_DIR))
     self.assertLess(size, 2 * 1024 * 1024)
-
-
-_TINY_SIM = simtrain.SimConfig(grid_res=12, substeps_per_frame=8,
-                               num_frames=2, dt=4e-4)
-
-
-class SimulatorTest(absltest.TestCase):
-
-  def test_free_fall_is_exact(self):
-    # Uniform motion keeps F = I and C = 0, so MLS-MPM reproduces symplectic
-    # Euler free fall exactly: z_n = z0 + v0 t + g dt^2 n (n + 1) / 2.
-    cfg = simtrain.SimConfig(grid_res=12, substeps_per_frame=5, num_frames=3,
-                             root_x=0.0)
-    x0 = 0.5 + 0.05 * jax.random.uniform(jax.random.key(0), (20, 3))
-    n = jnp.full((20,), 1.0)
-    xs = jax.jit(simtrain.make_rollout(cfg))(x0, 1e-5 * n, 1e5 * n, 0.3 * n,
-                                            1e3 * n)
-    steps = cfg.substeps_per_frame * np.arange(1, cfg.num_frames + 1)
-    dz = (cfg.v0 * cfg.dt * steps
-          + cfg.gravity * cfg.dt ** 2 * steps * (steps + 1) / 2)
-    np.testing.assert_allclose(xs[:, :, 2] - x0[None, :, 2],
-                               np.broadcast_to(dz[:, None], (3, 20)),
-                               atol=1e-6)
-    np.testing.assert_allclose(xs[:, :, :2], np.broadcast_to(
-      x0[None, :, :2], (3, 20, 2)), atol=1e-6)
-
-  def test_trajectory_gradient_matches_finite_differences(self):
-    scene = simtrain.make_beam_scene(0, 32, _TINY_SIM)
-    with jax.enable_x64(True):
-      scene = jax.tree.map(
-        lambda x: x.astype(jnp.float64) if x.dtype == jnp.float32 else x,
-        scene)
-      target = simtrain.target_trajectory(scene, _TINY_SIM)
-      params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64),
-                            _random_params(num_points=32))
-      loss_fn = jax.jit(simtrain.make_trajectory_loss(_TINY_SIM, _SMALL))
-      loss, grads = jax.value_and_grad(loss_fn)(params, scene, target)
-      self.assertGreater(float(loss), 0.0)
-      for g in jax.tree.leaves(grads):
-        self.assertTrue(np.all(np.isfinite(np.asarray(g))))
-      leaves, tree = jax.tree.flatten(params)
-      keys = jax.random.split(jax.random.key(3), len(leaves))
-      direction = jax.tree.unflatten(tree, [
-        jax.random.normal(k, x.shape, x.dtype) for x, k in zip(leaves, keys)])
-      analytic = sum(float(jnp.vdot(g, d)) for g, d in zip(
-        jax.tree.leaves(grads), jax.tree.leaves(direction)))
-      eps = 1e-6
-      shift = lambda s: jax.tree.map(lambda x, d: x + s * d, params,
-                                     direction)
-      numeric = (float(loss_fn(shift(eps), scene, target))
-                 - float(loss_fn(shift(-eps), scene, target))) / (2 * eps)
-      self.assertGreater(abs(analytic), 1e-9)
-      np.testing.assert_allclose(analytic, numeric, rtol=1e-4)
-
-  def test_training_through_simulator_lowers_trajectory_loss(self):
-    scenes = simtrain.make_scenes((0,), 32, _TINY_SIM)
-    params = model_lib.init_params(jax.random.key(0), _SMALL)
-    base = simtrain.trajectory_errors(None, scenes, _TINY_SIM, _SMALL)
-    params, history = simtrain.train_through_simulator(
-      params, scenes, _TINY_SIM, 3, 1e-2, model_config=_SMALL)
-    # The zero-initialised network is the mean-only baseline exactly.
-    np.testing.assert_allclose(history[0], base[0], rtol=1e-5)
-    after = simtrain.trajectory_errors(params, scenes, _TINY_SIM, _SMALL)
-    self.assertLess(after[0], base[0])
 
 
 if __name__ == '__main__':

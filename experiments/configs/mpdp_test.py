@@ -4,7 +4,7 @@ from experiments.configs import mpdp
 
 
 def get_config():
-  """Tiny network, few objects and steps."""
+  """Tiny network, few objects and steps; a tiny simulator task."""
   c = mpdp.get_config()
   c.model.features = (16, 16)
   c.model.edge_features = 16
@@ -21,4 +21,11 @@ def get_config():
   c.train.log_every = 2
   c.train.eval_every = 2
   c.train.checkpoint_every = 2
+  c.sim.task.update(dict(
+    num_gaussians=96, num_particles=64, num_frames=2, substeps_per_frame=20,
+    grid_res=12, E=1e5, width=32, height=24, dtype='float32'))
+  c.sim.train_seeds = (0,)
+  c.sim.eval_seeds = (10,)
+  c.sim.num_steps = 2
+  c.sim.checkpoint_every = 1
   return c

@@ -1,309 +1,608 @@
-"""Training MPDP through a differentiable MLS-MPM rollout.
+"""Training MPDP through the simulator, and fitting E to observations.
 
-Loss between a simulated and a target trajectory, with gradients through the
-whole simulation into the network weights:
+Both go through the package pipeline, ``physsplat_jax.pipeline.simulate``
+(MPDP field -> per-driver materials -> ``physsplat_jax.mpm`` MLS-MPM
+rollout -> deformed Gaussians -> optional differentiable rendering):
 
-  field = predict(theta, x0, means)                 (N, 3), mean 1
-  E_i, nu_i, rho_i = mean * field_i                  (nu clipped < 0.5)
-  X(theta) = MPM(x0, E, nu, rho)                     (T, N, 3) frames
-  L(theta) = mean_{t, i} |X_ti(theta) - X*_ti|^2 / dx^2
+  X(theta) = simulate(Params(mpdp=theta, ...), prepared, config).means
+  L(theta) = mean_{t >= 1, k} |X_tk(theta) - X*_tk|^2 / h^2      (h = dx)
 
-Targets ``X*`` are simulated from the ground-truth synthetic fields
-(:mod:`physsplat_jax.mpdp.synthetic`, documented rules); the mean-only
-baseline is ``field = 1``, which is exactly what the zero-initialised network
-outputs before training.
+The targets ``X*`` are simulated from the same prepared scene with the
+ground-truth heterogeneous field of the synthetic object
+(:mod:`physsplat_jax.mpdp.synthetic`, documented rules) injected through
+``simulate(..., field=gt)``: each driving particle takes the rule's value
+at its nearest synthetic point (:func:`synthetic.field_at`). The mean-only
+baseline is ``field = 1``, exactly what the zero-initialised network
+predicts.
 
-Simulator: a compact MLS-MPM (Hu et al. 2018, "A moving least squares
-material point method"), 3D, quadratic B-splines, APIC transfer, per-particle
-compressible neo-Hookean Kirchhoff stress
-``tau = mu (F F^T - I) + lam log(J) I`` (no SVD, so gradients stay finite at
-F = I), gravity -z, a clamped region (grid nodes with ``x < clamp_x`` have
-zero velocity: the cantilever root) and sticky domain walls. It is
-self-contained because the package solver (``physsplat_jax.mpm``) was not
-available when this was written; ``make_rollout`` is the single point to swap
-it in (it takes per-particle E, nu, rho exactly as the package solver's
-material params do). Frames are ``jax.checkpoint``-ed so memory is about one
-carry per frame.
+Scenes (:func:`make_cantilever`): a synthetic tapered beam
+(:func:`synthetic.make_beam`) scaled to ``length`` metres, its root face at
+x = 0, Gaussians at its sample points (coloured root to tip), plus a fixed
+``wall`` object around the root that the pipeline turns into a sticky
+anchor box. The beam sags under gravity from rest. Every beam is placed so
+that its bounding box has the same centre and the same largest side, so all
+tasks of a :class:`TaskConfig` share one static ``SimSpec``: one compilation
+serves every scene (drivers are chosen by K-means with a fixed budget).
 
-Scene: an axis-aligned cantilever (:func:`synthetic.make_beam`) scaled to
-length ``beam_length`` in the unit cube, root at ``x = root_x``, given an
-initial downward velocity ``v0`` (all particles), released under gravity.
+:func:`fit_material` recovers E from an observed trajectory (Gaussian
+centres) or from rendered frames (``render='differentiable'``): the unknowns
+are the object's log-multiplier of E (``Params.log_scale``) and a smooth
+log-field (a polynomial in the normalised driver rest positions, passed as
+``field``), fitted by Adam through the rollout (and the renderer).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
+import functools
+import json
+import os
+import time
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
+from physsplat_jax import cameras as cam_lib
+from physsplat_jax import gaussians as gs
+from physsplat_jax import pipeline as pl
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import synthetic
+from physsplat_jax.render import raster
+from physsplat_jax.types import Gaussians
+from physsplat_jax.types import ObjectInfo
+from physsplat_jax.types import Scene
+from physsplat_jax.types import make_camera
+
+Array = jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
-class SimConfig:
-  """Static configuration of the small rollout (SI units, 1 m domain).
+class TaskConfig:
+  """Static description of the synthetic cantilever tasks (SI units).
 
   Attributes:
-    grid_res: cells per axis of the unit cube.
-    dt: substep [s].
-    substeps_per_frame: substeps between recorded frames.
-    num_frames: recorded frames T.
-    gravity: z acceleration [m/s^2].
-    v0: initial z velocity of all particles [m/s].
-    beam_length: beam length in the domain [m].
-    root_x: x of the clamped root face [m]; nodes with x < root_x + dx are
-      fixed.
-    E, nu, rho: object mean properties [Pa, -, kg/m^3].
+    num_gaussians: Gaussians of the beam (its synthetic sample points).
+    num_particles: driving particles (K-means budget; fixed, so every
+      scene has the same shapes).
+    length: beam length [m].
+    E, nu, rho: the beam's mean properties [Pa, -, kg/m^3] (what
+      perception would give; the ground-truth field multiplies them).
+    model: constitutive model of the beam.
+    num_frames, fps: frames simulated after the rest frame, frame rate.
+    substeps_per_frame: MPM substeps per frame (fixed so that targets and
+      predictions share one time step).
+    grid_res: MPM grid cells per axis.
+    margin: free space around the beam, a fraction of its length per side.
+    gaussian_scale: standard deviation of the Gaussians, a fraction of the
+      beam length.
+    width, height: rendered frame size [pixels] (video fits).
+    wall_seed: seed of the wall's Gaussians (equal in every task).
+    dtype: 'float64' (default; needs ``jax_enable_x64``) or 'float32': the
+      dtype the prepared scene and the MPM run in. float32 reverse passes
+      can overflow to NaN in the MPM grid update when a particle sits
+      within ~1e-5 cells of a half-cell plane on two axes (a node mass of
+      ~1e-20 kg whose 1/m^2 overflows); float64 does not, at ~1.3x the
+      cost.
   """
 
-  grid_res: int = 20
-  dt: float = 2e-4
-  substeps_per_frame: int = 100
-  num_frames: int = 10
-  gravity: float = -9.8
-  v0: float = -1.0
-  beam_length: float = 0.5
-  root_x: float = 0.2
-  E: float = 1e6
+  num_gaussians: int = 384
+  num_particles: int = 192
+  length: float = 0.5
+  E: float = 3e5
   nu: float = 0.3
   rho: float = 1000.0
+  model: str = 'fixed_corotated'
+  num_frames: int = 10
+  fps: float = 24.0
+  substeps_per_frame: int = 50
+  grid_res: int = 20
+  margin: float = 0.75
+  gaussian_scale: float = 0.024
+  width: int = 64
+  height: int = 48
+  wall_seed: int = 1234
+  dtype: str = 'float64'
 
-  @property
-  def dx(self) -> float:
-    return 1.0 / self.grid_res
+  def pipeline_config(self, render: str = 'none',
+                      render_config: raster.RenderConfig | None = None
+                      ) -> pl.PipelineConfig:
+    """The :class:`~physsplat_jax.pipeline.PipelineConfig` of the tasks."""
+    return pl.PipelineConfig(
+      num_frames=self.num_frames, fps=self.fps,
+      substeps_per_frame=self.substeps_per_frame, grid_res=self.grid_res,
+      margin=self.margin, ground='none', sampling='kmeans',
+      max_particles=self.num_particles, fill=True, use_mpdp=True,
+      render=render, width=self.width, height=self.height,
+      render_config=render_config or raster.RenderConfig())
+
+  @classmethod
+  def from_dict(cls, d) -> 'TaskConfig':
+    """From a dict / ConfigDict; unknown keys raise ``ValueError``."""
+    d = dict(d.to_dict() if hasattr(d, 'to_dict') else d)
+    names = {f.name for f in dataclasses.fields(cls)}
+    bad = sorted(set(d) - names)
+    if bad:
+      raise ValueError(f'unknown TaskConfig fields {bad}; valid: '
+                       f'{sorted(names)}')
+    return cls(**d)
 
 
-def make_beam_scene(seed: int, num_points: int, config: SimConfig):
-  """A synthetic cantilever placed in the unit cube.
+@dataclasses.dataclass(frozen=True)
+class Task:
+  """One scene with its ground truth and target observations.
+
+  Attributes:
+    seed: beam seed.
+    scene: the :class:`~physsplat_jax.types.Scene` (beam + wall).
+    obj: the synthetic beam in scene coordinates (GT rule inputs).
+    config: the pipeline config the task was prepared and simulated with.
+    prepared: :func:`physsplat_jax.pipeline.prepare_scene` output.
+    params: default :class:`~physsplat_jax.pipeline.Params` (``mpdp`` None).
+    field: (N, 3) ground-truth multipliers (E, nu, rho) per driver.
+    target: (T+1, Ks, 3) Gaussian centres simulated with ``field``.
+    images: (T+1, H, W, 3) target frames, or None (``render='none'``).
+  """
+
+  seed: int
+  scene: Scene
+  obj: synthetic.SyntheticObject
+  config: pl.PipelineConfig
+  prepared: pl.PreparedScene
+  params: pl.Params
+  field: Array
+  target: Array
+  images: Array | None
+
+
+# --------------------------------------------------------------- scenes
+
+
+def _beam_colors(x: np.ndarray) -> np.ndarray:
+  """Root (dark red) to tip (yellow) by ``x`` in [0, 1]."""
+  x = np.clip(x, 0.0, 1.0)[:, None]
+  return (1 - x) * np.array([0.6, 0.1, 0.1]) + x * np.array([0.95, 0.8, 0.2])
+
+
+def make_cantilever(seed: int, tc: TaskConfig = TaskConfig()):
+  """A synthetic cantilever anchored in a fixed wall (scene units = m).
+
+  The beam (:func:`synthetic.make_beam`, E/nu/rho/model from ``tc``) is
+  scaled uniformly to ``tc.length`` along x, its root face at x = 0 and its
+  y/z bounding box centred on 0; the wall is a box of Gaussians
+  ``[-0.08, 0.08] x [-0.24, 0.24] x [-0.36, 0.36] * length`` (same in every
+  task) that ``prepare_scene`` turns into a sticky anchor box.
+
+  Args:
+    seed: beam seed.
+    tc: task config.
 
   Returns:
-    dict of jnp arrays: 'x0' (N, 3) [m], 'vol' (N,) [m^3], 'field' (N, 3)
-    ground truth, 'means' (MEANS_DIM,), 'mask' (N,).
+    ``(scene, materials, obj)``: the scene, one material per object
+    (beam, wall) and the beam as a :class:`synthetic.SyntheticObject` in
+    scene coordinates.
   """
-  o = synthetic.make_beam(seed, num_points, config.E, config.nu, config.rho)
-  length = float(o.points[:, 0].max())
-  s = config.beam_length / length
-  x0 = o.points.astype(np.float64) * s + np.array([config.root_x, 0.5, 0.5])
-  # Particle volumes: the beam volume (tapered box) shared equally.
-  ext = np.ptp(o.points[:, 1:], axis=0) * s
-  taper = o.thickness.min() / o.thickness.max()
-  area_ratio = (1 + taper + taper ** 2) / 3.0   # mean of (1 - a u)^2
-  vol = ext[0] * ext[1] * config.beam_length * area_ratio / num_points
-  return {
-    'x0': jnp.asarray(x0, jnp.float32),
-    'vol': jnp.full((num_points,), vol, jnp.float32),
-    'field': jnp.asarray(o.field),
-    'means': o.means,
-    'mask': jnp.ones((num_points,), bool),
-  }
+  L = float(tc.length)
+  o = synthetic.make_beam(seed, tc.num_gaussians, tc.E, tc.nu, tc.rho,
+                          tc.model)
+  p = o.points.astype(np.float64)
+  s = L / float(np.ptp(p[:, 0]))
+  centre = 0.5 * (p.min(0) + p.max(0))
+  offset = -s * np.array([p[:, 0].min(), centre[1], centre[2]])
+  obj = synthetic.transform_object(o, s, offset)
+  # Coordinates on a 2^-20 m lattice: the bounding box is then exactly
+  # [0, L] x [-a, a] x [-b, b] in float32 too, so every beam gives the same
+  # grid placement (one compilation for all tasks).
+  q = 2.0 ** 20
+  beam = np.round(obj.points.astype(np.float64) * q) / q
+  beam[:, 1:] -= 0.5 * (beam[:, 1:].min(0) + beam[:, 1:].max(0))
+  obj = dataclasses.replace(obj, points=beam.astype(np.float32))
+  rng = np.random.default_rng(tc.wall_seed)
+  half = np.array([0.08, 0.24, 0.36]) * L
+  nwall = max(32, tc.num_gaussians // 6)
+  wall = rng.uniform(-half, half, (nwall, 3))
+  means = np.concatenate([beam, wall])
+  k = len(means)
+  rgb = np.concatenate([_beam_colors(beam[:, 0] / L),
+                        np.full((nwall, 3), 0.55)])
+  g = Gaussians(
+    means=jnp.asarray(means, jnp.float32),
+    log_scales=jnp.full((k, 3), np.log(tc.gaussian_scale * L), jnp.float32),
+    quats=jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0], jnp.float32), (k, 1)),
+    opacity_logits=jnp.full((k,), 3.0, jnp.float32),
+    sh=jnp.asarray(gs.rgb_to_sh_dc(rgb), jnp.float32)[:, None, :])
+  ids = np.r_[np.zeros(len(beam), np.int32), np.ones(nwall, np.int32)]
+  # A side view (looking along +y) that sees the beam sag in its plane.
+  dist = 3.2 * L
+  view = cam_lib.look_at([0.5 * L, -dist, -0.2 * L], [0.5 * L, 0.0, -0.2 * L])
+  f = 0.5 * tc.width * dist / (1.2 * L)
+  camera = make_camera(view, f, f, tc.width, tc.height, near=0.1 * L,
+                       far=10.0 * dist)
+  scene = Scene(gaussians=g, object_ids=jnp.asarray(ids),
+                objects=(ObjectInfo('beam'), ObjectInfo('wall', fixed=True)),
+                cameras=(camera,), up_axis='z', meters_per_unit=1.0,
+                name=f'cantilever_{seed}')
+  materials = (pl.ObjectMaterial(tc.model, tc.E, tc.nu, tc.rho),
+               pl.ObjectMaterial('rigid', 1e9, 0.3, 1000.0, rigid=True))
+  return scene, materials, obj
 
 
-def _lame(E, nu):
-  mu = E / (2.0 * (1.0 + nu))
-  lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
-  return mu, lam
+def driver_field(obj: synthetic.SyntheticObject,
+                 prepared: pl.PreparedScene) -> np.ndarray:
+  """(N, 3) float32 ground-truth multipliers at the driving particles.
 
-
-def make_rollout(config: SimConfig):
-  """Returns ``rollout_fn(x0, vol, E, nu, rho) -> (T, N, 3)`` positions.
-
-  All of x0 (N, 3) [m], vol (N,) [m^3], E (N,) [Pa], nu (N,), rho (N,)
-  [kg/m^3] are arguments (differentiable); the config is static.
+  Single-object scenes: the drivers (simulation frame) are mapped back to
+  scene coordinates and take the rule's value at their nearest synthetic
+  point (:func:`synthetic.field_at`; mean exactly 1 over the drivers).
   """
-  res = config.grid_res
-  dx = config.dx
-  inv_dx = 1.0 / dx
-  dt = config.dt
-  offsets = jnp.asarray(list(itertools.product(range(3), repeat=3)))  # 27x3
-  node = jnp.stack(jnp.meshgrid(*[jnp.arange(res)] * 3, indexing='ij'), -1)
-  node = node.reshape(-1, 3)
-  clamp = (node[:, 0] * dx < config.root_x + dx)
-  wall = jnp.any((node < 2) | (node > res - 3), axis=-1)
-  fixed = (clamp | wall)[:, None]
-  gravity = jnp.array([0.0, 0.0, config.gravity])
-
-  def substep(state, mat):
-    x, v, C, F = state
-    mu, lam, mass, vol = mat
-    base = jnp.floor(x * inv_dx - 0.5).astype(jnp.int32)
-    fx = x * inv_dx - base
-    w = jnp.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2,
-                   0.5 * (fx - 0.5) ** 2])                    # (3, N, 3)
-    J = jnp.linalg.det(F)
-    # Neo-Hookean Kirchhoff stress; J floored so log stays finite.
-    FFt = jnp.einsum('nij,nkj->nik', F, F)
-    eye = jnp.eye(3)
-    tau = (mu[:, None, None] * (FFt - eye)
-           + (lam * jnp.log(jnp.maximum(J, 1e-3)))[:, None, None] * eye)
-    affine = (-dt * 4.0 * inv_dx ** 2) * vol[:, None, None] * tau + (
-      mass[:, None, None] * C)
-    # Weights and positions for the 27 neighbours: (27, N).
-    wk = (w[offsets[:, 0], :, 0] * w[offsets[:, 1], :, 1]
-          * w[offsets[:, 2], :, 2])
-    dpos = (offsets[:, None, :] - fx[None]) * dx               # (27, N, 3)
-    idx = base[None] + offsets[:, None, :]
-    flat = (idx[..., 0] * res + idx[..., 1]) * res + idx[..., 2]
-    mom = wk[..., None] * (mass[:, None] * v + jnp.einsum(
-      'nij,knj->kni', affine, dpos))
-    gm = jnp.zeros(res ** 3).at[flat.reshape(-1)].add(
-      (wk * mass[None]).reshape(-1))
-    gp = jnp.zeros((res ** 3, 3)).at[flat.reshape(-1)].add(mom.reshape(-1, 3))
-    has = gm > 1e-12
-    gv = gp / jnp.where(has, gm, 1.0)[:, None]
-    gv = jnp.where(has[:, None], gv + dt * gravity, 0.0)
-    gv = jnp.where(fixed, 0.0, gv)
-    # G2P (APIC): velocity, affine C, then positions and F.
-    gvk = gv[flat]                                            # (27, N, 3)
-    v = jnp.sum(wk[..., None] * gvk, axis=0)
-    C = 4.0 * inv_dx ** 2 * jnp.einsum('kn,kni,knj->nij', wk, gvk, dpos)
-    x = x + dt * v
-    F = F + dt * jnp.einsum('nij,njk->nik', C, F)
-    return (x, v, C, F)
-
-  def rollout_fn(x0, vol, E, nu, rho):
-    n = x0.shape[0]
-    mu, lam = _lame(E, nu)
-    mat = (mu, lam, rho * vol, vol)
-    state = (x0, jnp.broadcast_to(jnp.array([0.0, 0.0, config.v0]), (n, 3)),
-             jnp.zeros((n, 3, 3)), jnp.broadcast_to(jnp.eye(3), (n, 3, 3)))
-
-    @jax.checkpoint
-    def frame(s, _):
-      s = jax.lax.fori_loop(0, config.substeps_per_frame,
-                            lambda i, c: substep(c, mat), s)
-      return s, s[0]
-
-    _, xs = jax.lax.scan(frame, state, None, length=config.num_frames)
-    return xs
-
-  return rollout_fn
+  if prepared.num_objects != 1:
+    raise ValueError('driver_field: scenes with one movable object only; '
+                     f'this one has {prepared.num_objects}.')
+  x = np.asarray(prepared.frame.to_scene(prepared.x0), np.float64)
+  return synthetic.field_at(obj, x).astype(np.float32)
 
 
-def make_trajectory_loss(config: SimConfig,
-                         model_config=model_lib.ModelConfig()):
-  """Returns ``loss_fn(params, scene, target) -> scalar`` (units of dx^2).
+def default_params(prepared: pl.PreparedScene,
+                   config: pl.PipelineConfig) -> pl.Params:
+  """:func:`pipeline.init_params` without MPDP weights (``mpdp=None``)."""
+  return pl.init_params(prepared, dataclasses.replace(config, use_mpdp=False))
 
-  ``target`` is (T, N, 3) positions; ``params=None`` evaluates the mean-only
-  baseline (field = 1).
+
+def make_task(seed: int, tc: TaskConfig = TaskConfig(),
+              render: str = 'none', render_margin: float = 2.0) -> Task:
+  """Prepares a cantilever and simulates its ground-truth target.
+
+  Args:
+    seed: beam seed.
+    tc: task config.
+    render: 'none', or 'differentiable' to also render target frames (the
+      rasterizer is sized on the rest scene with ``render_margin``).
+    render_margin: head-room of the rasterizer capacity (the beam moves).
+
+  Returns:
+    A :class:`Task`.
+
+  Raises:
+    FloatingPointError: the target simulation is not finite (raise
+      ``tc.substeps_per_frame``).
   """
-  rollout_fn = make_rollout(config)
-  predict_fn = model_lib.make_predict(model_config)
+  scene, materials, obj = make_cantilever(seed, tc)
+  rc = None
+  if render != 'none':
+    rc = raster.fit_render_config(scene.gaussians, scene.cameras[0],
+                                  margin=render_margin)
+  config = tc.pipeline_config(render, rc)
+  if tc.dtype == 'float64' and not jax.config.jax_enable_x64:
+    raise ValueError("TaskConfig.dtype='float64' needs x64: call "
+                     "jax.config.update('jax_enable_x64', True) first, or "
+                     "use dtype='float32'.")
+  dtype = jnp.dtype(tc.dtype)
+  cast = lambda t: jax.tree.map(  # noqa: E731
+    lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating)
+    else a, t)
+  prepared, _ = pl.prepare_scene(scene, materials, config)
+  prepared = cast(prepared)
+  params = cast(default_params(prepared, config))
+  field = jnp.asarray(driver_field(obj, prepared), dtype)
+  traj = pl.simulate_jit(params, prepared, config, field=field)
+  target = traj.means
+  if not bool(jnp.all(jnp.isfinite(target))):
+    raise FloatingPointError(
+      f'cantilever {seed}: the ground-truth simulation is not finite; raise '
+      f'TaskConfig.substeps_per_frame (now {tc.substeps_per_frame}).')
+  images = traj.images
+  if images is not None and bool(jnp.any(traj.render_overflow)):
+    raise ValueError(f'cantilever {seed}: the rasterizer overflowed; raise '
+                     'render_margin.')
+  return Task(seed=seed, scene=scene, obj=obj, config=config,
+              prepared=prepared, params=params, field=field, target=target,
+              images=images)
 
-  def loss_fn(params, scene, target):
-    if params is None:
-      field = jnp.ones_like(scene['field'])
-    else:
-      field = predict_fn(params, scene['x0'], scene['means'], scene['mask'])
-    E, nu, rho = model_lib.material_from_field(field, config.E, config.nu,
-                                               config.rho)
-    xs = rollout_fn(scene['x0'], scene['vol'], E, nu, rho)
-    return jnp.mean(jnp.sum((xs - target) ** 2, -1)) / config.dx ** 2
+
+def make_tasks(seeds: Sequence[int], tc: TaskConfig = TaskConfig(),
+               render: str = 'none') -> list[Task]:
+  """:func:`make_task` for each seed."""
+  return [make_task(int(s), tc, render) for s in seeds]
+
+
+# ----------------------------------------------------------------- losses
+
+
+def trajectory_error(means: Array, target: Array,
+                     prepared: pl.PreparedScene) -> Array:
+  """Mean squared distance of the Gaussian centres over frames 1..T, in
+  units of the grid spacing squared (dx^2)."""
+  h = prepared.spec.dx / prepared.frame.scale  # dx in scene units
+  d2 = jnp.sum((means[1:] - target[1:]) ** 2, -1)
+  return jnp.mean(d2) / h**2
+
+
+def image_error(images: Array, target: Array) -> Array:
+  """Mean squared RGB error over frames 1..T."""
+  return jnp.mean((images[1:] - target[1:]) ** 2)
+
+
+def make_loss(config: pl.PipelineConfig) -> Callable:
+  """``loss_fn(mpdp_params, base, prepared, target) -> L`` [dx^2].
+
+  Simulates ``base.replace(mpdp=mpdp_params)`` with
+  :func:`physsplat_jax.pipeline.simulate` (MPDP predicts the field), so
+  gradients reach the network weights through the whole pipeline.
+  """
+  config = dataclasses.replace(config, render='none')
+
+  def loss_fn(mpdp_params, base, prepared, target):
+    traj = pl.simulate(base.replace(mpdp=mpdp_params), prepared, config)
+    return trajectory_error(traj.means, target, prepared)
 
   return loss_fn
 
 
-def target_trajectory(scene, config: SimConfig):
-  """(T, N, 3) trajectory simulated with the ground-truth field."""
-  E, nu, rho = model_lib.material_from_field(scene['field'], config.E,
-                                             config.nu, config.rho)
-  return jax.jit(make_rollout(config))(scene['x0'], scene['vol'], E, nu, rho)
+def _check_same_spec(tasks: Sequence[Task]) -> pl.PipelineConfig:
+  if not tasks:
+    raise ValueError('no tasks given')
+  config = dataclasses.replace(tasks[0].config, render='none',
+                               render_config=raster.RenderConfig())
+  for t in tasks[1:]:
+    if dataclasses.replace(t.config, render='none',
+                           render_config=raster.RenderConfig()) != config:
+      raise ValueError(f'task {t.seed} has a different pipeline config; '
+                       'build all tasks from one TaskConfig.')
+  return config
 
 
-def train_through_simulator(params, train_scenes, config: SimConfig,
-                            num_steps: int, learning_rate: float = 1e-3,
-                            model_config=model_lib.ModelConfig(),
-                            log_fn=None):
-  """Adam on the trajectory loss summed over scenes.
+def _finite(tree) -> bool:
+  return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(tree))
 
-  Args:
-    params: initial network params.
-    train_scenes: list of (scene, target) pairs.
-    config: simulator config.
-    num_steps: optimisation steps (one gradient over all scenes each).
-    learning_rate: Adam step size.
-    model_config: network architecture.
-    log_fn: optional ``log_fn(step, loss)`` callback on the host.
 
-  Returns:
-    (params, list of per-step mean losses).
+def make_optimizer(learning_rate: float, grad_clip: float = 1.0,
+                   num_steps: int | None = None):
+  """Adam with global-norm clipping (cosine decay to 10% when
+  ``num_steps`` is given)."""
+  lr = learning_rate
+  if num_steps:
+    lr = optax.cosine_decay_schedule(learning_rate, num_steps, alpha=0.1)
+  return optax.chain(optax.clip_by_global_norm(grad_clip), optax.adam(lr))
+
+
+@functools.lru_cache(maxsize=8)
+def _grad_fn(config: pl.PipelineConfig):
+  """Jitted ``value_and_grad`` of :func:`make_loss` (cached per config, so
+  repeated runs reuse the compilation)."""
+  return jax.jit(jax.value_and_grad(make_loss(config)))
+
+
+def make_train_step(config: pl.PipelineConfig, tx) -> Callable:
+  """Host step ``step_fn(state, tasks) -> (state, loss, per_task)``.
+
+  ``state = {'step', 'params', 'opt_state'}``. The gradient of each task's
+  loss (one jitted ``value_and_grad`` shared by all tasks, which have equal
+  shapes and static specs) is averaged over the tasks, then one optax
+  update is applied. A non-finite loss or gradient raises
+  ``FloatingPointError`` naming the step (lower the learning rate or raise
+  the substeps) instead of writing NaNs into the weights.
   """
-  loss_fn = make_trajectory_loss(config, model_config)
-
-  def total(p):
-    return sum(loss_fn(p, s, t) for s, t in train_scenes) / len(train_scenes)
-
-  tx = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(learning_rate))
-  opt_state = tx.init(params)
+  grad_fn = _grad_fn(config)
 
   @jax.jit
-  def step(p, o):
-    loss, g = jax.value_and_grad(total)(p)
-    u, o = tx.update(g, o, p)
-    return optax.apply_updates(p, u), o, loss
+  def apply_fn(state, grads):
+    updates, opt_state = tx.update(grads, state['opt_state'],
+                                   state['params'])
+    return {'step': state['step'] + 1,
+            'params': optax.apply_updates(state['params'], updates),
+            'opt_state': opt_state}
 
+  def step_fn(state, tasks):
+    losses, grads = [], None
+    for t in tasks:
+      loss, g = grad_fn(state['params'], t.params, t.prepared, t.target)
+      losses.append(float(loss))
+      grads = g if grads is None else jax.tree.map(jnp.add, grads, g)
+    grads = jax.tree.map(lambda x: x / len(tasks), grads)
+    if not (np.all(np.isfinite(losses)) and _finite(grads)):
+      raise FloatingPointError(
+        f'step {int(state["step"])}: non-finite trajectory loss or gradient '
+        f'(losses {losses}); lower the learning rate or raise '
+        'substeps_per_frame.')
+    return apply_fn(state, grads), float(np.mean(losses)), losses
+
+  return step_fn
+
+
+def train_through_simulator(params, tasks: Sequence[Task], num_steps: int,
+                            learning_rate: float = 1e-3,
+                            grad_clip: float = 1.0,
+                            log_fn: Callable | None = None):
+  """Adam on the mean trajectory loss of ``tasks`` w.r.t. MPDP weights.
+
+  Args:
+    params: initial MPDP params (default architecture), e.g.
+      ``mpdp.init_params(key)`` (the mean-only baseline) or
+      ``mpdp.load_pretrained()``.
+    tasks: from :func:`make_tasks` (one :class:`TaskConfig`).
+    num_steps: optimisation steps (one gradient over all tasks each).
+    learning_rate: Adam step size.
+    grad_clip: global-norm clip.
+    log_fn: optional ``log_fn(step, loss)`` called on the host.
+
+  Returns:
+    ``(params, history)``: trained params and the mean loss [dx^2] before
+    each step.
+  """
+  config = _check_same_spec(tasks)
+  tx = make_optimizer(learning_rate, grad_clip)
+  step_fn = make_train_step(config, tx)
+  state = {'step': jnp.asarray(0, jnp.int32), 'params': params,
+           'opt_state': tx.init(params)}
   history = []
   for i in range(num_steps):
-    params, opt_state, loss = step(params, opt_state)
-    history.append(float(loss))
+    state, loss, _ = step_fn(state, tasks)
+    history.append(loss)
     if log_fn is not None:
-      log_fn(i, float(loss))
-  return params, history
+      log_fn(i, loss)
+  return state['params'], history
 
 
-def make_scenes(seeds, num_points: int, config: SimConfig):
-  """[(scene, target trajectory)] for the given beam seeds."""
-  out = []
-  for seed in seeds:
-    scene = make_beam_scene(seed, num_points, config)
-    out.append((scene, target_trajectory(scene, config)))
+# ------------------------------------------------------------- evaluation
+
+
+@functools.lru_cache(maxsize=8)
+def make_error_fns(config: pl.PipelineConfig):
+  """Jitted ``(network_error_fn, field_error_fn)``:
+  ``network_error_fn(mpdp_params, base, prepared, target)`` and
+  ``field_error_fn(field, base, prepared, target)`` [dx^2]."""
+  config = dataclasses.replace(config, render='none')
+  net = jax.jit(make_loss(config))
+
+  @jax.jit
+  def field_fn(field, base, prepared, target):
+    traj = pl.simulate(base, prepared, config, field=field)
+    return trajectory_error(traj.means, target, prepared)
+
+  return net, field_fn
+
+
+def trajectory_errors(tasks: Sequence[Task], models: dict[str, Any]
+                      ) -> dict[str, list[float]]:
+  """Trajectory error [dx^2] per task for each named model.
+
+  Args:
+    tasks: from :func:`make_tasks`.
+    models: name -> MPDP params, or one of the strings 'baseline'
+      (field = 1) and 'truth' (the ground-truth field; error 0).
+
+  Returns:
+    name -> list of per-task errors.
+  """
+  config = _check_same_spec(tasks)
+  net_fn, field_fn = make_error_fns(config)
+  out = {}
+  for name, m in models.items():
+    errs = []
+    for t in tasks:
+      if isinstance(m, str):
+        if m not in ('baseline', 'truth'):
+          raise ValueError(f"model {name!r}: unknown {m!r}; use params, "
+                           "'baseline' or 'truth'.")
+        f = jnp.ones_like(t.field) if m == 'baseline' else t.field
+        errs.append(float(field_fn(f, t.params, t.prepared, t.target)))
+      else:
+        errs.append(float(net_fn(m, t.params, t.prepared, t.target)))
+    out[name] = errs
   return out
 
 
-def trajectory_errors(params, scenes, config: SimConfig,
-                      model_config=model_lib.ModelConfig()):
-  """Per-scene trajectory loss [dx^2] of ``params`` (None: baseline)."""
-  loss_fn = jax.jit(make_trajectory_loss(config, model_config))
-  return [float(loss_fn(params, s, t)) for s, t in scenes]
+def predicted_field(mpdp_params, task: Task) -> np.ndarray:
+  """(N, 3) field the network predicts for the task's drivers."""
+  E, nu, rho = pl.driver_materials(task.params.replace(mpdp=mpdp_params),
+                                   task.prepared, task.config)
+  m = np.asarray(task.prepared.means)[0]
+  return np.stack([np.asarray(E) / m[0], np.asarray(nu) / m[1],
+                   np.asarray(rho) / m[2]], -1)
 
 
-def run_demo(num_steps: int = 30, learning_rate: float = 3e-3,
-             train_seeds=(0, 1, 2), eval_seeds=(10, 11),
-             num_points: int = 128, config: SimConfig = SimConfig(),
-             init_params=None, log_fn=None):
-  """Through-the-simulator training from the mean-only baseline.
+def field_log_rmse(field, task: Task) -> list[float]:
+  """RMS log error of a (N, 3) field against the task's truth, per
+  channel (E, nu, rho)."""
+  d = np.log(np.asarray(field, np.float64)) - np.log(
+    np.asarray(task.field, np.float64))
+  return [float(v) for v in np.sqrt(np.mean(d ** 2, 0))]
 
-  Starts from the zero-initialised network (field = 1, i.e. the baseline)
-  unless ``init_params`` is given, trains on ``train_seeds`` beams and
-  reports trajectory errors on train and held-out beams.
 
-  Returns:
-    dict with 'history', 'train_baseline', 'train_trained',
-    'eval_baseline', 'eval_trained' (per-scene losses in dx^2) and
-    'params'.
+# --------------------------------------------- training with checkpoints
+
+
+def train_and_evaluate(config, workdir: str) -> dict:
+  """Trains MPDP through the simulator with orbax checkpoints and resume.
+
+  ``config`` is the ``sim`` section of ``experiments/configs/mpdp.py``:
+  ``task`` (:class:`TaskConfig` fields), ``train_seeds``, ``eval_seeds``,
+  ``num_steps``, ``learning_rate``, ``grad_clip``, ``init`` ('zero': the
+  mean-only baseline network; 'pretrained': the shipped supervised
+  weights), ``checkpoint_every``, ``log_every``, ``max_to_keep``.
+  Metrics go to absl logging and ``workdir/metrics.jsonl``; the final
+  comparison (baseline, shipped supervised network, simulator-trained
+  network and the ground truth on train and held-out beams; field errors;
+  timings) is returned and written to ``workdir/simulator.json``.
   """
-  train_scenes = make_scenes(train_seeds, num_points, config)
-  eval_scenes = make_scenes(eval_seeds, num_points, config)
-  params = init_params
-  if params is None:
+  import orbax.checkpoint as ocp
+  from absl import logging
+
+  from physsplat_jax.mpdp import pretrained
+
+  workdir = os.path.abspath(workdir)
+  os.makedirs(workdir, exist_ok=True)
+  tc = TaskConfig.from_dict(config.task)
+  t0 = time.perf_counter()
+  train = make_tasks(config.train_seeds, tc)
+  held = make_tasks(config.eval_seeds, tc)
+  t_tasks = time.perf_counter() - t0
+  logging.info('prepared %d train / %d held-out cantilevers in %.1f s',
+               len(train), len(held), t_tasks)
+  if config.init == 'zero':
     params = model_lib.init_params(jax.random.key(0))
+  elif config.init == 'pretrained':
+    params = pretrained.load_pretrained()
+  else:
+    raise ValueError(f"sim.init={config.init!r}: use 'zero' or "
+                     "'pretrained'.")
+  pipe_config = _check_same_spec(train + held)
+  tx = make_optimizer(config.learning_rate, config.grad_clip,
+                      config.num_steps)
+  step_fn = make_train_step(pipe_config, tx)
+  state = {'step': jnp.asarray(0, jnp.int32), 'params': params,
+           'opt_state': tx.init(params)}
+  options = ocp.CheckpointManagerOptions(max_to_keep=config.max_to_keep,
+                                         create=True)
+  t1 = time.perf_counter()
+  with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints'),
+                             options=options) as mngr:
+    latest = mngr.latest_step()
+    if latest is not None:
+      state = mngr.restore(latest, args=ocp.args.StandardRestore(
+        jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
+      logging.info('resumed from step %d', latest)
+    for step in range(int(state['step']), config.num_steps):
+      state, loss, per = step_fn(state, train)
+      done = step + 1
+      if done % config.log_every == 0 or done == config.num_steps:
+        rec = {'step': done, 'train_loss': loss, 'per_task': per,
+               'elapsed_s': time.perf_counter() - t1}
+        logging.info('sim step %d: %s', done, rec)
+        with open(os.path.join(workdir, 'metrics.jsonl'), 'a') as f:
+          f.write(json.dumps(rec) + '\n')
+      if done % config.checkpoint_every == 0 or done == config.num_steps:
+        mngr.save(done, args=ocp.args.StandardSave(state))
+    mngr.wait_until_finished()
+  t_train = time.perf_counter() - t1
+  models = {'baseline': 'baseline',
+            'supervised': pretrained.load_pretrained(),
+            'simulator': state['params'], 'truth': 'truth'}
+  t2 = time.perf_counter()
   result = {
-    'train_baseline': trajectory_errors(None, train_scenes, config),
-    'eval_baseline': trajectory_errors(None, eval_scenes, config),
-    'train_initial': trajectory_errors(params, train_scenes, config),
-    'eval_initial': trajectory_errors(params, eval_scenes, config),
+    'train_seeds': list(config.train_seeds),
+    'eval_seeds': list(config.eval_seeds),
+    'train': trajectory_errors(train, models),
+    'held_out': trajectory_errors(held, models),
+    'field_log_rmse_held_out': {
+      name: [field_log_rmse(predicted_field(m, t), t) for t in held]
+      for name, m in models.items() if not isinstance(m, str)},
+    'step': int(state['step']),
+    'seconds': {'tasks': t_tasks, 'train': t_train,
+                'evaluate': time.perf_counter() - t2},
+    'task_config': dataclasses.asdict(tc),
   }
-  params, history = train_through_simulator(
-    params, train_scenes, config, num_steps, learning_rate, log_fn=log_fn)
-  result.update(
-    history=history, params=params,
-    train_trained=trajectory_errors(params, train_scenes, config),
-    eval_trained=trajectory_errors(params, eval_scenes, config))
+  result['field_log_rmse_held_out']['baseline'] = [
+    field_log_rmse(np.ones_like(t.field), t) for t in held]
+  with open(os.path.join(workdir, 'simulator.json'), 'w') as f:
+    json.dump(result, f, indent=1)
+  result['params'] = state['params']
   return result
+
+
+# ---------------------------------------------------- material recovery
 
 
 def poly_basis(x0, degree: int = 2):
@@ -311,6 +610,7 @@ def poly_basis(x0, degree: int = 2):
 
   Degree 1: x, y, z; degree 2 adds x^2, y^2, z^2, xy, xz, yz (D = 9).
   """
+  x0 = jnp.asarray(x0)
   p = model_lib.normalize_points(x0, jnp.ones(x0.shape[:1], bool))
   cols = [p]
   if degree >= 2:
@@ -319,53 +619,71 @@ def poly_basis(x0, degree: int = 2):
   return jnp.concatenate(cols, axis=-1)
 
 
-def fit_material(scene, target, config: SimConfig, num_steps: int = 60,
-                 learning_rate: float = 0.05, E_init: float | None = None,
-                 field_degree: int = 2, log_fn=None):
-  """Recovers E (mean and a smooth field) from an observed trajectory.
+def fit_material(task: Task, observe: str = 'trajectory',
+                 num_steps: int = 40, learning_rate: float = 0.05,
+                 E_init: float = 0.3, field_degree: int = 2,
+                 log_fn: Callable | None = None) -> dict:
+  """Recovers the beam's E (mean and a smooth field) by gradient descent.
 
-  Parameters: ``log E_mean`` and the coefficients ``c`` of a polynomial
-  log-field ``l = B(x0) c`` (monomials of the normalised rest positions up
-  to ``field_degree``; 0 fits only the mean), ``m_E = exp(l) / mean
-  exp(l)`` (mean exactly 1, as in MPDP). A free per-particle field is
-  ill-posed at this resolution (it overfits the trajectory, and Adam drives
-  unobservable particles anywhere), so the field is kept smooth. nu and rho
-  stay at the scene's true values (only E is unknown). Adam with cosine
-  decay on the trajectory loss.
+  Unknowns: ``log_E`` (the object's log-multiplier of its mean E,
+  ``Params.log_scale[0, 0]``) and the coefficients ``c`` of a smooth
+  log-field ``m_E = exp(B c) / mean exp(B c)`` (``B``: monomials of the
+  normalised driver rest positions up to ``field_degree``; mean 1 as in
+  MPDP), passed to :func:`physsplat_jax.pipeline.simulate` as ``field``.
+  nu and rho stay at their true per-driver values (only E is unknown). A
+  free per-driver field is ill-posed at this resolution (it fits the
+  observations with unobservable drivers anywhere), hence the smooth
+  field. Adam with cosine decay.
 
   Args:
-    scene: dict from :func:`make_beam_scene`.
-    target: (T, N, 3) observed positions.
-    config: simulator config (``config.E`` is the true mean; the default
-      initial guess is 0.3 * config.E).
+    task: from :func:`make_task`; with ``observe='video'`` it must have
+      been made with ``render='differentiable'``.
+    observe: 'trajectory' (loss on the Gaussian centres [dx^2]) or 'video'
+      (mean squared RGB error of the rendered frames, through
+      ``physsplat_jax.render.render_differentiable``).
     num_steps: Adam steps.
-    learning_rate: peak Adam step size (on log E and the coefficients).
-    E_init: initial mean E guess [Pa].
+    learning_rate: peak Adam step size (on ``log_E`` and ``c``).
+    E_init: initial guess as a fraction of the true mean E.
     field_degree: 0 (mean only), 1 or 2.
     log_fn: optional ``log_fn(step, loss, E_mean)``.
 
   Returns:
-    dict: 'E_mean' [Pa], 'field_E' (N,), 'history' (losses [dx^2]),
-    'final_loss'.
+    dict: 'E_true', 'E_init', 'E_fit' (means [Pa]), 'E_rel_error',
+    'field_E' (N,) fitted multipliers, 'field_log_rmse' and
+    'uniform_log_rmse' (RMS log error of m_E vs truth, fitted and uniform),
+    'E_point_mare' (mean |E_i - E_i*| / E_i* over drivers), 'history'
+    (losses), 'final_loss', 'seconds'.
   """
-  rollout_fn = make_rollout(config)
-  n = scene['x0'].shape[0]
-  E_init = 0.3 * config.E if E_init is None else E_init
-  _, nu, rho = model_lib.material_from_field(scene['field'], config.E,
-                                             config.nu, config.rho)
-  basis = (poly_basis(scene['x0'], field_degree) if field_degree > 0
-           else jnp.zeros((n, 0)))
-  theta = {'log_E': jnp.log(jnp.asarray(E_init, jnp.float32)),
-           'coef': jnp.zeros((basis.shape[1],), jnp.float32)}
+  if observe not in ('trajectory', 'video'):
+    raise ValueError(f"observe={observe!r}: use 'trajectory' or 'video'.")
+  if observe == 'video' and task.images is None:
+    raise ValueError("observe='video' needs a task made with "
+                     "render='differentiable' (make_task(..., render=...)).")
+  if observe == 'video':
+    config = task.config
+  else:
+    config = dataclasses.replace(task.config, render='none')
+  prepared = task.prepared
+  n = prepared.num_particles
+  basis = (poly_basis(prepared.x0, field_degree) if field_degree > 0
+           else jnp.zeros((n, 0), prepared.x0.dtype))
+  gt = task.field
+  mask = jnp.ones((n,), bool)
+  dtype = prepared.x0.dtype
+  theta = {'log_E': jnp.log(jnp.asarray(E_init, dtype)),
+           'coef': jnp.zeros((basis.shape[1],), dtype)}
 
   def field_of(th):
-    return model_lib.normalize_field((basis @ th['coef'])[:, None],
-                                     scene['mask'])[:, 0]
+    mE = model_lib.normalize_field((basis @ th['coef'])[:, None], mask)
+    return jnp.concatenate([mE, gt[:, 1:]], axis=-1)
 
   def loss_fn(th):
-    E = jnp.exp(th['log_E']) * field_of(th)
-    xs = rollout_fn(scene['x0'], scene['vol'], E, nu, rho)
-    return jnp.mean(jnp.sum((xs - target) ** 2, -1)) / config.dx ** 2
+    p = task.params.replace(
+      log_scale=task.params.log_scale.at[0, 0].set(th['log_E']))
+    traj = pl.simulate(p, prepared, config, field=field_of(th))
+    if observe == 'video':
+      return image_error(traj.images, task.images)
+    return trajectory_error(traj.means, task.target, prepared)
 
   tx = optax.adam(optax.cosine_decay_schedule(learning_rate, num_steps,
                                               alpha=0.05))
@@ -375,14 +693,33 @@ def fit_material(scene, target, config: SimConfig, num_steps: int = 60,
   def step(th, o):
     loss, g = jax.value_and_grad(loss_fn)(th)
     u, o = tx.update(g, o, th)
-    return optax.apply_updates(th, u), o, loss
+    return optax.apply_updates(th, u), o, loss, g
 
+  t0 = time.perf_counter()
   history = []
   for i in range(num_steps):
-    theta, opt, loss = step(theta, opt)
+    new, new_opt, loss, g = step(theta, opt)
+    if not (np.isfinite(float(loss)) and _finite(g)):
+      raise FloatingPointError(
+        f'fit_material step {i}: non-finite loss or gradient; lower '
+        'learning_rate or raise substeps_per_frame.')
+    theta, opt = new, new_opt
     history.append(float(loss))
     if log_fn is not None:
-      log_fn(i, float(loss), float(jnp.exp(theta['log_E'])))
-  return {'E_mean': float(jnp.exp(theta['log_E'])),
-          'field_E': field_of(theta), 'history': history,
-          'final_loss': float(jax.jit(loss_fn)(theta))}
+      log_fn(i, float(loss), float(jnp.exp(theta['log_E'])) * float(
+        prepared.means[0, 0]))
+  final = float(jax.jit(loss_fn)(theta))
+  E_mean = float(prepared.means[0, 0])
+  E_fit = E_mean * float(jnp.exp(theta['log_E']))
+  fE = np.asarray(field_of(theta)[:, 0], np.float64)
+  tE = np.asarray(gt[:, 0], np.float64)
+  return {
+    'E_true': E_mean, 'E_init': E_init * E_mean, 'E_fit': E_fit,
+    'E_rel_error': abs(E_fit - E_mean) / E_mean,
+    'field_E': fE,
+    'field_log_rmse': float(np.sqrt(np.mean((np.log(fE) - np.log(tE))**2))),
+    'uniform_log_rmse': float(np.sqrt(np.mean(np.log(tE) ** 2))),
+    'E_point_mare': float(np.mean(np.abs(E_fit / E_mean * fE - tE) / tE)),
+    'history': history, 'final_loss': final,
+    'seconds': time.perf_counter() - t0,
+  }

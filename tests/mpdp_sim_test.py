@@ -1,0 +1,201 @@
+"""Tests for physsplat_jax.mpdp.simtrain: MPDP through pipeline.simulate.
+
+Tiny cantilevers (12^3 grid, 64 driving particles, 2 frames x 20 substeps):
+the ground-truth field hook sets the simulated materials, the gradient of a
+trajectory loss with respect to the network weights matches a central
+finite difference in float64, a few Adam steps through the simulator lower
+the loss, the orbax run resumes, and E fitted to a trajectory and to
+rendered frames moves toward the truth.
+"""
+
+import dataclasses
+import functools
+import json
+import os
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+
+from experiments.configs import mpdp_test as test_config
+from physsplat_jax import pipeline as pl
+from physsplat_jax.mpdp import model as model_lib
+from physsplat_jax.mpdp import pretrained
+from physsplat_jax.mpdp import simtrain
+from physsplat_jax.mpdp import synthetic
+
+_MEAN_TOL = 1e-6      # |mean(field) - 1|, float64 rule
+_FD_RTOL = 1e-4       # directional central difference, float64
+# The tiny task of experiments/configs/mpdp_test.py (float32 by default).
+_TINY = simtrain.TaskConfig.from_dict(test_config.get_config().sim.task)
+
+
+@functools.lru_cache(maxsize=None)
+def _task(seed, dtype='float32', render='none'):
+  return simtrain.make_task(seed, dataclasses.replace(_TINY, dtype=dtype),
+                            render=render)
+
+
+class SceneTest(absltest.TestCase):
+
+  def test_tasks_share_one_spec_and_truth_follows_the_rules(self):
+    a, b = _task(0), _task(1)
+    # Same static spec and shapes: one compilation serves both beams.
+    self.assertEqual(a.prepared.spec, b.prepared.spec)
+    self.assertEqual(jax.tree.structure(a.prepared),
+                     jax.tree.structure(b.prepared))
+    self.assertLen(a.prepared.spec.colliders.anchors, 1)  # the wall
+    self.assertFalse(np.allclose(a.prepared.x0, b.prepared.x0))
+    for t in (a, b):
+      f = np.asarray(t.field, np.float64)
+      np.testing.assert_allclose(f.mean(0), 1.0, atol=1e-5)
+      # Stiffer near the support (the wall at x = 0) than at the tip.
+      x = np.asarray(t.prepared.frame.to_scene(t.prepared.x0))[:, 0]
+      root = f[x < np.quantile(x, 0.25), 0].mean()
+      tip = f[x > np.quantile(x, 0.75), 0].mean()
+      self.assertGreater(root, 1.5 * tip)
+      self.assertTrue(np.all(np.isfinite(np.asarray(t.target))))
+      # The beam sags under gravity; the anchored root stays put.
+      dz = np.asarray(t.target[-1, :, 2] - t.target[0, :, 2])
+      xs = np.asarray(t.target[0, :, 0])
+      self.assertLess(dz[xs > 0.9 * _TINY.length].mean(), -1e-3)
+      self.assertLess(np.abs(dz[xs < 0.02 * _TINY.length]).max(), 1e-3)
+
+  def test_field_at_applies_the_rule_at_nearest_points(self):
+    o = synthetic.make_beam(3, 64)
+    f = synthetic.field_at(o, o.points)
+    np.testing.assert_allclose(
+      f, synthetic.ground_truth_field(o.dist, o.thickness, o.E, o.model),
+      rtol=1e-6)
+    moved = synthetic.transform_object(o, 2.5, (1.0, -2.0, 0.5))
+    np.testing.assert_allclose(synthetic.field_at(moved, moved.points), f,
+                               rtol=1e-5)
+    q = o.points[:10] + 1e-4
+    np.testing.assert_allclose(synthetic.field_at(o, q).mean(0), 1.0,
+                               atol=_MEAN_TOL)
+    with self.assertRaisesRegex(ValueError, 'query must be'):
+      synthetic.field_at(o, np.zeros((4, 2)))
+
+
+class FieldHookTest(absltest.TestCase):
+
+  def test_field_override_sets_the_simulated_materials(self):
+    t = _task(0)
+    cfg = dataclasses.replace(t.config, render='none')
+    sim = jax.jit(pl.simulate, static_argnames='config')
+    truth = sim(t.params, t.prepared, cfg, field=t.field)
+    E, nu, rho = (np.asarray(m) for m in truth.materials)
+    means = np.asarray(t.prepared.means)[0]
+    f = np.asarray(t.field)
+    np.testing.assert_allclose(E, means[0] * f[:, 0], rtol=1e-6)
+    np.testing.assert_allclose(nu, np.minimum(means[1] * f[:, 1],
+                                              model_lib.NU_MAX), rtol=1e-6)
+    np.testing.assert_allclose(rho, means[2] * f[:, 2], rtol=1e-6)
+    self.assertGreater(E.max() / E.min(), 2.0)
+    # field = 1 is exactly the uniform (MPDP-off) run ...
+    ones = sim(t.params, t.prepared, cfg, field=jnp.ones_like(t.field))
+    uniform = sim(t.params, t.prepared, cfg)  # params.mpdp is None
+    np.testing.assert_array_equal(np.asarray(ones.means),
+                                  np.asarray(uniform.means))
+    np.testing.assert_allclose(np.asarray(ones.materials[0]), means[0],
+                               rtol=1e-6)
+    # ... and the heterogeneous truth moves differently.
+    err = float(simtrain.trajectory_error(ones.means, truth.means,
+                                          t.prepared))
+    self.assertGreater(err, 1e-5)
+    np.testing.assert_allclose(truth.means, t.target, atol=1e-6)
+    with self.assertRaisesRegex(pl.PipelineError, 'field has shape'):
+      pl.simulate(t.params, t.prepared, cfg, field=jnp.ones((3, 3)))
+
+
+class GradientTest(absltest.TestCase):
+
+  def test_gradient_into_network_weights_matches_fd_x64(self):
+    with jax.enable_x64(True):
+      t = _task(0, dtype='float64')
+      params = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64),
+                            pretrained.load_pretrained())
+      loss_fn = jax.jit(simtrain.make_loss(t.config))
+      loss, grads = jax.jit(jax.value_and_grad(simtrain.make_loss(
+        t.config)))(params, t.params, t.prepared, t.target)
+      self.assertGreater(float(loss), 0.0)
+      for g in jax.tree.leaves(grads):
+        self.assertTrue(np.all(np.isfinite(np.asarray(g))))
+      leaves, tree = jax.tree.flatten(params)
+      keys = jax.random.split(jax.random.key(5), len(leaves))
+      direction = jax.tree.unflatten(tree, [
+        jax.random.normal(k, x.shape, x.dtype) for x, k in zip(leaves, keys)])
+      analytic = sum(float(jnp.vdot(g, d)) for g, d in zip(
+        jax.tree.leaves(grads), jax.tree.leaves(direction)))
+      eps = 1e-6
+      shift = lambda s: jax.tree.map(lambda x, d: x + s * d, params,  # noqa: E731
+                                     direction)
+      numeric = (float(loss_fn(shift(eps), t.params, t.prepared, t.target))
+                 - float(loss_fn(shift(-eps), t.params, t.prepared,
+                                 t.target))) / (2 * eps)
+      self.assertGreater(abs(analytic), 1e-8)
+      np.testing.assert_allclose(analytic, numeric, rtol=_FD_RTOL)
+
+
+class TrainTest(absltest.TestCase):
+
+  def test_adam_steps_through_the_simulator_lower_the_loss(self):
+    tasks = [_task(0), _task(1)]
+    params = model_lib.init_params(jax.random.key(0))
+    base = simtrain.trajectory_errors(tasks, {'b': 'baseline'})['b']
+    params, history = simtrain.train_through_simulator(params, tasks, 3,
+                                                       learning_rate=1e-2)
+    # The zero-initialised network is the mean-only baseline exactly.
+    np.testing.assert_allclose(history[0], np.mean(base), rtol=1e-5)
+    after = simtrain.trajectory_errors(tasks, {'p': params})['p']
+    self.assertLess(np.mean(after), 0.9 * np.mean(base))
+
+  def test_train_and_evaluate_checkpoints_and_resumes(self):
+    config = test_config.get_config().sim
+    with tempfile.TemporaryDirectory() as workdir:
+      r1 = simtrain.train_and_evaluate(config, workdir)
+      self.assertEqual(r1['step'], config.num_steps)
+      config.unlock()
+      config.num_steps = config.num_steps + 1
+      r2 = simtrain.train_and_evaluate(config, workdir)
+      self.assertEqual(r2['step'], config.num_steps)
+      with open(os.path.join(workdir, 'metrics.jsonl')) as f:
+        steps = [json.loads(line)['step'] for line in f]
+      self.assertEqual(steps, [1, 2, 3])  # resumed at 2, not restarted
+      with open(os.path.join(workdir, 'simulator.json')) as f:
+        saved = json.load(f)
+      held = saved['held_out']
+      self.assertEqual(set(held), {'baseline', 'supervised', 'simulator',
+                                   'truth'})
+      self.assertLess(max(held['truth']), 1e-12)
+      self.assertGreater(held['baseline'][0], 0.0)
+
+
+class FitTest(absltest.TestCase):
+
+  def test_fit_from_trajectory_moves_E_toward_truth(self):
+    t = _task(0)
+    r = simtrain.fit_material(t, 'trajectory', num_steps=4,
+                              learning_rate=0.2, E_init=0.4,
+                              field_degree=1)
+    self.assertLess(abs(np.log(r['E_fit'] / r['E_true'])),
+                    0.8 * abs(np.log(0.4)))
+    self.assertLess(r['final_loss'], r['history'][0])
+    np.testing.assert_allclose(np.mean(r['field_E']), 1.0, atol=1e-5)
+
+  def test_fit_from_rendered_frames_moves_E_toward_truth(self):
+    t = _task(0, render='differentiable')
+    self.assertEqual(t.images.shape, (3, _TINY.height, _TINY.width, 3))
+    r = simtrain.fit_material(t, 'video', num_steps=3, learning_rate=0.2,
+                              E_init=0.4, field_degree=0)
+    self.assertLess(abs(np.log(r['E_fit'] / r['E_true'])),
+                    abs(np.log(0.4)))
+    self.assertLess(r['final_loss'], r['history'][0])
+    with self.assertRaisesRegex(ValueError, 'render='):
+      simtrain.fit_material(_task(0), 'video')
+
+
+if __name__ == '__main__':
+  absltest.main()
