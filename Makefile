@@ -28,5 +28,10 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -m slow tests
 
+# Speed figures (docs/benchmarks.md); minutes on a 2-core CPU.
+bench: $(STAMP)
+	$(PY) -m experiments.benchmark_mpm
+	$(PY) -m experiments.benchmark_render
+
 clean:
 	rm -rf $(VENV) out

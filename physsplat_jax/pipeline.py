@@ -1395,7 +1395,6 @@ def simulate_scene(
       json.dump(_jsonable(report), f, indent=1)
     out.files['report'] = path
     report['files'] = dict(out.files)
-  logging.info('%s', summary(report))
   return out, report
 
 
