@@ -112,6 +112,33 @@ class SvdTest(parameterized.TestCase):
       self.assertLess(float(s[0, 2]), 0)
       np.testing.assert_allclose(np.linalg.det(U), 1.0, atol=_ATOL)
 
+  @parameterized.parameters('float32', 'float64')
+  def test_svd_mat_matches_lapack(self, dtype):
+    """Structure-of-arrays SVD (polar + Jacobi) against jnp.linalg.svd."""
+    rng = np.random.default_rng(5)
+    q = np.linalg.qr(rng.normal(size=(50, 3, 3)))[0]
+    q[np.linalg.det(q) < 0] *= -1.0
+    F = np.concatenate([
+      rng.normal(size=(200, 3, 3)),                    # det F of both signs
+      q @ np.diag([1.5, 1.5, 0.5]) @ np.swapaxes(q, 1, 2),  # repeated pair
+      q,                                               # pure rotations
+      np.diag([1.0, 1.0, -1.0])[None],                 # reflection
+      np.eye(3)[None]])
+    tol = 1e-5 if dtype == 'float32' else 1e-12
+    with jax.enable_x64(dtype == 'float64'):
+      U, s, V = jax.jit(la.svd_mat)(_soa(F.astype(dtype)))
+      U, V = np.asarray(_aos(U)), np.asarray(_aos(V))
+      s = np.stack(s, -1)
+      _, s_ref, _ = la.svd(jnp.asarray(F, dtype))
+    np.testing.assert_allclose(np.einsum('nij,nj,nkj->nik', U, s, V), F,
+                               atol=tol * np.abs(F).max() * 10)
+    np.testing.assert_allclose(np.linalg.det(U), 1.0, atol=tol * 10)
+    np.testing.assert_allclose(np.linalg.det(V), 1.0, atol=tol * 10)
+    np.testing.assert_allclose(s, np.asarray(s_ref), atol=tol * 10)
+    # Descending |s|; the last carries the sign of det F.
+    self.assertTrue(np.all(np.abs(s[:, :2]) >= np.abs(s[:, 1:]) - tol))
+    np.testing.assert_array_equal(s[:, 2] < 0, np.linalg.det(F) < 0)
+
   def test_svd_vjp_distinct_values(self):
     with jax.enable_x64(True):
       f = lambda F: la.svd(F)[1]  # noqa: E731
