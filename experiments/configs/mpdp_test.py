@@ -27,5 +27,6 @@ def get_config():
   c.sim.train_seeds = (0,)
   c.sim.eval_seeds = (10,)
   c.sim.num_steps = 2
+  c.sim.learning_rate = 1e-2
   c.sim.checkpoint_every = 1
   return c
