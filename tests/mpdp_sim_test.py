@@ -132,8 +132,10 @@ class GradientTest(absltest.TestCase):
       analytic = sum(float(jnp.vdot(g, d)) for g, d in zip(
         jax.tree.leaves(grads), jax.tree.leaves(direction)))
       eps = 1e-6
-      shift = lambda s: jax.tree.map(lambda x, d: x + s * d, params,  # noqa: E731
-                                     direction)
+
+      def shift(s):
+        return jax.tree.map(lambda x, d: x + s * d, params, direction)
+
       numeric = (float(loss_fn(shift(eps), t.params, t.prepared, t.target))
                  - float(loss_fn(shift(-eps), t.params, t.prepared,
                                  t.target))) / (2 * eps)

@@ -620,7 +620,7 @@ def poly_basis(x0, degree: int = 2):
 
 
 def fit_material(task: Task, observe: str = 'trajectory',
-                 num_steps: int = 40, learning_rate: float = 0.05,
+                 num_steps: int = 60, learning_rate: float = 0.1,
                  E_init: float = 0.3, field_degree: int = 2,
                  log_fn: Callable | None = None) -> dict:
   """Recovers the beam's E (mean and a smooth field) by gradient descent.
