@@ -15,16 +15,20 @@ fixed when JAX starts:
     --out=r_I.json
 
 Checks:
-  particles     mpm rollout with particles split over 2 and 4 devices vs one
+  particles     mpm rollout with particles split over 4 devices vs one
                 device (float64; two elastic models + a rigid body, a total
-                PointForce, a ParticleImpulse, a sticky floor, a particle
-                count that needs ghosts), with d(loss)/d(E scale, v0); and a
-                control without the psum, which must disagree.
+                PointForce, a ParticleImpulse, a sticky floor, 301
+                particles: 3 ghosts); and a control without the psum,
+                which must disagree.
+  particles_grad  d(loss)/d(E scale, v0) of that rollout, 4 devices vs one
+                (slow: ~80 s of compilation on 2 cores).
   sweep         pipeline.simulate over a batch of Params (E, velocity)
-                for one scene, and over a batch of 4 stacked scenes, split
-                over 4 devices, vs the unsharded vmap.
+                for one scene (experiments/sweep.py run_sweep), and over a
+                batch of 4 stacked scenes, split over 4 devices, vs the
+                unsharded vmap; two items again with their particles split
+                over 4 devices (simulate_sharded).
   grad          gradient of the mean MPDP trajectory loss over a batch of 4
-                scenes, batch split over 4 devices, vs one device.
+                scenes, batch split over 4 devices, vs one device (slow).
   multiprocess  (2 processes) batch sweep of mpm.rollout over E and a
                 particle-sharded rollout with a rigid body on the global
                 mesh of both processes, vs this process's single device.
@@ -166,47 +170,26 @@ def _scene_batch(prepared, num):
 def check_particles():
   import jax
   import jax.numpy as jnp
-  import numpy as np
   from jax.sharding import PartitionSpec as P
   from physsplat_jax import distributed as dist
   from physsplat_jax import mpm
   from physsplat_jax.distributed import particles as dp
   state, mat, config = _mpm_setup()
-  w = jnp.asarray(np.random.default_rng(1).normal(size=state.x.shape),
-                  state.x.dtype)
-
-  def loss(theta, rollout_fn):
-    m = mat.replace(E=mat.E * theta[0])
-    s = state.replace(v=state.v + theta[1] * jnp.asarray([0.0, 0.0, 1.0],
-                                                         state.x.dtype))
-    final, xs, Fs = rollout_fn(s, m)
-    return jnp.sum(final.x * w), (final, xs, Fs)
-
-  theta = jnp.asarray([1.0, 0.0], state.x.dtype)
-  out = {}
+  out = {'num_particles': int(state.num)}
   t0 = time.perf_counter()
-  ref_fn = lambda s, m: mpm.rollout(s, m, None, config)  # noqa: E731
-  (lref, ref), gref = jax.jit(jax.value_and_grad(
-    functools.partial(loss, rollout_fn=ref_fn), has_aux=True))(theta)
+  ref = jax.jit(lambda s, m: mpm.rollout(s, m, None, config))(state, mat)
   out['ref_s'] = time.perf_counter() - t0
   out['motion'] = float(jnp.max(jnp.abs(ref[1][-1] - ref[1][0])))
-  out['grad_scale'] = float(jnp.max(jnp.abs(gref)))
-  for nd in (2, 4):
-    mesh = dist.make_mesh(nd, dist.PARTICLE_AXIS)
-    t0 = time.perf_counter()
-    sh_fn = lambda s, m, mesh=mesh: dist.rollout_sharded(  # noqa: E731
-      s, m, None, config, mesh)
-    if nd == 4:  # forward and gradient
-      (l, res), g = jax.jit(jax.value_and_grad(
-        functools.partial(loss, rollout_fn=sh_fn), has_aux=True))(theta)
-      out['d4_loss_err'] = float(abs(l - lref))
-      out['d4_grad_err'] = float(jnp.max(jnp.abs(g - gref)))
-    else:  # forward only
-      res = jax.jit(sh_fn)(state, mat)
-    out[f'd{nd}_s'] = time.perf_counter() - t0
-    out[f'd{nd}_err'], out['scale'] = _max_err(ref, res)
-  # Control: the same shards without the psum must not match.
+  out['rigid_particles'] = int(jnp.sum(state.body_id >= 0))
   mesh = dist.make_mesh(4, dist.PARTICLE_AXIS)
+  t0 = time.perf_counter()
+  res = jax.jit(lambda s, m: dist.rollout_sharded(s, m, None, config, mesh))(
+    state, mat)
+  out['d4_s'] = time.perf_counter() - t0
+  out['d4_err'], out['scale'] = _max_err(ref, res)
+  out['d4_x_err'], out['x_scale'] = _max_err(ref[1], res[1])
+  out['d4_x_spec'] = str(res[1].sharding.spec)
+  # Control: the same shards without the psum must not match.
   sp, mp = dp.pad_particles(state, mat, 4)
   spec = dp._state_specs(sp, dist.PARTICLE_AXIS)  # noqa: SLF001
   forces = mpm.make_forces(config, state.x.dtype)
@@ -222,9 +205,47 @@ def check_particles():
   return out
 
 
+def check_particles_grad():
+  """d(loss)/d(E scale, v0) through the psum-ed rollout vs one device."""
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+  from physsplat_jax import distributed as dist
+  from physsplat_jax import mpm
+  state, mat, config = _mpm_setup()
+  w = jnp.asarray(np.random.default_rng(1).normal(size=state.x.shape),
+                  state.x.dtype)
+
+  def loss(theta, rollout_fn):
+    m = mat.replace(E=mat.E * theta[0])
+    s = state.replace(v=state.v + theta[1] * jnp.asarray([0.0, 0.0, 1.0],
+                                                         state.x.dtype))
+    final, _, _ = rollout_fn(s, m)
+    return jnp.sum(final.x * w)
+
+  theta = jnp.asarray([1.0, 0.0], state.x.dtype)
+  out = {}
+  mesh = dist.make_mesh(4, dist.PARTICLE_AXIS)
+  fns = dict(
+    ref=lambda s, m: mpm.rollout(s, m, None, config),
+    d4=lambda s, m: dist.rollout_sharded(s, m, None, config, mesh))
+  vals = {}
+  for name, fn in fns.items():
+    t0 = time.perf_counter()
+    vals[name] = jax.jit(jax.value_and_grad(
+      functools.partial(loss, rollout_fn=fn)))(theta)
+    out[f'{name}_s'] = time.perf_counter() - t0
+  (lref, gref), (l, g) = vals['ref'], vals['d4']
+  out['grad_scale'] = float(jnp.max(jnp.abs(gref)))
+  out['d4_loss_err'] = float(abs(l - lref))
+  out['d4_grad_err'] = float(jnp.max(jnp.abs(g - gref)))
+  return out
+
+
 def check_sweep():
   import jax
   import numpy as np
+  from experiments import sweep as sweep_script
   from physsplat_jax import distributed as dist
   from physsplat_jax import pipeline as pl
   from physsplat_jax.distributed import sweep
@@ -233,10 +254,10 @@ def check_sweep():
   prepared, params, config = _pipeline_setup()
   out['prepare_s'] = time.perf_counter() - t0
   # 6 items on 4 devices (padded to 8).
-  batch, table = dist.sweep_params(params, E_scale=(0.3, 1.0, 3.0),
-                                   nu_scale=(1.0,),
-                                   velocity=[(0.0, 0.0, -1.0),
-                                             (0.3, 0.0, -1.5)])
+  E_scale = (0.3, 1.0, 3.0)
+  velocity = [(0.0, 0.0, -1.0), (0.3, 0.0, -1.5)]
+  batch, table = dist.sweep_params(params, E_scale=E_scale,
+                                   velocity=velocity)
   out['num_items'] = len(table)
   mesh = dist.make_mesh(4)
   sel = lambda t: (t.means, t.x)  # noqa: E731
@@ -245,15 +266,26 @@ def check_sweep():
   ref = jax.jit(jax.vmap(one, in_axes=(sweep.PARAMS_AXES, None)))(
     batch, prepared)
   out['ref_s'] = time.perf_counter() - t0
-  fn = dist.make_simulate_batch(config, mesh, select=sel)
+  # The sweep command's code path (make_simulate_batch, compiled once).
   t0 = time.perf_counter()
-  res = fn(batch, prepared)
+  res = sweep_script.run_sweep(prepared, params, config, mesh, E_scale,
+                               velocity=velocity)
   out['sharded_s'] = time.perf_counter() - t0
-  out['err'], out['scale'] = _max_err(ref, res)
+  out['err'], out['scale'] = _max_err(ref, (res.means, res.x))
   means = np.asarray(ref[0])
   # Different parameters give different motions (the sweep is not a no-op).
   out['spread'] = float(np.max(np.abs(means[:, -1] - means[0, -1])))
   out['motion'] = float(np.max(np.abs(means[:, -1] - means[:, 0])))
+  # Items one by one with the particles split over 4 devices
+  # (distributed.simulate_sharded): items 0 and 4 of the batch above.
+  t0 = time.perf_counter()
+  res_p = sweep_script.run_sweep(
+    prepared, params, config, dist.make_mesh(4, dist.PARTICLE_AXIS),
+    (E_scale[0], E_scale[2]), velocity=velocity[:1], mode='particles')
+  out['particles_s'] = time.perf_counter() - t0
+  out['particles_err'], _ = _max_err(
+    jax.tree.map(lambda a: np.asarray(a)[[0, 4]], ref),
+    (res_p.means, res_p.x))
   # A batch of 4 stacked scenes, each with its own parameters.
   scenes = _scene_batch(prepared, 4)
   b4 = jax.tree.map(lambda a: a[:4], batch.replace(mpdp=None))
@@ -346,8 +378,9 @@ def check_multiprocess():
   return out
 
 
-CHECKS = dict(particles=check_particles, sweep=check_sweep, grad=check_grad,
-              multiprocess=check_multiprocess)
+CHECKS = dict(particles=check_particles,
+              particles_grad=check_particles_grad, sweep=check_sweep,
+              grad=check_grad, multiprocess=check_multiprocess)
 
 
 def main(argv):

@@ -1,0 +1,343 @@
+"""Tests of physsplat_jax.distributed on fake CPU devices.
+
+The device count is fixed when JAX starts, and pytest has already started
+JAX for other test files, so the multi-device checks run in one fresh
+interpreter (tests/distributed_worker.py) with
+``XLA_FLAGS=--xla_force_host_platform_device_count=4`` and float64; this
+file asserts on what it reports. ``jax.config.update('jax_num_cpu_devices',
+N)`` after the backend has started raises instead of adding devices
+(checked below through ``initialize(cpu_devices=...)``), which is why a
+subprocess is needed. The single-device parts (padding, batching helpers,
+argument checks, cluster detection) run in-process.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from unittest import mock
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from absl import flags
+from absl.testing import absltest
+from flax import struct
+
+from physsplat_jax import distributed as dist
+from physsplat_jax import mpm
+from physsplat_jax import pipeline as pl
+from physsplat_jax.distributed import runtime
+
+_REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_WORKER = os.path.join(_REPO, 'tests', 'distributed_worker.py')
+_TIMEOUT_S = 900
+_X64_ENV = dict(
+  XLA_FLAGS=(os.environ.get('XLA_FLAGS', '') +
+             ' --xla_force_host_platform_device_count=4'),
+  JAX_ENABLE_X64='1')
+
+# float64 throughout the worker: sharded and single-device runs differ only
+# in the order of float sums (observed ~1e-13 relative).
+_STATE_RTOL = 1e-9
+_GRAD_RTOL = 1e-8
+_BATCH_RTOL = 1e-12
+
+
+def run_worker(checks, env=None, args=(), timeout=_TIMEOUT_S):
+  """Runs tests/distributed_worker.py; returns its JSON (raises with the
+  subprocess's output on failure)."""
+  with tempfile.TemporaryDirectory() as tmp:
+    out = os.path.join(tmp, 'result.json')
+    cmd = [sys.executable, _WORKER, f'--checks={",".join(checks)}',
+           f'--out={out}', *args]
+    full_env = dict(os.environ, JAX_PLATFORMS='cpu', **(env or {}))
+    try:
+      proc = subprocess.run(cmd, env=full_env, capture_output=True,
+                            text=True, timeout=timeout, cwd=_REPO)
+    except subprocess.TimeoutExpired as e:
+      raise AssertionError(
+        f'{" ".join(cmd)} timed out after {timeout} s; output:\n'
+        f'{(e.stdout or "")[-3000:]}\n{(e.stderr or "")[-3000:]}') from None
+    if proc.returncode != 0 or not os.path.exists(out):
+      raise AssertionError(
+        f'{" ".join(cmd)} failed (exit {proc.returncode}):\n'
+        f'{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}')
+    with open(out) as f:
+      result = json.load(f)
+  for name in checks:
+    if 'error' in result[name]:
+      raise AssertionError(f'worker check {name!r} raised:\n'
+                           f'{result[name]["error"]}')
+  return result
+
+
+class MultiDeviceTest(absltest.TestCase):
+  """Sharded vs single-device results on 4 fake CPU devices (one worker,
+  ~1.5 min on 2 cores, mostly compilation)."""
+
+  @classmethod
+  def setUpClass(cls):
+    super().setUpClass()
+    cls.result = run_worker(['particles', 'sweep'], env=_X64_ENV)
+
+  def test_worker_saw_four_devices_in_float64(self):
+    self.assertLen(self.result['devices'], 4)
+    self.assertTrue(self.result['x64'])
+    self.assertEqual(self.result['process_count'], 1)
+
+  def test_particle_sharded_rollout_matches_single_device(self):
+    r = self.result['particles']
+    self.assertNotEqual(r['num_particles'] % 4, 0)  # ghosts are needed
+    self.assertGreater(r['rigid_particles'], 0)
+    self.assertGreater(r['motion'], 1e-3)  # the block moved [m]
+    self.assertLessEqual(r['d4_err'], _STATE_RTOL * r['scale'],
+                         msg=f'mismatch: 4 devices {r}')
+    self.assertLessEqual(r['d4_x_err'], _STATE_RTOL * r['x_scale'],
+                         msg=f'mismatch: positions {r}')
+
+  def test_without_psum_the_shards_disagree(self):
+    # The control shows the comparison above sees cross-shard coupling:
+    # without the psum the error is > 1e4 times the sharded run's.
+    r = self.result['particles']
+    self.assertGreater(r['nopsum_err'], 1e-2 * r['frame1_motion'])
+    self.assertGreater(r['nopsum_err'], 1e4 * max(r['d4_x_err'], 1e-16))
+
+  def test_parameter_sweep_matches_unsharded_vmap(self):
+    r = self.result['sweep']
+    self.assertEqual(r['num_items'], 6)  # padded to 8 on 4 devices
+    self.assertLessEqual(r['err'], _BATCH_RTOL * r['scale'],
+                         msg=f'mismatch: sweep {r}')
+    # The items differ: stiffness and velocity change the motion.
+    self.assertGreater(r['spread'], 1e-2 * r['motion'])
+
+  def test_particle_sharded_pipeline_matches_single_device(self):
+    r = self.result['sweep']
+    self.assertLessEqual(r['particles_err'], _STATE_RTOL * r['scale'],
+                         msg=f'mismatch: simulate_sharded {r}')
+
+  def test_scene_batch_matches_unsharded_vmap_and_stays_sharded(self):
+    r = self.result['sweep']
+    self.assertLessEqual(r['scenes_err'], _BATCH_RTOL * r['scenes_scale'],
+                         msg=f'mismatch: scenes {r}')
+    self.assertEqual(r['scenes_spec'], "P('batch',)")
+
+
+@pytest.mark.slow  # ~2.5 min on 2 cores: compiling two backward passes
+class MultiDeviceGradientTest(absltest.TestCase):
+  """Gradients through the psum and through a sharded training batch."""
+
+  @classmethod
+  def setUpClass(cls):
+    super().setUpClass()
+    cls.result = run_worker(['particles_grad', 'grad'], env=_X64_ENV)
+
+  def test_particle_sharded_gradient_matches_single_device(self):
+    r = self.result['particles_grad']
+    self.assertGreater(r['grad_scale'], 0.0)
+    self.assertLessEqual(r['d4_grad_err'], _GRAD_RTOL * r['grad_scale'],
+                         msg=f'mismatch: gradient {r}')
+    self.assertLessEqual(r['d4_loss_err'], 1e-10)
+
+  def test_batch_mean_gradient_matches_single_device(self):
+    r = self.result['grad']
+    self.assertGreater(r['grad_scale'], 0.0)
+    self.assertGreater(r['losses_spread'], 0.0)  # four different scenes
+    self.assertLessEqual(r['grad_err'], _GRAD_RTOL * r['grad_scale'],
+                         msg=f'mismatch: MPDP gradient {r}')
+    self.assertLessEqual(r['loss_err'], _BATCH_RTOL * r['loss'])
+
+
+# ---------------------------------------------------- single-device parts
+
+
+class _Holder(struct.PyTreeNode):
+  x: jax.Array
+  cfg: mpm.SimConfig = struct.field(pytree_node=False)
+
+
+def _tiny_state(n=10, rigid_first=True):
+  config = mpm.SimConfig(
+    grid=mpm.GridSpec(res=8), models=('fixed_corotated', 'rigid'),
+    num_bodies=1, boundary_conditions=(
+      mpm.ParticleImpulse(force=(1.0, 0.0, 0.0), point=(0.5, 0.5, 0.5),
+                          size=(0.01, 0.01, 0.01)),))
+  rng = np.random.default_rng(0)
+  x = rng.uniform(0.3, 0.6, (n, 3))
+  x[1] = (0.5, 0.5, 0.5)  # selected by the impulse
+  mid = np.zeros(n, np.int32)
+  body = np.full(n, -1)
+  if rigid_first:
+    mid[0], body[0] = 1, 0
+  mat = mpm.make_materials(mid, 1e4, 0.3, 1000.0,
+                           config_models=config.models)
+  state = mpm.init_state(x, (0.0, 0.0, 1.0), 1e-3, mat, config,
+                         body_id=body)
+  return state, mat, config
+
+
+class PaddingTest(absltest.TestCase):
+
+  def test_ghosts_copy_a_free_particle_with_negligible_mass(self):
+    state, mat, _ = _tiny_state(10)
+    sp, mp = dist.pad_particles(state, mat, 4)
+    self.assertEqual(sp.x.shape, (12, 3))
+    self.assertEqual(mp.E.shape, (12,))
+    np.testing.assert_array_equal(sp.x[:10], state.x)
+    np.testing.assert_array_equal(sp.mass[:10], state.mass)
+    # Particle 0 is rigid and particle 1 selected by the impulse: the
+    # ghosts copy particle 2.
+    np.testing.assert_array_equal(sp.x[10:], np.broadcast_to(state.x[2],
+                                                             (2, 3)))
+    np.testing.assert_allclose(sp.mass[10:],
+                               dist.GHOST_FRACTION * state.mass[2])
+    np.testing.assert_allclose(sp.vol0[10:],
+                               dist.GHOST_FRACTION * state.vol0[2])
+    np.testing.assert_array_equal(sp.body_id[10:], [-1, -1])
+    np.testing.assert_array_equal(sp.bc_data[0][10:], [0, 0])
+    self.assertEqual(float(state.bc_data[0][1]), 1.0)
+
+  def test_no_padding_when_divisible(self):
+    state, mat, _ = _tiny_state(8)
+    sp, mp = dist.pad_particles(state, mat, 4)
+    self.assertIs(sp, state)
+    self.assertIs(mp, mat)
+
+  def test_one_device_mesh_matches_rollout(self):
+    # The sharded code path on one device (psum over one shard).
+    state, mat, config = _tiny_state(10)
+    config = config.replace(num_frames=1, substeps_per_frame=2)
+    mesh = dist.make_mesh(1, dist.PARTICLE_AXIS)
+    ref = jax.jit(lambda s, m: mpm.rollout(s, m, None, config))(state, mat)
+    out = jax.jit(lambda s, m: dist.rollout_sharded(s, m, None, config,
+                                                    mesh))(state, mat)
+    for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(out)):
+      np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6,
+                                 atol=1e-7)
+
+
+class BatchHelpersTest(absltest.TestCase):
+
+  def test_sharded_vmap_pads_and_cuts(self):
+    mesh = dist.make_mesh(1)
+    fn = dist.sharded_vmap(lambda a, b: a * b['s'] + 1.0, mesh,
+                           in_axes=(0, None))
+    a = np.arange(6.0).reshape(3, 2)
+    out = fn(a, {'s': np.float32(2.0)})
+    np.testing.assert_allclose(np.asarray(out), a * 2.0 + 1.0)
+    self.assertEqual(out.shape, (3, 2))
+
+  def test_value_and_grad_is_the_batch_mean(self):
+    mesh = dist.make_mesh(1)
+    loss = lambda w, x, y: jnp.sum((w * x - y) ** 2)  # noqa: E731
+    grad_fn = dist.sharded_value_and_grad(loss, mesh, in_axes=(0, 0))
+    x = np.asarray([[1.0, 2.0], [3.0, 4.0], [0.5, 1.0]], np.float32)
+    y = np.ones_like(x)
+    w = jnp.asarray([0.3, -0.2])
+    (l, losses), g = grad_fn(w, x, y)
+    ref_l, ref_g = jax.value_and_grad(
+      lambda w: jnp.mean(jax.vmap(loss, (None, 0, 0))(w, x, y)))(w)
+    np.testing.assert_allclose(float(l), float(ref_l), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(ref_g), rtol=1e-6)
+    self.assertEqual(losses.shape, (3,))
+
+  def test_batch_size_mismatch_is_named(self):
+    fn = dist.sharded_vmap(lambda a, b: a + b, dist.make_mesh(1))
+    with self.assertRaisesRegex(ValueError, r'batch sizes \[2, 3\]'):
+      fn(np.zeros(2), np.zeros(3))
+
+  def test_too_many_devices_is_explained(self):
+    with self.assertRaisesRegex(ValueError, 'xla_force_host_platform'):
+      dist.make_mesh(jax.device_count() + 1)
+
+  def test_stack_trees_names_the_static_difference(self):
+    a = pl.Params(mpdp=None, log_scale=jnp.zeros((1, 3)),
+                  velocity=jnp.zeros((1, 3)), forces=jnp.zeros((0, 3)))
+    st = dist.stack_trees([a, a])
+    self.assertEqual(st.log_scale.shape, (2, 1, 3))
+    with self.assertRaisesRegex(ValueError, r"velocity'?\]? of shape \(2, 3\)"):
+      dist.stack_trees([a, a.replace(velocity=jnp.zeros((2, 3)))])
+    spec = mpm.SimConfig()
+    with self.assertRaisesRegex(ValueError, r'dt: 0\.0001 vs 0\.0002'):
+      dist.stack_trees([_Holder(x=jnp.zeros(2), cfg=spec),
+                        _Holder(x=jnp.zeros(2), cfg=spec.replace(dt=2e-4))])
+
+  def test_sweep_params_is_a_cartesian_product(self):
+    base = pl.Params(mpdp={'w': jnp.ones(3)},
+                     log_scale=jnp.zeros((2, 3)),
+                     velocity=jnp.zeros((2, 3)), forces=jnp.zeros((1, 3)))
+    batch, table = dist.sweep_params(base, E_scale=(0.5, 2.0),
+                                     velocity=[(0, 0, 1), (1, 0, 0),
+                                               (0, 1, 0)])
+    self.assertLen(table, 6)
+    self.assertEqual(batch.log_scale.shape, (6, 2, 3))
+    self.assertEqual(batch.velocity.shape, (6, 2, 3))
+    self.assertEqual(batch.forces.shape, (6, 1, 3))
+    self.assertEqual(batch.mpdp['w'].shape, (3,))  # shared weights
+    np.testing.assert_allclose(np.exp(batch.log_scale[:, 0, 0]),
+                               [0.5, 0.5, 0.5, 2.0, 2.0, 2.0], rtol=1e-6)
+    np.testing.assert_allclose(batch.velocity[4, 1], [1, 0, 0])
+    self.assertEqual(table[4], dict(E_scale=2.0, nu_scale=1.0,
+                                    rho_scale=1.0, velocity=[1.0, 0.0, 0.0]))
+    with self.assertRaisesRegex(ValueError, 'E_scale'):
+      dist.sweep_params(base, E_scale=(0.0,))
+    with self.assertRaisesRegex(ValueError, '3 components'):
+      dist.sweep_params(base, velocity=[(1.0, 2.0)])
+
+
+class RuntimeTest(absltest.TestCase):
+
+  def test_single_process_needs_no_runtime(self):
+    with mock.patch.dict(os.environ, {}, clear=False):
+      for k in ('SLURM_JOB_ID', 'OMPI_MCA_orte_hnp_uri'):
+        os.environ.pop(k, None)
+      info = runtime.initialize()
+    self.assertEqual(info.method, 'single')
+    self.assertEqual(info.process_count, 1)
+    self.assertTrue(info.is_main)
+
+  def test_cpu_devices_after_backend_start_is_explained(self):
+    jax.devices()  # the backend is running
+    with self.assertRaisesRegex(RuntimeError, 'call physsplat_jax.distri'):
+      runtime.initialize(cpu_devices=4)
+
+  def test_bad_arguments(self):
+    with self.assertRaisesRegex(ValueError, 'mode'):
+      runtime.initialize(mode='always')
+    with self.assertRaisesRegex(ValueError, r'process_id = 2 must be in'):
+      runtime.initialize(num_processes=2, process_id=2)
+    with self.assertRaisesRegex(ValueError, 'cpu_collectives'):
+      runtime.initialize(cpu_collectives='nccl')
+
+  def test_cluster_detection(self):
+    slurm = dict(SLURM_JOB_ID='7', SLURM_STEP_NODELIST='node[01-02]',
+                 SLURM_NTASKS='2', SLURM_PROCID='1', SLURM_LOCALID='0')
+    with mock.patch.dict(os.environ, slurm):
+      self.assertEqual(runtime.cluster_environment(), 'slurm')
+    with mock.patch.dict(os.environ, dict(slurm, SLURM_NTASKS='1')):
+      self.assertIsNone(runtime.cluster_environment())
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(('SLURM_', 'OMPI_'))}
+    with mock.patch.dict(os.environ, env, clear=True):
+      self.assertIsNone(runtime.cluster_environment())
+
+  def test_flags(self):
+    fv = flags.FlagValues()
+    runtime.define_flags(fv)
+    fv(['prog', '--coordinator_address=10.0.0.1:1234', '--num_processes=4',
+        '--process_id=3', '--local_device_ids=0,1', '--cpu_devices=2'])
+    self.assertEqual(fv.coordinator_address, '10.0.0.1:1234')
+    self.assertEqual(fv.num_processes, 4)
+    self.assertEqual(fv.local_device_ids, ['0', '1'])
+    self.assertEqual(fv.distributed, 'auto')
+    fv2 = flags.FlagValues()
+    runtime.define_flags(fv2)
+    fv2(['prog', '--local_device_ids=a,b', '--distributed=off'])
+    with self.assertRaisesRegex(ValueError, 'local_device_ids=a,b'):
+      runtime.initialize_from_flags(fv2)
+
+
+if __name__ == '__main__':
+  absltest.main()
