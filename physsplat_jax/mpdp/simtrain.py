@@ -50,6 +50,7 @@ from physsplat_jax import gaussians as gs
 from physsplat_jax import pipeline as pl
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import synthetic
+from physsplat_jax.mpdp import train as train_lib
 from physsplat_jax.render import raster
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
@@ -559,11 +560,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
   t1 = time.perf_counter()
   with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints'),
                              options=options) as mngr:
-    latest = mngr.latest_step()
-    if latest is not None:
-      state = mngr.restore(latest, args=ocp.args.StandardRestore(
-        jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
-      logging.info('resumed from step %d', latest)
+    state = train_lib.restore_latest(mngr, state)
     for step in range(int(state['step']), config.num_steps):
       state, loss, per = step_fn(state, train)
       done = step + 1

@@ -163,6 +163,20 @@ def _write_metrics(workdir, record):
     f.write(json.dumps(record) + '\n')
 
 
+def restore_latest(mngr: ocp.CheckpointManager, state):
+  """The latest checkpoint of ``mngr`` restored into ``state``'s structure.
+
+  Returns ``state`` unchanged when there is no checkpoint yet (a new run).
+  """
+  latest = mngr.latest_step()
+  if latest is None:
+    return state
+  state = mngr.restore(latest, args=ocp.args.StandardRestore(
+    jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
+  logging.info('resumed from step %d', latest)
+  return state
+
+
 def train_and_evaluate(config, workdir: str) -> dict:
   """Trains MPDP on synthetic objects, checkpointing and resuming in workdir.
 
@@ -206,11 +220,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
   loss = per = None
   with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints'),
                              options=options) as mngr:
-    latest = mngr.latest_step()
-    if latest is not None:
-      state = mngr.restore(latest, args=ocp.args.StandardRestore(
-        jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
-      logging.info('resumed from step %d', latest)
+    state = restore_latest(mngr, state)
     start = int(state['step'])
     t_start = time.time()
     for step in range(start, tc.num_steps):
