@@ -125,7 +125,7 @@ class MultiDeviceTest(absltest.TestCase):
     self.assertEqual(r['scenes_spec'], "P('batch',)")
 
 
-@pytest.mark.slow  # ~2.5 min on 2 cores: compiling two backward passes
+@pytest.mark.slow  # ~2 min on 2 cores: compiling two backward passes
 class MultiDeviceGradientTest(absltest.TestCase):
   """Gradients through the psum and through a sharded training batch."""
 
