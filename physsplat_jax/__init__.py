@@ -15,7 +15,8 @@ Turns a static 3D Gaussian Splatting scene into a physically simulated one
 
 The public API is re-exported here; import from ``physsplat_jax`` (or the
 subpackages ``mpm``, ``render``, ``sampling``, ``perception``,
-``segmentation``, ``mpdp``, ``io``, ``scenes``) rather than from modules.
+``segmentation``, ``mpdp``, ``io``, ``scenes``, ``distributed``) rather
+than from modules.
 """
 
 # Core types and Gaussian maths.
@@ -87,5 +88,12 @@ from physsplat_jax.pipeline import prepare_scene as prepare_scene
 from physsplat_jax.pipeline import run as run
 from physsplat_jax.pipeline import simulate as simulate
 from physsplat_jax.pipeline import simulate_jit as simulate_jit
+
+
+# Scale-out: sweeps and large simulations over many devices and hosts.
+from physsplat_jax import distributed as distributed
+from physsplat_jax.distributed import make_simulate_batch as make_simulate_batch
+from physsplat_jax.distributed import simulate_sharded as simulate_sharded
+from physsplat_jax.distributed import sweep_params as sweep_params
 
 __version__ = '0.1.0'
