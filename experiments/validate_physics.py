@@ -232,6 +232,10 @@ def main(argv):
                    for r in ((32,) if quick else (32, 48))
                    for p in (20.0, 35.0)],
   }
+  unknown = [c for c in _CASES.value if c not in plan]
+  if unknown:
+    raise app.UsageError(f'--cases: unknown case(s) {unknown}; choose from '
+                         f'{sorted(plan)}.')
   results = []
   for case in _CASES.value:
     for fn, kw in plan[case]:
