@@ -70,6 +70,26 @@ def quat_to_rotmat(q: Array) -> Array:
   )
 
 
+def quat_to_rotmat_np(q) -> np.ndarray:
+  """(K, 4) wxyz quaternions (any norm; zero -> identity) -> (K, 3, 3).
+
+  NumPy float64 twin of :func:`quat_to_rotmat` for host-side code (export,
+  filling, binding), which runs op by op where JAX would dispatch every op.
+  """
+  q = np.asarray(q, np.float64)
+  n = np.linalg.norm(q, axis=-1, keepdims=True)
+  q = np.where(n > 1e-12, q / np.where(n > 1e-12, n, 1.0), [1.0, 0, 0, 0])
+  w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+  return np.stack([
+    np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z),
+              2 * (x * z + w * y)], -1),
+    np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z),
+              2 * (y * z - w * x)], -1),
+    np.stack([2 * (x * z - w * y), 2 * (y * z + w * x),
+              1 - 2 * (x * x + y * y)], -1),
+  ], -2)
+
+
 def rotmat_to_quat(R: Array) -> Array:
   """(..., 3, 3) proper rotations -> (..., 4) unit wxyz quaternions, w >= 0.
 

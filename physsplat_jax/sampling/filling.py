@@ -256,18 +256,15 @@ def fill_gaussians(
 
 
 def quat_to_rotmat_host(q):
-  """NumPy twin of :func:`physsplat_jax.gaussians.quat_to_rotmat`."""
+  """NumPy twin of :func:`physsplat_jax.gaussians.quat_to_rotmat`.
+
+  Non-finite entries read as 0 and quaternions of norm <= 1e-6 as the
+  identity (bad covariances must not stall the filler).
+  """
   q = np.nan_to_num(np.asarray(q, np.float64))
   n2 = np.sum(q * q, -1, keepdims=True)
-  q = np.where(n2 > 1e-12, q, [1.0, 0.0, 0.0, 0.0])
-  w, x, y, z = (q / np.linalg.norm(q, axis=-1, keepdims=True)).T
-  return np.stack([
-    np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z),
-              2 * (x * z + w * y)], -1),
-    np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z),
-              2 * (y * z - w * x)], -1),
-    np.stack([2 * (x * z - w * y), 2 * (y * z + w * x),
-              1 - 2 * (x * x + y * y)], -1)], -2)
+  return _g.quat_to_rotmat_np(
+    np.where(n2 > 1e-12, q, [1.0, 0.0, 0.0, 0.0]))
 
 
 def occupancy_grid_host(means, log_scales, quats, opacities, origin, dx,
