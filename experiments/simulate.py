@@ -38,10 +38,10 @@ from absl import logging
 
 from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
-from physsplat_jax.configs import physgaussian as pg
+from physsplat_jax import physgaussian as pg
 from physsplat_jax.io import ply as ply_io
 from physsplat_jax.io import scene as scene_io
-from physsplat_jax.mpm import physgaussian as mpm_pg
+from physsplat_jax import physgaussian as mpm_pg
 
 def define_flags():
   """Defines the command-line flags (only when run as a script, so that
@@ -237,7 +237,7 @@ def simulate_file(scene: str, config: str, out: str, frames=None,
       t1 = time.perf_counter()
       ids = state.setdefault('ids', None)
       if ids is None:  # the selected rows: the Gaussians at their x
-        # Exactly the selection of mpm.physgaussian.prepare_config.
+        # Exactly the selection of physgaussian.prepare_config.
         op = np.asarray(jax.nn.sigmoid(jnp.asarray(
           gaussians.opacity_logits, jnp.float32)), np.float64)
         ids = state['ids'] = jnp.asarray(pg.select_particles(

@@ -9,7 +9,7 @@ import tempfile
 from absl.testing import absltest
 from absl.testing import parameterized
 
-from physsplat_jax.configs.physgaussian import CANONICAL_MODELS
+from physsplat_jax.physgaussian import CANONICAL_MODELS
 from physsplat_jax.perception import library as lib
 
 # The preset values are rounded to 2 significant digits.

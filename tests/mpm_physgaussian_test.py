@@ -1,4 +1,4 @@
-"""Tests for running PhysGaussian configs (physsplat_jax.mpm.physgaussian)."""
+"""Tests for running PhysGaussian configs (physsplat_jax.physgaussian)."""
 
 import json
 import os
@@ -9,9 +9,9 @@ from absl.testing import absltest
 
 from experiments import simulate as simulate_main
 from physsplat_jax import mpm
-from physsplat_jax.configs import physgaussian as pg
+from physsplat_jax import physgaussian as pg
 from physsplat_jax.io import ply
-from physsplat_jax.mpm import physgaussian as mpm_pg
+from physsplat_jax import physgaussian as mpm_pg
 from physsplat_jax.types import Gaussians
 
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

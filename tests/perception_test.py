@@ -352,7 +352,7 @@ class OfflineTest(parameterized.TestCase):
                                                        2e4))
 
   def test_physgaussian_config(self):
-    from physsplat_jax.configs.physgaussian import parse_config
+    from physsplat_jax.physgaussian import parse_config
     cfg = parse_config({'material': 'metal', 'E': 1e5, 'nu': 0.3,
                         'density': 1000, 'yield_stress': 1e2})
     spec = perception.spec_from_physgaussian(cfg)

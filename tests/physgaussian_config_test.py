@@ -1,4 +1,4 @@
-"""Tests for physsplat_jax.configs.physgaussian (PhysGaussian JSON schema)."""
+"""Tests for physsplat_jax.physgaussian (PhysGaussian JSON schema)."""
 
 import json
 import os
@@ -10,7 +10,7 @@ import numpy as np
 from absl.testing import absltest
 from absl.testing import parameterized
 
-from physsplat_jax.configs import physgaussian as pg
+from physsplat_jax import physgaussian as pg
 
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 _EXAMPLES = os.path.join(_REPO, 'experiments', 'configs')

@@ -11,7 +11,7 @@ from absl.testing import parameterized
 from physsplat_jax import segmentation as seg
 from physsplat_jax.cameras import look_at
 from physsplat_jax.cameras import orbit_cameras
-from physsplat_jax.configs.physgaussian import parse_config
+from physsplat_jax.physgaussian import parse_config
 from physsplat_jax.io.ply import load_ply
 from physsplat_jax.io.ply import save_ply
 from physsplat_jax.render.reference import render_reference

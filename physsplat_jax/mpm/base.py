@@ -10,7 +10,7 @@ Three kinds of input never mix (STYLE.md 1):
   affine matrices, plastic state and per-particle constants.
 
 Units are SI throughout (m, s, kg, Pa); PhysGaussian configs use the same
-units inside their normalised domain (``physsplat_jax.mpm.physgaussian``).
+units inside their normalised domain (``physsplat_jax.physgaussian``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from physsplat_jax.configs.physgaussian import CANONICAL_MODELS
+from physsplat_jax.mpm.models import CANONICAL_MODELS
 
 Array = jax.Array
 
@@ -431,8 +431,8 @@ class SimConfig:
       if m not in CANONICAL_MODELS:
         raise ValueError(
           f'SimConfig.models: unknown model {m!r}; use names from '
-          f'{list(CANONICAL_MODELS)} (physsplat_jax.configs.physgaussian.'
-          'material_name maps PhysGaussian names such as "jelly").'
+          f'{list(CANONICAL_MODELS)} (physsplat_jax.mpm.models.'
+          'canonical_model maps names such as "jelly").'
         )
     if len(set(models)) != len(models):
       raise ValueError(f'SimConfig.models = {models} has duplicates.')

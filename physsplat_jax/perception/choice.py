@@ -25,7 +25,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from physsplat_jax.configs.physgaussian import CANONICAL_MODELS
+from physsplat_jax.mpm.models import CANONICAL_MODELS
+from physsplat_jax.mpm.models import canonical_model
 from physsplat_jax.perception.library import MODEL_PARAMS
 from physsplat_jax.perception.library import NEVER_RIGID_MODELS
 from physsplat_jax.perception.library import STRAIN_YIELD_MODELS
@@ -241,12 +242,11 @@ def apply_spec(
                          'number') from None
   model = spec.get('model', entry.model)
   if model not in CANONICAL_MODELS:
-    from physsplat_jax.configs.physgaussian import material_name
-    try:
-      model = material_name(model, where)
-    except Exception:  # noqa: BLE001 - re-raised with our message
+    resolved = canonical_model(model)
+    if resolved is None:
       raise ValueError(f'{where}: model {model!r} is not one of '
-                       f'{list(CANONICAL_MODELS)}') from None
+                       f'{list(CANONICAL_MODELS)}')
+    model = resolved
   rigid = spec.get('rigid', entry.rigid)
   if not isinstance(rigid, bool):
     raise ValueError(f'{where}: rigid={rigid!r} must be true or false')
@@ -294,7 +294,7 @@ def spec_from_physgaussian(config) -> dict[str, Any]:
   parameters that model uses, labelled with a representative library key.
 
   Args:
-    config: a :class:`~physsplat_jax.configs.physgaussian.PhysGaussianConfig`.
+    config: a :class:`~physsplat_jax.physgaussian.PhysGaussianConfig`.
 
   Returns:
     ``{'material': key, 'model': ..., 'E': ..., 'nu': ..., 'rho': ...,

@@ -46,7 +46,7 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-from physsplat_jax.configs.physgaussian import CANONICAL_MODELS
+from physsplat_jax.mpm.models import CANONICAL_MODELS
 
 # Parameters each model needs (simulation units; see the file's 'units').
 MODEL_PARAMS = {

@@ -88,13 +88,13 @@ def segment_from_physgaussian(gaussians: Gaussians, config,
 
   Args:
     gaussians: the scene's Gaussians (input coordinates).
-    config: a :class:`~physsplat_jax.configs.physgaussian.PhysGaussianConfig`.
+    config: a :class:`~physsplat_jax.physgaussian.PhysGaussianConfig`.
     name: the object's name.
 
   Returns:
     A :class:`Segmentation` with one object (the rest is background).
   """
-  from physsplat_jax.configs.physgaussian import select_particles
+  from physsplat_jax.physgaussian import select_particles
 
   rows = select_particles(config, np.asarray(gaussians.means),
                           np.asarray(gaussians.opacities))

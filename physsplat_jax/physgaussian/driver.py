@@ -6,7 +6,7 @@ Follows PhysGaussian's ``gs_simulation.py`` (REFERENCE.md 1.1, 1.4):
 2. rotate (``rotation_degree`` / ``rotation_axis``) and keep those strictly
    inside ``sim_area``;
 3. map into the normalised domain, a cube of side ``scale`` centred at
-   (1, 1, 1) inside ``[0, grid_lim]^3`` (``configs.physgaussian``);
+   (1, 1, 1) inside ``[0, grid_lim]^3`` (``physgaussian.schema``);
 4. optionally fill the interior (``particle_filling``, with
    ``sampling.filling``; the filled particles are simulated but not output);
 5. particle volumes from grid occupancy: ``dx^3 / (particles in the cell)``
@@ -32,7 +32,8 @@ import numpy as np
 from absl import logging
 
 from physsplat_jax import gaussians as gs
-from physsplat_jax.configs import physgaussian as pg
+from physsplat_jax.physgaussian import schema as pg
+from physsplat_jax.physgaussian import transform as pgt
 from physsplat_jax.mpm import base
 from physsplat_jax.mpm import solver
 from physsplat_jax.mpm import timestep
@@ -197,7 +198,7 @@ def transform_host(config: pg.PhysGaussianConfig, means: np.ndarray):
   Host-side twin used for the input <-> normalised maps of positions so
   that scenes with large coordinates keep full precision in float32 runs.
   """
-  R = pg.rotation_matrix(config)
+  R = pgt.rotation_matrix(config)
   xr = np.asarray(means, np.float64) @ R.T
   lo, hi = xr.min(0), xr.max(0)
   return R, 0.5 * (lo + hi), config.scale / float(np.max(hi - lo))
@@ -283,7 +284,7 @@ def prepare_config(gaussians, config: pg.PhysGaussianConfig,
 
   Args:
     gaussians: input ``Gaussians`` (PLY frame).
-    config: parsed PhysGaussian config (``configs.physgaussian``).
+    config: parsed PhysGaussian config (``physgaussian.schema``).
     dtype: float dtype of the simulation.
     fill: honour ``particle_filling`` (when present).
     key: PRNG key for the fill jitter.
@@ -297,8 +298,8 @@ def prepare_config(gaussians, config: pg.PhysGaussianConfig,
   means = np.asarray(gaussians.means, np.float64)
   opacity = np.asarray(jax.nn.sigmoid(jnp.asarray(
     gaussians.opacity_logits, jnp.float32)), np.float64)
-  ids = pg.select_particles(config, means, opacity)
-  transform = pg.make_norm_transform(config, means[ids], dtype=dtype)
+  ids = pgt.select_particles(config, means, opacity)
+  transform = pgt.make_norm_transform(config, means[ids], dtype=dtype)
   x = _normalise_host(transform_host(config, means[ids]), means[ids])
   num_g = len(ids)
   if fill and config.particle_filling is not None:
@@ -317,7 +318,7 @@ def prepare_config(gaussians, config: pg.PhysGaussianConfig,
   vol = grid_volumes(x, config.n_grid, config.grid_lim,
                      uniform=config.material == 'drucker_prager')
   xj = jnp.asarray(x, dtype)
-  E, nu, rho = pg.material_fields(config, xj)
+  E, nu, rho = pgt.material_fields(config, xj)
   model = config.material
   extra_fields = dict(
     yield_stress=config.yield_stress, hardening=config.hardening,
