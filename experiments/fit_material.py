@@ -2,7 +2,7 @@
 
 The observations are simulated with physsplat_jax.pipeline.simulate from the
 ground-truth synthetic field (physsplat_jax.mpdp.synthetic rules) of a
-cantilever (physsplat_jax.mpdp.simtrain.make_task, the ``sim.task`` section
+cantilever (physsplat_jax.training.simtrain.make_task, the ``sim.task`` section
 of the config). E is then fitted through the MLS-MPM rollout, starting from
 ``--E_init`` x the true mean and a uniform field, either from the Gaussian
 centres ('trajectory') or from the frames rendered by the differentiable
@@ -22,7 +22,7 @@ from absl import flags
 from absl import logging
 from ml_collections import config_flags
 
-from physsplat_jax.mpdp import simtrain
+from physsplat_jax.training import simtrain
 
 _SEEDS = flags.DEFINE_list('seeds', ['10', '11'], 'beam seeds')
 _OBSERVE = flags.DEFINE_list('observe', ['trajectory', 'video'],

@@ -24,7 +24,7 @@ from ml_collections import config_flags
 
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import pretrained
-from physsplat_jax.mpdp import simtrain
+from physsplat_jax.training import simtrain
 from physsplat_jax.mpdp import train
 
 _WORKDIR = flags.DEFINE_string('workdir', None, 'checkpoints + metrics dir')

@@ -305,7 +305,7 @@ def check_grad():
   import jax
   import jax.numpy as jnp
   from physsplat_jax import distributed as dist
-  from physsplat_jax.mpdp import simtrain
+  from physsplat_jax.training import simtrain
   out = {}
   prepared, params, config = _pipeline_setup()
   scenes = _scene_batch(prepared, 4)

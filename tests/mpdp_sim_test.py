@@ -1,4 +1,4 @@
-"""Tests for physsplat_jax.mpdp.simtrain: MPDP through pipeline.simulate.
+"""Tests for physsplat_jax.training.simtrain: MPDP through pipeline.simulate.
 
 Tiny cantilevers (12^3 grid, 64 driving particles, 2 frames x 20 substeps):
 the ground-truth field hook sets the simulated materials, the gradient of a
@@ -24,7 +24,7 @@ from experiments.configs import mpdp_test as test_config
 from physsplat_jax import pipeline as pl
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import pretrained
-from physsplat_jax.mpdp import simtrain
+from physsplat_jax.training import simtrain
 from physsplat_jax.mpdp import synthetic
 
 _MEAN_TOL = 1e-6      # |mean(field) - 1|, float64 rule

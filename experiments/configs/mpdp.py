@@ -25,7 +25,7 @@ def get_config():
     num_steps=2000, batch_size=16, grad_clip=1.0,
     channel_weights=(1.0, 1.0, 1.0), log_every=100, eval_every=500,
     checkpoint_every=500, max_to_keep=2))
-  # Through physsplat_jax.pipeline.simulate (physsplat_jax.mpdp.simtrain):
+  # Through physsplat_jax.pipeline.simulate (physsplat_jax.training.simtrain):
   # synthetic cantilevers anchored in a wall, trajectory loss against
   # targets simulated from the ground-truth fields.
   c.sim = ml_collections.ConfigDict(dict(
