@@ -177,7 +177,8 @@ def prepare(scene_name: str, config_path: str | None, overrides: dict):
   config = sim.build_config(scene.name, config_path,
                             dict(overrides, render='none'))
   materials = perception.perceive_scene(scene)
-  prepared, _ = pl.prepare_scene(scene, materials, config)
+  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
+                                 materials, config)
   params = pl.init_params(prepared, config)
   if jax.process_count() > 1:
     multihost_utils.assert_equal(

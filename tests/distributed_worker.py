@@ -142,7 +142,7 @@ def _pipeline_setup():
     fill=False, initial_velocity=(('', (0.0, 0.0, -1.0)),))
   mats = [pl.ObjectMaterial('fixed_corotated', 3e4, 0.3, 1000.0),
           pl.ObjectMaterial('rigid', 1e10, 0.3, 700.0, rigid=True)]
-  prepared, _ = pl.prepare_scene(scene, mats, config)
+  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, mats, config)
   params = pl.init_params(prepared, config)
   if jnp.zeros(()).dtype == jnp.float64:
     f64 = lambda a: a.astype(jnp.float64) if jnp.issubdtype(  # noqa: E731

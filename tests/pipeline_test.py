@@ -102,7 +102,7 @@ class PrepareTest(absltest.TestCase):
 
   def test_support_plane_and_counts(self):
     scene = _scene()
-    prep, rep = pl.prepare_scene(scene, [_RUBBER, _WOOD], _config())
+    prep, rep = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD], _config())
     spec = prep.spec
     self.assertEqual(spec.object_names, ('cube',))
     self.assertEqual(rep.num_particles, prep.num_particles)
@@ -134,25 +134,25 @@ class PrepareTest(absltest.TestCase):
     scene = scene.replace(gaussians=g2, object_ids=ids,
                           objects=scene.objects + (ObjectInfo(
                             'post', 'wood', fixed=True),))
-    prep, rep = pl.prepare_scene(scene, [_RUBBER, _WOOD], _config())
+    prep, rep = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD], _config())
     self.assertLen(prep.spec.colliders.anchors, 1)
     self.assertTrue(any('anchor' in n for n in rep.colliders))
 
   def test_bad_inputs_raise_clear_errors(self):
     scene = _scene()
     with self.assertRaisesRegex(pl.PipelineError, 'one material per object'):
-      pl.prepare_scene(scene, [_RUBBER], _config())
+      pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER], _config())
     bad = pl.ObjectMaterial('fixed_corotated', 3e4, 0.7, 1000.0)
     with self.assertRaisesRegex(pl.PipelineError, r'nu=0\.7'):
-      pl.prepare_scene(scene, [bad, _WOOD], _config())
+      pl.prepare_scene(jax.random.PRNGKey(0), scene, [bad, _WOOD], _config())
     fixed_all = scene.replace(objects=(ObjectInfo('cube', fixed=True),
                                        scene.objects[1]))
     with self.assertRaisesRegex(pl.PipelineError, 'no movable object'):
-      pl.prepare_scene(fixed_all, [_RUBBER, _WOOD], _config())
+      pl.prepare_scene(jax.random.PRNGKey(0), fixed_all, [_RUBBER, _WOOD], _config())
     with self.assertRaisesRegex(pl.PipelineError, 'grid_res'):
       _config(grid_res=4)
     with self.assertRaisesRegex(pl.PipelineError, 'no such movable object'):
-      pl.prepare_scene(scene, [_RUBBER, _WOOD], _config(
+      pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD], _config(
         initial_velocity=(('table', (0.0, 0.0, 1.0)),)))
 
 
@@ -165,7 +165,7 @@ class SimulateTest(absltest.TestCase):
     v0 = (0.1, 0.2, 0.0)  # m/s in scene axes (x, y-up, z)
     cfg = _config(ground='none', num_frames=3, margin=3.0,
                   initial_velocity=(('cube', v0),))
-    prep, rep = pl.prepare_scene(scene, [_RUBBER], cfg)
+    prep, rep = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER], cfg)
     params = pl.init_params(prep, cfg)
     traj = pl.simulate_jit(params, prep, cfg)
     t = np.arange(cfg.num_frames + 1) / cfg.fps
@@ -187,7 +187,7 @@ class SimulateTest(absltest.TestCase):
   def test_velocity_gradient_is_elapsed_time(self):
     scene = _scene(with_table=False)
     cfg = _config(ground='none', num_frames=2, margin=3.0)
-    prep, _ = pl.prepare_scene(scene, [_RUBBER], cfg)
+    prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER], cfg)
     params = pl.init_params(prep, cfg)
 
     def loss(p):
@@ -206,7 +206,7 @@ class SimulateTest(absltest.TestCase):
         pl.ForceSpec('point', 'cube', vector=(0.0, 0.0, 60.0),
                      point=(0.03, 0.0, 0.05), radius=0.025, start=0.0,
                      end=1.0),))
-      prep, _ = pl.prepare_scene(scene, [_RUBBER, _WOOD], cfg)
+      prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD], cfg)
       prep = jax.tree.map(
         lambda a: a.astype(jnp.float64) if jnp.issubdtype(
           a.dtype, jnp.floating) else a, prep)
@@ -234,8 +234,8 @@ class SimulateTest(absltest.TestCase):
     g = sa.gaussians
     sb = sa.replace(gaussians=g.replace(
       means=g.means + jnp.asarray([0.3, -0.2, 0.1], g.means.dtype)))
-    a, _ = pl.prepare_scene(sa, [_RUBBER, _WOOD], cfg)
-    b, _ = pl.prepare_scene(sb, [_RUBBER, _WOOD], cfg)
+    a, _ = pl.prepare_scene(jax.random.PRNGKey(0), sa, [_RUBBER, _WOOD], cfg)
+    b, _ = pl.prepare_scene(jax.random.PRNGKey(0), sb, [_RUBBER, _WOOD], cfg)
     self.assertEqual(a.spec, b.spec)
     self.assertFalse(np.allclose(a.frame.shift, b.frame.shift))
     traces = []
@@ -259,7 +259,7 @@ class RunTest(absltest.TestCase):
     scene = _scene()
     cfg = _config(render='fast', num_frames=2, substeps_per_frame=None,
                   initial_velocity=(('cube', (0.2, 0.0, 0.0)),))
-    prep, _ = pl.prepare_scene(scene, [_RUBBER, _WOOD], cfg)
+    prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD], cfg)
     params = pl.init_params(prep, cfg)
     with tempfile.TemporaryDirectory() as d:
       out = pl.run(params, prep, cfg, out_dir=d)

@@ -158,38 +158,22 @@ def rollout_sharded(state: mpm.MPMState, materials: mpm.Materials,
 
 
 def simulate_sharded(params: pl.Params, prepared: pl.PreparedScene,
-                     config: pl.PipelineConfig, mesh: Mesh,
-                     field: jax.Array | None = None,
+                     config: pl.SimulateConfig | pl.PipelineConfig,
+                     mesh: Mesh, field: jax.Array | None = None,
                      axis_name: str | None = None) -> pl.Trajectory:
   """``pipeline.simulate`` with the driving particles split over devices.
 
-  Same inputs and outputs as :func:`physsplat_jax.pipeline.simulate`; the
-  MPM rollout is :func:`rollout_sharded`, everything else (MPDP field,
-  deformation, rendering) is left to XLA's sharding propagation. Jit with
-  ``config``, ``mesh`` and ``axis_name`` static (``simulate_sharded_jit``).
+  Same inputs and outputs as :func:`physsplat_jax.pipeline.simulate`, which
+  it calls with :func:`rollout_sharded` as its ``rollout_fn``; everything
+  else (MPDP field, deformation, rendering) is left to XLA's sharding
+  propagation. Jit with ``config``, ``mesh`` and ``axis_name`` static
+  (``simulate_sharded_jit``).
   """
-  if field is None:
-    state, materials, forces, sim_config = pl.initial_state(
-      params, prepared, config)
-  else:
-    state, materials, forces, sim_config = pl.initial_state(
-      params, prepared, config, field)
-  _, xs, Fs = rollout_sharded(state, materials, forces, sim_config, mesh,
-                              config.num_frames, axis_name)
-  per_frame = jax.vmap(
-    lambda x, F: pl.deformed_gaussians(prepared, config, x, F))
-  means, covs, rots = per_frame(xs, Fs)
-  images = overflow = None
-  if config.render != 'none':
-    diff = config.render == 'differentiable'
-    outs = jax.lax.map(
-      lambda a: pl.render_frame(prepared, config, *a, differentiable=diff),
-      (means, covs, rots))
-    images, overflow = outs.image, outs.overflow
-  return pl.Trajectory(
-    x=prepared.frame.to_scene(xs), means=means, covariances=covs,
-    rotations=rots, images=images, render_overflow=overflow,
-    materials=(materials.E, materials.nu, materials.rho))
+  def rollout_fn(state, materials, forces, sim_config, num_frames):
+    return rollout_sharded(state, materials, forces, sim_config, mesh,
+                           num_frames, axis_name)
+
+  return pl.simulate(params, prepared, config, field, rollout_fn=rollout_fn)
 
 
 simulate_sharded_jit = jax.jit(simulate_sharded,

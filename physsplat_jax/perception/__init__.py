@@ -5,6 +5,7 @@ and docs/materials.md.
 """
 
 from physsplat_jax.perception.choice import MaterialChoice as MaterialChoice
+from physsplat_jax.perception.choice import ObjectMaterial as ObjectMaterial
 from physsplat_jax.perception.choice import apply_spec as apply_spec
 from physsplat_jax.perception.choice import (
   simulation_values as simulation_values,

@@ -40,21 +40,23 @@ _ALL_PARAMS = sorted({p for ps in MODEL_PARAMS.values() for p in ps})
 
 
 @dataclasses.dataclass(frozen=True)
-class MaterialChoice:
-  """The material perception chose for one object (hashable).
+class ObjectMaterial:
+  """The material of one object: the one record that perception produces
+  and the pipeline consumes (hashable).
 
   Attributes:
-    object_name: the scene object's name.
-    material_key: the library key.
     model: constitutive model (``CANONICAL_MODELS``); for a rigid object,
       the model it would be simulated with as a deformable body.
     E: Young's modulus to simulate with [Pa] (the simulation value).
     nu: Poisson's ratio to simulate with, in [0, 0.5).
     rho: density to simulate with [kg/m^3].
     rigid: simulate as a rigid body.
-    params: model parameters in simulation units, sorted ``(name, value)``.
+    params: model parameters in simulation units, sorted ``(name, value)``
+      (e.g. yield_stress).
+    material_key: the library key, or ''.
     source: 'mllm', 'library', 'config' or 'override': which path chose it.
     reason: one line saying why.
+    object_name: the scene object's name ('' when given directly).
     E_real: the real-world Young's modulus estimate [Pa] behind ``E`` (the
       MLLM's validated answer or the library's mid value), or None when the
       values were given directly (config/override).
@@ -63,16 +65,16 @@ class MaterialChoice:
     warnings: what went wrong on the way (empty when nothing did).
   """
 
-  object_name: str
-  material_key: str
   model: str
   E: float
   nu: float
   rho: float
-  rigid: bool
+  rigid: bool = False
   params: tuple[tuple[str, float], ...] = ()
-  source: str = 'library'
+  material_key: str = ''
+  source: str = 'config'
   reason: str = ''
+  object_name: str = ''
   E_real: float | None = None
   caption: str = ''
   candidates: tuple[str, ...] = ()
@@ -95,6 +97,10 @@ class MaterialChoice:
     kind = 'rigid' if self.rigid else 'deformable'
     return (f'{self.material_key} [{self.model}, {kind}] E_sim={self.E:.3g} '
             f'Pa nu={self.nu:.3g} rho={self.rho:.4g} kg/m^3')
+
+
+# The name perception has always used for the same record.
+MaterialChoice = ObjectMaterial
 
 
 def check_choice(c: MaterialChoice) -> MaterialChoice:

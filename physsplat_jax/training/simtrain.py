@@ -283,7 +283,8 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
   cast = lambda t: jax.tree.map(  # noqa: E731
     lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating)
     else a, t)
-  prepared, _ = pl.prepare_scene(scene, materials, config)
+  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
+                                 materials, config)
   prepared = cast(prepared)
   params = cast(default_params(prepared, config))
   field = jnp.asarray(driver_field(obj, prepared), dtype)

@@ -1,0 +1,240 @@
+"""Pluggable per-frame outputs of a simulation run (files only).
+
+A host loop (:func:`physsplat_jax.pipeline.run`, the PhysGaussian driver in
+``experiments/simulate.py``) hands every frame, as a :class:`Frame`, to each
+of its writers in turn; each writer keeps what it needs and names its files
+on :meth:`~FrameWriter.close`. Writers write to a temporary name and rename
+when complete, so a run that stops half-way leaves complete files (the
+frames so far) and never a half-written one.
+
+Writers: :class:`VideoOutput` (MP4, GIF fallback), :class:`PngOutput`
+(``frames/frame_%04d.png``), :class:`PlyOutput` (``ply/frame_%04d.ply``,
+deformed INRIA PLY), :class:`TrajectoryOutput` (``trajectory.npz``).
+:func:`write_json` writes a report atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import tempfile
+from typing import Any, Protocol
+
+import numpy as np
+
+from physsplat_jax.io import export as export_lib
+from physsplat_jax.io import video as video_lib
+from physsplat_jax.types import Gaussians
+
+
+class OutputError(OSError):
+  """An output folder or file cannot be written; the message says which."""
+
+
+@dataclasses.dataclass
+class Frame:
+  """One frame of a run, as the writers see it (NumPy or jax arrays).
+
+  Attributes:
+    index: frame number (0 = initial state).
+    time: simulated time [s].
+    image: (H, W, 3) RGB in [0, 1], or None when nothing was rendered.
+    positions: (Ks, 3) simulated Gaussians' centres (scene coordinates).
+    particles: (N, 3) driving-particle positions (scene coordinates).
+    gaussians: every Gaussian of the scene at this frame (means deformed),
+      or None; with ``covariances`` (K, 3, 3) and ``rotations`` (K, 3, 3)
+      the deformed shapes and SH view rotations (for PLY frames).
+  """
+
+  index: int
+  time: float
+  image: Any = None
+  positions: Any = None
+  particles: Any = None
+  gaussians: Gaussians | None = None
+  covariances: Any = None
+  rotations: Any = None
+
+
+class FrameWriter(Protocol):
+  """What a host loop needs of an output."""
+
+  def write(self, frame: Frame) -> None:
+    ...
+
+  def close(self) -> dict[str, str]:
+    """Finishes the files; returns ``{kind: path}`` of what was written."""
+    ...
+
+
+def check_output_dir(path: str) -> str:
+  """Creates ``path`` (and parents) and checks it is a writable folder.
+
+  Called before any expensive work so a bad ``--out`` fails at once.
+
+  Raises:
+    OutputError: naming the path and the fix.
+  """
+  path = os.fspath(path)
+  if os.path.exists(path) and not os.path.isdir(path):
+    raise OutputError(f'output folder {path!r} is a file; give a folder '
+                      'name (it is created if missing).')
+  try:
+    os.makedirs(path, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path, prefix='.write_test_'):
+      pass
+  except OSError as e:
+    raise OutputError(f'output folder {path!r} cannot be written '
+                      f'({e.strerror or e}); choose a writable folder.'
+                      ) from None
+  return path
+
+
+def _partial(path: str) -> str:
+  head, tail = os.path.split(path)
+  stem, ext = os.path.splitext(tail)
+  return os.path.join(head, f'.{stem}.partial{ext}')
+
+
+def write_json(path: str, data: Any) -> str:
+  """Writes ``data`` as indented JSON atomically (temporary name, rename).
+
+  Non-finite floats are written as strings ('nan', 'inf') and NumPy values
+  as plain numbers, so the file is valid JSON whatever the run produced.
+  """
+  tmp = _partial(path)
+  with open(tmp, 'w') as f:
+    json.dump(jsonable(data), f, indent=1)
+  os.replace(tmp, path)
+  return path
+
+
+def jsonable(x):
+  """``x`` with NumPy values, tuples and non-finite floats made JSON-safe."""
+  if isinstance(x, dict):
+    return {str(k): jsonable(v) for k, v in x.items()}
+  if isinstance(x, (list, tuple)):
+    return [jsonable(v) for v in x]
+  if isinstance(x, np.ndarray):
+    return jsonable(x.tolist())
+  if isinstance(x, (np.floating, np.integer, np.bool_)):
+    x = x.item()
+  if isinstance(x, float) and not math.isfinite(x):
+    return str(x)
+  return x
+
+
+class VideoOutput:
+  """``video.mp4`` (GIF when no ffmpeg) from the frames' images."""
+
+  def __init__(self, path: str, fps: float):
+    self.path = os.fspath(path)
+    self._writer = video_lib.VideoWriter(_partial(self.path), fps=fps)
+
+  def write(self, frame: Frame) -> None:
+    if frame.image is not None:
+      self._writer.append(np.clip(np.asarray(frame.image), 0.0, 1.0))
+
+  def close(self) -> dict[str, str]:
+    self._writer.close()
+    if self._writer.num_frames == 0:
+      if os.path.exists(self._writer.path):
+        os.remove(self._writer.path)
+      return {}
+    final = self.path
+    if self._writer.format == 'gif':
+      final = os.path.splitext(self.path)[0] + '.gif'
+    os.replace(self._writer.path, final)
+    return {'video': final}
+
+
+class PngOutput:
+  """``frames/frame_%04d.png`` (each PNG complete when written)."""
+
+  def __init__(self, directory: str):
+    self.directory = os.fspath(directory)
+    self._writer = video_lib.PngFrameWriter(self.directory)
+
+  def write(self, frame: Frame) -> None:
+    if frame.image is not None:
+      img = video_lib.to_uint8(np.clip(np.asarray(frame.image), 0.0, 1.0),
+                               self.directory)
+      path = os.path.join(self.directory, video_lib.PNG_PATTERN % frame.index)
+      os.makedirs(self.directory, exist_ok=True)
+      tmp = _partial(path)
+      video_lib.save_png(tmp, img)
+      os.replace(tmp, path)
+      self._writer.num_frames += 1
+
+  def close(self) -> dict[str, str]:
+    return {'frames': self.directory} if self._writer.num_frames else {}
+
+
+class PlyOutput:
+  """``ply/frame_%04d.ply``: every Gaussian of the scene, deformed."""
+
+  def __init__(self, directory: str, base: Gaussians):
+    self.directory = os.fspath(directory)
+    self._base = base
+    self._count = 0
+
+  def write(self, frame: Frame) -> None:
+    if frame.gaussians is None:
+      return
+    os.makedirs(self.directory, exist_ok=True)
+    path = os.path.join(self.directory, f'frame_{frame.index:04d}.ply')
+    tmp = _partial(path)
+    export_lib.save_deformed_ply(tmp, self._base, frame.gaussians.means,
+                                 frame.covariances, frame.rotations)
+    os.replace(tmp, path)
+    self._count += 1
+
+  def close(self) -> dict[str, str]:
+    return {'ply': self.directory} if self._count else {}
+
+
+class TrajectoryOutput:
+  """``trajectory.npz``: ``x`` (T+1, Ks, 3) float32 positions of the
+  simulated Gaussians in the input scene's coordinates (frame 0 = initial),
+  ``ids`` (Ks,) their rows in the input, ``t`` (T+1,) seconds and, when
+  given, ``particles`` (T+1, N, 3) the driving particles."""
+
+  def __init__(self, path: str, ids):
+    self.path = os.fspath(path)
+    self._ids = np.asarray(ids, np.int64)
+    self.positions: list[np.ndarray] = []
+    self.particles: list[np.ndarray] = []
+    self.times: list[float] = []
+
+  def write(self, frame: Frame) -> None:
+    self.positions.append(np.asarray(frame.positions, np.float32))
+    if frame.particles is not None:
+      self.particles.append(np.asarray(frame.particles, np.float32))
+    self.times.append(float(frame.time))
+
+  def close(self) -> dict[str, str]:
+    if not self.positions:
+      return {}
+    data = dict(x=np.stack(self.positions), ids=self._ids,
+                t=np.asarray(self.times, np.float64))
+    if self.particles:
+      data['particles'] = np.stack(self.particles)
+    tmp = _partial(self.path)
+    np.savez_compressed(tmp, **data)
+    os.replace(tmp, self.path)
+    return {'trajectory': self.path}
+
+
+def close_all(writers) -> dict[str, str]:
+  """Closes every writer (all of them, even if one fails); their files."""
+  files, error = {}, None
+  for w in writers:
+    try:
+      files.update(w.close())
+    except Exception as e:  # noqa: BLE001 - re-raised after the others close
+      error = error or e
+  if error is not None:
+    raise error
+  return files

@@ -1,0 +1,388 @@
+"""Pipeline settings: host-side preparation apart from the static jit key.
+
+Three frozen, hashable dataclasses:
+
+- :class:`PrepareConfig`: what :func:`~physsplat_jax.pipeline.prepare_scene`
+  reads on the host: grid, sampling, binding, time step, camera. Changing it
+  changes the prepared scene, never the compiled ``simulate`` by itself.
+- :class:`SimulateConfig`: the small static config of
+  :func:`~physsplat_jax.pipeline.simulate` (its jit key): frames, gravity,
+  contact, force kinds, rendering mode.
+- :class:`PipelineConfig`: both, flat, as scripts and config files write it;
+  ``.prepare`` and ``.simulate`` give the two parts. The random key is never
+  part of a config: ``prepare_scene(key, ...)`` takes it; ``seed`` here only
+  feeds the scripts' key.
+
+Modes are string enums (``Ground.SLIP == 'slip'``), so the strings of
+config files keep working.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from typing import Any
+
+from physsplat_jax.render import raster
+
+
+class PipelineError(ValueError):
+  """The scene or config cannot be simulated; the message names the fix."""
+
+
+class Ground(enum.StrEnum):
+  """Contact with the support plane."""
+
+  SLIP = 'slip'  # separating, with Coulomb friction
+  STICKY = 'sticky'
+  NONE = 'none'
+
+
+class Sampling(enum.StrEnum):
+  """How the driving particles are picked from the candidates."""
+
+  PGAS = 'pgas'
+  UNIFORM = 'uniform'
+  KMEANS = 'kmeans'
+
+
+class RenderMode(enum.StrEnum):
+  """What :func:`simulate` renders."""
+
+  FAST = 'fast'  # render-only rasterizer (no gradient through images)
+  DIFFERENTIABLE = 'differentiable'
+  NONE = 'none'
+
+
+class ForceKind(enum.StrEnum):
+  IMPULSE = 'impulse'  # a velocity change applied once, at ``start``
+  POINT = 'point'  # a constant acceleration inside a ball over a window
+
+
+def _enum(cls, value, owner: str, name: str):
+  try:
+    return cls(value)
+  except ValueError:
+    raise PipelineError(
+      f'{owner}.{name}={value!r} is invalid: use one of '
+      f'{[m.value for m in cls]}.') from None
+
+
+def _finite(value) -> bool:
+  try:
+    return math.isfinite(float(value))
+  except (TypeError, ValueError):
+    return False
+
+
+def _check(owner: str, obj, checks) -> None:
+  for ok, name, fix in checks:
+    if not ok:
+      value = getattr(obj, name.split('/')[0])
+      raise PipelineError(f'{owner}.{name}={value!r} is invalid: {fix}.')
+
+
+@dataclasses.dataclass(frozen=True)
+class ForceSpec:
+  """A force acting on the simulation (static description).
+
+  Attributes:
+    kind: :class:`ForceKind` ('impulse' or 'point', as PhysDreamer's poke).
+    object: name of the object it acts on ('' = every movable object).
+    vector: (3,) velocity change [m/s] for 'impulse', acceleration [m/s^2]
+      for 'point', in the scene's axes; the simulated value is
+      ``Params.forces`` (differentiable), initialised from this.
+    point: (3,) centre of the ball in scene coordinates (for 'point'); None
+      means the object's centre.
+    radius: ball radius [m] (for 'point').
+    start, end: time window [s].
+  """
+
+  kind: ForceKind = ForceKind.IMPULSE
+  object: str = ''
+  vector: tuple[float, float, float] = (0.0, 0.0, 0.0)
+  point: tuple[float, float, float] | None = None
+  radius: float = 0.05
+  start: float = 0.0
+  end: float = 0.0
+
+  def __post_init__(self):
+    object.__setattr__(self, 'kind',
+                       _enum(ForceKind, self.kind, 'ForceSpec', 'kind'))
+    vals = list(self.vector) + list(self.point or ()) + [
+      self.radius, self.start, self.end]
+    if not all(_finite(v) for v in vals):
+      raise PipelineError(
+        f'ForceSpec on {self.object or "every object"!r} has a non-finite '
+        f'value (vector={self.vector}, point={self.point}, radius='
+        f'{self.radius}, start={self.start}, end={self.end}); give finite '
+        'numbers.')
+    _check('ForceSpec', self, [
+      (self.radius > 0, 'radius', 'use > 0 m'),
+      (self.start >= 0, 'start', 'use >= 0 s'),
+      (self.kind is ForceKind.IMPULSE or self.end > self.start, 'end',
+       'a point force needs end > start [s]'),
+    ])
+
+  def window(self, frame_dt: float) -> tuple[float, float]:
+    """(start, end) [s]; an impulse acts over the frame after ``start``."""
+    if self.kind is ForceKind.IMPULSE:
+      return self.start, self.start + frame_dt
+    return self.start, self.end
+
+
+@dataclasses.dataclass(frozen=True)
+class PrepareConfig:
+  """Host-side settings of :func:`prepare_scene` (not a jit key).
+
+  Attributes:
+    fps: frames per second of the output [1/s] (the frame step).
+    substeps_per_frame: MPM substeps per frame; None picks them from the
+      CFL bound of the stiffest deformable material and the initial speeds.
+    cfl: Courant number used when choosing substeps.
+    max_substeps_per_frame: refuse automatic step counts above this (a run
+      that would never end); raise it to allow very stiff materials.
+    grid_res: MPM grid cells per axis.
+    margin: free space around the movable objects, as a fraction of their
+      size, on each side (the grid is a cube).
+    ground: :class:`Ground` (places the grid floor under the support).
+    sampling: :class:`Sampling` driving-particle method.
+    particles_per_cell: target driving particles per grid cell of the
+      stiffest material (sets PGAS's base radius).
+    max_particles: upper bound on the number of driving particles.
+    fill: fill object interiors with candidate particles.
+    bind_k: drivers per Gaussian for the deformation.
+    forces: :class:`ForceSpec` tuple (targets and ball centres resolved).
+    initial_velocity: ``((object_name, (vx, vy, vz)), ...)`` [m/s, scene
+      axes]; '' as a name means every movable object.
+    width, height: rendered frame size [pixels].
+    camera_index: which scene camera renders (-1: a fitted default).
+    background: RGB in [0, 1].
+  """
+
+  fps: float = 30.0
+  substeps_per_frame: int | None = None
+  cfl: float = 0.4
+  max_substeps_per_frame: int = 20_000
+  grid_res: int = 48
+  margin: float = 0.3
+  ground: Ground = Ground.SLIP
+  sampling: Sampling = Sampling.PGAS
+  particles_per_cell: float = 4.0
+  max_particles: int = 40_000
+  fill: bool = True
+  bind_k: int = 8
+  forces: tuple[ForceSpec, ...] = ()
+  initial_velocity: tuple[tuple[str, tuple[float, float, float]], ...] = ()
+  width: int = 512
+  height: int = 384
+  camera_index: int = 0
+  background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+  def __post_init__(self):
+    object.__setattr__(self, 'ground',
+                       _enum(Ground, self.ground, 'PrepareConfig', 'ground'))
+    object.__setattr__(self, 'sampling', _enum(
+      Sampling, self.sampling, 'PrepareConfig', 'sampling'))
+    _check('PrepareConfig', self, [
+      (_finite(self.fps) and self.fps > 0, 'fps', 'use a finite fps > 0'),
+      (self.substeps_per_frame is None or self.substeps_per_frame >= 1,
+       'substeps_per_frame', 'use >= 1 or None (automatic)'),
+      (_finite(self.cfl) and 0 < self.cfl <= 1, 'cfl',
+       'use a Courant number in (0, 1]'),
+      (self.max_substeps_per_frame >= 1, 'max_substeps_per_frame',
+       'use >= 1'),
+      (8 <= self.grid_res <= 512, 'grid_res', 'use 8..512'),
+      (_finite(self.margin) and self.margin >= 0, 'margin', 'use >= 0'),
+      (_finite(self.particles_per_cell) and self.particles_per_cell > 0,
+       'particles_per_cell', 'use > 0'),
+      (self.max_particles >= 8, 'max_particles', 'use >= 8'),
+      (self.bind_k >= 4, 'bind_k', 'use >= 4'),
+      (self.width >= 1 and self.height >= 1, 'width/height', 'use >= 1'),
+      (self.camera_index >= -1, 'camera_index',
+       'use -1 (fitted) or a camera index >= 0'),
+      (len(self.background) == 3 and all(
+        _finite(c) and 0 <= c <= 1 for c in self.background),
+       'background', 'use three numbers in [0, 1]'),
+    ])
+    for name, v in self.initial_velocity:
+      if len(v) != 3 or not all(_finite(c) for c in v):
+        raise PipelineError(
+          f'initial_velocity of {name or "every object"!r} is {v!r}: give '
+          'three finite numbers [m/s].')
+
+  @property
+  def frame_dt(self) -> float:
+    return 1.0 / self.fps
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulateConfig:
+  """Static settings of :func:`simulate` (hashable: its jit key).
+
+  Attributes:
+    num_frames: frames to simulate (the output has ``num_frames + 1``).
+    gravity: gravitational acceleration [m/s^2] along -up (0 disables).
+    ground: :class:`Ground` contact with the support plane.
+    friction: Coulomb friction coefficient of the support plane.
+    forces: :class:`ForceSpec` tuple (their vectors are ``Params.forces``).
+    use_driver_F: deform Gaussians with the drivers' interpolated F instead
+      of the local affine fit of their positions.
+    use_mpdp: per-point material fields from MPDP (else uniform means).
+    render: :class:`RenderMode`.
+    render_config: static rasterizer settings.
+    remat_frames: ``jax.checkpoint`` each frame (memory ~ frames).
+  """
+
+  num_frames: int = 60
+  gravity: float = 9.8
+  ground: Ground = Ground.SLIP
+  friction: float = 0.4
+  forces: tuple[ForceSpec, ...] = ()
+  use_driver_F: bool = False
+  use_mpdp: bool = True
+  render: RenderMode = RenderMode.FAST
+  render_config: raster.RenderConfig = raster.RenderConfig()
+  remat_frames: bool = True
+
+  def __post_init__(self):
+    object.__setattr__(self, 'ground',
+                       _enum(Ground, self.ground, 'SimulateConfig', 'ground'))
+    object.__setattr__(self, 'render', _enum(
+      RenderMode, self.render, 'SimulateConfig', 'render'))
+    _check('SimulateConfig', self, [
+      (self.num_frames >= 1, 'num_frames', 'use >= 1'),
+      (_finite(self.gravity), 'gravity', 'use a finite number [m/s^2]'),
+      (_finite(self.friction) and self.friction >= 0, 'friction',
+       'use a finite friction coefficient >= 0'),
+    ])
+
+
+_PREPARE_FIELDS = tuple(f.name for f in dataclasses.fields(PrepareConfig))
+_SIMULATE_FIELDS = tuple(f.name for f in dataclasses.fields(SimulateConfig))
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+  """All pipeline settings, flat (scripts and config files write this).
+
+  Every field of :class:`PrepareConfig` and :class:`SimulateConfig` (see
+  there), plus ``seed`` (the scripts' PRNG seed for filling and sampling).
+  ``.prepare`` and ``.simulate`` give the two parts: ``simulate`` compiles
+  once per ``.simulate``, so changing the seed, the grid margin or the
+  camera does not recompile it.
+  """
+
+  num_frames: int = 60
+  fps: float = 30.0
+  substeps_per_frame: int | None = None
+  cfl: float = 0.4
+  max_substeps_per_frame: int = 20_000
+  grid_res: int = 48
+  margin: float = 0.3
+  gravity: float = 9.8
+  ground: Ground = Ground.SLIP
+  friction: float = 0.4
+  sampling: Sampling = Sampling.PGAS
+  particles_per_cell: float = 4.0
+  max_particles: int = 40_000
+  fill: bool = True
+  bind_k: int = 8
+  use_driver_F: bool = False
+  use_mpdp: bool = True
+  forces: tuple[ForceSpec, ...] = ()
+  initial_velocity: tuple[tuple[str, tuple[float, float, float]], ...] = ()
+  width: int = 512
+  height: int = 384
+  camera_index: int = 0
+  background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+  render: RenderMode = RenderMode.FAST
+  render_config: raster.RenderConfig = raster.RenderConfig()
+  remat_frames: bool = True
+  seed: int = 0
+
+  def __post_init__(self):
+    # Validates (and normalises enums) through the two parts.
+    p, s = self.prepare, self.simulate
+    object.__setattr__(self, 'ground', p.ground)
+    object.__setattr__(self, 'sampling', p.sampling)
+    object.__setattr__(self, 'render', s.render)
+
+  @property
+  def prepare(self) -> PrepareConfig:
+    return PrepareConfig(**{k: getattr(self, k) for k in _PREPARE_FIELDS})
+
+  @property
+  def simulate(self) -> SimulateConfig:
+    return SimulateConfig(**{k: getattr(self, k) for k in _SIMULATE_FIELDS})
+
+  @property
+  def frame_dt(self) -> float:
+    return 1.0 / self.fps
+
+
+def as_simulate_config(config: SimulateConfig | PipelineConfig
+                       ) -> SimulateConfig:
+  """The static simulate config of either config kind."""
+  if isinstance(config, SimulateConfig):
+    return config
+  if isinstance(config, PipelineConfig):
+    return config.simulate
+  raise PipelineError(
+    f'config is a {type(config).__name__}; give a SimulateConfig or a '
+    'PipelineConfig.')
+
+
+def as_prepare_config(config: PrepareConfig | PipelineConfig
+                      ) -> PrepareConfig:
+  """The host-side preparation config of either config kind."""
+  if isinstance(config, PrepareConfig):
+    return config
+  if isinstance(config, PipelineConfig):
+    return config.prepare
+  raise PipelineError(
+    f'config is a {type(config).__name__}; give a PrepareConfig or a '
+    'PipelineConfig.')
+
+
+def _force_from_dict(i: int, f: Any) -> ForceSpec:
+  if isinstance(f, ForceSpec):
+    return f
+  f = dict(f)
+  bad = sorted(set(f) - {x.name for x in dataclasses.fields(ForceSpec)})
+  if bad:
+    raise PipelineError(f'forces[{i}] has unknown fields {bad}; valid: '
+                        f'{[x.name for x in dataclasses.fields(ForceSpec)]}')
+  for k in ('vector', 'point'):
+    if f.get(k) is not None:
+      f[k] = tuple(float(v) for v in f[k])
+  return ForceSpec(**f)
+
+
+def config_from_dict(d) -> PipelineConfig:
+  """A :class:`PipelineConfig` from a dict / ConfigDict (lists -> tuples).
+
+  ``forces`` is a list of dicts with :class:`ForceSpec` fields;
+  ``initial_velocity`` a list of ``(name, (vx, vy, vz))`` pairs or a dict
+  name -> velocity. Unknown keys raise :class:`PipelineError`.
+  """
+  d = dict(d.to_dict() if hasattr(d, 'to_dict') else d)
+  fields = {f.name for f in dataclasses.fields(PipelineConfig)}
+  unknown = sorted(set(d) - fields)
+  if unknown:
+    raise PipelineError(f'unknown pipeline config fields {unknown}; valid: '
+                        f'{sorted(fields)}')
+  if 'forces' in d:
+    d['forces'] = tuple(_force_from_dict(i, f)
+                        for i, f in enumerate(d['forces'] or ()))
+  if 'initial_velocity' in d:
+    iv = d['initial_velocity'] or ()
+    items = iv.items() if isinstance(iv, dict) else iv
+    d['initial_velocity'] = tuple(
+      (str(n), tuple(float(c) for c in v)) for n, v in items)
+  if 'background' in d:
+    d['background'] = tuple(float(v) for v in d['background'])
+  if isinstance(d.get('render_config'), dict):
+    d['render_config'] = raster.RenderConfig(**d['render_config'])
+  return PipelineConfig(**d)

@@ -1,0 +1,227 @@
+"""The host loop: simulate frame by frame and hand each frame to writers.
+
+One jitted MPM frame per call (``mpm.run``: per-frame stability checks
+that stop with the frame and the fix), then the Gaussians are deformed and
+rendered (re-sizing the rasterizer's capacity on overflow, never dropping
+Gaussians) and every frame goes to each writer
+(:mod:`physsplat_jax.io.outputs`). It logs one progress line per frame and
+times each stage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from typing import Callable, Sequence
+
+import jax
+import numpy as np
+from absl import logging
+
+from physsplat_jax import mpm
+from physsplat_jax.io import outputs as out_lib
+from physsplat_jax.pipeline.config import PipelineConfig
+from physsplat_jax.pipeline.config import RenderMode
+from physsplat_jax.pipeline.config import SimulateConfig
+from physsplat_jax.pipeline.config import as_simulate_config
+from physsplat_jax.pipeline.prepare import Params
+from physsplat_jax.pipeline.prepare import PreparedScene
+from physsplat_jax.pipeline.simulate import assemble_scene
+from physsplat_jax.pipeline.simulate import deformed_gaussians
+from physsplat_jax.pipeline.simulate import initial_state
+from physsplat_jax.pipeline.simulate import make_sim_config
+from physsplat_jax.render import raster
+from physsplat_jax.types import Array
+
+
+@dataclasses.dataclass
+class RunOutput:
+  """Result of :func:`run` (NumPy, scene coordinates).
+
+  Attributes:
+    gaussian_positions: (T+1, Ks, 3) float32 centres of the simulated
+      Gaussians.
+    sim_rows: (Ks,) their row numbers in ``scene.gaussians``.
+    particle_positions: (T+1, N, 3) float32 driving particles.
+    times: (T+1,) [s].
+    files: what was written ('video', 'frames', 'ply', ...) -> path.
+    timings: seconds per stage ('compile', 'simulate', 'deform', 'render',
+      'write', 'total').
+    particle_substeps_per_s: MPM throughput over the run.
+  """
+
+  gaussian_positions: np.ndarray
+  sim_rows: np.ndarray
+  particle_positions: np.ndarray
+  times: np.ndarray
+  files: dict
+  timings: dict
+  particle_substeps_per_s: float
+
+
+def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
+                    video: bool = True, png: bool = True, ply: bool = False,
+                    render: bool = True) -> list[out_lib.FrameWriter]:
+  """The standard outputs of a run in ``out_dir``."""
+  out_lib.check_output_dir(out_dir)
+  writers = []
+  if video and render:
+    writers.append(out_lib.VideoOutput(os.path.join(out_dir, 'video.mp4'),
+                                       fps))
+  if png and render:
+    writers.append(out_lib.PngOutput(os.path.join(out_dir, 'frames')))
+  if ply:
+    writers.append(out_lib.PlyOutput(os.path.join(out_dir, 'ply'),
+                                     prepared.gaussians))
+  writers.append(out_lib.TrajectoryOutput(
+    os.path.join(out_dir, 'trajectory.npz'), np.asarray(prepared.sim_rows)))
+  return writers
+
+
+class _FrameMaker:
+  """Deforms and renders one frame on the host (compiled once)."""
+
+  def __init__(self, prepared: PreparedScene, config: SimulateConfig,
+               need_all: bool, timings: dict):
+    self.prepared = prepared
+    self.config = config
+    self.render = config.render is not RenderMode.NONE
+    self.need_all = need_all or self.render
+    self.rcfg = config.render_config
+    self.timings = timings
+    self.deform = jax.jit(deformed_gaussians, static_argnames='config')
+    self.assemble = jax.jit(assemble_scene)
+    self.to_scene = jax.jit(lambda fr, x: fr.to_scene(x))
+
+  def __call__(self, f: int, t: float, state) -> out_lib.Frame:
+    t1 = time.perf_counter()
+    means, covs, rots = self.deform(self.prepared, self.config, state.x,
+                                    state.F)
+    means.block_until_ready()
+    self.timings['deform'] += time.perf_counter() - t1
+    frame = out_lib.Frame(
+      index=f, time=t, positions=np.asarray(means, np.float32),
+      particles=np.asarray(self.to_scene(self.prepared.frame, state.x)))
+    if self.need_all:
+      frame.gaussians, frame.covariances, frame.rotations = self.assemble(
+        self.prepared, means, covs, rots)
+    if self.render:
+      t2 = time.perf_counter()
+      frame.image = self._render(frame)
+      self.timings['render'] += time.perf_counter() - t2
+    return frame
+
+  def _render(self, frame: out_lib.Frame) -> np.ndarray:
+    g = frame.gaussians
+    out = raster.render_image(
+      g, self.prepared.camera, background=self.prepared.background,
+      covariances=frame.covariances, view_rotations=frame.rotations,
+      config=self.rcfg)
+    if out.num_intersections > self.rcfg.resolved_capacity(g.num):
+      self.rcfg = dataclasses.replace(
+        self.rcfg, capacity=raster._next_capacity(  # noqa: SLF001
+          int(out.num_intersections)))
+    return np.clip(out.image, 0.0, 1.0)
+
+
+def run(
+  params: Params,
+  prepared: PreparedScene,
+  config: SimulateConfig | PipelineConfig,
+  *,
+  out_dir: str | None = None,
+  video: bool = True,
+  png: bool = True,
+  ply: bool = False,
+  writers: Sequence[out_lib.FrameWriter] | None = None,
+  field: Array | None = None,
+  on_frame: Callable | None = None,
+  fps: float | None = None,
+) -> RunOutput:
+  """Host loop: simulate frame by frame, streaming frames to writers.
+
+  Args:
+    params: :class:`Params`.
+    prepared: from :func:`prepare_scene`.
+    config: the :class:`SimulateConfig` (or :class:`PipelineConfig`).
+    out_dir: folder for the default writers (``video.mp4``, ``frames/``,
+      ``trajectory.npz``, optional ``ply/``); None writes nothing.
+    video, png, ply: which default outputs to write.
+    writers: writers to use instead of (``out_dir`` None) or beside the
+      defaults (:mod:`physsplat_jax.io.outputs`).
+    field: optional (N, 3) material field (e.g. ``prepared.field``, the
+      field evaluated at preparation) instead of evaluating MPDP again.
+    on_frame: optional ``callback(frame, means, image)`` (scene
+      coordinates; image None when nothing is rendered).
+    fps: video frame rate; default the prepared scene's frame rate.
+
+  Returns:
+    :class:`RunOutput`.
+
+  Raises:
+    physsplat_jax.mpm.SimulationError: the simulation blew up (names the
+      frame and the fix); every writer is closed first, so what was
+      written so far is complete.
+  """
+  config = as_simulate_config(config)
+  t_start = time.perf_counter()
+  timings = dict(compile=0.0, simulate=0.0, deform=0.0, render=0.0,
+                 write=0.0)
+  fps = fps or 1.0 / prepared.spec.frame_dt
+  writers = list(writers or ())
+  if out_dir is not None:
+    writers = default_writers(
+      prepared, out_dir, fps, video=video, png=png, ply=ply,
+      render=config.render is not RenderMode.NONE) + writers
+  t0 = time.perf_counter()
+  sim_config = make_sim_config(prepared.spec, config, prepared.x0.dtype)
+  state, materials, forces = jax.jit(
+    lambda p, pr, fd: initial_state(p, pr, config, fd)[:3])(
+      params, prepared, field)
+  timings['compile'] += time.perf_counter() - t0
+  maker = _FrameMaker(prepared, config, ply, timings)
+  positions, particles = [], []
+  num = config.num_frames
+
+  def frame_cb(f, st):
+    t1 = time.perf_counter()
+    frame = maker(f, f * prepared.spec.frame_dt, st)
+    t3 = time.perf_counter()
+    for w in writers:
+      w.write(frame)
+    timings['write'] += time.perf_counter() - t3
+    positions.append(frame.positions)
+    particles.append(frame.particles)
+    if on_frame is not None:
+      on_frame(f, frame.positions, frame.image)
+    if f > 0:
+      logging.info('frame %d/%d: deform+render+write %.2f s', f, num,
+                   time.perf_counter() - t1)
+
+  try:
+    res = mpm.run(state, materials, forces, sim_config, num,
+                  on_frame=frame_cb, keep_positions=False)
+  finally:
+    files = out_lib.close_all(writers)
+  timings['compile'] += res.compile_s
+  timings['simulate'] = res.run_s
+  timings['total'] = time.perf_counter() - t_start
+  return RunOutput(
+    gaussian_positions=np.stack(positions),
+    sim_rows=np.asarray(prepared.sim_rows),
+    particle_positions=np.stack(particles), times=res.times, files=files,
+    timings=timings, particle_substeps_per_s=res.substeps_per_s)
+
+
+def save_trajectory(path: str, out: RunOutput) -> None:
+  """Writes a :class:`RunOutput` as ``trajectory.npz`` (see
+  :class:`~physsplat_jax.io.outputs.TrajectoryOutput`)."""
+  w = out_lib.TrajectoryOutput(path, out.sim_rows)
+  for i, t in enumerate(out.times):
+    w.write(out_lib.Frame(index=i, time=float(t),
+                          positions=out.gaussian_positions[i],
+                          particles=out.particle_positions[i]))
+  w.close()
+
+

@@ -1,0 +1,180 @@
+"""The whole job on one scene: segment, perceive, prepare, simulate, write.
+
+:func:`simulate_scene` is what ``make demo`` and ``experiments/simulate.py``
+run. It checks the output folder before any expensive work and always
+writes ``report.json`` (atomically), also when the run fails: the failure
+is in the report and the files written so far are complete.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from typing import Any, Sequence
+
+import jax
+from absl import logging
+
+from physsplat_jax import perception
+from physsplat_jax import segmentation
+from physsplat_jax.io import outputs as out_lib
+from physsplat_jax.pipeline.config import PipelineConfig
+from physsplat_jax.pipeline.config import PipelineError
+from physsplat_jax.pipeline.host import RunOutput
+from physsplat_jax.pipeline.host import run
+from physsplat_jax.pipeline.prepare import init_params
+from physsplat_jax.pipeline.prepare import prepare_scene
+from physsplat_jax.types import Scene
+
+
+def select_objects(scene: Scene, names: Sequence[str]) -> Scene:
+  """Marks every object not in ``names`` as fixed (only these move)."""
+  known = [o.name for o in scene.objects]
+  missing = [n for n in names if n not in known]
+  if missing:
+    raise PipelineError(f'objects {missing} are not in scene {scene.name!r}; '
+                        f'objects: {known}')
+  objs = tuple(dataclasses.replace(o, fixed=o.fixed or o.name not in names)
+               for o in scene.objects)
+  return scene.replace(objects=objs)
+
+
+def segment_stage(scene: Scene, method: str | None) -> Scene:
+  """Segments ``scene`` into objects with ``method`` (None: keep its own).
+
+  Scenes that come segmented (built-ins, PLYs with an object-id property)
+  keep their objects; a method ('auto', 'geometric', ...; see
+  :mod:`physsplat_jax.segmentation`) replaces them.
+  """
+  if method is None:
+    return scene
+  seg = segmentation.segment(scene.gaussians, method, up=scene.up_vector)
+  segmented = seg.to_scene(scene.gaussians, cameras=scene.cameras,
+                           up_axis=scene.up_axis,
+                           meters_per_unit=scene.meters_per_unit,
+                           name=scene.name)
+  logging.info('segmented %r with %r: %d objects (%s)', scene.name, method,
+               len(segmented.objects),
+               ', '.join(o.name for o in segmented.objects))
+  return segmented
+
+
+def simulate_scene(
+  scene: Scene,
+  config: PipelineConfig,
+  out_dir: str | None = None,
+  *,
+  materials: Sequence[Any] | None = None,
+  perception_options: Any = None,
+  segment: str | None = None,
+  ply: bool = False,
+  extra_report: dict | None = None,
+) -> tuple[RunOutput, dict]:
+  """The whole job on one scene.
+
+  Args:
+    scene: the scene (``physsplat_jax.load_scene``).
+    config: pipeline settings (``config.seed`` makes the PRNG key).
+    out_dir: where ``video.mp4``, ``frames/``, ``trajectory.npz``,
+      ``report.json`` (and ``ply/``) go; None writes nothing.
+    materials: one material per object; None runs perception
+      (``physsplat_jax.perception.perceive_scene`` with
+      ``perception_options``; offline library by default).
+    perception_options: ``perception.PerceptionOptions``.
+    segment: segmentation method for an unsegmented scene (None keeps the
+      scene's objects).
+    ply: also write per-frame PLY files.
+    extra_report: merged into ``report.json`` (e.g. the command line).
+
+  Returns:
+    (:class:`RunOutput`, the report dict).
+
+  Raises:
+    The stage's own error (PipelineError, SimulationError, OutputError, ...)
+    after ``report.json`` records it.
+  """
+  if out_dir is not None:
+    out_lib.check_output_dir(out_dir)
+  stages: dict[str, float] = {}
+  report: dict[str, Any] = dict(
+    scene=scene.name, num_frames=config.num_frames, fps=config.fps,
+    devices=[str(d) for d in jax.devices()], jax_version=jax.__version__,
+    config=dataclasses.asdict(config), **(extra_report or {}))
+  t0 = time.perf_counter()
+  try:
+    out = _run_stages(scene, config, out_dir, materials, perception_options,
+                      segment, ply, stages, report)
+  except Exception as e:
+    report['error'] = f'{type(e).__name__}: {e}'
+    stages['total'] = time.perf_counter() - t0
+    report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
+    _write_report(out_dir, report)
+    raise
+  stages['total'] = time.perf_counter() - t0
+  report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
+  report['files'] = dict(out.files)
+  path = _write_report(out_dir, report)
+  if path:
+    out.files['report'] = path
+    report['files'] = dict(out.files)
+  return out, report
+
+
+def _run_stages(scene, config, out_dir, materials, perception_options,
+                segment, ply, stages, report) -> RunOutput:
+  t = time.perf_counter()
+  scene = segment_stage(scene, segment)
+  stages['segmentation'], t = time.perf_counter() - t, time.perf_counter()
+  if materials is None:
+    materials = perception.perceive_scene(scene, perception_options)
+  stages['perception'], t = time.perf_counter() - t, time.perf_counter()
+  key = jax.random.PRNGKey(config.seed)
+  prepared, prep = prepare_scene(key, scene, materials, config)
+  params = init_params(prepared, config)
+  stages['prepare'] = time.perf_counter() - t
+  stages.update({f'prepare.{k[:-2]}': v for k, v in prep.timings.items()})
+  objects = []
+  for o, m in zip(prep.objects, materials):
+    d = m.to_dict() if hasattr(m, 'to_dict') else dataclasses.asdict(m)
+    objects.append({**o, 'material': d})
+  report.update(
+    objects=objects, colliders=prep.colliders,
+    num_gaussians=prep.num_gaussians,
+    num_simulated_gaussians=prep.num_simulated_gaussians,
+    num_candidates=prep.num_candidates, num_particles=prep.num_particles,
+    grid=prep.grid, time_step=prep.time_step)
+  field = prepared.field if config.use_mpdp else None
+  out = run(params, prepared, config, out_dir=out_dir, ply=ply, field=field)
+  stages.update(out.timings)
+  stages.pop('total', None)
+  report['particle_substeps_per_s'] = out.particle_substeps_per_s
+  return out
+
+
+def _write_report(out_dir, report) -> str | None:
+  if out_dir is None:
+    return None
+  return out_lib.write_json(os.path.join(out_dir, 'report.json'), report)
+
+
+def summary(report: dict) -> str:
+  """A short human summary of a :func:`simulate_scene` report."""
+  st = report['stage_seconds']
+  total = max(st.get('total', 0.0), 1e-9)
+  main = ['segmentation', 'perception', 'prepare', 'compile', 'simulate',
+          'deform', 'render', 'write']
+  parts = ', '.join(
+    f'{k} {st.get(k, 0.0):.1f} s ({100 * st.get(k, 0.0) / total:.0f}%)'
+    for k in main if st.get(k, 0.0) >= 0.05 or k in ('simulate', 'render'))
+  lines = [
+    f'{report["scene"]}: {report["num_frames"]} frames, '
+    f'{report["num_particles"]} particles driving '
+    f'{report["num_simulated_gaussians"]} of {report["num_gaussians"]} '
+    f'Gaussians, {report["time_step"]["substeps_per_frame"]} substeps/frame, '
+    f'{report["particle_substeps_per_s"] / 1e6:.2f} M particle-substeps/s',
+    f'time {total:.1f} s: {parts}',
+  ]
+  for f, p in sorted(report.get('files', {}).items()):
+    lines.append(f'  {f}: {p}')
+  return '\n'.join(lines)

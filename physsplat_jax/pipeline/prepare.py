@@ -1,0 +1,594 @@
+"""Host-side preparation: a scene and its materials -> a :class:`PreparedScene`.
+
+``prepare_scene(key, scene, materials, config)`` is a composition of named
+stages, each a short function of the previous stages' results:
+
+  check      inputs finite and consistent, before any expensive work
+  frame      scene -> simulation frame; grid side and corner; colliders
+  candidates surface Gaussians + interior fill (``sampling``)
+  drivers    driving particles (PGAS / uniform / k-means)
+  binding    every simulated Gaussian -> its k nearest drivers (``deform``)
+  mpdp       per-object driver gathers; the MPDP field, evaluated once
+  time step  substeps per frame from the stiffest point and initial speeds
+  forces     force targets and ball centres in the simulation frame
+
+Nothing here is traced or differentiated; ``simulate`` is the pure part.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import logging
+from flax import struct
+
+from physsplat_jax import deform as deform_lib
+from physsplat_jax import mpdp
+from physsplat_jax import sampling
+from physsplat_jax.mpm import timestep
+from physsplat_jax.pipeline import frames as frames_lib
+from physsplat_jax.pipeline.colliders import Colliders
+from physsplat_jax.pipeline.colliders import find_colliders
+from physsplat_jax.pipeline.config import Ground
+from physsplat_jax.pipeline.config import PipelineConfig
+from physsplat_jax.pipeline.config import PipelineError
+from physsplat_jax.pipeline.config import PrepareConfig
+from physsplat_jax.pipeline.config import Sampling
+from physsplat_jax.pipeline.config import as_prepare_config
+from physsplat_jax.pipeline.frames import SimFrame
+from physsplat_jax.types import Array
+from physsplat_jax.types import Camera
+from physsplat_jax.types import Gaussians
+from physsplat_jax.types import Scene
+
+
+class Params(struct.PyTreeNode):
+  """Differentiable inputs of ``simulate`` (all leaves are arrays).
+
+  Attributes:
+    mpdp: MPDP network params (``physsplat_jax.mpdp``), or None for uniform
+      per-object materials.
+    log_scale: (O, 3) per-object log-multipliers of the mean (E, nu, rho);
+      zeros keep the perceived means.
+    velocity: (O, 3) initial velocity per movable object [m/s, scene axes].
+    forces: (F, 3) force vectors of ``config.forces`` (scene axes).
+  """
+
+  mpdp: Any
+  log_scale: Array
+  velocity: Array
+  forces: Array
+
+
+@dataclasses.dataclass(frozen=True)
+class SimSpec:
+  """Static facts of a prepared scene (hashable; part of the jit key).
+
+  Attributes:
+    object_names: names of the movable objects (index = movable index).
+    scene_objects: their indices in ``scene.objects``.
+    models: constitutive model per movable object.
+    rigid: rigid flag per movable object.
+    object_params: per object, sorted ((name, value), ...) extra material
+      parameters.
+    object_ranges: per object, (start, count) of its drivers (contiguous).
+    grid_lower: (3,) grid corner [m].
+    grid_size: grid side [m].
+    grid_res: cells per axis.
+    substeps_per_frame: MPM substeps per frame.
+    dt: substep [s].
+    colliders: :class:`Colliders`.
+    force_objects: per force, the movable-object index it acts on (-1 all).
+    force_points: per force, the ball centre [m, simulation frame].
+  """
+
+  object_names: tuple[str, ...]
+  scene_objects: tuple[int, ...]
+  models: tuple[str, ...]
+  rigid: tuple[bool, ...]
+  object_params: tuple[tuple[tuple[str, float], ...], ...]
+  object_ranges: tuple[tuple[int, int], ...]
+  grid_lower: tuple[float, float, float]
+  grid_size: float
+  grid_res: int
+  substeps_per_frame: int
+  dt: float
+  colliders: Colliders
+  force_objects: tuple[int, ...]
+  force_points: tuple[tuple[float, float, float], ...]
+
+  @property
+  def dx(self) -> float:
+    return self.grid_size / self.grid_res
+
+  @property
+  def frame_dt(self) -> float:
+    return self.dt * self.substeps_per_frame
+
+
+class PreparedScene(struct.PyTreeNode):
+  """Everything ``simulate`` needs that is not differentiated.
+
+  Array fields are in the simulation frame (metres, +z up) unless noted.
+
+  Attributes:
+    gaussians: all Gaussians of the scene (scene coordinates).
+    sim_rows: (Ks,) int32 rows of the simulated Gaussians in ``gaussians``.
+    rest_means: (Ks, 3) simulated Gaussians' centres [m].
+    rest_covs: (Ks, 3, 3) their covariances [m^2].
+    binding: Gaussian -> driver binding (simulation frame).
+    x0: (N, 3) driver rest positions [m].
+    volume: (N,) driver volumes [m^3].
+    driver_object: (N,) int32 movable-object index (0..O-1) per driver.
+    body_id: (N,) int32 rigid-body index or -1.
+    mpdp_index: (O, Nmax) int32 driver rows per object (padded with 0).
+    mpdp_mask: (O, Nmax) bool.
+    mpdp_means: (O, MEANS_DIM) MPDP condition vectors.
+    field: (N, 3) the MPDP field (E, nu, rho multipliers) evaluated once
+      at preparation with the params it was given (ones without MPDP);
+      pass it as ``simulate(..., field=prepared.field)`` to reuse it.
+    means: (O, 3) perceived mean (E [Pa], nu, rho [kg/m^3]).
+    frame: scene -> simulation map.
+    camera: the rendering camera (scene coordinates).
+    background: (3,) RGB.
+    spec: static :class:`SimSpec` (grid, dt, models, colliders, ...).
+  """
+
+  gaussians: Gaussians
+  sim_rows: Array
+  rest_means: Array
+  rest_covs: Array
+  binding: deform_lib.Binding
+  x0: Array
+  volume: Array
+  driver_object: Array
+  body_id: Array
+  mpdp_index: Array
+  mpdp_mask: Array
+  mpdp_means: Array
+  field: Array
+  means: Array
+  frame: SimFrame
+  camera: Camera
+  background: Array
+  spec: SimSpec = struct.field(pytree_node=False)
+
+  @property
+  def num_particles(self) -> int:
+    return self.x0.shape[0]
+
+  @property
+  def num_objects(self) -> int:
+    return self.means.shape[0]
+
+
+@dataclasses.dataclass
+class PrepareReport:
+  """What :func:`prepare_scene` decided, for logs and ``report.json``."""
+
+  objects: list[dict]
+  colliders: list[str]
+  num_gaussians: int
+  num_simulated_gaussians: int
+  num_candidates: int
+  num_particles: int
+  grid: dict
+  time_step: dict
+  timings: dict
+
+
+# ------------------------------------------------------------------ stages
+
+
+def check_inputs(scene: Scene, materials: Sequence[Any]
+                 ) -> tuple[list[int], list[int]]:
+  """(movable, fixed) object indices; raises on anything unusable."""
+  names = [o.name for o in scene.objects]
+  if len(materials) != len(scene.objects):
+    raise PipelineError(
+      f'{len(materials)} materials for {len(scene.objects)} objects of scene '
+      f'{scene.name!r}; give one material per object (in scene.objects '
+      'order).')
+  if scene.gaussians.num == 0:
+    raise PipelineError(f'scene {scene.name!r} has no Gaussians; load a '
+                        'scene with at least one.')
+  ids = np.asarray(scene.object_ids)
+  movable, fixed = [], []
+  for o, info in enumerate(scene.objects):
+    if np.any(ids == o):
+      (fixed if info.fixed else movable).append(o)
+  if not movable:
+    raise PipelineError(
+      f'scene {scene.name!r} has no movable object (all are fixed or '
+      'empty); clear ObjectInfo.fixed on the objects that should move.')
+  means = np.asarray(scene.gaussians.means)
+  bad = ~np.all(np.isfinite(means), axis=1)
+  if bad.any():
+    raise PipelineError(
+      f'scene {scene.name!r}: {int(bad.sum())} Gaussians have non-finite '
+      'positions; remove them from the scene file first.')
+  for o in movable:
+    _check_material(names[o], materials[o])
+    ext = np.ptp(means[ids == o], axis=0)
+    if float(np.max(ext)) <= 0:
+      raise PipelineError(
+        f'object {names[o]!r} has zero extent (all of its '
+        f'{int(np.sum(ids == o))} Gaussians at one point); a simulated '
+        'object needs a volume: mark it fixed or use a real scene.')
+  return movable, fixed
+
+
+def _check_material(name: str, m) -> None:
+  bad = []
+  if not (np.isfinite(m.E) and m.E > 0):
+    bad.append(f'E={m.E!r} (use > 0 Pa)')
+  if not (np.isfinite(m.nu) and 0 <= m.nu < 0.5):
+    bad.append(f'nu={m.nu!r} (use 0 <= nu < 0.5)')
+  if not (np.isfinite(m.rho) and m.rho > 0):
+    bad.append(f'rho={m.rho!r} (use > 0 kg/m^3)')
+  if bad:
+    raise PipelineError(f'object {name!r}: bad material ' + ', '.join(bad))
+
+
+@dataclasses.dataclass
+class _Frame:
+  """Output of the frame stage."""
+
+  frame: SimFrame
+  L: float
+  dx: float
+  colliders: Colliders
+  rows: np.ndarray  # scene rows of the movable Gaussians
+  local_ids: np.ndarray  # their movable-object index
+  g_sim: Gaussians  # movable Gaussians in the simulation frame
+
+
+def _quantise(v) -> tuple[float, ...]:
+  return tuple(round(float(c), 7) for c in v)
+
+
+def sim_frame_stage(scene: Scene, movable, fixed,
+                    cfg: PrepareConfig) -> _Frame:
+  """Simulation frame, grid (side, corner) and colliders."""
+  ids = np.asarray(scene.object_ids)
+  names = [o.name for o in scene.objects]
+  R = frames_lib.up_rotation(scene.up_vector)
+  s = float(scene.meters_per_unit)
+  x_rs = s * np.asarray(scene.gaussians.means, np.float64) @ R.T
+  mov_mask = np.isin(ids, movable)
+  lo, hi = x_rs[mov_mask].min(0), x_rs[mov_mask].max(0)
+  ext = hi - lo
+  L = float(np.max(ext)) * (1 + 2 * cfg.margin)
+  for _ in range(2):  # vertical room: 4 cells below, 4 above the objects
+    L = max(L, float(ext[2]) + 8 * L / cfg.grid_res)
+  # Static values are quantised (grid side to 6 significant digits,
+  # positions to 0.1 um) so equal geometry gives an equal SimSpec, i.e. one
+  # compilation, whatever the rounding of the input coordinates.
+  L = float(f'{L:.6g}')
+  dx = L / cfg.grid_res
+  colliders = find_colliders(x_rs, ids, movable, fixed, names, tol=dx)
+  ground = colliders.ground_z
+  # With a ground the grid floor sits 4 cells under it (3 boundary cells);
+  # without one the objects may fall, so the grid is centred on them.
+  if cfg.ground is Ground.NONE:
+    z0 = 0.5 * (lo[2] + hi[2]) - L / 2
+  else:
+    z0 = min(lo[2], ground) - 4 * dx
+  lower = np.array([0.5 * (lo[0] + hi[0]) - L / 2,
+                    0.5 * (lo[1] + hi[1]) - L / 2, z0])
+  shift = -lower
+  # With ground='none' the plane is unused: keep it out of the static spec
+  # so scenes that differ only in their lowest point compile once.
+  colliders = dataclasses.replace(
+    colliders, ground_z=(None if cfg.ground is Ground.NONE
+                         else round(float(ground + shift[2]), 7)),
+    anchors=tuple((_quantise(np.add(a, shift)), _quantise(np.add(b, shift)))
+                  for a, b in colliders.anchors))
+  frame = SimFrame(rotation=jnp.asarray(R, jnp.float32),
+                   scale=jnp.asarray(s, jnp.float32),
+                   shift=jnp.asarray(shift, jnp.float32))
+  rows = np.nonzero(mov_mask)[0]
+  local = {o: i for i, o in enumerate(movable)}
+  local_ids = np.array([local[o] for o in ids[rows]], np.int32)
+  g_sim = frames_lib.transform_gaussians(scene.gaussians.subset(rows), frame)
+  return _Frame(frame, L, dx, colliders, rows, local_ids, g_sim)
+
+
+def candidates_stage(key, fr: _Frame, num_movable: int, cfg: PrepareConfig):
+  """Candidate particles: surface Gaussians plus interior fill."""
+  means = np.asarray(fr.g_sim.means)
+  obj_ext = max(float(np.max(np.ptp(means[fr.local_ids == i], axis=0)))
+                for i in range(num_movable))
+  fill_res = int(np.clip(math.ceil(obj_ext / (0.5 * fr.dx)), 16, 128))
+  return sampling.make_candidates(
+    key, fr.g_sim, fr.local_ids, fill=cfg.fill,
+    fill_config=sampling.FillConfig(grid_res=fill_res))
+
+
+def drivers_stage(key, cand, mats, names, dx: float, cfg: PrepareConfig):
+  """Driving particles sorted by object: (x0, volume, object, counts)."""
+  if cfg.sampling is Sampling.KMEANS:
+    drv = sampling.select_drivers(key, cand, 'kmeans',
+                                  budget=min(cfg.max_particles, len(cand.x)))
+  else:
+    base_r = dx * (1.24 / cfg.particles_per_cell) ** (1.0 / 3.0)
+    E_obj = {i: (1e12 if m.rigid else float(m.E)) for i, m in enumerate(mats)}
+    drv = sampling.select_drivers(
+      key, cand, cfg.sampling.value, E=E_obj,
+      config=sampling.PGASConfig(base_radius=base_r),
+      budget=cfg.max_particles)
+  order = np.argsort(drv.object_ids, kind='stable')
+  dobj = drv.object_ids[order].astype(np.int32)
+  counts = np.bincount(dobj, minlength=len(mats))
+  need = max(cfg.bind_k, 8)
+  for i, name in enumerate(names):
+    if counts[i] < need:
+      raise PipelineError(
+        f'object {name!r} got only {counts[i]} driving particles (need '
+        f'>= {need}): it is small for the grid (dx = {dx:.4f} m); raise '
+        'grid_res, particles_per_cell or max_particles.')
+  return drv.x[order], drv.volume[order], dobj, counts
+
+
+def mpdp_stage(x0, dobj, counts, mats, use_mpdp: bool, mpdp_params):
+  """Per-object gathers, condition vectors and the MPDP field (N, 3)."""
+  starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+  nmax = int(counts.max())
+  index = np.zeros((len(mats), nmax), np.int32)
+  mask = np.zeros((len(mats), nmax), bool)
+  for i in range(len(mats)):
+    index[i, :counts[i]] = starts[i] + np.arange(counts[i])
+    mask[i, :counts[i]] = True
+  means = np.stack([
+    np.asarray(mpdp.encode_means(m.E, m.nu, m.rho, m.model, m.rigid))
+    for m in mats])
+  field = np.ones((len(x0), 3), np.float32)
+  if use_mpdp:
+    params = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
+    per_obj = np.asarray(_predict_jit(params, jnp.asarray(x0[index]),
+                                      jnp.asarray(means), jnp.asarray(mask)))
+    field = per_obj[mask]  # objects are contiguous in driver order
+  return index, mask, means, field
+
+
+_predict_jit = jax.jit(mpdp.predict)
+
+
+def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
+                    gravity: float) -> tuple[int, float]:
+  """(substeps per frame, largest wave speed): the CFL bound of the stiffest
+  deformable point (MPDP field included) and of the initial speeds."""
+  deform = ~np.asarray(rigid)[dobj]
+  c_max = 0.0
+  if deform.any():
+    E = np.array([m.E for m in mats])[dobj] * field[:, 0]
+    nu = np.clip(np.array([m.nu for m in mats])[dobj] * field[:, 1], 0, 0.49)
+    rho = np.array([m.rho for m in mats])[dobj] * field[:, 2]
+    c_max = float(np.max(timestep.wave_speed(E[deform], nu[deform],
+                                             rho[deform])))
+  frame_dt = cfg.frame_dt
+  v_max = max([float(np.linalg.norm(v)) for _, v in cfg.initial_velocity]
+              + [0.0])
+  # Elastic waves and particle motion both limited to cfl cells per step;
+  # with neither, one frame of free fall sets the scale.
+  speed = c_max + v_max
+  if speed == 0:
+    speed = max(1.0, abs(gravity) * frame_dt)
+  if cfg.substeps_per_frame is not None:
+    substeps = int(cfg.substeps_per_frame)
+    if speed > 0 and frame_dt / substeps > 2 * cfg.cfl * dx / speed:
+      raise PipelineError(
+        f'substeps_per_frame={substeps} gives dt={frame_dt / substeps:.3g} s, '
+        f'above the stability bound {cfg.cfl * dx / speed:.3g} s (wave speed '
+        f'{c_max:.3g} m/s + initial speed {v_max:.3g} m/s, dx={dx:.3g} m); use '
+        f'substeps_per_frame >= {math.ceil(frame_dt * speed / (cfg.cfl * dx))}'
+        ' or None (automatic), or lower E or the initial velocity.')
+    return substeps, c_max
+  dt_cfl = cfg.cfl * dx / speed
+  substeps = max(1, int(math.ceil(frame_dt / dt_cfl)))
+  if substeps > cfg.max_substeps_per_frame:
+    raise PipelineError(
+      f'the stiffest material (wave speed {c_max:.3g} m/s) and initial '
+      f'speeds ({v_max:.3g} m/s) need {substeps} substeps per frame at '
+      f'dx={dx:.3g} m, over max_substeps_per_frame='
+      f'{cfg.max_substeps_per_frame}: lower E (or mark the object rigid), '
+      'lower grid_res or the velocities, or raise max_substeps_per_frame.')
+  return substeps, c_max
+
+
+def forces_stage(cfg: PrepareConfig, frame: SimFrame, x0, dobj, movable_names):
+  """(object index per force, ball centre per force [m, simulation])."""
+  f_obj, f_pts = [], []
+  for f in cfg.forces:
+    oi = -1
+    if f.object:
+      if f.object not in movable_names:
+        raise PipelineError(
+          f'force on object {f.object!r}: no such movable object; choose '
+          f'from {list(movable_names)}')
+      oi = list(movable_names).index(f.object)
+    f_obj.append(oi)
+    if f.point is not None:
+      p = np.asarray(frame.to_sim(jnp.asarray(f.point, jnp.float32)))
+    else:
+      sel = dobj == oi if oi >= 0 else np.ones(len(x0), bool)
+      p = x0[sel].mean(0)
+    f_pts.append(_quantise(p))
+  for name, _ in cfg.initial_velocity:
+    if name and name not in movable_names:
+      raise PipelineError(
+        f'initial_velocity for object {name!r}: no such movable object; '
+        f'choose from {list(movable_names)}')
+  return tuple(f_obj), tuple(f_pts)
+
+
+# ------------------------------------------------------------- composition
+
+
+def prepare_scene(
+  key,
+  scene: Scene,
+  materials: Sequence[Any] | None = None,
+  config: PrepareConfig | PipelineConfig = PrepareConfig(),
+  mpdp_params: Any = None,
+  *,
+  gravity: float | None = None,
+  use_mpdp: bool | None = None,
+) -> tuple[PreparedScene, PrepareReport]:
+  """Host-side, non-differentiable preparation of a scene for simulation.
+
+  Args:
+    key: PRNG key for filling and sampling.
+    scene: the segmented scene; objects with ``ObjectInfo.fixed`` become
+      colliders, the others are simulated.
+    materials: one material record (``physsplat_jax.ObjectMaterial``) per
+      ``scene.objects`` (fixed objects' entries are only reported).
+    config: a :class:`PrepareConfig` (or a :class:`PipelineConfig`).
+    mpdp_params: MPDP params whose field is evaluated once here (time step,
+      ``PreparedScene.field``); default the shipped pretrained params.
+    gravity, use_mpdp: as in the simulate config; default that of a
+      ``PipelineConfig``, else 9.8 and True. They only bound the time step.
+
+  Returns:
+    (prepared scene, report).
+
+  Raises:
+    PipelineError: nothing to simulate, a bad material or scene, an object
+      too small for the grid, too few driving particles, or a run that would
+      need more than ``max_substeps_per_frame`` substeps per frame.
+  """
+  if isinstance(key, Scene):  # the old order: (scene, materials, config)
+    old_mpdp = mpdp_params if isinstance(
+      config, (PrepareConfig, PipelineConfig)) else config
+    return _prepare_old_order(
+      key, scene, PipelineConfig() if materials is None else materials,
+      old_mpdp)
+  if gravity is None:
+    gravity = getattr(config, 'gravity', 9.8)
+  if use_mpdp is None:
+    use_mpdp = getattr(config, 'use_mpdp', True)
+  cfg = as_prepare_config(config)
+  timings = {}
+  t = time.perf_counter()
+  movable, fixed = check_inputs(scene, materials)
+  names = [o.name for o in scene.objects]
+  mov_names = tuple(names[o] for o in movable)
+  mats = [materials[o] for o in movable]
+  fr = sim_frame_stage(scene, movable, fixed, cfg)
+  timings['frame_s'], t = time.perf_counter() - t, time.perf_counter()
+  k_fill, k_drv = jax.random.split(key)
+  cand = candidates_stage(k_fill, fr, len(movable), cfg)
+  timings['filling_s'], t = time.perf_counter() - t, time.perf_counter()
+  x0, vol, dobj, counts = drivers_stage(k_drv, cand, mats, mov_names, fr.dx,
+                                        cfg)
+  timings['sampling_s'], t = time.perf_counter() - t, time.perf_counter()
+  binding = deform_lib.make_binding(
+    np.asarray(fr.g_sim.means), x0, k=cfg.bind_k, dtype=np.float32,
+    gauss_object_ids=fr.local_ids, driver_object_ids=dobj)
+  timings['binding_s'], t = time.perf_counter() - t, time.perf_counter()
+  index, mask, cond, field = mpdp_stage(x0, dobj, counts, mats, use_mpdp,
+                                        mpdp_params)
+  timings['mpdp_s'], t = time.perf_counter() - t, time.perf_counter()
+  rigid = tuple(bool(m.rigid or m.model == 'rigid') for m in mats)
+  substeps, c_max = time_step_stage(mats, rigid, field, dobj, fr.dx, cfg,
+                                    gravity)
+  timings['time_step_s'], t = time.perf_counter() - t, time.perf_counter()
+  f_obj, f_pts = forces_stage(cfg, fr.frame, x0, dobj, mov_names)
+  starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+  spec = SimSpec(
+    object_names=mov_names, scene_objects=tuple(movable),
+    models=tuple('rigid' if r else m.model for r, m in zip(rigid, mats)),
+    rigid=rigid,
+    object_params=tuple(tuple(sorted(dict(m.params).items())) for m in mats),
+    object_ranges=tuple((int(a), int(c)) for a, c in zip(starts, counts)),
+    grid_lower=(0.0, 0.0, 0.0), grid_size=fr.L, grid_res=cfg.grid_res,
+    substeps_per_frame=substeps, dt=cfg.frame_dt / substeps,
+    colliders=fr.colliders, force_objects=f_obj, force_points=f_pts)
+  bodies = np.cumsum(rigid) - 1
+  body_id = np.where(np.asarray(rigid)[dobj], bodies[dobj], -1)
+  f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+  prepared = PreparedScene(
+    gaussians=scene.gaussians, sim_rows=jnp.asarray(fr.rows, jnp.int32),
+    rest_means=f32(fr.g_sim.means),
+    rest_covs=f32(np.asarray(fr.g_sim.covariances)), binding=binding,
+    x0=f32(x0), volume=f32(vol), driver_object=jnp.asarray(dobj),
+    body_id=jnp.asarray(body_id, jnp.int32), mpdp_index=jnp.asarray(index),
+    mpdp_mask=jnp.asarray(mask), mpdp_means=f32(cond), field=f32(field),
+    means=f32([[m.E, m.nu, m.rho] for m in mats]), frame=fr.frame,
+    camera=frames_lib.render_camera(scene, cfg),
+    background=f32(cfg.background), spec=spec)
+  report = _report(scene, materials, movable, counts, fr, cand, x0, spec,
+                   c_max, cfg, timings)
+  logging.info('prepared %r: %d particles for %d Gaussians of %d objects, '
+               'grid %d^3 (dx %.4f m), %d substeps/frame (dt %.3g s)',
+               scene.name, len(x0), len(fr.rows), len(movable), cfg.grid_res,
+               fr.dx, substeps, spec.dt)
+  return prepared, report
+
+
+def _report(scene, materials, movable, counts, fr, cand, x0, spec, c_max,
+            cfg, timings) -> PrepareReport:
+  ids = np.asarray(scene.object_ids)
+  local = {o: i for i, o in enumerate(movable)}
+  objects = []
+  for o, info in enumerate(scene.objects):
+    m = materials[o]
+    objects.append(dict(
+      name=info.name, fixed=bool(info.fixed),
+      material=getattr(m, 'material_key', ''), model=getattr(m, 'model', ''),
+      E=float(m.E), nu=float(m.nu), rho=float(m.rho), rigid=bool(m.rigid),
+      source=getattr(m, 'source', ''), reason=getattr(m, 'reason', ''),
+      num_gaussians=int(np.sum(ids == o)),
+      num_particles=int(counts[local[o]]) if o in local else 0))
+  return PrepareReport(
+    objects=objects, colliders=list(fr.colliders.notes),
+    num_gaussians=int(scene.gaussians.num),
+    num_simulated_gaussians=int(len(fr.rows)),
+    num_candidates=int(len(cand.x)), num_particles=int(len(x0)),
+    grid=dict(res=cfg.grid_res, size_m=fr.L, dx_m=fr.dx),
+    time_step=dict(substeps_per_frame=spec.substeps_per_frame, dt_s=spec.dt,
+                   max_wave_speed_m_s=c_max, cfl=cfg.cfl),
+    timings=timings)
+
+
+def _prepare_old_order(scene, materials, config, mpdp_params):
+
+  warnings.warn(
+    'prepare_scene(scene, materials, config) is deprecated: pass the PRNG '
+    'key first, prepare_scene(key, scene, materials, config) (the old order '
+    'used jax.random.PRNGKey(config.seed)); it goes in the next release.',
+    DeprecationWarning, stacklevel=3)
+  key = jax.random.PRNGKey(getattr(config, 'seed', 0))
+  return prepare_scene(key, scene, materials, config, mpdp_params)
+
+
+def init_params(prepared: PreparedScene,
+                config: PrepareConfig | PipelineConfig,
+                mpdp_params: Any = None, use_mpdp: bool | None = None
+                ) -> Params:
+  """Default :class:`Params`: pretrained MPDP, perceived means, the config's
+  initial velocities and force vectors."""
+  if use_mpdp is None:
+    use_mpdp = getattr(config, 'use_mpdp', True)
+  if use_mpdp:
+    mp = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
+  else:
+    mp = None
+  names = prepared.spec.object_names
+  vel = np.zeros((len(names), 3), np.float32)
+  for name, v in config.initial_velocity:
+    if name:
+      vel[names.index(name)] = v
+    else:
+      vel[:] = v
+  forces = np.array([f.vector for f in config.forces], np.float32).reshape(
+    len(config.forces), 3)
+  return Params(mpdp=mp, log_scale=jnp.zeros((len(names), 3), jnp.float32),
+                velocity=jnp.asarray(vel), forces=jnp.asarray(forces))

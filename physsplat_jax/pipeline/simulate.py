@@ -1,0 +1,297 @@
+"""The pure part: ``simulate(params, prepared, config)``.
+
+``simulate`` is a pure function of the differentiable ``params``
+(:class:`~physsplat_jax.pipeline.Params`: MPDP weights, per-object
+log-multipliers of E, nu, rho, initial velocities, force vectors)::
+
+  field   = MPDP(params.mpdp, object drivers, object means)     (N, 3)
+  E, nu, rho = means * exp(params.log_scale) * field            per driver
+  x, F    = MLS-MPM rollout (lax.scan over frames and substeps,
+            one jax.checkpoint per frame)                       (T+1, N, ...)
+  means, covariances, rotations of the Gaussians = deform(x, F)
+  images  = render(deformed Gaussians)                          (T+1, H, W, 3)
+
+Its static config is the small :class:`SimulateConfig` (a
+:class:`PipelineConfig` is accepted and reduced to it before tracing, so
+host-side settings such as the seed never recompile it). The rollout is an
+argument (``rollout_fn``): ``physsplat_jax.distributed`` passes its
+particle-sharded one.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from physsplat_jax import deform as deform_lib
+from physsplat_jax import mpdp
+from physsplat_jax import mpm
+from physsplat_jax.pipeline.config import ForceKind
+from physsplat_jax.pipeline.config import Ground
+from physsplat_jax.pipeline.config import PipelineConfig
+from physsplat_jax.pipeline.config import PipelineError
+from physsplat_jax.pipeline.config import RenderMode
+from physsplat_jax.pipeline.config import SimulateConfig
+from physsplat_jax.pipeline.config import as_simulate_config
+from physsplat_jax.pipeline.prepare import Params
+from physsplat_jax.pipeline.prepare import PreparedScene
+from physsplat_jax.pipeline.prepare import SimSpec
+from physsplat_jax.render import raster
+from physsplat_jax.types import Array
+
+
+class Trajectory(struct.PyTreeNode):
+  """Output of :func:`simulate` (scene coordinates; axis 0 is frames).
+
+  Attributes:
+    x: (T+1, N, 3) driving-particle positions.
+    means: (T+1, Ks, 3) simulated Gaussians' centres.
+    covariances: (T+1, Ks, 3, 3) their covariances ``F Sigma F^T``.
+    rotations: (T+1, Ks, 3, 3) their local rotations (SH view direction).
+    images: (T+1, H, W, 3) rendered frames, or None (``render='none'``).
+    render_overflow: (T+1,) bool, True where a frame dropped Gaussians
+      (re-size ``config.render_config`` or use :func:`run`).
+    materials: per-driver E, nu, rho actually simulated, each (N,).
+  """
+
+  x: Array
+  means: Array
+  covariances: Array
+  rotations: Array
+  images: Array | None
+  render_overflow: Array | None
+  materials: tuple[Array, Array, Array]
+
+
+def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
+                    dtype: str = 'float32') -> mpm.SimConfig:
+  """The static MPM config of a prepared scene (``dtype``: 'float32' or
+  'float64', that of the prepared arrays)."""
+  config = as_simulate_config(config)
+  col = spec.colliders
+  bcs = []
+  if config.ground is not Ground.NONE and col.ground_z is not None:
+    bcs.append(mpm.SurfaceCollider(
+      point=(0.0, 0.0, col.ground_z), normal=(0.0, 0.0, 1.0),
+      surface='separate' if config.ground is Ground.SLIP else 'sticky',
+      friction=config.friction))
+  for lo, hi in col.anchors:
+    c = tuple(0.5 * (a + b) for a, b in zip(lo, hi))
+    h = tuple(0.5 * (b - a) + 0.5 * spec.dx for a, b in zip(lo, hi))
+    bcs.append(mpm.Cuboid(point=c, size=h))
+  for f, p in zip(config.forces, spec.force_points):
+    start, end = f.window(spec.frame_dt)
+    radius = 1e9 if f.kind is ForceKind.IMPULSE else f.radius
+    bcs.append(mpm.PointForce(
+      point=p, radius=radius, force=(0.0, 0.0, 0.0), start_time=start,
+      end_time=end, per_particle=False))
+  nb = int(sum(spec.rigid))
+  return mpm.SimConfig(
+    grid=mpm.GridSpec(res=spec.grid_res, lower=spec.grid_lower,
+                      size=spec.grid_size),
+    dt=spec.dt, substeps_per_frame=spec.substeps_per_frame,
+    num_frames=config.num_frames, gravity=(0.0, 0.0, -config.gravity),
+    models=tuple(dict.fromkeys(spec.models)), boundary_conditions=tuple(bcs),
+    num_bodies=nb, body_fixed=(False,) * nb,
+    remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)))
+
+
+def driver_materials(params: Params, prepared: PreparedScene,
+                     config: SimulateConfig | PipelineConfig,
+                     field: Array | None = None) -> tuple[Array, Array, Array]:
+  """Per-driver (E, nu, rho): MPDP field times the (scaled) object means.
+
+  ``field``, if given, is an (N, 3) array of per-driver multipliers of
+  (E, nu, rho) (driver order, e.g. a ground-truth or a fitted field) used
+  instead of the MPDP prediction; gradients flow into it as into
+  ``params``. Rigid objects keep their means either way.
+  """
+  config = as_simulate_config(config)
+  spec = prepared.spec
+  means = prepared.means * jnp.exp(params.log_scale)  # (O, 3)
+  if field is not None:
+    if tuple(field.shape) != (prepared.num_particles, 3):
+      raise PipelineError(
+        f'field has shape {tuple(field.shape)}; give (N, 3) = '
+        f'({prepared.num_particles}, 3) multipliers of (E, nu, rho) per '
+        'driving particle, in driver order.')
+    flat = field.astype(prepared.x0.dtype)
+  elif config.use_mpdp and params.mpdp is not None:
+    pts = prepared.x0[prepared.mpdp_index]
+    field = mpdp.predict(params.mpdp, pts, prepared.mpdp_means,
+                         prepared.mpdp_mask)  # (O, Nmax, 3)
+    flat = jnp.concatenate([field[o, :c] for o, (_, c) in
+                            enumerate(spec.object_ranges)])
+  else:
+    flat = jnp.ones((prepared.num_particles, 3), prepared.x0.dtype)
+  per = means[prepared.driver_object] * flat
+  # Rigid objects keep uniform properties (only their mass matters).
+  rigid = jnp.asarray(spec.rigid)[prepared.driver_object]
+  per = jnp.where(rigid[:, None], means[prepared.driver_object], per)
+  nu = jnp.clip(per[:, 1], 0.0, mpdp.NU_MAX)
+  return per[:, 0], nu, per[:, 2]
+
+
+def _mpm_materials(E, nu, rho, prepared: PreparedScene,
+                   sim_config: mpm.SimConfig) -> mpm.Materials:
+  """Per-driver ``mpm.Materials`` from per-object tables (jit-safe)."""
+  spec = prepared.spec
+  obj = prepared.driver_object
+  model_of_obj = [sim_config.models.index(m) for m in spec.models]
+  fields = {}
+  for k in mpm.base.FLOAT_FIELDS[3:]:
+    table = [dict(ps).get(k, mpm.MODEL_DEFAULTS[m].get(
+      k, mpm.base._GENERIC[k]))  # noqa: SLF001
+      for ps, m in zip(spec.object_params, spec.models)]
+    fields[k] = jnp.asarray(table, E.dtype)[obj]
+  return mpm.Materials(E=E, nu=nu, rho=rho,
+                       model_id=jnp.asarray(model_of_obj, jnp.int32)[obj],
+                       **fields)
+
+
+def initial_state(params: Params, prepared: PreparedScene,
+                  config: SimulateConfig | PipelineConfig, field: Array | None = None):
+  """``(state, materials, forces, sim_config)`` at frame 0 (pure);
+  ``field`` as in :func:`driver_materials`."""
+  config = as_simulate_config(config)
+  spec = prepared.spec
+  sim_config = make_sim_config(spec, config, prepared.x0.dtype)
+  E, nu, rho = driver_materials(params, prepared, config, field)
+  materials = _mpm_materials(E, nu, rho, prepared, sim_config)
+  v_obj = prepared.frame.vector_to_sim(params.velocity)  # (O, 3)
+  v0 = v_obj[prepared.driver_object]
+  state = mpm.init_state(prepared.x0, v0, prepared.volume, materials,
+                         sim_config, body_id=prepared.body_id)
+  # Forces act on whole objects (or ball & object): replace the box/ball
+  # selections made by init_state with object masks.
+  sel = list(state.bc_data)
+  values = list(mpm.make_forces(sim_config, prepared.x0.dtype).values)
+  first = len(sim_config.boundary_conditions) - len(config.forces)
+  pbc = sim_config.particle_bcs
+  for i, (f, oi) in enumerate(zip(config.forces, spec.force_objects)):
+    bc_index = first + i
+    slot = pbc.index(bc_index)
+    in_obj = (prepared.driver_object == oi) if oi >= 0 else jnp.ones(
+      prepared.num_particles, bool)
+    if f.kind is ForceKind.IMPULSE:
+      mask = in_obj
+    else:
+      d = prepared.x0 - jnp.asarray(spec.force_points[i], prepared.x0.dtype)
+      mask = in_obj & (jnp.sum(d * d, 1) < f.radius**2)
+    sel[slot] = mask.astype(sel[slot].dtype)
+    m_sel = jnp.sum(jnp.where(mask, state.mass, 0.0))
+    vec = prepared.frame.vector_to_sim(params.forces[i])
+    if f.kind is ForceKind.IMPULSE:  # velocity change over one frame
+      values[bc_index] = vec * m_sel / spec.frame_dt
+    else:  # acceleration of every selected particle
+      values[bc_index] = vec * m_sel
+  state = state.replace(bc_data=tuple(sel))
+  return state, materials, mpm.Forces(values=tuple(values)), sim_config
+
+
+def deformed_gaussians(prepared: PreparedScene, config: SimulateConfig | PipelineConfig,
+                       x: Array, F: Array | None = None):
+  """Simulated Gaussians of one frame, in scene coordinates.
+
+  Args:
+    prepared: the prepared scene.
+    config: static settings (``use_driver_F``).
+    x: (N, 3) driver positions [m, simulation frame].
+    F: (N, 3, 3) driver deformation gradients (used with ``use_driver_F``).
+
+  Returns:
+    (means (Ks, 3), covariances (Ks, 3, 3), rotations (Ks, 3, 3)).
+  """
+  dF = F if as_simulate_config(config).use_driver_F else None
+  means, covs, rots = deform_lib.deform(
+    prepared.binding, (prepared.rest_means, prepared.rest_covs), x, dF)
+  fr = prepared.frame
+  return (fr.to_scene(means), fr.covariance_to_scene(covs),
+          fr.rotation_to_scene(rots))
+
+
+def render_frame(prepared: PreparedScene, config: SimulateConfig | PipelineConfig, means,
+                 covs, rots, differentiable: bool = False,
+                 render_config: raster.RenderConfig | None = None):
+  """Renders the whole scene with the simulated rows replaced (pure)."""
+  g_all, covs_all, rots_all = assemble_scene(prepared, means, covs, rots)
+  fn = raster.render_differentiable if differentiable else raster.render
+  return fn(g_all, prepared.camera, background=prepared.background,
+            covariances=covs_all, view_rotations=rots_all,
+            config=render_config or as_simulate_config(config).render_config)
+
+
+def simulate(params: Params, prepared: PreparedScene,
+             config: SimulateConfig | PipelineConfig,
+             field: Array | None = None, *,
+             rollout_fn: Callable | None = None) -> Trajectory:
+  """MPDP -> materials -> MLS-MPM rollout -> deformed Gaussians -> frames.
+
+  Pure and jit-able (:func:`simulate_jit`); differentiable with respect to
+  ``params`` (``render='differentiable'`` for gradients through the images,
+  ``'none'`` to stop at the Gaussians).
+
+  Args:
+    params: :class:`Params` (e.g. :func:`init_params`).
+    prepared: from :func:`prepare_scene`.
+    config: a :class:`SimulateConfig` (or a :class:`PipelineConfig`).
+    field: optional (N, 3) per-driver multipliers of (E, nu, rho) that
+      replace the MPDP prediction (see :func:`driver_materials`), e.g.
+      ``prepared.field`` to reuse the field evaluated at preparation.
+    rollout_fn: ``(state, materials, forces, sim_config, num_frames) ->
+      (state, xs, Fs)``; default ``mpm.rollout`` (the distributed package
+      passes its particle-sharded rollout).
+
+  Returns:
+    :class:`Trajectory` with ``config.num_frames + 1`` frames.
+  """
+  config = as_simulate_config(config)
+  rollout_fn = mpm.rollout if rollout_fn is None else rollout_fn
+  state, materials, forces, sim_config = initial_state(params, prepared,
+                                                       config, field)
+  _, xs, Fs = rollout_fn(state, materials, forces, sim_config,
+                         config.num_frames)
+  per_frame = jax.vmap(lambda x, F: deformed_gaussians(prepared, config, x, F))
+  means, covs, rots = per_frame(xs, Fs)
+  images = overflow = None
+  if config.render is not RenderMode.NONE:
+    diff = config.render is RenderMode.DIFFERENTIABLE
+    outs = jax.lax.map(
+      lambda a: render_frame(prepared, config, *a, differentiable=diff),
+      (means, covs, rots))
+    images, overflow = outs.image, outs.overflow
+  x_scene = prepared.frame.to_scene(xs)
+  return Trajectory(x=x_scene, means=means, covariances=covs, rotations=rots,
+                    images=images, render_overflow=overflow,
+                    materials=(materials.E, materials.nu, materials.rho))
+
+
+_simulate_jit = jax.jit(simulate, static_argnames=('config', 'rollout_fn'))
+
+
+def simulate_jit(params: Params, prepared: PreparedScene,
+                 config: SimulateConfig | PipelineConfig,
+                 field: Array | None = None, *,
+                 rollout_fn: Callable | None = None) -> Trajectory:
+  """:func:`simulate`, jitted; compiles once per :class:`SimulateConfig`
+  and prepared-scene spec (host-side settings never recompile it)."""
+  return _simulate_jit(params, prepared, as_simulate_config(config), field,
+                       rollout_fn=rollout_fn)
+
+
+def assemble_scene(prepared: PreparedScene, means, covs, rots):
+  """All Gaussians with the simulated rows replaced (means, covs, rots)."""
+  g = prepared.gaussians
+  rows = prepared.sim_rows
+  dt = g.means.dtype
+  all_means = g.means.at[rows].set(means.astype(dt))
+  all_covs = g.covariances.at[rows].set(covs.astype(dt))
+  eye = jnp.broadcast_to(jnp.eye(3, dtype=dt), all_covs.shape)
+  all_rots = eye.at[rows].set(rots.astype(dt))
+  return g.replace(means=all_means), all_covs, all_rots
+
+
