@@ -142,7 +142,7 @@ def main(argv):
                                tile_batch=_BATCH.value)
   runs = []
   if _SCENE.value:
-    from physsplat_jax.io.scene import load_scene
+    from physsplat_jax.scenes import load_scene
 
     scene = load_scene(_SCENE.value)
     cam = views.scene_camera(scene, None, _WIDTH.value, _HEIGHT.value)

@@ -17,7 +17,7 @@ from absl import flags
 
 from experiments import simulate as sim
 from physsplat_jax import pipeline as pl
-from physsplat_jax.io import scene as scene_io
+from physsplat_jax import scenes
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop',
                              'built-in scene (tabletop, ficus, donut) or PLY')
@@ -29,7 +29,7 @@ DEMO_CONFIG = os.path.join(os.path.dirname(__file__), 'configs', 'demo.py')
 
 def main(argv):
   del argv
-  scene = scene_io.load_scene(_SCENE.value)
+  scene = scenes.load_scene(_SCENE.value)
   config = sim.build_config(scene.name, DEMO_CONFIG,
                             dict(num_frames=_FRAMES.value))
   _, report = pl.simulate_scene(scene, config, _OUT.value,

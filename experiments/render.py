@@ -5,7 +5,7 @@
       --camera_file=path/to/cameras.json --camera_index=3 --out=view.png
 
 --scene is a built-in name (tabletop, ficus, donut) or a 3DGS .ply/.splat
-file or output folder (physsplat_jax.io.scene.load_scene). The camera is one
+file or output folder (physsplat_jax.load_scene). The camera is one
 of the scene's (--camera_index; -1 fits one to the scene) or one from
 --camera_file (INRIA cameras.json or transforms.json).
 """
@@ -19,7 +19,7 @@ from absl import logging
 
 from physsplat_jax.io import cameras as camera_io
 from physsplat_jax.io import video
-from physsplat_jax.io.scene import load_scene
+from physsplat_jax.scenes import load_scene
 from physsplat_jax.render import views
 
 _SCENE = flags.DEFINE_string('scene', None, 'Built-in name or 3DGS path.')

@@ -40,7 +40,7 @@ from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
 from physsplat_jax import physgaussian as pg
 from physsplat_jax.io import ply as ply_io
-from physsplat_jax.io import scene as scene_io
+from physsplat_jax import scenes
 from physsplat_jax import physgaussian as mpm_pg
 
 def define_flags():
@@ -213,7 +213,7 @@ def simulate_file(scene: str, config: str, out: str, frames=None,
     faint = np.asarray(gaussians.opacities) < cfg.opacity_threshold
     shown = gaussians.replace(opacity_logits=jnp.where(
       jnp.asarray(faint), -30.0, gaussians.opacity_logits))
-    cam_scene = scene_io.load_scene(scene)
+    cam_scene = scenes.load_scene(scene)
     cam = pl.render_camera(cam_scene, pl.PipelineConfig(
       width=width, height=height, camera_index=camera_index))
     covs0 = gaussians.covariances
@@ -322,7 +322,7 @@ def main(argv, f=None):
                   height=f.height.value or 384,
                   camera_index=0 if f.camera.value is None else f.camera.value)
     return
-  scene = scene_io.load_scene(f.scene.value)
+  scene = scenes.load_scene(f.scene.value)
   if f.objects.value:
     scene = pl.select_objects(scene, f.objects.value)
   overrides = dict(

@@ -171,9 +171,9 @@ def prepare(scene_name: str, config_path: str | None, overrides: dict):
   from experiments import simulate as sim
   from physsplat_jax import perception
   from physsplat_jax import pipeline as pl
-  from physsplat_jax.io import scene as scene_io
+  from physsplat_jax import scenes
 
-  scene = scene_io.load_scene(scene_name)
+  scene = scenes.load_scene(scene_name)
   config = sim.build_config(scene.name, config_path,
                             dict(overrides, render='none'))
   materials = perception.perceive_scene(scene)

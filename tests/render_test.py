@@ -15,7 +15,7 @@ from physsplat_jax import gaussians as gs
 from physsplat_jax import test_util
 from physsplat_jax.render import raster
 from physsplat_jax.render import reference
-from physsplat_jax.render import sh_rotation
+from physsplat_jax import sh_rotation
 from physsplat_jax.render import views
 from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera

@@ -16,7 +16,8 @@ from physsplat_jax import scenes
 from physsplat_jax import test_util
 from physsplat_jax.io.cameras import save_inria_cameras
 from physsplat_jax.io.ply import load_ply, save_ply
-from physsplat_jax.io.scene import SceneFileError, load_scene, save_scene
+from physsplat_jax.io.scene import SceneFileError, save_scene
+from physsplat_jax.scenes import load_scene
 from physsplat_jax.io.scene import sidecar_path
 from physsplat_jax.io.splat import save_splat
 from physsplat_jax.types import ObjectInfo, Scene
@@ -205,6 +206,8 @@ class SceneIOTest(parameterized.TestCase):
     with self.assertRaisesRegex(SceneFileError,
                                 'built-in scene .donut, ficus, tabletop'):
       load_scene('teapot')
+    with self.assertRaisesRegex(SceneFileError, "did you mean 'tabletop'"):
+      load_scene('tabletopp')
     with self.assertRaisesRegex(SceneFileError, 'donut, ficus, tabletop'):
       load_scene(os.path.join(self.dir, 'missing.ply'))
     with self.assertRaisesRegex(SceneFileError, 'name or a path'):

@@ -75,7 +75,8 @@ class SliceTest(absltest.TestCase):
     self.addCleanup(shutil.rmtree, d, ignore_errors=True)
     frames = _moving_edge()
     path = os.path.join(d, 'slice.png')
-    img = video.save_space_time_slice(path, frames, row=7, time_scale=3)
+    img = video.save_space_time_slice(
+      path, slices.space_time_slice(frames, row=7), time_scale=3)
     back = video.load_png(path)
     self.assertEqual(back.shape, (36, 40, 3))
     np.testing.assert_array_equal(back, img)

@@ -42,7 +42,7 @@ from physsplat_jax.gaussians import quat_to_rotmat_np as quat_to_rotmat_np
 from physsplat_jax.io.ply import PlyError
 from physsplat_jax.io.ply import save_ply
 from physsplat_jax.io.splat import save_splat
-from physsplat_jax.render.sh_rotation import rotate_sh
+from physsplat_jax.sh_rotation import rotate_sh
 from physsplat_jax.types import Gaussians
 
 PathLike = str | os.PathLike
@@ -149,7 +149,7 @@ def rotmat_to_quat_np(R) -> np.ndarray:
 
 
 def rotate_sh_batched(sh, rotations, batch: int = _SH_BATCH) -> np.ndarray:
-  """:func:`~physsplat_jax.render.sh_rotation.rotate_sh` in fixed batches.
+  """:func:`~physsplat_jax.sh_rotation.rotate_sh` in fixed batches.
 
   Args:
     sh: (K, B, 3) coefficients.

@@ -85,45 +85,40 @@ def sidecar_path(path: PathLike) -> str:
 # Loading.
 
 
-def load_scene(name_or_path: str | PathLike, **options) -> Scene:
-  """Loads a built-in scene by name, or a 3DGS file or folder.
+def load_scene(path: str | PathLike, **options) -> Scene:
+  """Loads a 3DGS scene file (``.ply`` / ``.splat``) or output folder.
+
+  Built-in scene names are :func:`physsplat_jax.load_scene`'s (it is
+  :func:`physsplat_jax.scenes.load_scene`); this is the file loader only.
 
   Args:
-    name_or_path: a built-in name (``'tabletop'``, ``'ficus'``,
-      ``'donut'``), a ``.ply`` / ``.splat`` path, or a 3DGS output folder.
-    **options: for a built-in scene, the options of
-      :func:`physsplat_jax.scenes.make_scene`; for a file:
-      ``up_axis`` ('x', 'y', 'z', '-x', '-y', '-z'), ``meters_per_unit``
-      (> 0, default 1 or the sidecar's), ``object_property`` (a property
-      name, or False to ignore ids), ``cameras`` (a camera file path, or
-      False to skip camera files and fit an orbit), ``num_cameras`` (fitted
-      orbit size, default 8), ``width`` / ``height`` (image size of fitted
-      cameras, default 384x288; file cameras are resized when given),
-      ``fov_deg`` (fitted cameras), ``name``, ``dtype`` (float32).
+    path: a ``.ply`` / ``.splat`` path, or a 3DGS output folder.
+    **options: ``up_axis`` ('x', 'y', 'z', '-x', '-y', '-z'),
+      ``meters_per_unit`` (> 0, default 1 or the sidecar's),
+      ``object_property`` (a property name, or False to ignore ids),
+      ``cameras`` (a camera file path, or False to skip camera files and fit
+      an orbit), ``num_cameras`` (fitted orbit size, default 8), ``width`` /
+      ``height`` (image size of fitted cameras, default 384x288; file
+      cameras are resized when given), ``fov_deg`` (fitted cameras),
+      ``name``, ``dtype`` (float32).
 
   Returns:
     A :class:`~physsplat_jax.types.Scene`.
 
   Raises:
-    SceneFileError: unknown name / missing path (the message lists the
-      built-in scenes), unsupported file type, bad sidecar or ids.
+    SceneFileError: missing path, unsupported file type, bad sidecar or ids.
     PlyError, SplatError, CameraFileError: unreadable files (named).
     TypeError: unknown options.
   """
-  from physsplat_jax import scenes  # built-ins import io; import lazily
-
-  if isinstance(name_or_path, str) and name_or_path in scenes.list_scenes():
-    return scenes.make_scene(name_or_path, **options)
-  if not isinstance(name_or_path, (str, os.PathLike)):
+  if not isinstance(path, (str, os.PathLike)):
     raise SceneFileError(
       f'load_scene: expected a built-in scene name or a path, got '
-      f'{type(name_or_path).__name__}'
-    )
+      f'{type(path).__name__}')
+  name_or_path = path
   path = os.fspath(name_or_path)
   if not os.path.exists(path):
     raise SceneFileError(
-      f'load_scene: {path!r} is neither a built-in scene '
-      f'({", ".join(scenes.list_scenes())}) nor an existing .ply/.splat '
+      f'load_scene: {path!r} does not exist; give an existing .ply/.splat '
       'file or 3DGS output folder'
     )
   bad = sorted(set(options) - set(_FILE_OPTIONS))

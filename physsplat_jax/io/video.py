@@ -464,33 +464,29 @@ def write_png_frames(directory: PathLike, frames,
   return w.paths
 
 
-def save_space_time_slice(
-  path: PathLike, frames, *, time_scale: int = 1, **line
-) -> np.ndarray:
-  """Writes a space-time slice of a video as PNG (PhysDreamer's figure).
+def save_space_time_slice(path: PathLike, slice_image, *,
+                          time_scale: int = 1, time_axis: int = 0
+                          ) -> np.ndarray:
+  """Writes a space-time slice (PhysDreamer's figure) as PNG.
 
   Args:
     path: output PNG.
-    frames: (T, H, W, 3) float in [0, 1] or uint8 frames.
-    time_scale: integer repeat of each frame's line (makes short videos
-      visible).
-    **line: ``row=``, ``column=`` or ``start=``/``end=`` (and
-      ``num_samples``, ``time_axis``), as
-      :func:`physsplat_jax.render.slices.space_time_slice`.
+    slice_image: the slice, from
+      :func:`physsplat_jax.render.slices.space_time_slice` (float in [0, 1]
+      or uint8).
+    time_scale: integer repeat of each frame's line along ``time_axis``
+      (makes short videos visible).
+    time_axis: the slice's time axis (as given to ``space_time_slice``).
 
   Returns:
-    The slice as written, uint8.
+    The image as written, uint8.
   """
-  from physsplat_jax.render import slices
-
-  a = np.asarray(frames)
-  if a.dtype == np.uint8:
-    a = a.astype(np.float32) / 255.0
-  s = np.asarray(slices.space_time_slice(a, **line))
   if int(time_scale) < 1:
     raise VideoError(f'time_scale must be >= 1, got {time_scale}')
-  axis = line.get('time_axis', 0)
-  s = np.repeat(s, int(time_scale), axis=axis)
+  s = np.asarray(slice_image)
+  if s.dtype == np.uint8:
+    s = s.astype(np.float32) / 255.0
+  s = np.repeat(s, int(time_scale), axis=time_axis)
   img = to_uint8(s, os.fspath(path))
   save_png(path, img)
   return img

@@ -13,7 +13,7 @@ points (default one per pixel of length) with bilinear interpolation, so a
 horizontal segment between integer points reproduces the row exactly.
 
 All functions are pure (NumPy or JAX arrays in, JAX arrays out); see
-:func:`physsplat_jax.io.video.save_space_time_slice` to write a PNG.
+:func:`physsplat_jax.io.video.save_space_time_slice` writes one as PNG.
 """
 
 from __future__ import annotations

@@ -18,5 +18,6 @@ from physsplat_jax.scenes.mesh import gaussians_from_mesh as gaussians_from_mesh
 from physsplat_jax.scenes.mesh import interior_lattice as interior_lattice
 from physsplat_jax.scenes.registry import DEFAULT_SCENE as DEFAULT_SCENE
 from physsplat_jax.scenes.registry import list_scenes as list_scenes
+from physsplat_jax.scenes.registry import load_scene as load_scene
 from physsplat_jax.scenes.registry import make_scene as make_scene
 from physsplat_jax.scenes.registry import scene_options as scene_options

@@ -1,10 +1,14 @@
-"""Registry of the built-in scenes: ``list_scenes()`` and ``make_scene()``."""
+"""Built-in scenes: ``list_scenes()``, ``make_scene()``, and ``load_scene()``
+(a built-in name or a scene file)."""
 
 from __future__ import annotations
 
+import difflib
 import inspect
+import os
 from typing import Callable
 
+from physsplat_jax.io import scene as scene_io
 from physsplat_jax.scenes.donut import make_donut
 from physsplat_jax.scenes.ficus import make_ficus
 from physsplat_jax.scenes.tabletop import make_tabletop
@@ -65,3 +69,34 @@ def make_scene(name: str = DEFAULT_SCENE, **options) -> Scene:
       f'{", ".join(allowed)}'
     )
   return fn(**options)
+
+
+def load_scene(name_or_path, **options) -> Scene:
+  """Loads a built-in scene by name, or a 3DGS file or folder.
+
+  Args:
+    name_or_path: a built-in name (:func:`list_scenes`: ``'tabletop'``,
+      ``'ficus'``, ``'donut'``), a ``.ply`` / ``.splat`` path, or a 3DGS
+      output folder.
+    **options: for a built-in scene, the options of :func:`make_scene`; for
+      a file, those of :func:`physsplat_jax.io.scene.load_scene`.
+
+  Returns:
+    A :class:`~physsplat_jax.types.Scene`.
+
+  Raises:
+    SceneFileError: neither a built-in name nor an existing path (the
+      message lists the built-in scenes and the closest name), or a bad
+      file.
+  """
+  if isinstance(name_or_path, str) and name_or_path in list_scenes():
+    return make_scene(name_or_path, **options)
+  if isinstance(name_or_path, (str, os.PathLike)) and not os.path.exists(
+      name_or_path):
+    close = difflib.get_close_matches(str(name_or_path), list_scenes(), n=1)
+    hint = f' (did you mean {close[0]!r}?)' if close else ''
+    raise scene_io.SceneFileError(
+      f'scene {os.fspath(name_or_path)!r} is neither a built-in scene '
+      f'({", ".join(list_scenes())}){hint} nor an existing .ply/.splat file '
+      'or 3DGS output folder.')
+  return scene_io.load_scene(name_or_path, **options)
