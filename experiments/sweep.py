@@ -168,7 +168,7 @@ def prepare(scene_name: str, config_path: str | None, overrides: dict):
   import jax
   from jax.experimental import multihost_utils
 
-  from experiments import simulate as sim
+  from experiments.lib import simulate as sim
   from physsplat_jax import perception
   from physsplat_jax import pipeline as pl
   from physsplat_jax import scenes

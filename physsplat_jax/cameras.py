@@ -284,3 +284,41 @@ def fit_camera(
   near = max(dist - r, 1e-3 * dist) if near is None else near
   far = dist + r if far is None else far
   return make_camera(vm, f, f, width, height, near=near, far=far, name='fit')
+
+
+def scene_camera(scene, width: int, height: int, index: int = 0) -> Camera:
+  """A scene's camera brought to ``width x height``, or a fitted one.
+
+  ``scene.cameras[index]`` keeps square pixels (the focal length follows
+  the height; the principal point is re-centred when the aspect ratio
+  changes). With ``index=-1`` or no cameras, a camera is fitted to the
+  scene's Gaussians (1st-99th percentile box). near/far are static fields of
+  :class:`Camera`: they are quantised (near down, far up, 3 significant
+  digits) and the name dropped, so equal views compile once.
+
+  Raises:
+    ValueError: ``index`` out of range (the message gives the range).
+  """
+  w, h = int(width), int(height)
+  if index >= 0 and scene.cameras:
+    if index >= len(scene.cameras):
+      raise ValueError(
+        f'camera_index={index} but scene {scene.name!r} has '
+        f'{len(scene.cameras)} cameras; use 0..{len(scene.cameras) - 1} or -1 '
+        'for a fitted camera.')
+    c = scene.cameras[index]
+    if abs(c.width / c.height - w / h) < 1e-6:
+      cam = c.resized(w, h)
+    else:
+      s = h / c.height
+      cam = c.replace(fx=c.fx * s, fy=c.fy * s,
+                      cx=jnp.asarray(w / 2, c.fx.dtype), cy=c.cy * s,
+                      width=w, height=h)
+  else:
+    m = np.asarray(scene.gaussians.means)
+    lo, hi = np.percentile(m, 1, axis=0), np.percentile(m, 99, axis=0)
+    cam = fit_camera(lo, hi, up=scene.up_vector, width=w, height=h,
+                     azimuth=-60.0, elevation=25.0, padding=1.05)
+  down = float(f'{cam.near * (1 - 1e-3):.3g}')
+  up = float(f'{cam.far * (1 + 1e-3):.3g}')
+  return cam.replace(near=down, far=up, name='')

@@ -7,7 +7,6 @@ import tempfile
 import numpy as np
 from absl.testing import absltest
 
-from experiments import simulate as simulate_main
 from physsplat_jax import mpm
 from physsplat_jax import physgaussian as pg
 from physsplat_jax.io import ply
@@ -78,8 +77,8 @@ class SimulateTest(absltest.TestCase):
       path = os.path.join(d, 'tiny.json')
       with open(path, 'w') as f:
         json.dump(_TINY, f)
-      out = simulate_main.simulate_file(_PLY, path, os.path.join(d, 'out'))
-      data = np.load(out)
+      out = mpm_pg.run_config(_PLY, path, os.path.join(d, 'out'))
+      data = np.load(out['files']['trajectory'])
       x, ids, t = data['x'], data['ids'], data['t']
     opac = 1 / (1 + np.exp(-np.asarray(g.opacity_logits, np.float64)))
     np.testing.assert_array_equal(ids, np.flatnonzero(opac > 0.1))

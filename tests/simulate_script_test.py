@@ -3,7 +3,7 @@
 from absl import app
 from absl.testing import absltest
 
-from experiments import simulate as sim
+from experiments.lib import simulate as sim
 from physsplat_jax import pipeline as pl
 
 
@@ -78,8 +78,8 @@ class PhysGaussianModeTest(absltest.TestCase):
       with open(path, 'w') as f:
         json.dump(cfg, f)
       out = os.path.join(d, 'out')
-      sim.simulate_file(scene, path, out, video=True, ply=True, width=48,
-                        height=32)
+      sim.run_physgaussian(scene, path, out, pl.PipelineConfig(
+        width=48, height=32), ply=True)
       frames = sorted(os.listdir(os.path.join(out, 'frames')))
       self.assertEqual(frames, [f'frame_{i:04d}.png' for i in range(3)])
       self.assertGreater(os.path.getsize(os.path.join(out, 'video.mp4')), 0)

@@ -7,13 +7,21 @@ no velocity, impulse or poke). Any field of
 """
 
 import ml_collections
+from ml_collections import config_dict
 
 
 def get_config():
-  """Defaults: 2 s at 24 fps, 40^3 grid, <= 12k driving particles, 512x384."""
+  """Defaults: 2 s at 24 fps, 40^3 grid, <= 12k driving particles, 512x384.
+
+  Every scalar field of ``PipelineConfig`` is here, so each can be set on
+  the command line (``--config.render=none``); motions (velocities, forces)
+  come from ``SCENE_MOTIONS`` or the motion flags.
+  """
   c = ml_collections.ConfigDict()
   c.num_frames = 48
   c.fps = 24.0
+  c.substeps_per_frame = config_dict.placeholder(int)  # None: CFL
+  c.max_substeps_per_frame = 20_000
   c.grid_res = 40
   c.margin = 0.35
   c.max_particles = 12_000
@@ -28,6 +36,11 @@ def get_config():
   c.height = 384
   c.camera_index = 0
   c.background = (1.0, 1.0, 1.0)
+  c.fill = True
+  c.bind_k = 8
+  c.use_driver_F = False
+  c.render = 'fast'  # 'none': no video or frames
+  c.remat_frames = True
   c.seed = 0
   return c
 

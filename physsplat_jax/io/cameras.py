@@ -42,10 +42,11 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Camera, make_camera
 
 
-class CameraFileError(ValueError):
+class CameraFileError(PhysSplatError, ValueError):
   """A camera file that cannot be read."""
 
 

@@ -53,12 +53,14 @@ from collections.abc import Callable, Mapping, Sequence
 import numpy as np
 from absl import logging
 
+from physsplat_jax.errors import PhysSplatError
+
 DEFAULT_CACHE_DIR = '.mllm_cache'
 _CACHE_VERSION = 1
 _BODY_EXCERPT = 300  # characters of an error body quoted in messages
 
 
-class MLLMError(RuntimeError):
+class MLLMError(PhysSplatError, RuntimeError):
   """A request failed for good.
 
   Attributes:

@@ -24,12 +24,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io import export as export_lib
 from physsplat_jax.io import video as video_lib
 from physsplat_jax.types import Gaussians
 
 
-class OutputError(OSError):
+class OutputError(PhysSplatError, OSError):
   """An output folder or file cannot be written; the message says which."""
 
 

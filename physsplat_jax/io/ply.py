@@ -63,6 +63,7 @@ from typing import Mapping
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.gaussians import SH_C0
 from physsplat_jax.types import Gaussians
 
@@ -101,7 +102,7 @@ _MAX_HEADER_BYTES = 1 << 20
 _NAME_RE = re.compile(r'^[^\s]+$')
 
 
-class PlyError(ValueError):
+class PlyError(PhysSplatError, ValueError):
   """A PLY file that cannot be read (or Gaussians that cannot be written)."""
 
 

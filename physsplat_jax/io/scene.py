@@ -47,6 +47,7 @@ import re
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax import cameras as _cameras
 from physsplat_jax.io.cameras import load_cameras
 from physsplat_jax.io.ply import PlyError, load_ply, save_ply
@@ -71,7 +72,7 @@ _FILE_OPTIONS = (
 )  # fmt: skip
 
 
-class SceneFileError(ValueError):
+class SceneFileError(PhysSplatError, ValueError):
   """A scene name, file or sidecar that cannot be loaded or written."""
 
 

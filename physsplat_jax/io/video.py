@@ -31,6 +31,8 @@ import warnings
 
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
+
 PathLike = str | os.PathLike
 
 logger = logging.getLogger(__name__)
@@ -41,7 +43,7 @@ DEFAULT_QUALITY = 8.0
 PNG_PATTERN = 'frame_%04d.png'
 
 
-class VideoError(ValueError):
+class VideoError(PhysSplatError, ValueError):
   """A frame or a setting that cannot be written."""
 
 

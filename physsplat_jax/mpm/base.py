@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 
 Array = jax.Array
@@ -38,7 +39,7 @@ ELASTIC_MODELS = (
 FLUID_MODELS = ('newtonian',)
 
 
-class SimulationError(RuntimeError):
+class SimulationError(PhysSplatError, RuntimeError):
   """A simulation blew up or was set up unstably.
 
   Attributes:

@@ -46,6 +46,7 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 
 # Parameters each model needs (simulation units; see the file's 'units').
@@ -78,11 +79,11 @@ _IRREGULAR = {
 }
 
 
-class LibraryError(ValueError):
+class LibraryError(PhysSplatError, ValueError):
   """The library data file is malformed; the message names file and field."""
 
 
-class MaterialNotFoundError(LookupError):
+class MaterialNotFoundError(PhysSplatError, LookupError):
   """No library entry matches a name; the message lists close keys."""
 
 

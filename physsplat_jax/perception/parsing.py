@@ -35,6 +35,7 @@ import math
 import re
 from collections.abc import Mapping
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.perception.library import MaterialEntry
 from physsplat_jax.perception.library import MaterialLibrary
 
@@ -55,7 +56,7 @@ _UNIT_REPAIRS = (1e9, 1e6, 1e3, 1e-3, 1e-6, 1e-9)
 _NUMBER = re.compile(r'[-+]?(?:\d[\d,_]*\.?\d*|\.\d+)(?:[eE][-+]?\d+)?')
 
 
-class AnswerError(ValueError):
+class AnswerError(PhysSplatError, ValueError):
   """An MLLM answer is unusable; the message says why (with an excerpt)."""
 
 

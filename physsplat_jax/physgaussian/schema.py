@@ -52,6 +52,7 @@ import numpy as np
 from absl import logging
 from flax import struct
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.mpm.models import MATERIAL_ALIASES
 from physsplat_jax.mpm.models import MATERIAL_IDS
@@ -124,7 +125,7 @@ NOT_HONOURED = (
 )
 
 
-class ConfigError(ValueError):
+class ConfigError(PhysSplatError, ValueError):
   """A config field has a bad value or type; the message names the fix."""
 
 

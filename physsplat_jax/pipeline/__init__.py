@@ -13,7 +13,7 @@ Modules, in the order the data flows: ``config`` (settings: host-side
 :class:`PrepareConfig`, static :class:`SimulateConfig`, both in
 :class:`PipelineConfig`), ``frames`` (scene <-> simulation frame, camera),
 ``colliders`` (fixed objects as boundary conditions), ``prepare`` (named
-host stages), ``simulate`` (the pure function), ``host`` (the one host loop
+host stages), ``simulation`` (the pure ``simulate``), ``host`` (the one host loop
 with pluggable writers from :mod:`physsplat_jax.io.outputs`) and ``job``
 (segment -> perceive -> prepare -> run -> report for one scene).
 """
@@ -50,17 +50,17 @@ from physsplat_jax.pipeline.prepare import PreparedScene as PreparedScene
 from physsplat_jax.pipeline.prepare import SimSpec as SimSpec
 from physsplat_jax.pipeline.prepare import init_params as init_params
 from physsplat_jax.pipeline.prepare import prepare_scene as prepare_scene
-from physsplat_jax.pipeline.simulate import Trajectory as Trajectory
-from physsplat_jax.pipeline.simulate import assemble_scene as assemble_scene
-from physsplat_jax.pipeline.simulate import (
+from physsplat_jax.pipeline.simulation import Trajectory as Trajectory
+from physsplat_jax.pipeline.simulation import assemble_scene as assemble_scene
+from physsplat_jax.pipeline.simulation import (
   deformed_gaussians as deformed_gaussians,
 )
-from physsplat_jax.pipeline.simulate import (
+from physsplat_jax.pipeline.simulation import (
   driver_materials as driver_materials,
 )
-from physsplat_jax.pipeline.simulate import initial_state as initial_state
-from physsplat_jax.pipeline.simulate import make_sim_config as make_sim_config
-from physsplat_jax.pipeline.simulate import render_frame as render_frame
-from physsplat_jax.pipeline.simulate import simulate as simulate
-from physsplat_jax.pipeline.simulate import simulate_jit as simulate_jit
+from physsplat_jax.pipeline.simulation import initial_state as initial_state
+from physsplat_jax.pipeline.simulation import make_sim_config as make_sim_config
+from physsplat_jax.pipeline.simulation import render_frame as render_frame
+from physsplat_jax.pipeline.simulation import simulate as simulate
+from physsplat_jax.pipeline.simulation import simulate_jit as simulate_jit
 from physsplat_jax.perception.choice import ObjectMaterial as ObjectMaterial

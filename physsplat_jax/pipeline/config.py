@@ -24,10 +24,11 @@ import enum
 import math
 from typing import Any
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render import raster
 
 
-class PipelineError(ValueError):
+class PipelineError(PhysSplatError, ValueError):
   """The scene or config cannot be simulated; the message names the fix."""
 
 

@@ -84,36 +84,10 @@ def transform_gaussians(g: Gaussians, frame: SimFrame) -> Gaussians:
 
 
 def render_camera(scene: Scene, config: PrepareConfig) -> Camera:
-  """The camera that renders the video (scene coordinates).
-
-  ``scene.cameras[config.camera_index]`` brought to ``width x height``
-  (square pixels kept: the focal length follows the height, the principal
-  point is re-centred when the aspect ratio changes), or, with
-  ``camera_index=-1`` or no cameras, a camera fitted to the whole scene.
-  """
-  w, h = config.width, config.height
-  cam = _render_camera(scene, config, w, h)
-  # near/far are static fields of Camera: quantise them (near down, far up,
-  # 3 significant digits) so equal views compile once.
-  lo = lambda v: float(f'{v * (1 - 1e-3):.3g}')  # noqa: E731
-  hi = lambda v: float(f'{v * (1 + 1e-3):.3g}')  # noqa: E731
-  return cam.replace(near=lo(cam.near), far=hi(cam.far), name='')
-
-
-def _render_camera(scene: Scene, config: PrepareConfig, w: int, h: int):
-  if config.camera_index >= 0 and scene.cameras:
-    if config.camera_index >= len(scene.cameras):
-      raise PipelineError(
-        f'camera_index={config.camera_index} but scene {scene.name!r} has '
-        f'{len(scene.cameras)} cameras; use 0..{len(scene.cameras) - 1} or -1 '
-        'for a fitted camera.')
-    c = scene.cameras[config.camera_index]
-    if abs(c.width / c.height - w / h) < 1e-6:
-      return c.resized(w, h)
-    s = h / c.height
-    return c.replace(fx=c.fx * s, fy=c.fy * s, cx=jnp.asarray(w / 2, c.fx.dtype),
-                     cy=c.cy * s, width=w, height=h)
-  m = np.asarray(scene.gaussians.means)
-  lo, hi = np.percentile(m, 1, axis=0), np.percentile(m, 99, axis=0)
-  return cam_lib.fit_camera(lo, hi, up=scene.up_vector, width=w, height=h,
-                            azimuth=-60.0, elevation=25.0, padding=1.05)
+  """The camera that renders the video (scene coordinates): see
+  :func:`physsplat_jax.cameras.scene_camera`."""
+  try:
+    return cam_lib.scene_camera(scene, config.width, config.height,
+                                config.camera_index)
+  except ValueError as e:
+    raise PipelineError(str(e)) from None

@@ -27,10 +27,10 @@ from physsplat_jax.pipeline.config import SimulateConfig
 from physsplat_jax.pipeline.config import as_simulate_config
 from physsplat_jax.pipeline.prepare import Params
 from physsplat_jax.pipeline.prepare import PreparedScene
-from physsplat_jax.pipeline.simulate import assemble_scene
-from physsplat_jax.pipeline.simulate import deformed_gaussians
-from physsplat_jax.pipeline.simulate import initial_state
-from physsplat_jax.pipeline.simulate import make_sim_config
+from physsplat_jax.pipeline.simulation import assemble_scene
+from physsplat_jax.pipeline.simulation import deformed_gaussians
+from physsplat_jax.pipeline.simulation import initial_state
+from physsplat_jax.pipeline.simulation import make_sim_config
 from physsplat_jax.render import raster
 from physsplat_jax.types import Array
 

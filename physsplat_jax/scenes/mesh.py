@@ -56,6 +56,7 @@ import scipy.spatial.transform
 import trimesh
 
 from physsplat_jax import gaussians as _g
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Gaussians
 
 ColorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -69,7 +70,7 @@ _NOISE_FEATURES = 24
 _OPACITY_EPS = 1e-4
 
 
-class MeshError(ValueError):
+class MeshError(PhysSplatError, ValueError):
   """A mesh or an option that cannot be turned into Gaussians."""
 
 

@@ -1,0 +1,66 @@
+"""One error path for every experiment script.
+
+``cli.run(main)`` replaces ``absl.app.run(main)``: the package's own errors
+(:class:`physsplat_jax.errors.PhysSplatError`: bad scene files, configs,
+materials, flags, outputs, unstable runs, ...) and OS errors end the script
+with one line, ``error: <what, where, how to fix>``, and exit code 1;
+usage errors (a flag value the script cannot use) print the same one line
+and exit with 2. The
+traceback is printed only with ``--debug`` (or ``--verbosity=1``).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from absl import app
+from absl import flags
+from absl import logging
+
+from physsplat_jax.errors import PhysSplatError
+
+_DEBUG = flags.DEFINE_bool('debug', False,
+                           'print the full traceback of an error')
+
+EXPECTED = (PhysSplatError, OSError)
+
+
+def _verbose() -> bool:
+  try:
+    return bool(_DEBUG.value) or flags.FLAGS['verbosity'].value >= 1
+  except (flags.UnparsedFlagAccessError, KeyError):
+    return False
+
+
+def guard(main):
+  """``main`` with the package's errors turned into one line and exit 1."""
+
+  def wrapped(argv):
+    try:
+      return main(argv)
+    except app.UsageError as e:
+      if _verbose():
+        raise
+      print(f'error: {e}', file=sys.stderr)
+      sys.exit(2)
+    except EXPECTED as e:
+      if _verbose():
+        raise
+      logging.flush()
+      print(f'error: {e}', file=sys.stderr)
+      sys.exit(1)
+    except KeyboardInterrupt:
+      print('error: interrupted', file=sys.stderr)
+      sys.exit(130)
+
+  return wrapped
+
+
+def usage_error(message: str) -> app.UsageError:
+  """A usage error (exit code 2) with ``message``."""
+  return app.UsageError(message, exitcode=2)
+
+
+def run(main) -> None:
+  """``absl.app.run(main)`` with :func:`guard`."""
+  app.run(guard(main))
