@@ -49,6 +49,11 @@ from physsplat_jax import segmentation as segmentation
 from physsplat_jax import training as training
 from physsplat_jax import types as types
 
+# Compile once: the persistent compilation cache.
+from physsplat_jax.compile_cache import (
+  enable_compilation_cache as enable_compilation_cache,
+)
+
 # Core types and Gaussian maths.
 from physsplat_jax.gaussians import covariance as covariance
 from physsplat_jax.gaussians import decompose_covariance as decompose_covariance

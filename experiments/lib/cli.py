@@ -7,6 +7,9 @@ with one line, ``error: <what, where, how to fix>``, and exit code 1;
 usage errors (a flag value the script cannot use) print the same one line
 and exit with 2. The
 traceback is printed only with ``--debug`` (or ``--verbosity=1``).
+
+It also turns on JAX's persistent compilation cache
+(:mod:`physsplat_jax.compile_cache`; ``--compile_cache=DIR`` or ``off``).
 """
 
 from __future__ import annotations
@@ -17,10 +20,14 @@ from absl import app
 from absl import flags
 from absl import logging
 
+from physsplat_jax import compile_cache
 from physsplat_jax.errors import PhysSplatError
 
 _DEBUG = flags.DEFINE_bool('debug', False,
                            'print the full traceback of an error')
+_CACHE = flags.DEFINE_string(
+  'compile_cache', None, 'persistent compilation cache folder, or "off" '
+  '(default: $PHYSSPLAT_JAX_CACHE or ~/.cache/physsplat_jax/jax)')
 
 EXPECTED = (PhysSplatError, OSError)
 
@@ -36,6 +43,7 @@ def guard(main):
   """``main`` with the package's errors turned into one line and exit 1."""
 
   def wrapped(argv):
+    compile_cache.enable_compilation_cache(_CACHE.value)
     try:
       return main(argv)
     except app.UsageError as e:

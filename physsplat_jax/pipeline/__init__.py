@@ -52,6 +52,7 @@ from physsplat_jax.pipeline.prepare import init_params as init_params
 from physsplat_jax.pipeline.prepare import prepare_scene as prepare_scene
 from physsplat_jax.pipeline.simulation import Trajectory as Trajectory
 from physsplat_jax.pipeline.simulation import assemble_scene as assemble_scene
+from physsplat_jax.pipeline.simulation import check_finite as check_finite
 from physsplat_jax.pipeline.simulation import (
   deformed_gaussians as deformed_gaussians,
 )

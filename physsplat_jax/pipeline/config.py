@@ -304,8 +304,15 @@ class PipelineConfig:
   seed: int = 0
 
   def __post_init__(self):
-    # Validates (and normalises enums) through the two parts.
-    p, s = self.prepare, self.simulate
+    # Validates (and normalises enums) through the two parts, naming the
+    # field as the user wrote it.
+    try:
+      p, s = self.prepare, self.simulate
+    except PipelineError as e:
+      msg = str(e)
+      for part in ('PrepareConfig.', 'SimulateConfig.'):
+        msg = msg.replace(part, 'PipelineConfig.')
+      raise PipelineError(msg) from None
     object.__setattr__(self, 'ground', p.ground)
     object.__setattr__(self, 'sampling', p.sampling)
     object.__setattr__(self, 'render', s.render)

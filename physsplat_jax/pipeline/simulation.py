@@ -56,6 +56,9 @@ class Trajectory(struct.PyTreeNode):
     render_overflow: (T+1,) bool, True where a frame dropped Gaussians
       (re-size ``config.render_config`` or use :func:`run`).
     materials: per-driver E, nu, rho actually simulated, each (N,).
+    finite: (T+1,) bool, False from the first frame whose particle
+      positions are not finite (the run went unstable; nothing inside jit
+      can raise: :func:`check_finite` turns it into an error on the host).
   """
 
   x: Array
@@ -65,6 +68,7 @@ class Trajectory(struct.PyTreeNode):
   images: Array | None
   render_overflow: Array | None
   materials: tuple[Array, Array, Array]
+  finite: Array | None = None
 
 
 def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
@@ -265,9 +269,11 @@ def simulate(params: Params, prepared: PreparedScene,
       (means, covs, rots))
     images, overflow = outs.image, outs.overflow
   x_scene = prepared.frame.to_scene(xs)
+  ok = jnp.all(jnp.isfinite(xs), axis=(1, 2))
   return Trajectory(x=x_scene, means=means, covariances=covs, rotations=rots,
                     images=images, render_overflow=overflow,
-                    materials=(materials.E, materials.nu, materials.rho))
+                    materials=(materials.E, materials.nu, materials.rho),
+                    finite=jnp.cumprod(ok.astype(jnp.int32)).astype(bool))
 
 
 _simulate_jit = jax.jit(simulate, static_argnames=('config', 'rollout_fn'))
@@ -281,6 +287,30 @@ def simulate_jit(params: Params, prepared: PreparedScene,
   and prepared-scene spec (host-side settings never recompile it)."""
   return _simulate_jit(params, prepared, as_simulate_config(config), field,
                        rollout_fn=rollout_fn)
+
+
+def check_finite(traj: Trajectory, prepared: PreparedScene) -> Trajectory:
+  """Returns ``traj`` or raises ``SimulationError`` naming the first frame
+  whose positions are not finite, the object and the likely fix (host
+  side, after a jitted :func:`simulate`)."""
+  finite = np.asarray(traj.finite)
+  if finite.all():
+    return traj
+  f = int(np.argmin(finite))
+  x = np.asarray(traj.x[f])
+  bad = ~np.all(np.isfinite(x), axis=1)
+  objs = sorted({prepared.spec.object_names[i] for i in
+                 np.asarray(prepared.driver_object)[bad]})
+  E = np.asarray(traj.materials[0])
+  inputs_bad = not np.all(np.isfinite(E))
+  cause = ('non-finite materials or params (check Params and the field)'
+           if inputs_bad else
+           'the time step is too large for the stiffest material or the '
+           'speeds reached: raise substeps_per_frame (or lower cfl), lower E '
+           'or the initial velocities and forces')
+  raise mpm.SimulationError(
+    f'the simulation went unstable at frame {f} (first non-finite particle '
+    f'positions, objects {objs}): {cause}.')
 
 
 def assemble_scene(prepared: PreparedScene, means, covs, rots):
