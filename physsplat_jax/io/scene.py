@@ -57,10 +57,12 @@ from physsplat_jax.types import make_camera, up_vector
 
 PathLike = str | os.PathLike
 
-# Per-Gaussian properties read as object ids, in order of preference.
+# Per-Gaussian properties read as object ids, in order of preference (the
+# one list: segmentation's attribute method uses it too).
 ID_PROPERTIES = (
-  'object_id', 'objectid', 'obj_id', 'instance_id', 'instance', 'segment_id',
-  'segment', 'seg_id', 'segmentation', 'label', 'labels', 'class_id',
+  'object_id', 'objectid', 'obj_id', 'object', 'instance_id', 'instance',
+  'segment_id', 'segment', 'seg_id', 'segmentation', 'label', 'labels',
+  'class_id', 'semantic_id', 'semantic', 'part_id', 'part',
 )  # fmt: skip
 SIDECAR_SUFFIX = '.scene.json'
 SCENE_FORMAT = 'physsplat_jax.scene'

@@ -15,13 +15,10 @@ import numpy as np
 from physsplat_jax.segmentation.base import Segmentation
 from physsplat_jax.segmentation.base import compact_labels
 from physsplat_jax.types import Gaussians
+from physsplat_jax.io.scene import ID_PROPERTIES
 
-# Property names recognised, in order of preference.
-ATTRIBUTE_KEYS = (
-  'object_id', 'objectid', 'obj_id', 'object', 'instance_id', 'instance',
-  'segment_id', 'segment', 'label', 'labels', 'class_id', 'semantic_id',
-  'semantic', 'part_id', 'part',
-)
+# Property names recognised, in order of preference: the scene loader's.
+ATTRIBUTE_KEYS = ID_PROPERTIES
 
 
 def find_attribute(gaussians: Gaussians) -> str | None:
