@@ -267,16 +267,28 @@ class DegenerateDriversTest(absltest.TestCase):
     np.testing.assert_allclose(covs[face], A @ covs0[face] @ A.T,
                                atol=1e-7, rtol=1e-3)
 
-  def test_gradients_finite_with_degenerate_drivers(self):
-    def loss(x):
-      _, covs, rots = deform.deform(
-        self.bind, (jnp.asarray(self.means, jnp.float32),
-                    jnp.broadcast_to(jnp.eye(3) * 1e-4, (110, 3, 3))), x)
-      return jnp.sum(covs) + jnp.sum(rots * rots[:, ::-1])
-    g = jax.grad(loss)(jnp.asarray(self.drivers, jnp.float32))
-    test_util.assert_tree_all_finite(g)
-    self.assertGreater(float(jnp.abs(g).max()), 0.0)
+  def test_gradients_match_finite_differences_with_degenerate_drivers(self):
+    with jax.enable_x64(True):
+      means, gids, drivers, dids = _degenerate_scene()
+      bind = deform.make_binding(means, drivers, k=8, dtype=np.float64,
+                                 gauss_object_ids=gids,
+                                 driver_object_ids=dids)
+      self.assertEqual(set(np.asarray(bind.rank).tolist()), {1, 2, 3})
+      rng = np.random.default_rng(2)
+      x = jnp.asarray(drivers + 0.02 * rng.normal(size=drivers.shape))
+      covs0 = jnp.broadcast_to(jnp.diag(jnp.array([1e-3, 2e-3, 1e-5])),
+                               (len(means), 3, 3))
 
+      def f(x):
+        m, c, r = deform.deform(bind, (jnp.asarray(means), covs0), x)
+        return (jnp.sum(jnp.sin(m)) + jnp.sum(c * 300.0)
+                + jnp.sum(r ** 3))
+
+      jtu.check_grads(f, (x,), order=1, modes=('rev',), atol=1e-6,
+                      rtol=1e-6, eps=1e-5)
+      g = jax.grad(f)(x)
+      test_util.assert_tree_all_finite(g)
+      self.assertGreater(float(jnp.abs(g).max()), 0.0)
 
 if __name__ == '__main__':
   absltest.main()
