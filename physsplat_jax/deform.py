@@ -7,19 +7,43 @@ differentiable map ``driver positions (and F) -> Gaussian means, covariances,
 rotations``.
 
 Weighted local affine fit (default, ``driver_F=None``). For a Gaussian at rest
-position ``X_g`` with neighbours ``j`` (rest ``X_j``, current ``x_j``) and
-normalised weights ``w_j``::
+position ``X_g`` with neighbours ``j`` (rest ``X_j``, displacement
+``u_j = x_j - X_j``) and normalised weights ``w_j``::
 
-  Xc = sum_j w_j X_j,   xc = sum_j w_j x_j
+  Xc = sum_j w_j X_j,   uc = sum_j w_j u_j
   M  = sum_j w_j (X_j - Xc)(X_j - Xc)^T          (rest moment, precomputed)
-  F  = [sum_j w_j (x_j - xc)(X_j - Xc)^T] M^-1   (weighted least squares)
-  x_g = xc + F (X_g - Xc)
+  F  = I + [sum_j w_j (u_j - uc)(X_j - Xc)^T] M^+  (weighted least squares)
+  x_g = X_g + uc + (F - I)(X_g - Xc)
   Sigma' = F Sigma F^T,   R = polar(F)
 
 This is the least-squares affine map from the drivers' rest to current
 positions, so any affine motion of the drivers (rigid motions, uniform
 stretches) is reproduced exactly (to float rounding), and all outputs are
-smooth functions of ``x_j``.
+smooth functions of ``x_j``. Fitting the displacement (``F - I``) rather
+than ``F`` makes the rest state exact: ``u_j = 0`` gives ``F = I`` and
+``x_g = X_g`` bit for bit, whatever the drivers' geometry.
+
+Degenerate neighbourhoods. Drivers that are coplanar (a Gaussian on a face
+of a lattice of drivers) or collinear around a Gaussian leave ``M`` singular:
+their motion says nothing about the directions ``v`` normal to their span
+(eigenvalues of ``M`` below ``_MOMENT_REL_FLOOR`` times the largest). A
+floored inverse of ``M`` maps those directions to ~0 (a singular ``F``: the
+Gaussian is flattened and ``polar(F)`` is NaN). Instead ``M^+`` is the
+pseudo-inverse on the spanned directions, and each degenerate direction is
+completed with the rotation the spanned directions undergo:
+
+* rank 2 (coplanar): ``F n = unit(F a x F b)`` for the rest plane's axes
+  ``a, b`` and normal ``n = a x b``: the normal follows the plane's rotation
+  and keeps its rest length (its stretch is unobservable);
+* rank 1 (collinear, axis ``a``): both normals are turned by the smallest
+  rotation taking ``a`` to ``unit(F a)``;
+* rank 0 (all drivers at one point): ``F = I`` (translation only).
+
+At rest every completion is the identity, so ``F = I`` for every Gaussian;
+rigid motions stay exact in every case, and all maps are smooth in ``x_j``
+away from ``F a x F b = 0`` (a plane folded flat). Interpolating the
+drivers' own ``F`` (below) is the alternative, but needs ``driver_F``, which
+the fit is there to avoid.
 
 Interpolated deformation gradient (``driver_F`` given), as in PhysGaussian's
 per-particle ``F`` but for a Gaussian between particles (first-order
@@ -51,9 +75,15 @@ from physsplat_jax.types import Gaussians
 
 Array = jax.Array
 
-# Relative floor on the eigenvalues of the rest moment matrix M: drivers that
-# are (nearly) coplanar or collinear around a Gaussian would make M singular.
-_MOMENT_REL_FLOOR = 1e-6
+# Relative threshold on the eigenvalues of the rest moment matrix M: below it
+# (drivers spread along that direction by less than 1% of their largest
+# spread, i.e. (nearly) coplanar or collinear drivers) the direction is
+# degenerate and completed by a rotation (module docstring). Above it, the
+# float32 noise of F - I in that direction stays ~1e-7 / 1% of the drivers'
+# spacing / their spread.
+_MOMENT_REL_FLOOR = 1e-4
+# Squared-norm floor for normalisations in unused branches (finite gradients).
+_TINY = 1e-30
 _POLAR_ITERS = 10
 
 
@@ -66,7 +96,11 @@ class Binding(struct.PyTreeNode):
     rest_means: (K, 3) Gaussian centres at rest [scene units].
     rest_x: (K, k, 3) the neighbours' rest positions.
     rest_centroid: (K, 3) weighted rest centroid ``Xc``.
-    moment_inv: (K, 3, 3) inverse of the weighted rest moment ``M``.
+    moment_inv: (K, 3, 3) pseudo-inverse of the weighted rest moment ``M``
+      (on its non-degenerate eigen-directions).
+    rest_basis: (K, 3, 3) eigenvectors of ``M`` as columns, by decreasing
+      eigenvalue, right-handed.
+    rank: (K,) int32 number of non-degenerate directions of ``M`` (0-3).
   """
 
   index: Array
@@ -75,6 +109,8 @@ class Binding(struct.PyTreeNode):
   rest_x: Array
   rest_centroid: Array
   moment_inv: Array
+  rest_basis: Array
+  rank: Array
 
   @property
   def k(self) -> int:
@@ -151,9 +187,11 @@ def make_binding(
   d = rest_x - xc[:, None]
   M = np.einsum('kj,kja,kjb->kab', w, d, d)
   ev, evec = np.linalg.eigh(M)
-  floor = _MOMENT_REL_FLOOR * np.maximum(ev[:, -1:], 1e-30)
-  ev = np.maximum(ev, floor)
-  Minv = np.einsum('kab,kb,kcb->kac', evec, 1.0 / ev, evec)
+  ev, evec = ev[:, ::-1], evec[:, :, ::-1]  # decreasing
+  evec[:, :, 2] *= np.sign(np.linalg.det(evec))[:, None]  # right-handed
+  ok = ev > _MOMENT_REL_FLOOR * np.maximum(ev[:, :1], 1e-300)
+  inv = np.where(ok, 1.0 / np.where(ok, ev, 1.0), 0.0)
+  Minv = np.einsum('kab,kb,kcb->kac', evec, inv, evec)
   f = lambda a: jnp.asarray(a, dtype)
   return Binding(
     index=jnp.asarray(idx, jnp.int32),
@@ -162,6 +200,8 @@ def make_binding(
     rest_x=f(rest_x),
     rest_centroid=f(xc),
     moment_inv=f(Minv),
+    rest_basis=f(evec),
+    rank=jnp.asarray(ok.sum(1), jnp.int32),
   )
 
 
@@ -208,6 +248,39 @@ def polar_rotation(F: Array, iters: int = _POLAR_ITERS) -> Array:
   return X
 
 
+def _unit(v: Array) -> Array:
+  return v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True) + _TINY)
+
+
+def _complete_degenerate(A: Array, V: Array, rank: Array) -> Array:
+  """Sets ``F v`` for the degenerate rest directions ``v`` (module docstring).
+
+  Args:
+    A: (K, 3, 3) fitted ``I + C M^+`` (identity on degenerate directions).
+    V: (K, 3, 3) rest eigenvectors of ``M`` (columns, decreasing, det +1).
+    rank: (K,) non-degenerate directions.
+
+  Returns:
+    (K, 3, 3) ``F`` with ``F V[:, r:]`` replaced by rotated rest axes.
+  """
+  a = jnp.einsum('kab,kbi->kia', A, V)  # a[:, i] = A v_i
+  v = jnp.swapaxes(V, -1, -2)  # v[:, i] = v_i
+  # Rank 2: the normal v_2 = v_0 x v_1 goes to unit(A v_0 x A v_1).
+  n2 = _unit(jnp.cross(a[:, 0], a[:, 1]))
+  # Rank 1: smallest rotation Q taking v_0 to e = unit(A v_0) (Rodrigues).
+  e = _unit(a[:, 0])
+  kx = jnp.cross(v[:, 0], e)
+  c = jnp.sum(v[:, 0] * e, -1)
+  q = lambda y: (c[:, None] * y + jnp.cross(kx, y) + kx * (
+    jnp.sum(kx * y, -1) / jnp.maximum(1.0 + c, 1e-6))[:, None])
+  r = rank[:, None]
+  t1 = jnp.where(r == 1, q(v[:, 1]), a[:, 1])
+  t2 = jnp.where(r == 2, n2, jnp.where(r == 1, q(v[:, 2]), a[:, 2]))
+  # Rank 0 and the spanned directions keep A v_i.
+  cols = jnp.stack([a[:, 0], t1, t2], 1)  # (K, 3 dirs, 3)
+  return A + jnp.einsum('kia,kib->kab', cols - a, v)
+
+
 def local_deformation(
   bind: Binding, driver_x: Array, driver_F: Array | None = None,
   rest_means: Array | None = None,
@@ -228,12 +301,15 @@ def local_deformation(
   w = bind.weights
   x = driver_x[bind.index]  # (K, k, 3)
   if driver_F is None:
-    xc = jnp.einsum('kj,kjd->kd', w, x)
+    u = x - bind.rest_x
+    uc = jnp.einsum('kj,kjd->kd', w, u)
     dX = bind.rest_x - bind.rest_centroid[:, None]
-    dx = x - xc[:, None]
-    C = jnp.einsum('kj,kja,kjb->kab', w, dx, dX)
-    F = C @ bind.moment_inv
-    means = xc + jnp.einsum('kab,kb->ka', F, X_g - bind.rest_centroid)
+    C = jnp.einsum('kj,kja,kjb->kab', w, u - uc[:, None], dX)
+    eye = jnp.eye(3, dtype=C.dtype)
+    F = _complete_degenerate(eye + C @ bind.moment_inv, bind.rest_basis,
+                             bind.rank)
+    means = X_g + uc + jnp.einsum('kab,kb->ka', F - eye,
+                                  X_g - bind.rest_centroid)
   else:
     Fj = driver_F[bind.index]  # (K, k, 3, 3)
     off = X_g[:, None] - bind.rest_x

@@ -160,5 +160,135 @@ class DeformTest(parameterized.TestCase):
       deform.deform(bind, g, jnp.asarray(drivers))
 
 
+def _degenerate_scene():
+  """Drivers on a plate (coplanar), a line (collinear) and a cube lattice.
+
+  Returns (gauss_means, gauss_ids, drivers, driver_ids): plate Gaussians in
+  z = 0, line Gaussians near the line, cube Gaussians on its z = 0 face
+  (whose 8 nearest drivers all lie in that face) and inside it.
+  """
+  rng = np.random.default_rng(3)
+  t = np.linspace(0.0, 1.0, 6)
+  plate = np.stack(np.meshgrid(t, t, [0.0], indexing='ij'), -1).reshape(-1, 3)
+  s = np.linspace(0.0, 1.0, 11)
+  line = np.stack([s, 0 * s + 3.0, 0 * s + 3.0], -1)
+  cube = np.stack(np.meshgrid(t, t, t, indexing='ij'), -1).reshape(-1, 3)
+  cube = cube + [5.0, 0.0, 0.0]
+  g_plate = np.c_[rng.uniform(0.1, 0.9, (40, 2)), np.zeros(40)]
+  g_line = np.c_[rng.uniform(0.1, 0.9, 10), 3.0 + rng.normal(0, 0.01, (10, 2))]
+  g_face = np.c_[5.0 + rng.uniform(0.05, 0.95, (40, 2)), np.zeros(40)]
+  g_in = 5.0 * np.eye(3)[0] + rng.uniform(0.3, 0.7, (20, 3))
+  means = np.r_[g_plate, g_line, g_face, g_in]
+  gids = np.r_[[0] * 40, [1] * 10, [2] * 60]
+  drivers = np.r_[plate, line, cube]
+  dids = np.r_[[0] * len(plate), [1] * len(line), [2] * len(cube)]
+  return means, gids, drivers, dids
+
+
+class DegenerateDriversTest(absltest.TestCase):
+  """Coplanar / collinear drivers: F = I at rest, rotations followed."""
+
+  @classmethod
+  def setUpClass(cls):
+    super().setUpClass()
+    means, gids, drivers, dids = _degenerate_scene()
+    cls.means, cls.gids, cls.drivers = means, gids, drivers
+    cls.bind = deform.make_binding(
+      means.astype(np.float32), drivers.astype(np.float32), k=8,
+      gauss_object_ids=gids, driver_object_ids=dids)
+    cls.fn = staticmethod(jax.jit(deform.local_deformation))
+
+  def test_every_rank_is_exercised(self):
+    rank = np.asarray(self.bind.rank)
+    np.testing.assert_array_equal(rank[:40], 2)  # plate
+    np.testing.assert_array_equal(rank[40:50], 1)  # line
+    np.testing.assert_array_equal(rank[50:90], 2)  # cube face
+    np.testing.assert_array_equal(rank[90:], 3)  # cube interior
+
+  def test_rest_is_identity(self):
+    x = jnp.asarray(self.drivers, jnp.float32)
+    means, F = self.fn(self.bind, x)
+    np.testing.assert_allclose(
+      F, np.broadcast_to(np.eye(3), F.shape), atol=1e-5)
+    np.testing.assert_allclose(means, self.means, atol=1e-6)
+
+  def test_rigid_motion_rotates_degenerate_directions(self):
+    R = _random_rotation(np.random.default_rng(7))
+    tr = np.array([0.3, -1.0, 2.0])
+    x = jnp.asarray(self.drivers @ R.T + tr, jnp.float32)
+    means, F = self.fn(self.bind, x)
+    F = np.asarray(F)
+    # Planes and volumes: exactly the rotation, normals included.
+    sel = np.asarray(self.bind.rank) >= 2
+    np.testing.assert_allclose(F[sel], np.broadcast_to(R, F[sel].shape),
+                               atol=_F32_TOL)
+    np.testing.assert_allclose(np.asarray(means)[sel],
+                               self.means[sel] @ R.T + tr, atol=_F32_TOL)
+    rots = deform.polar_rotation(jnp.asarray(F[sel]))
+    np.testing.assert_allclose(rots, np.broadcast_to(R, rots.shape),
+                               atol=_F32_TOL)
+    # Line: the twist about the line is unobservable; F is the rotation
+    # that turns the line as R does (and no stretch).
+    line = F[40:50]
+    np.testing.assert_allclose(line @ [1.0, 0, 0],
+                               np.broadcast_to(R[:, 0], (10, 3)),
+                               atol=_F32_TOL)
+    np.testing.assert_allclose(line @ np.swapaxes(line, -1, -2),
+                               np.broadcast_to(np.eye(3), line.shape),
+                               atol=_F32_TOL)
+    np.testing.assert_allclose(np.linalg.det(line), 1.0, atol=_F32_TOL)
+
+  def test_affine_motion_spanned_directions_and_covariance(self):
+    A = np.array([[1.2, 0.1, -0.05], [0.0, 0.9, 0.2], [0.1, 0.0, 1.1]])
+    x = jnp.asarray(self.drivers @ A.T, jnp.float32)
+    _, F = self.fn(self.bind, x)
+    F = np.asarray(F)
+    # Plate (in xy): F = A on x and y; the normal is the unit normal of the
+    # deformed plate.
+    plate = self.gids == 0
+    np.testing.assert_allclose(F[plate][:, :, :2],
+                               np.broadcast_to(A[:, :2], (40, 3, 2)),
+                               atol=_F32_TOL)
+    n = np.cross(A[:, 0], A[:, 1])
+    np.testing.assert_allclose(F[plate][:, :, 2],
+                               np.broadcast_to(n / np.linalg.norm(n),
+                                               (40, 3)), atol=_F32_TOL)
+    # Cube interior (full rank): F = A, so the covariance is A Sigma A^T.
+    face = (self.gids == 2) & (np.asarray(self.bind.rank) == 3)
+    self.assertEqual(face.sum(), 20)
+    np.testing.assert_allclose(F[face], np.broadcast_to(A, F[face].shape),
+                               atol=_F32_TOL)
+    rng = np.random.default_rng(1)
+    L = rng.normal(size=(110, 3, 3)) * 0.01
+    covs0 = L @ np.swapaxes(L, -1, -2)
+    _, covs, _ = deform.deform(
+      self.bind, (jnp.asarray(self.means, jnp.float32),
+                  jnp.asarray(covs0, jnp.float32)), x)
+    np.testing.assert_allclose(covs[face], A @ covs0[face] @ A.T,
+                               atol=1e-7, rtol=1e-3)
+
+  def test_gradients_match_finite_differences_with_degenerate_drivers(self):
+    with jax.enable_x64(True):
+      means, gids, drivers, dids = _degenerate_scene()
+      bind = deform.make_binding(means, drivers, k=8, dtype=np.float64,
+                                 gauss_object_ids=gids,
+                                 driver_object_ids=dids)
+      self.assertEqual(set(np.asarray(bind.rank).tolist()), {1, 2, 3})
+      rng = np.random.default_rng(2)
+      x = jnp.asarray(drivers + 0.02 * rng.normal(size=drivers.shape))
+      covs0 = jnp.broadcast_to(jnp.diag(jnp.array([1e-3, 2e-3, 1e-5])),
+                               (len(means), 3, 3))
+
+      def f(x):
+        m, c, r = deform.deform(bind, (jnp.asarray(means), covs0), x)
+        return (jnp.sum(jnp.sin(m)) + jnp.sum(c * 300.0)
+                + jnp.sum(r ** 3))
+
+      jtu.check_grads(f, (x,), order=1, modes=('rev',), atol=1e-6,
+                      rtol=1e-6, eps=1e-5)
+      g = jax.grad(f)(x)
+      test_util.assert_tree_all_finite(g)
+      self.assertGreater(float(jnp.abs(g).max()), 0.0)
+
 if __name__ == '__main__':
   absltest.main()

@@ -173,6 +173,71 @@ class DecompositionTest(absltest.TestCase):
       export.deformed_gaussians(g, g.means[:3], g.covariances)
 
 
+class ThinGaussiansTest(absltest.TestCase):
+  """At rest the exported file is the input, thin Gaussians included."""
+
+  @classmethod
+  def setUpClass(cls):
+    super().setUpClass()
+    import physsplat_jax
+
+    g = physsplat_jax.load_scene('tabletop').gaussians
+    ls = np.array(g.log_scales)
+    ls[::3, 2] = -11.4  # every third Gaussian a thin disc
+    cls.g = g.replace(log_scales=jnp.asarray(ls, jnp.float32))
+    cls.tmp = tempfile.mkdtemp()
+
+  @classmethod
+  def tearDownClass(cls):
+    shutil.rmtree(cls.tmp)
+    super().tearDownClass()
+
+  def test_tabletop_at_rest_round_trips(self):
+    g = self.g
+    # Drivers: every 8th Gaussian centre (PGAS-like density), k = 8.
+    drivers = np.asarray(g.means)[::8]
+    bind = deform.make_binding(g.means, drivers, k=8)
+    x = jnp.asarray(drivers, jnp.float32)
+    _, F = jax.jit(deform.local_deformation)(bind, x)
+    np.testing.assert_allclose(F, np.broadcast_to(np.eye(3), F.shape),
+                               atol=1e-5)
+    means, covs, rots = jax.jit(deform.deform)(bind, g, x)
+    for name, kw in (('cov', {}), ('F', dict(deformation=F))):
+      path = os.path.join(self.tmp, f'{name}.ply')
+      export.save_deformed_ply(path, g, means, covs, rots, sh_degree=None,
+                               **kw)
+      back = ply.load_ply(path)
+      np.testing.assert_allclose(back.log_scales, g.log_scales, atol=1e-4,
+                                 err_msg=name)
+      self.assertEqual(float(np.min(back.log_scales)), np.float32(-11.4))
+      q0 = np.asarray(gs.normalize_quat(g.quats))
+      np.testing.assert_allclose(np.abs(np.sum(back.quats * q0, 1)), 1.0,
+                                 atol=1e-5, err_msg=name)
+      np.testing.assert_allclose(back.means, g.means, atol=1e-6)
+      np.testing.assert_allclose(back.sh, g.sh, atol=1e-5)
+      np.testing.assert_array_equal(back.opacity_logits, g.opacity_logits)
+
+  def test_known_affine_from_deformation_is_exact_for_thin(self):
+    g = self.g
+    rng = np.random.default_rng(0)
+    A = np.eye(3) + 0.2 * rng.normal(size=(3, 3))
+    F = np.broadcast_to(A, (g.num, 3, 3))
+    out = export.deformed_gaussians(g, g.means, None, deformation=F)
+    Q0 = gs.quat_to_rotmat_np(g.quats)
+    s0 = np.exp(np.asarray(g.log_scales, np.float64))
+    L = A @ Q0 * s0[:, None, :]
+    want = L @ np.swapaxes(L, -1, -2)  # F Sigma F^T in float64
+    Q = gs.quat_to_rotmat_np(out.quats)
+    got = np.einsum('kai,ki,kbi->kab', Q, np.exp(2.0 * np.asarray(
+      out.log_scales, np.float64)), Q)
+    # Thin axes: relative accuracy of the smallest variance.
+    w_want = np.linalg.svd(L, compute_uv=False)
+    np.testing.assert_allclose(np.sort(np.exp(out.log_scales), 1),
+                               np.sort(w_want, 1), rtol=1e-5)
+    np.testing.assert_allclose(got, want, rtol=1e-4,
+                               atol=1e-5 * np.abs(want).max())
+
+
 class FilesTest(absltest.TestCase):
 
   def test_frame_writer_and_splat(self):

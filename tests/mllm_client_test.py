@@ -130,6 +130,75 @@ class ClientTest(absltest.TestCase):
       r = c.complete('x')
     self.assertEqual((r.text, r.attempts), ('ok', 2))
 
+  def test_slow_drip_hits_the_request_deadline(self):
+    # One byte every 50 ms: the 1 s per-read timeout never fires and the
+    # ~200-byte answer would take ~10 s; the 0.4 s deadline ends it.
+    with ScriptedChatServer(lambda req, n: Reply(text='dripped',
+                                                 drip_s=0.05)) as s:
+      c = mllm.MLLMClient(_config(s.url, timeout_s=1.0, max_retries=3,
+                                  request_deadline_s=0.4), sleep=Sleeps())
+      t0 = time.perf_counter()
+      with self.assertRaises(mllm.MLLMError) as cm:
+        c.complete('x')
+      elapsed = time.perf_counter() - t0
+      # An earlier absolute deadline (a scene's) wins over the request's.
+      c2 = mllm.MLLMClient(_config(s.url, timeout_s=1.0,
+                                   request_deadline_s=30.0))
+      t1 = time.perf_counter()
+      with self.assertRaisesRegex(mllm.MLLMError, 'deadline'):
+        c2.complete('x', deadline=time.monotonic() + 0.3)
+      elapsed2 = time.perf_counter() - t1
+    self.assertEqual((cm.exception.kind, cm.exception.attempts),
+                     ('deadline', 1))
+    self.assertIn('within the 0.4 s deadline', str(cm.exception))
+    self.assertLess(elapsed, 1.5)
+    self.assertGreater(elapsed, 0.35)
+    self.assertLess(elapsed2, 1.5)
+    # The same drip within a generous deadline completes.
+    with ScriptedChatServer(lambda req, n: Reply(text='ok', drip_s=0.001)) as s:
+      r = mllm.MLLMClient(_config(s.url, request_deadline_s=20.0)).complete(
+        'x')
+    self.assertEqual(r.text, 'ok')
+
+  def test_deadline_stops_retries(self):
+    with ScriptedChatServer(lambda req, n: Reply(text='late',
+                                                 delay_s=_HANG_S)) as s:
+      c = mllm.MLLMClient(_config(s.url, timeout_s=0.2, max_retries=10,
+                                  backoff_s=0.0, request_deadline_s=0.5))
+      t0 = time.perf_counter()
+      with self.assertRaises(mllm.MLLMError) as cm:
+        c.complete('x')
+      elapsed = time.perf_counter() - t0
+    self.assertLess(cm.exception.attempts, 5)
+    self.assertLess(elapsed, 1.5)
+
+  def test_lazy_images_and_cache_id(self):
+    calls = []
+
+    def render():
+      calls.append(1)
+      return [_PNG, mllm.encode_png(np.zeros((4, 5, 3)))]
+
+    with tempfile.TemporaryDirectory() as d, ScriptedChatServer(
+        lambda req, n: Reply(text=f'answer {n}')) as s:
+      c = mllm.MLLMClient(_config(s.url, cache_dir=d))
+      self.assertEqual(c.complete('p', render, cache_id='obj1').text,
+                       'answer 1')
+      content = s.requests[0]['messages'][-1]['content']
+      self.assertEqual([p['type'] for p in content],
+                       ['text', 'image_url', 'image_url'])
+      r = mllm.MLLMClient(_config(s.url, cache_dir=d)).complete(
+        'p', render, cache_id='obj1')
+      self.assertEqual((r.text, r.cached), ('answer 1', True))
+      self.assertEqual(len(calls), 1)  # the cached answer rendered nothing
+      # Another id or other model settings are other keys.
+      c.complete('p', render, cache_id='obj2')
+      mllm.MLLMClient(_config(s.url, cache_dir=d, max_tokens=9)).complete(
+        'p', render, cache_id='obj1')
+      self.assertEqual((len(calls), s.num_requests), (3, 3))
+      with self.assertRaisesRegex(mllm.MLLMError, 'need a cache_id'):
+        c.complete('p', render)
+
   def test_connection_refused(self):
     sock = socket.socket()
     sock.bind(('127.0.0.1', 0))
@@ -189,6 +258,9 @@ class ClientTest(absltest.TestCase):
   def test_bad_config(self):
     with self.assertRaisesRegex(mllm.MLLMError, 'no MLLM endpoint'):
       mllm.MLLMClient(mllm.MLLMConfig())
+    with self.assertRaisesRegex(mllm.MLLMError, 'request_deadline_s must'):
+      mllm.MLLMClient(mllm.MLLMConfig(base_url='http://h/v1',
+                                      request_deadline_s=0))
     with self.assertRaisesRegex(mllm.MLLMError, 'must start with http'):
       mllm.MLLMClient(mllm.MLLMConfig(base_url='localhost:1234'))
     self.assertEqual(mllm.MLLMConfig(base_url='http://h/v1/').url,
@@ -217,8 +289,10 @@ class PngAndFlagsTest(absltest.TestCase):
     mllm.define_flags(fv)
     mllm.define_flags(fv)  # idempotent
     fv(['prog', '--mllm_base_url=http://127.0.0.1:9/v1', '--mllm_model=llava',
-        '--mllm_timeout=7', '--mllm_retries=1', '--mllm_cache_dir='])
+        '--mllm_timeout=7', '--mllm_retries=1', '--mllm_cache_dir=',
+        '--mllm_deadline=20', '--mllm_scene_deadline=90'])
     c = mllm.config_from_flags(fv)
+    self.assertEqual((c.request_deadline_s, c.scene_deadline_s), (20.0, 90.0))
     self.assertEqual((c.base_url, c.model, c.timeout_s, c.max_retries,
                       c.cache_dir, c.api_key_env),
                      ('http://127.0.0.1:9/v1', 'llava', 7.0, 1, None,

@@ -3,7 +3,9 @@
 Not a test module (no ``_test`` suffix): imported by mllm_client_test.py and
 perception_test.py. Each request is answered by ``script(request, n)``,
 which returns a :class:`Reply`: an assistant text, an HTTP status with a raw
-body, and an optional delay before answering (to simulate a hang).
+body, an optional delay before answering (to simulate a hang), and an
+optional drip (the body sent one byte every ``drip_s`` seconds, a server
+that never trips a per-read timeout).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ class Reply:
   body: str | None = None  # raw body (overrides text)
   delay_s: float = 0.0  # sleep before answering (hang)
   headers: tuple[tuple[str, str], ...] = ()
+  drip_s: float = 0.0  # seconds between body bytes (slow drip)
 
 
 def chat_body(text: str) -> str:
@@ -73,7 +76,14 @@ class ScriptedChatServer:
           for k, v in reply.headers:
             self.send_header(k, v)
           self.end_headers()
-          self.wfile.write(data)
+          if not reply.drip_s:
+            self.wfile.write(data)
+            return
+          for i in range(len(data)):
+            self.wfile.write(data[i:i + 1])
+            self.wfile.flush()
+            if outer._stop.wait(reply.drip_s):
+              return
         except (BrokenPipeError, ConnectionResetError):
           pass  # the client gave up (timeout test)
 

@@ -4,6 +4,8 @@ import base64
 import io
 import json
 import tempfile
+import time
+from unittest import mock
 
 import imageio.v3 as iio
 import jax
@@ -14,6 +16,7 @@ from absl.testing import parameterized
 
 from physsplat_jax import perception
 from physsplat_jax.io import mllm
+from physsplat_jax.perception import p3
 from physsplat_jax.perception import parsing
 from physsplat_jax.perception import prompts
 from physsplat_jax.types import Gaussians
@@ -96,6 +99,8 @@ def _options(url, **kw):
                         cache_dir=kw.pop('cache_dir', None),
                         timeout_s=kw.pop('timeout_s', 5.0),
                         max_retries=kw.pop('max_retries', 2),
+                        request_deadline_s=kw.pop('request_deadline_s', 60.0),
+                        scene_deadline_s=kw.pop('scene_deadline_s', 300.0),
                         backoff_s=0.0)
   return perception.PerceptionOptions(mllm=cfg, **kw)
 
@@ -285,7 +290,7 @@ class MllmPathTest(parameterized.TestCase):
 
   def test_cache_makes_rerun_free(self):
     with tempfile.TemporaryDirectory() as d:
-      scene = _scene()
+      scene = _scene(('metal can', 'drink can'))  # both answered aluminium
       images = {0: _VIEW, 1: _VIEW * 0.5}
       a = _answers()
       with ScriptedChatServer(_script(a)) as s:
@@ -297,6 +302,62 @@ class MllmPathTest(parameterized.TestCase):
         self.assertEqual(s.num_requests, n1)
     self.assertEqual(n1, 8)
     self.assertEqual(first, second)
+
+  @parameterized.named_parameters(
+    ('name', 'metal can', 'A wobbly green jelly.',
+     "'jelly' (food) contradicts the name 'metal can', which says "
+     'aluminum (metal), steel (metal)'),
+    # 'beverage can' names no material (keywords only): the caption decides.
+    ('appearance', 'beverage can',
+     'A shiny silver drink can made of aluminium.',
+     "'jelly' (food) contradicts the caption 'A shiny silver drink can "
+     "made of aluminium.', which says aluminum (metal)"))
+  def test_implausible_answer_is_rejected(self, name, caption, why):
+    a = _answers(material='jelly', caption=caption, scores={
+      'scores': {'jelly': 0.9, 'steel': 0.1, 'hard plastic': 0.1}})
+    with self.assertLogs('absl', level='WARNING') as logs:
+      (c,), _ = _run(_script(a), names=(name,))
+    self.assertEqual((c.source, c.material_key), ('library', 'aluminum'))
+    self.assertEqual(c.warnings[0],
+                     'MLLM-P3 answer rejected as implausible: ' + why)
+    line = [x for x in logs.output if f"object 0 '{name}'" in x]
+    self.assertLen(line, 1)
+    self.assertIn('implausible', line[0])
+    self.assertNotIn('\n', line[0])
+
+  def test_plausible_answers_are_kept(self):
+    lib = _LIB
+    self.assertIsNone(perception.plausibility(
+      'thing', 'A wobbly green jelly cube.', lib['jelly'], lib))
+    self.assertIsNone(perception.plausibility(
+      'rubber ball', 'A red ball.', lib['silicone'], lib))  # both elastomer
+    self.assertIsNone(perception.plausibility(
+      'gizmo', 'A small object.', lib['jelly'], lib))  # no evidence
+    self.assertIn('contradicts the name', perception.plausibility(
+      'rubber ball', 'A red ball.', lib['steel'], lib))
+
+  def test_scene_deadline_with_slow_drip_server(self):
+    # The server drips one byte every 50 ms (no per-read timeout fires);
+    # 0.3 s per question and 0.5 s per scene end it: every object falls
+    # back to the library and the third asks nothing.
+    drip = lambda req, n: Reply(text='A can.', drip_s=0.05)
+    scene = _scene(('metal can', 'rubber ball', 'sand pile'))
+    with ScriptedChatServer(drip) as s:
+      opts = _options(s.url, timeout_s=2.0, request_deadline_s=0.3,
+                      scene_deadline_s=0.5)
+      t0 = time.perf_counter()
+      cs = perception.perceive_scene(scene, opts,
+                                     images={i: _VIEW for i in range(3)})
+      elapsed = time.perf_counter() - t0
+      self.assertEqual(s.num_requests, 2)
+    self.assertLess(elapsed, 2.0)
+    self.assertEqual([c.source for c in cs], ['library'] * 3)
+    self.assertEqual([c.material_key for c in cs],
+                     ['aluminum', 'rubber', 'sand'])
+    self.assertIn('within the 0.3 s deadline', cs[0].warnings[0])
+    self.assertIn('deadline', cs[1].warnings[0])
+    self.assertEqual(cs[2].warnings[0], 'MLLM-P3 skipped: the scene '
+                     'deadline (0.5 s) has passed')
 
   def test_scene_material_first(self):
     scene = _scene(('thing',), ('rubber',))
@@ -399,11 +460,13 @@ class OfflineTest(parameterized.TestCase):
     perception.define_flags(fv)
     perception.define_flags(fv)
     fv(['p', '--material_override=ball=rubber', '--default_material=',
-        '--perception_candidates=3', '--mllm_base_url=http://127.0.0.1:1/v1'])
+        '--perception_candidates=3', '--mllm_base_url=http://127.0.0.1:1/v1',
+        '--perception_views=2', '--mllm_scene_deadline=30'])
     o = perception.options_from_flags(fv)
     self.assertEqual((o.overrides, o.default_material, o.num_candidates,
-                      o.mllm.base_url),
-                     ({'ball': 'rubber'}, None, 3, 'http://127.0.0.1:1/v1'))
+                      o.mllm.base_url, o.num_views, o.mllm.scene_deadline_s),
+                     ({'ball': 'rubber'}, None, 3, 'http://127.0.0.1:1/v1',
+                      2, 30.0))
 
 
 class ParsingTest(absltest.TestCase):
@@ -432,6 +495,46 @@ class ParsingTest(absltest.TestCase):
 
 
 class RenderViewTest(absltest.TestCase):
+
+  def test_several_views_and_cached_run_renders_nothing(self):
+    scene = _scene(('metal can',))
+    real = p3.render_object_view
+    with tempfile.TemporaryDirectory() as d, ScriptedChatServer(
+        _script(_answers())) as s:
+      opts = _options(s.url, cache_dir=d, image_size=32, num_views=3)
+      with mock.patch.object(p3, 'render_object_view',
+                             side_effect=real) as render:
+        (c1,) = perception.perceive_scene(scene, opts)
+        self.assertEqual(render.call_count, 3)  # 3 views, once per object
+        azimuths = [call.args[3] for call in render.call_args_list]
+        np.testing.assert_allclose(azimuths, [30.0, 150.0, 270.0])
+        n1 = s.num_requests
+        self.assertEqual(n1, 4)
+        for req in s.requests:  # every question carries all three views
+          kinds = [p['type'] for p in req['messages'][-1]['content']]
+          self.assertEqual(kinds, ['text'] + ['image_url'] * 3)
+        urls = [p['image_url']['url'] for p in
+                s.requests[0]['messages'][-1]['content'][1:]]
+        self.assertLen(set(urls), 3)  # three different images
+        # A rerun (new client): everything from the cache, nothing rendered.
+        (c2,) = perception.perceive_scene(scene, opts)
+        self.assertEqual(render.call_count, 3)
+        self.assertEqual(s.num_requests, n1)
+    self.assertEqual(c1, c2)
+    self.assertEqual(c1.source, 'mllm')
+
+  def test_object_cache_id(self):
+    scene = _scene(('metal can', 'rubber ball'))
+    opts = perception.PerceptionOptions()
+    a = perception.object_cache_id(scene, 0, opts)
+    self.assertEqual(a, perception.object_cache_id(scene, 0, opts))
+    self.assertNotEqual(a, perception.object_cache_id(scene, 1, opts))
+    moved = scene.replace(gaussians=scene.gaussians.replace(
+      means=scene.gaussians.means + 1e-3))
+    self.assertNotEqual(a, perception.object_cache_id(moved, 0, opts))
+    import dataclasses
+    self.assertNotEqual(a, perception.object_cache_id(
+      scene, 0, dataclasses.replace(opts, num_views=2)))
 
   def test_object_view_and_real_render_path(self):
     scene = _scene(('metal can', 'rubber ball'))

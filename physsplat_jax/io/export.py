@@ -8,7 +8,13 @@ mkkellogg, Spark) only read scale + quaternion + SH files, so export:
 
 1. splits ``Sigma'`` (float64, on the host) into ``Q diag(s^2) Q^T`` by an
    eigen-decomposition; eigenvalues below ``min_variance`` (flattened or
-   degenerate Gaussians, round-off negatives) are floored;
+   degenerate Gaussians, round-off negatives) are floored. A float32
+   ``Sigma'`` cannot carry a thin axis (variance ~1e-6 of the largest: its
+   rounding is ~1e-3 in log-scale), so a covariance equal to the rigidly
+   moved rest one (to ``RIGID_RTOL``) keeps the rest scales exactly, and
+   callers that have ``F`` pass ``deformation=F``: the scales are then the
+   singular values of ``F Q_0 diag(s_0)`` in float64, exact for any
+   motion;
 2. orders and signs the eigenvectors to follow the Gaussian's own axes
    carried by the motion, ``R Q_0`` (``Q_0`` its rest rotation): the
    permutation of the eigenvectors that best matches those axes is chosen,
@@ -50,6 +56,10 @@ PathLike = str | os.PathLike
 # Variance floor [scene units^2]: exp(0.5 log(1e-20)) = 1e-10, a flat but
 # finite Gaussian.
 MIN_VARIANCE = 1e-20
+# Relative tolerance under which a covariance counts as the rigidly moved
+# rest covariance (~32 float32 ulps of its largest entry; a float32
+# R S^2 R^T of the tabletop's Gaussians is off by up to 1.2e-6).
+RIGID_RTOL = 4e-6
 # Gaussians per SH-rotation batch (bounds memory: ~4 kB per Gaussian at SH
 # degree 3).
 _SH_BATCH = 32768
@@ -79,26 +89,8 @@ def _as_f64(a, shape, name) -> np.ndarray:
   return a
 
 
-def decompose_aligned(
-  covariances, reference=None, min_variance: float = MIN_VARIANCE
-) -> tuple[np.ndarray, np.ndarray]:
-  """Covariances -> log-scales and proper rotations, following given axes.
-
-  Args:
-    covariances: (K, 3, 3) symmetric PSD matrices.
-    reference: (K, 3, 3) rotations whose columns the output axes should
-      follow (order and sign), e.g. the rest axes carried by the motion; None
-      keeps eigh's ascending order.
-    min_variance: floor of the eigenvalues.
-
-  Returns:
-    (log_scales (K, 3), rotations (K, 3, 3)) float64 with
-    ``rot diag(exp(2 log_scales)) rot^T == covariance`` (up to the floor) and
-    ``det(rot) == +1``.
-  """
-  C = np.asarray(covariances, np.float64)
-  C = 0.5 * (C + np.swapaxes(C, -1, -2))
-  w, V = np.linalg.eigh(C)
+def _align(w, V, reference, min_variance):
+  """Orders/signs eigenpairs ``(w, V)`` to follow ``reference`` (see below)."""
   if reference is not None:
     ref = np.asarray(reference, np.float64)
     M = np.abs(np.einsum('kai,kaj->kij', V, ref))  # |<v_i, ref_j>|
@@ -120,6 +112,74 @@ def decompose_aligned(
   V = V * flip[:, None, :]
   log_scales = 0.5 * np.log(np.maximum(w, min_variance))
   return log_scales, V
+
+
+def decompose_aligned(
+  covariances, reference=None, min_variance: float = MIN_VARIANCE
+) -> tuple[np.ndarray, np.ndarray]:
+  """Covariances -> log-scales and proper rotations, following given axes.
+
+  Args:
+    covariances: (K, 3, 3) symmetric PSD matrices.
+    reference: (K, 3, 3) rotations whose columns the output axes should
+      follow (order and sign), e.g. the rest axes carried by the motion; None
+      keeps eigh's ascending order.
+    min_variance: floor of the eigenvalues.
+
+  Returns:
+    (log_scales (K, 3), rotations (K, 3, 3)) float64 with
+    ``rot diag(exp(2 log_scales)) rot^T == covariance`` (up to the floor) and
+    ``det(rot) == +1``.
+  """
+  C = np.asarray(covariances, np.float64)
+  C = 0.5 * (C + np.swapaxes(C, -1, -2))
+  w, V = np.linalg.eigh(C)
+  return _align(w, V, reference, min_variance)
+
+
+def decompose_deformed(
+  deformation, rest_rotations, rest_log_scales, reference=None,
+  min_variance: float = MIN_VARIANCE,
+) -> tuple[np.ndarray, np.ndarray]:
+  """``F Q0 diag(s0)`` -> log-scales and rotations, without forming Sigma'.
+
+  An SVD of the covariance's factor ``L = F Q0 diag(s0)`` (float64) gives
+  its square roots ``s`` with a relative accuracy the eigenvalues of a
+  float32 ``F Sigma F^T`` lack: a thin axis (``log s0 = -11.4`` next to
+  ``-5``, a variance ratio ~1e-6) loses ~1e-3 in log-scale through a
+  float32 covariance and nothing here. At ``F = I`` the result is the rest
+  scales and axes.
+
+  Args:
+    deformation: (K, 3, 3) local deformation gradients ``F``.
+    rest_rotations: (K, 3, 3) rest axes ``Q0``.
+    rest_log_scales: (K, 3) rest log-scales.
+    reference, min_variance: as :func:`decompose_aligned`.
+
+  Returns:
+    As :func:`decompose_aligned`.
+  """
+  F = np.asarray(deformation, np.float64)
+  s0 = np.exp(np.asarray(rest_log_scales, np.float64))
+  L = F @ np.asarray(rest_rotations, np.float64) * s0[:, None, :]
+  U, sv, _ = np.linalg.svd(L)
+  return _align(sv * sv, U, reference, min_variance)
+
+
+def _rest_if_rigid(C, ref, rest_log_scales, log_scales, Q, rtol):
+  """Keeps the rest scales where ``C`` is the rigidly moved rest covariance.
+
+  Where ``C`` equals ``ref diag(s0^2) ref^T`` to ``rtol`` of its largest
+  entry (float32 rounding of an undeformed Gaussian), ``(s0, ref)`` is an
+  exact decomposition of it, and the only one that keeps thin axes: the
+  rounding of a float32 covariance swamps variances ~1e-6 of the largest.
+  """
+  ls0 = np.asarray(rest_log_scales, np.float64)
+  C_rig = np.einsum('kai,ki,kbi->kab', ref, np.exp(2.0 * ls0), ref)
+  scale = np.abs(C_rig).max(axis=(1, 2))
+  rigid = np.abs(C - C_rig).max(axis=(1, 2)) <= rtol * scale
+  return (np.where(rigid[:, None], ls0, log_scales),
+          np.where(rigid[:, None, None], ref, Q))
 
 
 def rotmat_to_quat_np(R) -> np.ndarray:
@@ -184,6 +244,7 @@ def deformed_gaussians(
   covariances,
   rotations=None,
   *,
+  deformation=None,
   rotate_colors: bool = True,
   min_variance: float = MIN_VARIANCE,
 ) -> Gaussians:
@@ -193,10 +254,17 @@ def deformed_gaussians(
     gaussians: the rest Gaussians (opacity, SH and rest axes are taken from
       them).
     means: (K, 3) deformed centres.
-    covariances: (K, 3, 3) deformed covariances ``F Sigma F^T``.
+    covariances: (K, 3, 3) deformed covariances ``F Sigma F^T``, or None
+      when ``deformation`` is given.
     rotations: (K, 3, 3) local rotations ``polar(F)`` (as returned by
       :func:`physsplat_jax.deform.deform`) or None (no rotation: the axes
       follow the rest axes and the SH are unchanged).
+    deformation: optional (K, 3, 3) local deformation gradients ``F``
+      (:func:`physsplat_jax.deform.local_deformation`); when given, scales
+      and axes come from :func:`decompose_deformed` (exact for thin
+      Gaussians) instead of the covariances. Without it, a covariance that
+      is the rigidly moved rest one (to float32 rounding) keeps the rest
+      scales exactly; others are eigen-decomposed.
     rotate_colors: rotate the SH by ``rotations`` (view-dependent colour
       follows the object).
     min_variance: eigenvalue floor [scene units^2].
@@ -212,12 +280,30 @@ def deformed_gaussians(
   """
   K = gaussians.num
   x = _as_f64(means, (K, 3), 'means')
-  C = _as_f64(covariances, (K, 3, 3), 'covariances')
   R = None if rotations is None else _as_f64(rotations, (K, 3, 3),
                                               'rotations')
   Q0 = quat_to_rotmat_np(gaussians.quats)
   ref = Q0 if R is None else R @ Q0
-  log_scales, Q = decompose_aligned(C, ref, min_variance)
+  ls0 = np.asarray(gaussians.log_scales, np.float64)
+  if deformation is not None:
+    F = _as_f64(deformation, (K, 3, 3), 'deformation')
+    if R is None:  # the axes follow polar(F)
+      U, _, Wt = np.linalg.svd(F)
+      R = U @ Wt
+      ref = R @ Q0
+    log_scales, Q = decompose_deformed(F, Q0, ls0, ref, min_variance)
+    # A rotation (to rounding) keeps the rest scales and the moved rest axes
+    # (the SVD's axes are arbitrary within equal scales).
+    rigid = np.abs(np.swapaxes(F, -1, -2) @ F - np.eye(3)).max(
+      axis=(1, 2)) <= RIGID_RTOL
+    log_scales = np.where(rigid[:, None], ls0, log_scales)
+    Q = np.where(rigid[:, None, None], ref, Q)
+  elif covariances is None:
+    raise ExportError('export: pass covariances or deformation')
+  else:
+    C = _as_f64(covariances, (K, 3, 3), 'covariances')
+    log_scales, Q = decompose_aligned(C, ref, min_variance)
+    log_scales, Q = _rest_if_rigid(C, ref, ls0, log_scales, Q, RIGID_RTOL)
   quats = rotmat_to_quat_np(Q)
   sh = np.asarray(gaussians.sh, np.float32)
   if rotate_colors and R is not None:
@@ -244,6 +330,7 @@ def save_deformed_ply(
   covariances,
   rotations=None,
   *,
+  deformation=None,
   sh_degree: int | None = 3,
   keep_extras: bool = False,
   rotate_colors: bool = True,
@@ -252,8 +339,8 @@ def save_deformed_ply(
 
   Args:
     path: output ``.ply`` (parent folders are created).
-    gaussians, means, covariances, rotations, rotate_colors: as
-      :func:`deformed_gaussians`.
+    gaussians, means, covariances, rotations, deformation, rotate_colors:
+      as :func:`deformed_gaussians`.
     sh_degree: SH degree written (zero-padded or truncated); 3 gives the
       exact INRIA layout of 62 properties; None keeps the scene's.
     keep_extras: also write extra per-Gaussian properties (object ids...).
@@ -262,6 +349,7 @@ def save_deformed_ply(
     The Gaussians written.
   """
   g = deformed_gaussians(gaussians, means, covariances, rotations,
+                         deformation=deformation,
                          rotate_colors=rotate_colors)
   g = _for_viewers(g, sh_degree, keep_extras)
   save_ply(path, g)
@@ -270,7 +358,7 @@ def save_deformed_ply(
 
 def save_deformed_splat(
   path: PathLike, gaussians: Gaussians, means, covariances, rotations=None,
-  *, sort: bool = True,
+  *, deformation=None, sort: bool = True,
 ) -> Gaussians:
   """Writes deformed Gaussians as an antimatter15 ``.splat`` (SH dropped).
 
@@ -278,7 +366,7 @@ def save_deformed_splat(
   Returns the Gaussians written (before 8-bit quantisation).
   """
   g = deformed_gaussians(gaussians, means, covariances, rotations,
-                         rotate_colors=False)
+                         deformation=deformation, rotate_colors=False)
   save_splat(path, g.replace(extras={}), sort=sort)
   return g
 
@@ -343,12 +431,14 @@ class DeformedFrameWriter:
   def __exit__(self, exc_type, exc, tb) -> None:
     self.close()
 
-  def append(self, means, covariances, rotations=None) -> str:
-    """Writes the next frame; returns its path."""
+  def append(self, means, covariances, rotations=None,
+             deformation=None) -> str:
+    """Writes the next frame; returns its path (``deformation``: optional
+    (K, 3, 3) ``F``, see :func:`deformed_gaussians`)."""
     path = os.path.join(self.directory, self.pattern % self._next)
     save = save_deformed_ply if self.format == 'ply' else save_deformed_splat
     save(path, self._gaussians, means, covariances, rotations,
-         **self._kwargs)
+         deformation=deformation, **self._kwargs)
     self._next += 1
     self.paths.append(path)
     return path

@@ -19,14 +19,22 @@ variable (``OPENAI_API_KEY`` by default, or the one named by
 Robustness:
 * per-request ``timeout_s`` (applies to connecting and to each socket read,
   so a server that hangs is abandoned after ``timeout_s``);
+* a total ``request_deadline_s`` per question (all attempts, reads and
+  backoff included): a server that drips its answer a byte at a time never
+  trips the per-read timeout, so a watchdog shuts the socket down when the
+  deadline passes; callers may pass an earlier absolute ``deadline`` (the
+  per-scene deadline of perception);
 * up to ``max_retries`` retries with exponential backoff
   ``backoff_s * 2**attempt`` (capped at ``backoff_max_s``; a numeric
   ``Retry-After`` header is honoured up to the cap) on timeouts, connection
   errors, HTTP 429 and 5xx, and on malformed (non-JSON) response bodies;
   other 4xx fail at once (a bad request does not improve by repetition);
-* an on-disk cache keyed by ``sha256(model, system, prompt, sha256 of each
-  image's bytes)``: a rerun with the same renders and prompts makes no
-  request. Only successful answers are cached. Default directory
+* an on-disk cache keyed by ``sha256(model, temperature, max_tokens,
+  system, prompt, sha256 of each image's bytes)``, or, when the caller
+  passes a ``cache_id`` (e.g. a hash of the object's Gaussians and the view
+  settings), by that instead of the images: then ``images`` may be a
+  callable that renders them, called only on a cache miss, so a cached run
+  renders nothing. Only successful answers are cached. Default directory
   ``.mllm_cache/`` (in .gitignore); ``cache_dir=None`` disables it.
 
 Scripts get absl flags from :func:`define_flags` (nothing is defined at
@@ -44,11 +52,13 @@ import os
 import socket
 import struct
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
 import zlib
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from absl import logging
@@ -56,7 +66,7 @@ from absl import logging
 from physsplat_jax.errors import PhysSplatError
 
 DEFAULT_CACHE_DIR = '.mllm_cache'
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2  # 2: model settings in the key; cache_id
 _BODY_EXCERPT = 300  # characters of an error body quoted in messages
 
 
@@ -64,7 +74,8 @@ class MLLMError(PhysSplatError, RuntimeError):
   """A request failed for good.
 
   Attributes:
-    kind: 'timeout', 'connection', 'http', 'protocol' or 'config'.
+    kind: 'timeout', 'deadline', 'connection', 'http', 'protocol' or
+      'config'.
     status: the HTTP status for kind 'http', else None.
     attempts: how many requests were made.
     retry_after: the server's Retry-After header, if any.
@@ -92,7 +103,10 @@ class MLLMConfig:
       ``'qwen2.5-vl'``, ``'llava'``.
     api_key_env: environment variable holding the API key (sent as
       ``Authorization: Bearer``); a missing variable sends no key.
-    timeout_s: per-request socket timeout [s].
+    timeout_s: socket timeout [s] (connect and each read).
+    request_deadline_s: total time for one question, retries included [s].
+    scene_deadline_s: total time for all questions about one scene [s]
+      (used by perception); past it, the rest falls back to the library.
     max_retries: retries after the first attempt.
     backoff_s: first backoff delay [s]; doubles each retry.
     backoff_max_s: cap on one delay [s].
@@ -105,6 +119,8 @@ class MLLMConfig:
   model: str = 'gpt-4o-mini'
   api_key_env: str = 'OPENAI_API_KEY'
   timeout_s: float = 60.0
+  request_deadline_s: float = 60.0
+  scene_deadline_s: float = 300.0
   max_retries: int = 3
   backoff_s: float = 1.0
   backoff_max_s: float = 30.0
@@ -138,6 +154,10 @@ class MLLMConfig:
     if not self.timeout_s > 0:
       raise MLLMError(f'mllm timeout_s must be > 0, got {self.timeout_s}',
                       'config')
+    for f in ('request_deadline_s', 'scene_deadline_s'):
+      if not getattr(self, f) > 0:
+        raise MLLMError(f'mllm {f} must be > 0, got {getattr(self, f)}',
+                        'config')
     if self.max_retries < 0:
       raise MLLMError(f'mllm max_retries must be >= 0, got '
                       f'{self.max_retries}', 'config')
@@ -201,13 +221,20 @@ def png_data_url(png: bytes) -> str:
 
 
 def cache_key(model: str, prompt: str, images: Sequence[bytes] = (),
-              system: str | None = None) -> str:
-  """sha256 hex of the model, system prompt, prompt and image bytes."""
+              system: str | None = None, *, cache_id: str | None = None,
+              settings: Mapping[str, Any] | None = None) -> str:
+  """sha256 hex of the model, settings, system prompt, prompt and images.
+
+  ``cache_id`` (when given) stands for the images: a caller that can name
+  what it would render (object hash, view settings) needs no render to
+  find a cached answer.
+  """
   h = hashlib.sha256()
   payload = {
     'v': _CACHE_VERSION, 'model': model, 'system': system or '',
-    'prompt': prompt,
-    'images': [hashlib.sha256(b).hexdigest() for b in images],
+    'prompt': prompt, 'settings': dict(settings or {}),
+    'images': (['id:' + cache_id] if cache_id is not None else
+               [hashlib.sha256(b).hexdigest() for b in images]),
   }
   h.update(json.dumps(payload, sort_keys=True).encode('utf-8'))
   return h.hexdigest()
@@ -256,6 +283,61 @@ def _content_text(content) -> str | None:
              if isinstance(p, dict) and p.get('type') in ('text', None)]
     return ''.join(parts) if parts else None
   return None
+
+
+def _tracking(cls, socks: list):
+  """A connection factory that records each connected socket in ``socks``.
+
+  urllib drops ``conn.sock`` once the headers are in (the response keeps
+  the socket through its file), so the socket itself is recorded.
+  """
+
+  def factory(host, **kw):
+    c = cls(host, **kw)
+    connect = c.connect
+
+    def tracked_connect():
+      connect()
+      socks.append(c.sock)
+
+    c.connect = tracked_connect
+    return c
+
+  return factory
+
+
+class _TrackingHTTPHandler(urllib.request.HTTPHandler):
+  """Records its sockets so a watchdog can shut them down."""
+
+  def __init__(self, socks: list):
+    super().__init__()
+    self._socks = socks
+
+  def http_open(self, req):
+    return self.do_open(_tracking(http.client.HTTPConnection, self._socks),
+                        req)
+
+
+class _TrackingHTTPSHandler(urllib.request.HTTPSHandler):
+  """HTTPS twin of :class:`_TrackingHTTPHandler`."""
+
+  def __init__(self, socks: list):
+    super().__init__()
+    self._socks = socks
+
+  def https_open(self, req):
+    return self.do_open(_tracking(http.client.HTTPSConnection, self._socks),
+                        req, context=self._context)
+
+
+def _shutdown(socks: list, fired: threading.Event) -> None:
+  """Deadline watchdog: wakes any blocked read with end-of-stream."""
+  fired.set()
+  for sock in list(socks):
+    try:
+      sock.shutdown(socket.SHUT_RDWR)
+    except OSError:
+      pass
 
 
 class MLLMClient:
@@ -310,18 +392,68 @@ class MLLMClient:
     }
     return json.dumps(body).encode('utf-8')
 
-  def _request_once(self, body: bytes) -> str:
-    """One POST; returns the content or raises a classified MLLMError."""
+  def _deadline_error(self, budget: float) -> MLLMError:
+    return MLLMError(f'no complete answer from {self.config.url} within the '
+                     f'{budget:g} s deadline', 'deadline')
+
+  def _request_once(self, body: bytes, end: float, budget: float) -> str:
+    """One POST that ends by ``end`` (monotonic); returns the content or
+    raises a classified MLLMError."""
     headers = {'Content-Type': 'application/json',
                'Accept': 'application/json'}
     if self._api_key:
       headers['Authorization'] = f'Bearer {self._api_key}'
     req = urllib.request.Request(self.config.url, data=body, headers=headers,
                                  method='POST')
+    remaining = end - time.monotonic()
+    if remaining <= 0:
+      raise self._deadline_error(budget)
     self.num_requests += 1
+    socks: list = []
+    fired = threading.Event()
+    opener = urllib.request.build_opener(_TrackingHTTPHandler(socks),
+                                         _TrackingHTTPSHandler(socks))
+    watchdog = threading.Timer(remaining, _shutdown, (socks, fired))
+    watchdog.daemon = True
+    timeout = min(self.config.timeout_s, remaining)
+
+    def fetch() -> bytes:
+      with opener.open(req, timeout=timeout) as r:
+        return r.read()
+
+    watchdog.start()
     try:
-      with urllib.request.urlopen(req, timeout=self.config.timeout_s) as r:
-        raw = r.read()
+      raw = self._open_errors(fetch)
+    except MLLMError:
+      if fired.is_set():
+        raise self._deadline_error(budget) from None
+      raise
+    finally:
+      watchdog.cancel()
+    if fired.is_set():
+      raise self._deadline_error(budget)
+    return self._parse(raw)
+
+  def _parse(self, raw: bytes) -> str:
+    """The answer text of a response body (or a 'protocol' MLLMError)."""
+    try:
+      data = json.loads(raw.decode('utf-8'))
+      text = _content_text(data['choices'][0]['message']['content'])
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, IndexError,
+            TypeError) as e:
+      raise MLLMError(
+        f'malformed chat-completions response from {self.config.url} '
+        f'({type(e).__name__}): {raw[:_BODY_EXCERPT]!r}', 'protocol'
+      ) from None
+    if text is None:
+      raise MLLMError(f'response from {self.config.url} has no text content',
+                      'protocol')
+    return text
+
+  def _open_errors(self, fn):
+    """Runs ``fn`` mapping urllib/socket errors to classified MLLMErrors."""
+    try:
+      return fn()
     except urllib.error.HTTPError as e:
       try:
         detail = e.read().decode('utf-8', 'replace')[:_BODY_EXCERPT]
@@ -345,19 +477,6 @@ class MLLMClient:
     except (http.client.HTTPException, ConnectionError, OSError) as e:
       raise MLLMError(f'connection to {self.config.url} failed: {e!r}',
                       'connection') from None
-    try:
-      data = json.loads(raw.decode('utf-8'))
-      text = _content_text(data['choices'][0]['message']['content'])
-    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, IndexError,
-            TypeError) as e:
-      raise MLLMError(
-        f'malformed chat-completions response from {self.config.url} '
-        f'({type(e).__name__}): {raw[:_BODY_EXCERPT]!r}', 'protocol'
-      ) from None
-    if text is None:
-      raise MLLMError(f'response from {self.config.url} has no text content',
-                      'protocol')
-    return text
 
   def _delay(self, attempt: int, err: MLLMError) -> float:
     d = min(self.config.backoff_s * 2.0 ** attempt, self.config.backoff_max_s)
@@ -369,46 +488,72 @@ class MLLMClient:
         pass
     return d
 
-  def complete(self, prompt: str, images: Sequence[bytes] = (),
-               system: str | None = None) -> MLLMReply:
+  def complete(self, prompt: str,
+               images: Sequence[bytes] | Callable[[], Sequence[bytes]] = (),
+               system: str | None = None, *, cache_id: str | None = None,
+               deadline: float | None = None) -> MLLMReply:
     """Asks the model; answers from the cache when possible.
 
     Args:
       prompt: the user text.
-      images: PNG file bytes, sent as data URLs in order after the text.
+      images: PNG file bytes, sent as data URLs in order after the text; or
+        a callable returning them, called only when a request is made
+        (with ``cache_id``, a cached answer renders nothing).
       system: optional system prompt.
+      cache_id: names the images in the cache key instead of their bytes
+        (required when ``images`` is a callable and the cache is on).
+      deadline: optional absolute ``time.monotonic()`` time by which to
+        give up, when earlier than ``request_deadline_s`` from now.
 
     Returns:
       An :class:`MLLMReply`.
 
     Raises:
-      MLLMError: after the retries are spent, or at once on a non-retryable
-        HTTP status; ``kind`` says what happened.
+      MLLMError: after the retries are spent, at once on a non-retryable
+        HTTP status, or when the deadline passes (kind 'deadline'); ``kind``
+        says what happened.
     """
-    images = tuple(images)
-    key = cache_key(self.config.model, prompt, images, system)
+    budget = self.config.request_deadline_s
+    end = time.monotonic() + budget
+    if deadline is not None and deadline < end:
+      budget = max(deadline - time.monotonic(), 0.0)
+      end = deadline
+    lazy = callable(images)
+    if lazy and cache_id is None and self.config.cache_dir:
+      raise MLLMError('mllm: images given as a callable need a cache_id',
+                      'config')
+    settings = {'temperature': self.config.temperature,
+                'max_tokens': self.config.max_tokens}
+    key = cache_key(self.config.model, prompt,
+                    () if lazy else tuple(images), system,
+                    cache_id=cache_id, settings=settings)
     if self.config.cache_dir:
       text = _cache_read(self.config.cache_dir, key)
       if text is not None:
         self.num_cache_hits += 1
         return MLLMReply(text=text, cached=True, attempts=0, key=key)
-    body = self._body(prompt, images, system)
+    if end <= time.monotonic():
+      raise self._deadline_error(budget)
+    body = self._body(prompt, tuple(images() if lazy else images), system)
     attempts = 0
     while True:
       attempts += 1
       try:
-        text = self._request_once(body)
+        text = self._request_once(body, end, budget)
         break
       except MLLMError as e:
         retryable = (e.kind in ('timeout', 'connection', 'protocol')
                      or (e.kind == 'http'
                          and (e.status == 429 or e.status >= 500)))
-        if not retryable or attempts > self.config.max_retries:
+        delay = self._delay(attempts - 1, e) if retryable else 0.0
+        if (not retryable or attempts > self.config.max_retries
+            or time.monotonic() + delay >= end):
           what = 'not retried' if not retryable else (
             f'after {attempts} attempts')
+          if retryable and attempts <= self.config.max_retries:
+            what = f'after {attempts} attempts; no time left to retry'
           raise MLLMError(f'{e} ({what})', e.kind, e.status, attempts
                           ) from None
-        delay = self._delay(attempts - 1, e)
         logging.warning('mllm: attempt %d failed (%s); retrying in %.2f s',
                         attempts, e, delay)
         self._sleep(delay)
@@ -429,7 +574,8 @@ def define_flags(flag_values=None) -> None:
   """Defines the ``--mllm_*`` absl flags (idempotent).
 
   Flags: ``--mllm_base_url`` (empty = offline), ``--mllm_model``,
-  ``--mllm_api_key_env``, ``--mllm_timeout`` [s], ``--mllm_retries``,
+  ``--mllm_api_key_env``, ``--mllm_timeout`` [s], ``--mllm_deadline`` [s],
+  ``--mllm_scene_deadline`` [s], ``--mllm_retries``,
   ``--mllm_backoff`` [s], ``--mllm_cache_dir`` (empty disables the cache),
   ``--mllm_max_tokens``.
 
@@ -449,7 +595,11 @@ def define_flags(flag_values=None) -> None:
     (flags.DEFINE_string, 'mllm_api_key_env', d.api_key_env,
      'Environment variable that holds the API key.'),
     (flags.DEFINE_float, 'mllm_timeout', d.timeout_s,
-     'Per-request timeout [s].'),
+     'Socket timeout [s] (connect and each read).'),
+    (flags.DEFINE_float, 'mllm_deadline', d.request_deadline_s,
+     'Total time for one question, retries included [s].'),
+    (flags.DEFINE_float, 'mllm_scene_deadline', d.scene_deadline_s,
+     'Total time for all questions about one scene [s]; then the library.'),
     (flags.DEFINE_integer, 'mllm_retries', d.max_retries,
      'Retries on timeouts, connection errors, HTTP 429 and 5xx.'),
     (flags.DEFINE_float, 'mllm_backoff', d.backoff_s,
@@ -474,6 +624,8 @@ def config_from_flags(flag_values=None) -> MLLMConfig:
     model=fv.mllm_model,
     api_key_env=fv.mllm_api_key_env,
     timeout_s=float(fv.mllm_timeout),
+    request_deadline_s=float(fv.mllm_deadline),
+    scene_deadline_s=float(fv.mllm_scene_deadline),
     max_retries=int(fv.mllm_retries),
     backoff_s=float(fv.mllm_backoff),
     cache_dir=fv.mllm_cache_dir or None,

@@ -31,8 +31,13 @@ from physsplat_jax.perception.library import parse_library as parse_library
 from physsplat_jax.perception.p3 import PerceptionOptions as PerceptionOptions
 from physsplat_jax.perception.p3 import perceive_object as perceive_object
 from physsplat_jax.perception.p3 import perceive_scene as perceive_scene
+from physsplat_jax.perception.p3 import object_cache_id as object_cache_id
+from physsplat_jax.perception.p3 import plausibility as plausibility
 from physsplat_jax.perception.p3 import (
   render_object_view as render_object_view,
+)
+from physsplat_jax.perception.p3 import (
+  render_object_views as render_object_views,
 )
 from physsplat_jax.perception.parsing import AnswerError as AnswerError
 from physsplat_jax.perception.selection import (

@@ -9,7 +9,7 @@
 * ``--default_material``: library key for names that match nothing
   (empty: error instead).
 * ``--perception_candidates``, ``--perception_image_size``,
-  ``--perception_selection``.
+  ``--perception_views``, ``--perception_selection``.
 
 ``options_from_flags()`` turns them into :class:`PerceptionOptions`.
 """
@@ -84,6 +84,8 @@ def define_flags(flag_values=None) -> None:
      'Candidate materials asked of the MLLM (K).'),
     (flags.DEFINE_integer, 'perception_image_size', d.image_size,
      'Side of the rendered object view sent to the MLLM [pixels].'),
+    (flags.DEFINE_integer, 'perception_views', d.num_views,
+     'Views of each object sent with every MLLM question (around it).'),
   ]
   for define, name, default, help_ in specs:
     if name not in fv:
@@ -109,5 +111,6 @@ def options_from_flags(flag_values=None,
     default_material=fv.default_material or None,
     num_candidates=int(fv.perception_candidates),
     image_size=int(fv.perception_image_size),
+    num_views=int(fv.perception_views),
     selection=fv.perception_selection,
   ).validate()

@@ -312,6 +312,20 @@ class MaterialLibrary:
         out.append((t, e.key, 'keyword', 1.0 / df[t], k))
     return out
 
+  def mentioned(self, text: str) -> tuple[str, ...]:
+    """Keys whose key or an alias appears as a phrase in ``text``.
+
+    Strong evidence only (material words such as 'aluminium', 'rubber
+    ball'); keywords ('can', 'shiny') are not counted. Used by the
+    plausibility check of MLLM answers.
+    """
+    toks = tokens(text)
+    out = []
+    for t, k, kind, _, _ in self._terms:
+      if kind in ('key', 'alias') and k not in out and _contains(toks, t):
+        out.append(k)
+    return tuple(out)
+
   def suggest(self, name: str, n: int = 5) -> list[str]:
     """Keys whose key/aliases are closest to ``name`` (for messages)."""
     words = {' '.join(t): key for t, key, kind, _, _ in self._terms

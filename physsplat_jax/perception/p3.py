@@ -8,8 +8,10 @@ which, and why):
    or a mapping of simulation values; see :func:`choice.apply_spec`).
 2. ``config``: ``options.config_materials[object name]`` (or its ``'*'``
    entry), e.g. from a PhysGaussian config.
-3. ``mllm`` (when an endpoint is configured): PhysSplat's MLLM-P3 on a
-   rendered canonical view of the object alone:
+3. ``mllm`` (when an endpoint is configured): PhysSplat's MLLM-P3 on
+   ``num_views`` rendered views of the object alone (around it, every
+   ``360 / num_views`` degrees of azimuth), all sent together with each
+   question (OpenAI multi-image content):
 
    (1) caption the object; (2) ask for K candidate materials and whether it
    is rigid (JSON); (3) pick the best candidate (MLLM visual score + caption
@@ -20,11 +22,29 @@ which, and why):
    asked again once (``json_retries``). The real-world values are mapped to
    the simulation preset (:func:`choice.simulation_values`).
 
+   The picked material must be plausible (:func:`plausibility`): when the
+   object's name states a material ('metal can', 'rubber ball'), the pick
+   must be of the same library category; when it does not, the same holds
+   for the materials the caption names (the MLLM's account of the
+   object's appearance). The property answers must lie in the picked
+   material's library ranges (widened by the ``*_slack`` factors). An
+   implausible pick sends the object to path 4 with a one-line warning
+   saying why ("'jelly' (food) contradicts the name 'metal can', which
+   says aluminum (metal)").
+
    Any failure falls back to the library with a warning: a failed caption
-   or candidate step (network error, timeout, unusable answer) sends the
-   whole object to path 4; a failed score step drops the visual score; a
-   failed or out-of-range property answer uses library values for the
-   fields concerned.
+   or candidate step (network error, timeout, deadline, unusable answer)
+   sends the whole object to path 4; a failed score step drops the visual
+   score; a failed or out-of-range property answer uses library values for
+   the fields concerned. Each question has a total deadline
+   (``mllm.request_deadline_s``) and the scene one
+   (``mllm.scene_deadline_s``): objects reached after it use the library.
+
+   Caching: every question's cache key is computed from what needs no
+   render: a hash of the object's Gaussians, its name, the view settings,
+   ``prompts.PROMPT_VERSION``, the prompt text, the model and its settings.
+   The views are rendered on the first cache miss only, so a fully cached
+   run renders nothing.
 4. ``library`` (offline default): the scene's ``ObjectInfo.material`` key
    if set, else the object's name matched against the library (key, alias,
    phrase, keyword, fuzzy), else ``options.default_material`` with a
@@ -38,6 +58,9 @@ unless one is passed in.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
@@ -69,9 +92,12 @@ SELECTION_METHODS = ('score', 'text', 'first')
 class ChatClient(Protocol):
   """What perception needs from a client (``MLLMClient`` has it)."""
 
-  def complete(self, prompt: str, images: Sequence[bytes] = (),
-               system: str | None = None) -> Any:
-    """Returns an object with a ``text`` attribute."""
+  def complete(self, prompt: str,
+               images: Sequence[bytes] | Callable[[], Sequence[bytes]] = (),
+               system: str | None = None, *, cache_id: str | None = None,
+               deadline: float | None = None) -> Any:
+    """Returns an object with a ``text`` attribute (``images`` may be a
+    callable that renders them, called only when a request is made)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,8 +113,10 @@ class PerceptionOptions:
     default_material: library key used when an object's name matches
       nothing (with a warning); None raises instead.
     num_candidates: K, candidate materials asked for.
-    image_size: side of the rendered view [pixels].
-    azimuth_deg, elevation_deg: viewing direction of the canonical view.
+    image_size: side of each rendered view [pixels].
+    num_views: views per object, ``360 / num_views`` degrees apart in
+      azimuth, sent together with every question.
+    azimuth_deg, elevation_deg: viewing direction of the first view.
     background: RGB background of the view.
     name_hint: tell the MLLM the object's scene name in the caption prompt.
     selection: 'score' (visual score + text + rank), 'text' (text + rank,
@@ -109,6 +137,7 @@ class PerceptionOptions:
   default_material: str | None = 'jelly'
   num_candidates: int = 5
   image_size: int = 224
+  num_views: int = 4
   azimuth_deg: float = 30.0
   elevation_deg: float = 20.0
   background: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -129,6 +158,9 @@ class PerceptionOptions:
     if self.num_candidates < 1:
       raise ValueError('PerceptionOptions.num_candidates must be >= 1, got '
                        f'{self.num_candidates}')
+    if not 1 <= self.num_views <= 8:
+      raise ValueError('PerceptionOptions.num_views must be in 1..8, got '
+                       f'{self.num_views}')
     if self.image_size < 8:
       raise ValueError('PerceptionOptions.image_size must be >= 8, got '
                        f'{self.image_size}')
@@ -210,11 +242,83 @@ def render_object_view(
   return np.clip(np.asarray(out.image, np.float32), 0.0, 1.0)
 
 
+def view_azimuths(options: PerceptionOptions) -> tuple[float, ...]:
+  """Azimuths [deg] of the object views (evenly around it)."""
+  n = options.num_views
+  return tuple(options.azimuth_deg + 360.0 * i / n for i in range(n))
+
+
+def render_object_views(scene: Scene, index: int,
+                        options: PerceptionOptions) -> list[np.ndarray]:
+  """The ``options.num_views`` views of one object sent to the MLLM."""
+  return [render_object_view(scene, index, options.image_size, az,
+                             options.elevation_deg, options.background)
+          for az in view_azimuths(options)]
+
+
+def object_cache_id(scene: Scene, index: int,
+                    options: PerceptionOptions) -> str:
+  """What the views of an object depend on, hashed (no render).
+
+  sha256 of the object's Gaussians (means, scales, rotations, opacities,
+  SH as float32 bytes), its name, the view settings and the prompt
+  version; the client adds the prompt, the model and its settings.
+  """
+  mask = np.asarray(scene.object_ids) == index
+  g = scene.gaussians
+  h = hashlib.sha256()
+  for a in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh):
+    h.update(np.ascontiguousarray(np.asarray(a)[mask], np.float32).tobytes())
+  h.update(json.dumps({
+    'name': scene.objects[index].name, 'size': options.image_size,
+    'azimuths': view_azimuths(options), 'elevation': options.elevation_deg,
+    'background': list(options.background),
+    'prompt_version': prompts.PROMPT_VERSION,
+  }, sort_keys=True).encode('utf-8'))
+  return 'gaussians:' + h.hexdigest()
+
+
+def plausibility(name: str, caption: str, entry: MaterialEntry,
+                 library: MaterialLibrary) -> str | None:
+  """Why a picked material is implausible for the object, or None.
+
+  The object's name is the strongest evidence: when it names materials
+  (library keys or aliases as phrases, e.g. 'metal can', 'rubber ball'),
+  the pick must share the category of one of them. Otherwise the caption
+  (the MLLM's own description of the views) is checked the same way. A
+  name or caption that names no material accepts any pick.
+
+  Args:
+    name: the object's scene name.
+    caption: the MLLM's caption of the object.
+    entry: the picked library entry.
+    library: the material library.
+
+  Returns:
+    A one-line reason, or None when plausible.
+  """
+  for what, text in (('name', name), ('caption', caption)):
+    keys = library.mentioned(text or '')
+    if not keys:
+      continue
+    cats = {library[k].category for k in keys}
+    if entry.category in cats:
+      return None
+    says = ', '.join(f'{k} ({library[k].category})' for k in keys[:3])
+    return (f'{entry.key!r} ({entry.category}) contradicts the {what} '
+            f'{_short(text, 60)!r}, which says {says}')
+  return None
+
+
 # ---------------------------------------------------------------- helpers
 
 
 class _StepFailed(Exception):
   """One P3 step failed for good (message says which and why)."""
+
+
+class _Implausible(_StepFailed):
+  """The MLLM's pick contradicts the object's name or appearance."""
 
 
 def _entry_offline(info: ObjectInfo, library: MaterialLibrary,
@@ -271,14 +375,16 @@ def _short(text: str, n: int = 80) -> str:
 # ---------------------------------------------------------------- MLLM-P3
 
 
-def _mllm_choice(info: ObjectInfo, png: bytes, client: ChatClient,
-                 library: MaterialLibrary, options: PerceptionOptions
+def _mllm_choice(info: ObjectInfo, views: Callable[[], list[bytes]],
+                 cache_id: str, client: ChatClient, library: MaterialLibrary,
+                 options: PerceptionOptions, deadline: float | None = None
                  ) -> MaterialChoice:
   warnings: list[str] = []
 
   def ask(task: str, prompt: str) -> str:
     try:
-      return client.complete(prompt, [png], system=prompts.SYSTEM).text
+      return client.complete(prompt, views, system=prompts.SYSTEM,
+                             cache_id=cache_id, deadline=deadline).text
     except MLLMError as e:
       raise _StepFailed(f'{task} request failed: {e}') from None
 
@@ -324,6 +430,9 @@ def _mllm_choice(info: ObjectInfo, png: bytes, client: ChatClient,
     key, combined, method = select_candidate(
       cands.keys, caption, library, visual, options.score_weights)
   entry = library[key]
+  why = plausibility(info.name, caption, entry, library)
+  if why is not None:
+    raise _Implausible(why)
   # (4) properties.
   try:
     props = ask_json(
@@ -364,7 +473,8 @@ def perceive_object(
   options: PerceptionOptions,
   library: MaterialLibrary,
   client: ChatClient | None = None,
-  image: np.ndarray | None = None,
+  image: np.ndarray | Sequence[np.ndarray] | None = None,
+  deadline: float | None = None,
 ) -> MaterialChoice:
   """The material of one object (see the module docstring for the paths).
 
@@ -374,7 +484,10 @@ def perceive_object(
     options: settings.
     library: the material library.
     client: chat client, or None for offline.
-    image: (H, W, 3) view to send instead of rendering one.
+    image: an (H, W, 3) view, or a sequence of them, to send instead of
+      rendering ``options.num_views``.
+    deadline: optional absolute ``time.monotonic()`` time (the scene's
+      deadline) after which no more questions are asked.
 
   Returns:
     A validated :class:`MaterialChoice`.
@@ -394,13 +507,36 @@ def perceive_object(
     return choice_lib.apply_spec(info.name, spec, library, base, source)
   if client is None or (options.scene_material_first and info.material):
     return _offline_choice(info, library, options)
+  if deadline is not None and time.monotonic() >= deadline:
+    why = (f'the scene deadline ({options.mllm.scene_deadline_s:g} s) has '
+           'passed')
+    return _offline_choice(info, library, options,
+                           warnings=(f'MLLM-P3 skipped: {why}',),
+                           prefix=f'MLLM-P3 skipped ({why}): ')
+  if image is not None:
+    given = [image] if np.ndim(image) == 3 else list(image)
+    pngs = [encode_png(v) for v in given]
+    cache_id = 'images:' + hashlib.sha256(b''.join(
+      hashlib.sha256(p).digest() for p in pngs)).hexdigest()
+    views = lambda: pngs
+  else:
+    cache_id = object_cache_id(scene, index, options)
+    rendered: list[bytes] = []
+
+    def views() -> list[bytes]:
+      if not rendered:  # once per object, on the first cache miss
+        rendered.extend(encode_png(v) for v in
+                        render_object_views(scene, index, options))
+      return rendered
+
   try:
-    if image is None:
-      image = render_object_view(
-        scene, index, options.image_size, options.azimuth_deg,
-        options.elevation_deg, options.background)
-    png = encode_png(image)
-    return _mllm_choice(info, png, client, library, options)
+    return _mllm_choice(info, views, cache_id, client, library, options,
+                        deadline)
+  except _Implausible as e:
+    return _offline_choice(
+      info, library, options,
+      warnings=(f'MLLM-P3 answer rejected as implausible: {e}',),
+      prefix='MLLM-P3 answer implausible, fell back to the library: ')
   except (_StepFailed, ValueError) as e:
     return _offline_choice(info, library, options,
                            warnings=(f'MLLM-P3 failed: {e}',),
@@ -424,7 +560,8 @@ def perceive_scene(
     client: a chat client; default: an ``MLLMClient`` when
       ``options.mllm`` has an endpoint, else None (offline).
     library: the material library (default: the shipped one).
-    images: object index -> (H, W, 3) view to use instead of rendering.
+    images: object index -> (H, W, 3) view, or a sequence of views, to use
+      instead of rendering.
 
   Returns:
     One :class:`MaterialChoice` per object, in ``scene.objects`` order.
@@ -442,10 +579,12 @@ def perceive_scene(
   mode = 'MLLM-P3 via ' + options.mllm.model if client is not None else (
     'offline (library)')
   logging.info('perception: %d object(s), %s', len(scene.objects), mode)
+  deadline = (time.monotonic() + options.mllm.scene_deadline_s
+              if client is not None else None)
   out = []
   for i, info in enumerate(scene.objects):
     c = perceive_object(scene, i, options, library, client,
-                        None if images is None else images.get(i))
+                        None if images is None else images.get(i), deadline)
     level = logging.WARNING if c.warnings else logging.INFO
     logging.log(level, 'perception: object %d %r -> %s via %s: %s%s', i,
                 info.name, c.summary(), c.source, c.reason,

@@ -18,6 +18,9 @@ SYSTEM = (
 )
 
 TASKS = ('caption', 'candidates', 'score', 'properties')
+# Part of every cache key: bump when a prompt's wording changes.
+# 2: several views of the object per question.
+PROMPT_VERSION = 2
 
 
 def caption_prompt(name_hint: str | None = None) -> str:
@@ -25,9 +28,10 @@ def caption_prompt(name_hint: str | None = None) -> str:
   hint = f' (the scene labels it {name_hint!r})' if name_hint else ''
   return (
     'TASK: caption\n'
-    f'The image shows one object cut out of a 3D scene{hint}. Describe it '
-    'in one or two sentences: what it is, what it is most likely made of, '
-    'its colour and its surface (shiny, matte, translucent, rough, soft). '
+    f'The images show one object cut out of a 3D scene{hint}, seen from '
+    'several sides. Describe it in one or two sentences: what it is, what '
+    'it is most likely made of, its colour and its surface (shiny, matte, '
+    'translucent, rough, soft). '
     'Answer with plain text only.'
   )
 
@@ -58,7 +62,7 @@ def score_prompt(caption: str, candidates: Sequence[str]) -> str:
     f'Object description: {caption}\n'
     f'Candidate materials: {names}.\n'
     'For each candidate, rate from 0 (impossible) to 1 (certain) how well it '
-    'matches the object in the image.\n'
+    'matches the object in the images.\n'
     'Answer with JSON only, exactly in this form:\n'
     f'{{"scores": {{{example}}}}}'
   )
