@@ -86,17 +86,18 @@ def is_power_of_two(n: int) -> bool:
 
 def _pixels(t, s: _Static, dtype):
   """Pixel-centre coordinates (P,) of sub-tile ``t`` (raster's numbering)."""
+  i32 = jnp.int32
   sub = s.tile // s.st
-  S = sub * sub
-  tile_id = lax.div(t, S)
-  q = lax.rem(t, S)
-  ty = lax.div(tile_id, s.tiles_x)
-  tx = lax.rem(tile_id, s.tiles_x)
-  p = lax.broadcasted_iota(jnp.int32, (s.st * s.st,), 0)
-  j = lax.rem(q, sub) * s.st + lax.rem(p, s.st)
-  i = lax.div(q, sub) * s.st + lax.div(p, s.st)
-  px = (tx * s.tile + j).astype(dtype) + 0.5
-  py = (ty * s.tile + i).astype(dtype) + 0.5
+  tile_id = lax.div(t, i32(sub * sub))
+  q = lax.rem(t, i32(sub * sub))
+  ty = lax.div(tile_id, i32(s.tiles_x))
+  tx = lax.rem(tile_id, i32(s.tiles_x))
+  p = lax.broadcasted_iota(i32, (s.st * s.st,), 0)
+  st = i32(s.st)
+  j = lax.rem(q, i32(sub)) * st + lax.rem(p, st)
+  i = lax.div(q, i32(sub)) * st + lax.div(p, st)
+  px = (tx * i32(s.tile) + j).astype(dtype) + 0.5
+  py = (ty * i32(s.tile) + i).astype(dtype) + 0.5
   return px, py
 
 
@@ -159,7 +160,7 @@ def _forward_kernel(ranges_ref, feat_ref, acc_ref, logt_ref, stop_ref, *,
     log_t = log_t + jnp.sum(jnp.where(live, la, 0.0), axis=1)
     # T only decreases, so the live slots form a prefix of the batch: the
     # first slot not blended is base + (their number).
-    n_live = jnp.sum(live.astype(jnp.int32), axis=1)
+    n_live = jnp.sum(live.astype(jnp.int32), axis=1, dtype=jnp.int32)
     stop = jnp.where((stop >= end) & (n_live < B), base + n_live, stop)
     return base + B, log_t, stop, r, g, b, d
 
@@ -188,7 +189,7 @@ def _backward_kernel(ranges_ref, feat_ref, logt_ref, stop_ref, dacc_ref,
   lane = lax.broadcasted_iota(jnp.int32, (1, B), 1)
   lane1 = lax.broadcasted_iota(jnp.int32, (B,), 0)
   # Batches that any pixel blended: [start, max(stop)) in steps of B.
-  num = lax.div(jnp.max(stop) - start + B - 1, B)
+  num = lax.div(jnp.max(stop) - start + B - 1, jnp.int32(B))
 
   def body(k, c):
     log_t_after, s_after = c
@@ -238,8 +239,8 @@ def _backward_kernel(ranges_ref, feat_ref, logt_ref, stop_ref, dacc_ref,
 
 
 def _params(s: _Static):
-  if s.interpret or s.num_warps is None:
-    return {}
+  # Triton compiler params select the Triton lowering on NVIDIA (newer jax
+  # defaults to Mosaic GPU, which these kernels are not written for).
   return {'compiler_params': plgpu.CompilerParams(num_warps=s.num_warps)}
 
 
