@@ -55,7 +55,7 @@ def _weights(shape, seed):
           jnp.asarray(rng.normal(size=(h, w)), jnp.float32))
 
 
-def _loss_fn(cam, config, background, weights, names):
+def _loss_fn(cam, config, background, weights):
   """(loss, outputs) of a weighted sum of image, alpha and depth."""
   w_img, w_alpha, w_depth = weights
 
@@ -69,7 +69,6 @@ def _loss_fn(cam, config, background, weights, names):
            + 0.1 * jnp.sum(out.depth * w_depth))
     return val, out
 
-  del names
   return jax.jit(jax.value_and_grad(loss, has_aux=True))
 
 
@@ -80,7 +79,7 @@ def _compare(test, g, cam, config, params, background=(0.0, 0.0, 0.0),
   res = {}
   for name, cfg in (('jax', dataclasses.replace(config, backend='jax')),
                     ('pallas', config)):
-    fn = _loss_fn(cam, cfg, jnp.asarray(background), weights, None)
+    fn = _loss_fn(cam, cfg, jnp.asarray(background), weights)
     (_, out), grads = fn(params, g)
     res[name] = (jax.tree.map(np.asarray, out),
                  jax.tree.map(np.asarray, grads))

@@ -46,6 +46,11 @@ Two compositing loops share this code:
   ``jax.checkpoint``-ed chunk body (memory: one carry per chunk). Sub-tiles
   with more than ``max_chunks * C`` Gaussians set ``overflow``.
 
+On a GPU (``RenderConfig.backend='auto'``) stage 4 is replaced by the Pallas
+(Triton) kernels of :mod:`~physsplat_jax.render.pallas_raster`, with the same
+images and a back-to-front VJP; this module's compositor stays the CPU path
+and the reference.
+
 Colour is ``max(SH(dir) + 0.5, 0)`` with ``dir = mean - camera_position``
 (world frame, INRIA ``computeColorFromSH``), or explicit per-Gaussian colours.
 After a deformation, pass the deformed covariances ``F Sigma F^T`` and the
