@@ -208,6 +208,9 @@ class PallasConfigTest(absltest.TestCase):
   def test_backend_selection_and_errors(self):
     self.assertEqual(raster.RenderConfig().resolved_backend(),
                      'pallas' if jax.default_backend() == 'gpu' else 'jax')
+    # Triton needs power-of-two blocks: 'auto' keeps 12-px tiles on JAX.
+    self.assertEqual(raster.RenderConfig(
+      tile_size=12, subtile_size=None).resolved_backend(), 'jax')
     g = test_util.random_gaussians(jax.random.PRNGKey(0), 10)
     cam = _camera(32, 24)
     bad = [raster.RenderConfig(backend='cuda'),

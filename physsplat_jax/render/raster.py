@@ -126,7 +126,8 @@ class RenderConfig:
       rectangle. Exact: the pixels left out would all be skipped.
     backend: compositor: 'jax' (this module's, CPU reference), 'pallas'
       (:mod:`~physsplat_jax.render.pallas_raster`, Triton kernels with a
-      back-to-front VJP) or 'auto' (Pallas on a GPU, JAX elsewhere). Same
+      back-to-front VJP) or 'auto' (Pallas on a GPU if the sub-tile edge
+      and ``pallas_block`` are powers of two, JAX elsewhere). Same
       images, same API; the Pallas path is differentiable in both
       :func:`render` and :func:`render_differentiable` and ignores
       ``max_chunks``/``chunk_size``/``prefix``/``tile_batch``.
@@ -157,10 +158,16 @@ class RenderConfig:
   pallas_num_warps: int | None = None
 
   def resolved_backend(self) -> str:
-    """'pallas' or 'jax' (``backend='auto'``: Pallas on a GPU only)."""
+    """'pallas' or 'jax'.
+
+    ``backend='auto'`` gives Pallas on a GPU when the sub-tile edge and
+    ``pallas_block`` are powers of two (Triton block shapes), else JAX.
+    """
     if self.backend != 'auto':
       return self.backend
-    return 'pallas' if jax.default_backend() == 'gpu' else 'jax'
+    pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
+    ok = pow2(self.resolved_subtile) and pow2(self.pallas_block)
+    return 'pallas' if ok and jax.default_backend() == 'gpu' else 'jax'
 
   @property
   def resolved_subtile(self) -> int:
