@@ -15,6 +15,19 @@ also times, in the same process, the gsplat-style binning (16-px tiles,
 3-sigma rectangles, no sub-tiles) with the same compositor, and reports the
 ratio; ``--compare`` the cumsum prefix; ``--grad`` a reverse-mode gradient
 through the differentiable path.
+
+GPU path: ``--backend`` picks the compositor of the main run (``auto``:
+Pallas on a GPU, JAX elsewhere); ``--pallas`` also times the Pallas
+compositor (forward, and the gradient with ``--grad``) beside it and reports
+its max abs difference to the main run (off a GPU it needs ``--interpret``:
+slow, a correctness run only). If ``gsplat`` imports and CUDA is available,
+gsplat 1.5.3's ``rasterization`` is timed in the same process on the same
+Gaussians and camera (quaternions wxyz, OpenCV world-to-camera viewmat,
+black background), forward and (with ``--grad``) the gradient of the mean
+image w.r.t. means and SH, with the PSNR of our image against gsplat's::
+
+  python -m experiments.benchmark_render --num=100000,1000000 --size=1024 \
+      --grad --pallas --repeats=10
 """
 
 from __future__ import annotations
@@ -49,6 +62,18 @@ _GRAD = flags.DEFINE_bool('grad', False, 'Also time a gradient.')
 _CHUNK = flags.DEFINE_integer('chunk', 64, 'RenderConfig.chunk_size.')
 _SUBTILE = flags.DEFINE_integer('subtile', 8, 'RenderConfig.subtile_size.')
 _BATCH = flags.DEFINE_integer('tile_batch', 1, 'RenderConfig.tile_batch.')
+_BACKEND = flags.DEFINE_enum('backend', 'auto', ['auto', 'jax', 'pallas'],
+                             'RenderConfig.backend of the main run.')
+_PALLAS = flags.DEFINE_bool('pallas', False,
+                            'Also time backend=pallas (and its gradient).')
+_INTERPRET = flags.DEFINE_bool('interpret', False,
+                               'Pallas interpret mode (CPU, slow).')
+_BLOCK = flags.DEFINE_integer('pallas_block', 64,
+                              'RenderConfig.pallas_block.')
+_WARPS = flags.DEFINE_integer('num_warps', None,
+                              'RenderConfig.pallas_num_warps.')
+_GSPLAT = flags.DEFINE_bool('gsplat', True,
+                            'Also time gsplat when importable with CUDA.')
 _OUT = flags.DEFINE_string('out', None, 'Optional JSON results file.')
 
 
@@ -93,9 +118,83 @@ def _render_fn(config):
   return jax.jit(lambda g, cam: raster.render(g, cam, config=config))
 
 
+def _grad_fn(g, cam, config):
+  def loss(means, sh):
+    o = raster.render_differentiable(g.replace(means=means, sh=sh), cam,
+                                     config=config)
+    return jnp.mean(o.image)
+
+  return jax.jit(jax.grad(loss, argnums=(0, 1)))
+
+
+def _psnr(a, b) -> float:
+  mse = float(np.mean((np.asarray(a, np.float64)
+                       - np.asarray(b, np.float64)) ** 2))
+  return float('inf') if mse == 0 else -10.0 * np.log10(mse)
+
+
+def bench_gsplat(g: Gaussians, cam, repeats: int, grad: bool,
+                 image=None) -> dict:
+  """Times gsplat's ``rasterization`` on the same scene (empty if absent).
+
+  gsplat takes wxyz quaternions, linear scales, opacities in [0, 1], SH
+  (K, B, 3) and an OpenCV world-to-camera viewmat, as we do. Returns
+  ``gsplat_s``, ``gsplat_grad_s`` (gradient of the mean image w.r.t. means
+  and SH) and ``gsplat_psnr_db`` (our ``image`` against gsplat's).
+  """
+  try:
+    import gsplat
+    import torch
+  except ImportError:
+    return {}
+  if not torch.cuda.is_available():
+    return {}
+  dev = torch.device('cuda')
+  t = lambda x: torch.tensor(np.asarray(x, np.float32), device=dev)
+  means, quats, sh = t(g.means), t(g.quats), t(g.sh)
+  scales, opac = t(np.exp(np.asarray(g.log_scales))), t(g.opacities)
+  viewmats, Ks = t(cam.viewmat)[None], t(cam.K)[None]
+  degree = int(round(np.sqrt(g.sh.shape[1]))) - 1
+
+  def run(m, c):
+    img, _, _ = gsplat.rasterization(m, quats, scales, opac, c, viewmats,
+                                     Ks, cam.width, cam.height,
+                                     sh_degree=degree)
+    return img
+
+  def timed(fn):
+    fn()
+    torch.cuda.synchronize()
+    best = float('inf')
+    for _ in range(repeats):
+      t0 = time.perf_counter()
+      fn()
+      torch.cuda.synchronize()
+      best = min(best, time.perf_counter() - t0)
+    return best
+
+  res = {'gsplat_version': gsplat.__version__}
+  with torch.no_grad():
+    res['gsplat_s'] = timed(lambda: run(means, sh))
+    img = run(means, sh)[0].cpu().numpy()
+  if image is not None:
+    res['gsplat_psnr_db'] = _psnr(image, img)
+  if grad:
+    m2 = means.clone().requires_grad_(True)
+    s2 = sh.clone().requires_grad_(True)
+
+    def step():
+      loss = run(m2, s2).mean()
+      torch.autograd.grad(loss, (m2, s2))
+
+    res['gsplat_grad_s'] = timed(step)
+  return res
+
+
 def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
           baseline: bool = False, compare: bool = False,
-          grad: bool = False) -> dict:
+          grad: bool = False, pallas: bool = False,
+          interpret: bool = False, use_gsplat: bool = True) -> dict:
   """Times one scene and camera; returns a dict of results."""
   config = raster.fit_render_config(g, cam, config, margin=1.1)
   res = {'num': int(g.num), 'width': cam.width, 'height': cam.height,
@@ -121,16 +220,34 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
                speedup_vs_cumsum_cpu=tc2 / tc,
                cumsum_max_abs_diff=float(
                  jnp.abs(out2.image - out.image).max()))
+  res['backend'] = config.resolved_backend()
   if grad:
-    def loss(means, sh):
-      o = raster.render_differentiable(
-        g.replace(means=means, sh=sh), cam, config=config)
-      return jnp.mean(o.image)
-
-    gfn = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    gfn = _grad_fn(g, cam, config)
     cg, tg, tgc, _ = _time(gfn, g.means, g.sh, repeats=repeats)
     res.update(grad_compile_s=cg, grad_s=tg, grad_cpu_s=tgc,
                max_chunks=config.max_chunks)
+  if pallas:
+    cfg_p = dataclasses.replace(config, backend='pallas',
+                                interpret=interpret)
+    cp, tp, tpc, out_p = _time(_render_fn(cfg_p), g, cam, repeats=repeats)
+    res.update(pallas_compile_s=cp, pallas_render_s=tp,
+               pallas_render_cpu_s=tpc,
+               pallas_max_abs_diff=float(
+                 jnp.abs(out_p.image - out.image).max()))
+    if grad:
+      cg, tg, tgc, _ = _time(_grad_fn(g, cam, cfg_p), g.means, g.sh,
+                             repeats=repeats)
+      res.update(pallas_grad_compile_s=cg, pallas_grad_s=tg,
+                 pallas_grad_cpu_s=tgc)
+  if use_gsplat:
+    gres = bench_gsplat(g, cam, repeats, grad, image=out.image)
+    res.update(gres)
+    for ours in ('render_s', 'pallas_render_s'):
+      if 'gsplat_s' in gres and ours in res:
+        res[f'{ours}_over_gsplat'] = res[ours] / gres['gsplat_s']
+    for ours in ('grad_s', 'pallas_grad_s'):
+      if 'gsplat_grad_s' in gres and ours in res:
+        res[f'{ours}_over_gsplat'] = res[ours] / gres['gsplat_grad_s']
   return res
 
 
@@ -139,7 +256,11 @@ def main(argv):
   print('devices', jax.devices())
   config = raster.RenderConfig(chunk_size=_CHUNK.value,
                                subtile_size=_SUBTILE.value,
-                               tile_batch=_BATCH.value)
+                               tile_batch=_BATCH.value,
+                               backend=_BACKEND.value,
+                               interpret=_INTERPRET.value,
+                               pallas_block=_BLOCK.value,
+                               pallas_num_warps=_WARPS.value)
   runs = []
   if _SCENE.value:
     from physsplat_jax.scenes import load_scene
@@ -153,7 +274,8 @@ def main(argv):
   results = []
   for g, cam in runs:
     r = bench(g, cam, config, _REPEATS.value, _BASELINE.value,
-              _COMPARE.value, _GRAD.value)
+              _COMPARE.value, _GRAD.value, _PALLAS.value, _INTERPRET.value,
+              _GSPLAT.value)
     print(json.dumps(r))
     results.append(r)
   if _OUT.value:

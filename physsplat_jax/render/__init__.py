@@ -1,7 +1,8 @@
 """Pure-JAX Gaussian-splat rendering (gsplat semantics), CPU and GPU.
 
 See :mod:`physsplat_jax.render.raster` for the algorithm and docs/rendering.md
-for the semantics, the gsplat/INRIA differences and benchmarks.
+for the semantics, the gsplat/INRIA differences and benchmarks; on GPUs the
+compositing runs as Pallas (Triton) kernels (:mod:`.pallas_raster`).
 """
 
 import sys as _sys

@@ -46,6 +46,11 @@ Two compositing loops share this code:
   ``jax.checkpoint``-ed chunk body (memory: one carry per chunk). Sub-tiles
   with more than ``max_chunks * C`` Gaussians set ``overflow``.
 
+On a GPU (``RenderConfig.backend='auto'``) stage 4 is replaced by the Pallas
+(Triton) kernels of :mod:`~physsplat_jax.render.pallas_raster`, with the same
+images and a back-to-front VJP; this module's compositor stays the CPU path
+and the reference.
+
 Colour is ``max(SH(dir) + 0.5, 0)`` with ``dir = mean - camera_position``
 (world frame, INRIA ``computeColorFromSH``), or explicit per-Gaussian colours.
 After a deformation, pass the deformed covariances ``F Sigma F^T`` and the
@@ -119,6 +124,17 @@ class RenderConfig:
       ``alpha_min``: inside the ellipse ``sigma <= log(opacity /
       alpha_min)`` (per-axis box), intersected with gsplat's 3-sigma tile
       rectangle. Exact: the pixels left out would all be skipped.
+    backend: compositor: 'jax' (this module's, CPU reference), 'pallas'
+      (:mod:`~physsplat_jax.render.pallas_raster`, Triton kernels with a
+      back-to-front VJP) or 'auto' (Pallas on a GPU if the sub-tile edge
+      and ``pallas_block`` are powers of two, JAX elsewhere). Same
+      images, same API; the Pallas path is differentiable in both
+      :func:`render` and :func:`render_differentiable` and ignores
+      ``max_chunks``/``chunk_size``/``prefix``/``tile_batch``.
+    interpret: run the Pallas kernels in interpret mode (debug/tests: the
+      only way to run ``backend='pallas'`` off a GPU).
+    pallas_block: Gaussians per batch of a Pallas program (power of two).
+    pallas_num_warps: Triton warps per program (None: Triton's default).
   """
 
   tile_size: int = 16
@@ -136,6 +152,22 @@ class RenderConfig:
   prefix: str = 'matmul'
   subtile_size: int | None = 8
   tight_bounds: bool = True
+  backend: str = 'auto'
+  interpret: bool = False
+  pallas_block: int = 64
+  pallas_num_warps: int | None = None
+
+  def resolved_backend(self) -> str:
+    """'pallas' or 'jax'.
+
+    ``backend='auto'`` gives Pallas on a GPU when the sub-tile edge and
+    ``pallas_block`` are powers of two (Triton block shapes), else JAX.
+    """
+    if self.backend != 'auto':
+      return self.backend
+    pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
+    ok = pow2(self.resolved_subtile) and pow2(self.pallas_block)
+    return 'pallas' if ok and jax.default_backend() == 'gpu' else 'jax'
 
   @property
   def resolved_subtile(self) -> int:
@@ -256,10 +288,33 @@ def _check_inputs(gaussians, camera, background, covariances, view_rotations,
     raise ValueError(
       f'RenderConfig.capacity must be >= 1, got {config.capacity}'
     )
+  if config.backend not in ('auto', 'jax', 'pallas'):
+    raise ValueError(
+      f"RenderConfig.backend must be 'auto', 'jax' or 'pallas', got "
+      f'{config.backend!r}'
+    )
+  if config.resolved_backend() == 'pallas':
+    _check_pallas(config)
   if config.prefix not in ('matmul', 'cumsum'):
     raise ValueError(
       f"RenderConfig.prefix must be 'matmul' or 'cumsum', got "
       f'{config.prefix!r}'
+    )
+
+
+def _check_pallas(config):
+  st = config.resolved_subtile
+  pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
+  if not (pow2(st) and pow2(config.pallas_block)):
+    raise ValueError(
+      f"RenderConfig: backend='pallas' needs a power-of-two sub-tile edge "
+      f'and pallas_block (Triton block shapes), got {st} and '
+      f'{config.pallas_block}'
+    )
+  if jax.default_backend() != 'gpu' and not config.interpret:
+    raise ValueError(
+      f"RenderConfig: backend='pallas' runs on a GPU; on "
+      f"'{jax.default_backend()}' set interpret=True (slow, for tests)"
     )
 
 
@@ -532,10 +587,18 @@ def _render(gaussians, camera, background, covariances, view_rotations,
   with jax.named_scope('bin_sort'):
     binned = _bin_and_sort(proj, feat[:, 5], tiles_x, tiles_y, config,
                            capacity)
-  max_chunks = config.resolved_max_chunks(K) if differentiable else 0
+  pallas = config.resolved_backend() == 'pallas'
+  max_chunks = (config.resolved_max_chunks(K)
+                if differentiable and not pallas else 0)
   with jax.named_scope('composite'):
-    log_t, acc = _rasterize(feat, binned, tiles_x, tiles_y, config,
-                            differentiable, max_chunks)
+    if pallas:
+      from physsplat_jax.render import pallas_raster
+
+      log_t, acc = pallas_raster.rasterize(feat, binned.gid, binned.ranges,
+                                           tiles_x, tiles_y, config)
+    else:
+      log_t, acc = _rasterize(feat, binned, tiles_x, tiles_y, config,
+                              differentiable, max_chunks)
   st = config.resolved_subtile
   T = jnp.exp(_untile(log_t, tiles_x, tiles_y, tile, st, H, W))
   acc = _untile(acc, tiles_x, tiles_y, tile, st, H, W)
@@ -546,7 +609,7 @@ def _render(gaussians, camera, background, covariances, view_rotations,
   drawn = alpha > 1e-6
   depth = jnp.where(drawn, dep / jnp.where(drawn, alpha, 1.0), 0.0)
   overflow = binned.total > capacity
-  if differentiable:
+  if differentiable and not pallas:
     overflow = overflow | (binned.max_tile > max_chunks * config.chunk_size)
   return RenderOutput(
     image=image,
