@@ -32,8 +32,8 @@ from physsplat_jax.mpm import base
 # Width of the domain-box border in cells (PhysGaussian's bounding_box
 # padding).
 BORDER = 3
-# SurfaceCollider grid constraints act on nodes at least this many cells
-# behind the plane (see ``particle_contact``).
+# 'sticky' and 'separate' SurfaceCollider grid constraints act on nodes at
+# least this many cells behind the plane (see ``particle_contact``).
 CONTACT_NODE_DEPTH = 1.0
 
 
@@ -285,11 +285,14 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
     if isinstance(bc, SurfaceCollider):
       on = _active(t, bc.start_time, bc.end_time, dt)
       n = bc.normal
-      # Only nodes at least a cell behind the plane: a node closer to it
-      # would hold particles up to 1.5 dx - depth in front of the plane.
-      # The plane itself is enforced on particles (``particle_contact``).
+      # 'sticky'/'separate': only nodes at least a cell behind the plane (a
+      # node closer to it would hold particles up to 1.5 dx - depth in
+      # front of it); the plane itself is enforced on particles
+      # (``particle_contact``). 'slip' is bilateral and keeps every node
+      # behind the plane.
+      depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
       side = (sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
-              < -CONTACT_NODE_DEPTH * grid.dx)
+              < -depth)
       hit = on & side
       if bc.surface == 'sticky':
         gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
