@@ -221,6 +221,76 @@ def sand_slope(res, phi=30.0, radius=0.2, height=0.12):
     final_height=float(hmax), runout_radius=float(np.percentile(rr, 99)))
 
 
+def pile_slope(xf, centre, floor, dx):
+  """Flank angle [deg] and height of a conical pile of particles.
+
+  The height profile is the 95th percentile of z in radial bins of one cell;
+  a line is fitted to the flank between 20% and 80% of the pile height.
+  """
+  rr = np.hypot(xf[:, 0] - centre[0], xf[:, 1] - centre[1])
+  bins = np.arange(0, rr.max() + dx, dx)
+  prof = []
+  for a, b in zip(bins[:-1], bins[1:]):
+    m = (rr >= a) & (rr < b)
+    if m.sum() >= 5:
+      prof.append((0.5 * (a + b), np.percentile(xf[m, 2], 95) - floor))
+  prof = np.asarray(prof)
+  hmax = prof[:, 1].max()
+  sel = (prof[:, 1] > 0.2 * hmax) & (prof[:, 1] < 0.8 * hmax)
+  slope = -np.polyfit(prof[sel, 0], prof[sel, 1], 1)[0] if sel.sum() >= 2 \
+      else float('nan')
+  return math.degrees(math.atan(slope)), float(hmax), rr
+
+
+def angle_of_repose(res, phi=30.0, volume_correction=1.0, radius=0.2,
+                    height=0.45, damping=40.0, seconds=2.5):
+  """Quasi-static angle of repose of a Drucker-Prager sand column.
+
+  A quarter of a tall column (radius 0.2 m, height 0.45 m) stands in the
+  corner of two frictionless 'slip' walls, which are exact symmetry planes
+  of the full column, on a sticky floor. It collapses under a strong
+  grid-velocity damping (``damping`` 1/s: terminal speed ``g / damping``,
+  0.25 m/s), so it creeps into a cone without the momentum that makes a
+  free collapse run out past the angle of repose; the flank angle of the
+  pile at rest is compared with the friction angle.
+  """
+  grid = mpm.GridSpec(res=res, size=1.0)
+  floor = 0.1
+  wall = 0.1  # the corner (x, y) = (wall, wall)
+  x, vol = lattice((wall, wall, floor),
+                   (wall + radius, wall + radius, floor + height),
+                   grid.dx / 2)
+  x = x[np.hypot(x[:, 0] - wall, x[:, 1] - wall) < radius]
+  mat = mpm.make_materials('drucker_prager', 3e5, 0.3, 2000.0, num=len(x),
+                           friction_angle=phi,
+                           dp_volume_correction=volume_correction)
+  frame_dt = 0.05
+  frames = int(round(seconds / frame_dt))
+  n = mpm.choose_substeps(grid.dx, frame_dt, mat, max_speed=1.0)
+  cfg = mpm.SimConfig(
+    grid=grid, dt=frame_dt / n, substeps_per_frame=n,
+    models=('drucker_prager',), velocity_damping=damping,
+    boundary_conditions=(
+      mpm.SurfaceCollider(point=(0, 0, floor)),
+      mpm.SurfaceCollider(point=(wall, 0, 0), normal=(1, 0, 0),
+                          surface='slip'),
+      mpm.SurfaceCollider(point=(0, wall, 0), normal=(0, 1, 0),
+                          surface='slip')))
+  s = mpm.init_state(x, np.zeros(3), vol, mat, cfg)
+  r = mpm.run(s, mat, None, cfg, frames)
+  xf = r.positions[-1]
+  angle, hmax, rr = pile_slope(xf, (wall, wall), floor, grid.dx)
+  # Creep speed over the last frame.
+  speed = float(np.abs(r.positions[-1] - r.positions[-2]).max() / frame_dt)
+  tag = '' if volume_correction else '_novc'
+  return dict(
+    case=f'repose_phi{phi:g}{tag}', res=res, particles=len(x), dt=cfg.dt,
+    metric='pile flank angle [deg]', value=angle, reference=phi,
+    rel_error=(angle - phi) / phi, seconds=r.run_s + r.compile_s,
+    final_height=hmax, runout_radius=float(np.percentile(rr, 99)),
+    final_max_speed=speed)
+
+
 def contact(res, ground=0.2537, seconds=1.0):
   """Blocks of several materials and a rigid box resting on a fixed plane.
 
@@ -300,6 +370,9 @@ def main(argv):
                    for p in (20.0, 35.0)],
     'contact': [(contact, dict(res=r)) for r in ((24,) if quick
                                                   else (24, 40))],
+    'repose': [(angle_of_repose, dict(res=r, phi=p))
+               for r in ((32,) if quick else (32, 48))
+               for p in (20.0, 30.0, 40.0)],
   }
   unknown = [c for c in _CASES.value if c not in plan]
   if unknown:
