@@ -35,6 +35,8 @@ BORDER = 3
 # 'sticky' and 'separate' SurfaceCollider grid constraints act on nodes at
 # least this many cells behind the plane (see ``particle_contact``).
 CONTACT_NODE_DEPTH = 1.0
+# A particle within this many cells of its contact distance touches a plane.
+_TOUCH = 1e-3
 
 
 def _active(t, start, end, dt):
@@ -225,7 +227,8 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   loses the approaching part of its normal velocity, down to the speed that
   brings it exactly onto the plane (``-max(d, 0) / dt``, ``d`` its signed
   distance), with Coulomb friction on the tangential part ('separate' and
-  'slip') or no tangential motion ('sticky'); particles already behind the plane are projected onto
+  'slip'); on a 'sticky' plane every touching particle loses its tangential
+  motion; particles already behind the plane are projected onto
   it. Together with ``apply_grid_bcs`` (which acts only on nodes a cell or
   more behind the plane, so it cannot hold bodies above it) the support
   sits at the plane itself, wherever it lies between grid nodes.
@@ -249,7 +252,11 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
     d0 = sum((x[k] - p[k]) * n[k] for k in range(3)) - radius
     vn = v[0] * n[0] + v[1] * n[1] + v[2] * n[2]
     target = -jnp.maximum(d0, 0.0) / dt
-    hit = on & (d0 + dt * vn < 0)
+    hit = d0 + dt * vn < 0
+    if surface == 'sticky':
+      # Touching particles stick even when not pressed in this substep.
+      hit = hit | (d0 <= _TOUCH * config.grid.dx)
+    hit = on & hit
     dvn = jnp.where(hit, target - vn, 0.0)  # > 0 where hit
     w = [v[k] - vn * n[k] for k in range(3)]
     if surface == 'sticky':
