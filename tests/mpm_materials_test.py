@@ -152,6 +152,53 @@ class PlasticityTest(absltest.TestCase):
       np.testing.assert_allclose(Fe2, F2, atol=1e-12)
       self.assertEqual(float(ep2[0]), 0.0)
 
+  def test_drucker_prager_volume_correction(self):
+    """Tampubolon et al. 2017: dilation is stored, then given back."""
+    with jax.enable_x64(True):
+      # Isotropic stretch by 1.1: projected to the apex, log Jp = 3 log 1.1.
+      F = np.eye(3)[None] * 1.1
+      Fe, Jp, _, tau = _update('drucker_prager', F)
+      np.testing.assert_allclose(tau, 0.0, atol=1e-9)
+      np.testing.assert_allclose(Jp, 1.1 ** 3, rtol=1e-12)
+      # Compressing back by the same amount meets no resistance and spends
+      # the correction; without it (Klar) the sand pushes back at once.
+      F2 = np.eye(3)[None] / 1.1
+      Fe2, Jp2, _, tau2 = _update('drucker_prager', F2, Jp=Jp)
+      np.testing.assert_allclose(tau2, 0.0, atol=1e-9)
+      np.testing.assert_allclose(Jp2, 1.0, rtol=1e-12)
+      np.testing.assert_allclose(Fe2[0], np.eye(3), atol=1e-12)
+      _, Jp3, _, tau3 = _update('drucker_prager', F2, Jp=Jp,
+                                dp_volume_correction=0.0)
+      np.testing.assert_allclose(np.trace(tau3[0]) / 3,
+                                 (3 * _LAM + 2 * _MU) * np.log(1 / 1.1),
+                                 rtol=1e-10)
+      np.testing.assert_allclose(Jp3, Jp, rtol=0)  # untouched when off
+      # Compressed further: elastic with the corrected strain.
+      F4 = np.eye(3)[None] / 1.2
+      _, Jp4, _, tau4 = _update('drucker_prager', F4, Jp=Jp)
+      np.testing.assert_allclose(
+        np.trace(tau4[0]) / 3,
+        (3 * _LAM + 2 * _MU) * (np.log(1 / 1.2) + np.log(1.1)), rtol=1e-10)
+      np.testing.assert_allclose(Jp4, 1.0, rtol=1e-12)
+
+  def test_drucker_prager_cohesion_carries_tension(self):
+    with jax.enable_x64(True):
+      F = np.eye(3)[None] * 1.01
+      _, _, ep0, tau0 = _update('drucker_prager', F)
+      np.testing.assert_allclose(tau0, 0.0, atol=1e-9)  # cohesionless
+      self.assertGreater(float(ep0[0]), 0.0)
+      # Apex at log-strain c = 0.02: the stretch stays elastic.
+      Fe, _, ep, tau = _update('drucker_prager', F, dp_cohesion=0.02)
+      np.testing.assert_allclose(Fe, F, atol=1e-12)
+      np.testing.assert_allclose(tau[0], (3 * _LAM + 2 * _MU) * np.log(1.01)
+                                 * np.eye(3), rtol=1e-10)
+      self.assertEqual(float(ep[0]), 0.0)
+      # Beyond it: projected to the apex, tension (3 lam + 2 mu) c.
+      _, _, _, tau2 = _update('drucker_prager', np.eye(3)[None] * 1.05,
+                              dp_cohesion=0.02)
+      np.testing.assert_allclose(tau2[0], (3 * _LAM + 2 * _MU) * 0.02
+                                 * np.eye(3), rtol=1e-10)
+
   def test_snow_clamps_and_hardens(self):
     with jax.enable_x64(True):
       tc, ts, xi = 2.5e-2, 7.5e-3, 10.0
