@@ -16,7 +16,9 @@ by one Newton orthonormalisation step) so that the particle frames, and the
 Gaussians they carry, rotate with the body. Fixed bodies have
 ``V = omega = 0``. Rigid particles carry no stress, so their stiffness never
 limits the time step; they still take part in P2G, which couples them two
-ways with the other materials.
+ways with the other materials. Fixed planes (``SurfaceCollider``) and the
+domain walls act on a body as a whole (``_plane_contacts``): a contact
+impulse and a translation out of the plane, never a per-particle clamp.
 """
 
 from __future__ import annotations

@@ -6,8 +6,9 @@ One substep (Hu et al. 2018, with PhysGaussian's ordering)::
   2. constitutive update F_e, plastic state = return_map(F); tau(F_e)
   3. P2G                 mass, momentum with A = m C - dt V0 (4/dx^2) tau
   4. grid update         v = p / m + dt g, damping, boundary conditions
-  5. G2P                 v, C from the grid; rigid projection;
-                         x += dt v, F = (I + dt C) F_e; x clamped to the grid
+  5. G2P                 v, C from the grid; plane contact on particles;
+                         rigid projection and contact; x += dt v,
+                         F = (I + dt C) F_e; x clamped to the grid
 
 Step 2 of substep k + 1 is computed at the end of substep k (and once at the
 start of a frame) and carried, so that the stress reaches P2G as a
