@@ -156,10 +156,10 @@ def _plane_contacts(planes, rigid, seg, B, ssum, at, mass, r, x_new, V, w, I,
   ``u_n = (V + omega x r_c) . n < 0`` (plastic contact,
   ``j = -u_n / (1/M + (r_c x n) . I^-1 (r_c x n))``), and a tangential one
   removes the sliding speed up to the Coulomb bound ``mu j`` (all of it on a
-  sticky plane). Afterwards the body is translated along each normal out
-  of the plane by its largest penetration (planes in turn) (the mass-weighted mean
-  penetration of the contact set when particles are split over devices,
-  where only sums are reduced). Bodies stay exactly rigid, and rest on the
+  sticky plane). Afterwards the body is translated along the normal out of
+  the plane by its largest penetration, plane after plane (by the
+  mass-weighted mean penetration of the contact set when particles are
+  split over devices, where only sums are reduced). Bodies stay exactly rigid, and rest on the
   plane instead of sinking as the grid-only coupling lets them (there the
   particles away from the bottom keep their full weight in the average).
 
