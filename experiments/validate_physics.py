@@ -243,7 +243,7 @@ def pile_slope(xf, centre, floor, dx):
 
 
 def angle_of_repose(res, phi=30.0, volume_correction=1.0, radius=0.2,
-                    height=0.45, damping=40.0, seconds=2.5):
+                    height=0.45, damping=40.0, seconds=4.0):
   """Quasi-static angle of repose of a Drucker-Prager sand column.
 
   A quarter of a tall column (radius 0.2 m, height 0.45 m) stands in the

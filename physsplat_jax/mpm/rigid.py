@@ -126,8 +126,8 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
 
   if planes:
     x_new, _, _, _ = move(V, w)
-    V, w, shift = _plane_contacts(planes, rigid, seg, B, ssum, at, mass, r,
-                                  x_new, V, w, I, M, free, reduce_fn)
+    V, w, shift = _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V,
+                                  w, I, M, free)
     x_new, Vp, wp, Rp = move(V, w)
     x_new = [x_new[d] + at(shift[d]) for d in range(3)]
   else:
@@ -146,8 +146,8 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   return rigid, x_new, v_new, C_new, Fr
 
 
-def _plane_contacts(planes, rigid, seg, B, ssum, at, mass, r, x_new, V, w, I,
-                    M, free, reduce_fn):
+def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
+                    free):
   """Rigid bodies against fixed planes: one contact impulse per body.
 
   For each plane, the particles of a body that would end the substep behind
@@ -157,9 +157,9 @@ def _plane_contacts(planes, rigid, seg, B, ssum, at, mass, r, x_new, V, w, I,
   ``j = -u_n / (1/M + (r_c x n) . I^-1 (r_c x n))``), and a tangential one
   removes the sliding speed up to the Coulomb bound ``mu j`` (all of it on a
   sticky plane). Afterwards the body is translated along the normal out of
-  the plane by its largest penetration, plane after plane (by the
-  mass-weighted mean penetration of the contact set when particles are
-  split over devices, where only sums are reduced). Bodies stay exactly rigid, and rest on the
+  the plane by the mass-weighted mean penetration of its contact set, plane
+  after plane (a sum, so particles may be split over devices; a flat face
+  comes out at once, a curved one over a few substeps). Bodies stay exactly rigid, and rest on the
   plane instead of sinking as the grid-only coupling lets them (there the
   particles away from the bottom keep their full weight in the average).
 
@@ -204,13 +204,11 @@ def _plane_contacts(planes, rigid, seg, B, ssum, at, mass, r, x_new, V, w, I,
       jt = jnp.minimum(jt, mu * jn)
     jt = jnp.where(has, jt, 0.0)
     V, w = impulse(V, w, rc, t, -jt)
+    # Mass-weighted mean penetration of the contact set (a sum, so the
+    # same with particles split over devices); any rest is removed in the
+    # next substeps.
     pen = jnp.where(hit, -dist, 0.0)
-    if reduce_fn is None:
-      dmax = jax.ops.segment_max(pen, seg, num_segments=B + 1)
-      dmax = jnp.maximum(dmax, 0.0)
-    else:
-      dmax = ssum(mass * pen) / mcs
-    dmax = dmax * free
+    dmax = ssum(mass * pen) / mcs * free
     shift = [shift[d] + dmax * n[d] for d in range(3)]
     x_new = [x_new[d] + at(dmax) * n[d] for d in range(3)]
   return V, w, shift
