@@ -9,6 +9,8 @@ Cases (each at two resolutions unless --quick):
   f = 1.8751^2 / (2 pi L^2) sqrt(E I / (rho A)).
 - sand_slope: flank slope of a collapsed Drucker-Prager sand column vs the
   friction angle (two angles).
+- contact: blocks of jelly, metal, sand and a rigid box resting on a plane
+  placed between grid nodes: rest height of each underside [cells].
 
 python -m experiments.validate_physics [--cases=free_fall,bar_mode] [--quick]
   [--out=results.json]
@@ -26,7 +28,8 @@ from absl import logging
 from physsplat_jax import mpm
 
 _CASES = flags.DEFINE_list(
-  'cases', ['free_fall', 'bar_mode', 'cantilever', 'sand_slope'], 'cases')
+  'cases', ['free_fall', 'bar_mode', 'cantilever', 'sand_slope', 'contact'],
+  'cases')
 _QUICK = flags.DEFINE_bool('quick', False, 'one coarse resolution per case')
 _OUT = flags.DEFINE_string('out', None, 'optional JSON output path')
 
@@ -218,6 +221,140 @@ def sand_slope(res, phi=30.0, radius=0.2, height=0.12):
     final_height=float(hmax), runout_radius=float(np.percentile(rr, 99)))
 
 
+def pile_slope(xf, centre, floor, dx):
+  """Flank angle [deg] and height of a conical pile of particles.
+
+  The height profile is the 95th percentile of z in radial bins of one cell;
+  a line is fitted to the flank between 20% and 80% of the pile height.
+  """
+  rr = np.hypot(xf[:, 0] - centre[0], xf[:, 1] - centre[1])
+  bins = np.arange(0, rr.max() + dx, dx)
+  prof = []
+  for a, b in zip(bins[:-1], bins[1:]):
+    m = (rr >= a) & (rr < b)
+    if m.sum() >= 5:
+      prof.append((0.5 * (a + b), np.percentile(xf[m, 2], 95) - floor))
+  prof = np.asarray(prof)
+  hmax = prof[:, 1].max()
+  sel = (prof[:, 1] > 0.2 * hmax) & (prof[:, 1] < 0.8 * hmax)
+  slope = -np.polyfit(prof[sel, 0], prof[sel, 1], 1)[0] if sel.sum() >= 2 \
+      else float('nan')
+  return math.degrees(math.atan(slope)), float(hmax), rr
+
+
+def angle_of_repose(res, phi=30.0, volume_correction=1.0, radius=0.2,
+                    height=0.45, damping=40.0, seconds=4.0):
+  """Quasi-static angle of repose of a Drucker-Prager sand column.
+
+  A quarter of a tall column (radius 0.2 m, height 0.45 m) stands in the
+  corner of two frictionless 'slip' walls, which are exact symmetry planes
+  of the full column, on a sticky floor. It collapses under a strong
+  grid-velocity damping (``damping`` 1/s: terminal speed ``g / damping``,
+  0.25 m/s), so it creeps into a cone without the momentum that makes a
+  free collapse run out past the angle of repose; the flank angle of the
+  pile at rest is compared with the friction angle.
+  """
+  grid = mpm.GridSpec(res=res, size=1.0)
+  floor = 0.1
+  wall = 0.1  # the corner (x, y) = (wall, wall)
+  x, vol = lattice((wall, wall, floor),
+                   (wall + radius, wall + radius, floor + height),
+                   grid.dx / 2)
+  x = x[np.hypot(x[:, 0] - wall, x[:, 1] - wall) < radius]
+  mat = mpm.make_materials('drucker_prager', 3e5, 0.3, 2000.0, num=len(x),
+                           friction_angle=phi,
+                           dp_volume_correction=volume_correction)
+  frame_dt = 0.05
+  frames = int(round(seconds / frame_dt))
+  n = mpm.choose_substeps(grid.dx, frame_dt, mat, max_speed=1.0)
+  cfg = mpm.SimConfig(
+    grid=grid, dt=frame_dt / n, substeps_per_frame=n,
+    models=('drucker_prager',), velocity_damping=damping,
+    boundary_conditions=(
+      mpm.SurfaceCollider(point=(0, 0, floor)),
+      mpm.SurfaceCollider(point=(wall, 0, 0), normal=(1, 0, 0),
+                          surface='slip'),
+      mpm.SurfaceCollider(point=(0, wall, 0), normal=(0, 1, 0),
+                          surface='slip')))
+  s = mpm.init_state(x, np.zeros(3), vol, mat, cfg)
+  r = mpm.run(s, mat, None, cfg, frames)
+  xf = r.positions[-1]
+  angle, hmax, rr = pile_slope(xf, (wall, wall), floor, grid.dx)
+  # Creep speed over the last frame.
+  speed = float(np.abs(r.positions[-1] - r.positions[-2]).max() / frame_dt)
+  tag = '' if volume_correction else '_novc'
+  return dict(
+    case=f'repose_phi{phi:g}{tag}', res=res, particles=len(x), dt=cfg.dt,
+    metric='pile flank angle [deg]', value=angle, reference=phi,
+    rel_error=(angle - phi) / phi, seconds=r.run_s + r.compile_s,
+    final_height=hmax, runout_radius=float(np.percentile(rr, 99)),
+    final_max_speed=speed)
+
+
+def contact(res, ground=0.2537, seconds=1.0):
+  """Blocks of several materials and a rigid box resting on a fixed plane.
+
+  The plane sits at an arbitrary height between grid nodes (0.2537 m). Each
+  0.12 m block starts 0.02 m above it; after ``seconds`` the rest height of
+  each block's underside (lowest particle minus half the lattice spacing)
+  above the plane is reported in cells, with the largest penetration of any
+  particle centre over the run and the change of the rigid box's pairwise
+  distances.
+  """
+  from scipy.spatial.distance import pdist
+  grid = mpm.GridSpec(res=res, size=1.0)
+  sp = grid.dx / 2
+  size = 0.12
+  specs = [('jelly', 'fixed_corotated', 5e4, {}),
+           ('metal', 'von_mises', 2e5, dict(yield_stress=2e3)),
+           ('sand', 'drucker_prager', 2e5, dict(friction_angle=35.0)),
+           ('rigid', 'rigid', 1e6, {})]
+  xs, names, objs = [], [], []
+  for k, (_, model, _, _) in enumerate(specs):
+    corner = (0.2 + 0.16 * k, 0.44, ground + 0.02)
+    x, vol = lattice(corner, np.add(corner, size), sp)
+    xs.append(x)
+    names += [model] * len(x)
+    objs += [k] * len(x)
+  x = np.concatenate(xs)
+  objs = np.asarray(objs)
+  models = tuple(m for _, m, _, _ in specs)
+  E = np.asarray([specs[k][2] for k in objs])
+  extra = {}
+  for f in ('yield_stress', 'friction_angle'):
+    vals = [sp_[3].get(f) for sp_ in specs]
+    base = [mpm.model_default(m, f) for m in models]
+    extra[f] = np.asarray([vals[k] if vals[k] is not None else base[k]
+                           for k in objs])
+  mat = mpm.make_materials(names, E, 0.3, 1000.0, config_models=models,
+                           **extra)
+  body = np.where(objs == 3, 0, -1)
+  frame_dt = 0.02
+  cfg = mpm.SimConfig(
+    grid=grid, dt=1e-3, models=models, num_bodies=1,
+    boundary_conditions=(mpm.SurfaceCollider(
+      point=(0, 0, ground), surface='separate', friction=0.5),))
+  n = mpm.choose_substeps(cfg, frame_dt, mat, body_id=body, max_speed=2.0)
+  cfg = cfg.replace(dt=frame_dt / n, substeps_per_frame=n)
+  s = mpm.init_state(x, np.zeros(3), vol, mat, cfg, body_id=body)
+  r = mpm.run(s, mat, None, cfg, int(round(seconds / frame_dt)))
+  xf = r.positions[-1]
+  half = 0.5 * vol ** (1 / 3)  # half the lattice spacing
+  rest = {}
+  for k, (name, _, _, _) in enumerate(specs):
+    z = xf[objs == k, 2]
+    rest[name] = float((z.min() - half - ground) / grid.dx)
+  pen = float(max(0.0, ground - r.positions[..., 2].min()) / grid.dx)
+  drift = float(np.abs(pdist(xf[objs == 3]) - pdist(x[objs == 3])).max())
+  worst = max(abs(v) for v in rest.values())
+  return dict(
+    case='contact', res=res, particles=len(x), dt=cfg.dt,
+    metric='max |rest height - plane| [cells]', value=worst,
+    reference='0 (underside on the plane)', rel_error=0.0,
+    seconds=r.run_s + r.compile_s, rest_cells=rest,
+    max_penetration_cells=pen, rigid_distance_change_m=drift)
+
+
 def main(argv):
   del argv
   quick = _QUICK.value
@@ -231,6 +368,11 @@ def main(argv):
     'sand_slope': [(sand_slope, dict(res=r, phi=p))
                    for r in ((32,) if quick else (32, 48))
                    for p in (20.0, 35.0)],
+    'contact': [(contact, dict(res=r)) for r in ((24,) if quick
+                                                  else (24, 40))],
+    'repose': [(angle_of_repose, dict(res=r, phi=p))
+               for r in ((32,) if quick else (32, 48))
+               for p in (20.0, 30.0, 40.0)],
   }
   unknown = [c for c in _CASES.value if c not in plan]
   if unknown:

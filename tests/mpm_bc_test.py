@@ -232,6 +232,42 @@ class BoundaryTest(absltest.TestCase):
     self.assertTrue(np.all(np.isfinite(xf)))
 
 
+class ContactTest(absltest.TestCase):
+
+  # Rest height of an underside within this fraction of a cell of the plane.
+  REST_TOL_CELLS = 0.1
+
+  def test_block_and_rigid_body_rest_on_the_plane(self):
+    """A jelly block and a rigid box dropped on a plane between grid nodes.
+
+    Before the particle-level contact the block rested up to 0.4 cells off
+    the plane depending on where the plane sat between nodes, and the rigid
+    box sank through it (2 cells in 0.8 s, still sinking).
+    """
+    ground = 0.2 + 0.37 * _GRID.dx
+    jelly = _box(4, (0.3, 0.45, ground + 0.01))
+    box = _box(4, (0.6, 0.45, ground + 0.01))
+    x = np.concatenate([jelly, box])
+    body = np.array([-1] * len(jelly) + [0] * len(box))
+    names = ['fixed_corotated'] * len(jelly) + ['rigid'] * len(box)
+    mat = mpm.make_materials(names, 2e4, 0.3, 1000.0,
+                             config_models=('fixed_corotated', 'rigid'))
+    cfg = mpm.SimConfig(
+      grid=_GRID, dt=2e-3, substeps_per_frame=10, velocity_damping=5.0,
+      models=('fixed_corotated', 'rigid'), num_bodies=1,
+      boundary_conditions=(mpm.SurfaceCollider(
+        point=(0, 0, ground), surface='separate', friction=0.5),))
+    _, res = _run(x, mat, cfg, 12, body_id=body)
+    pos = np.asarray(res.positions)
+    for name, sel in (('jelly', body < 0), ('rigid', body == 0)):
+      under = pos[-1, sel, 2].min() - _SP / 2 - ground
+      self.assertLess(abs(under), self.REST_TOL_CELLS * _GRID.dx, msg=name)
+      # It came down (0.01 m), and no particle centre ever crossed it.
+      self.assertGreater(pos[:, sel, 2].min(), ground, msg=name)
+    np.testing.assert_allclose(pdist(pos[-1, body == 0]), pdist(box),
+                               atol=2e-5)
+
+
 class ErrorTest(absltest.TestCase):
 
   def test_unstable_dt_raises_with_fix(self):

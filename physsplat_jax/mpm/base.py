@@ -516,6 +516,15 @@ class Materials(struct.PyTreeNode):
     plastic_viscosity: foam viscoplastic viscosity [Pa s].
     viscosity: dynamic viscosity [Pa s] (newtonian, bingham).
     theta_c, theta_s: snow critical compression and stretch.
+    dp_cohesion: Drucker-Prager cohesion as the log-strain ``c`` of the cone
+      apex (Tampubolon et al. 2017): the sand carries isotropic tension up
+      to a volumetric log-strain ``3 c`` (tensile strength about
+      ``(3 lam + 2 mu) c``); 0 is cohesionless.
+    dp_volume_correction: 1 enables Tampubolon et al. (2017)'s volume
+      correction (the log-volume gained at the cone apex is stored in
+      ``log Jp`` and given back before the material resists compression
+      again, so dilated sand does not push itself apart), 0 is Klar et al.
+      (2016) as in PhysGaussian.
     model_id: (N,) int32 index into ``SimConfig.models``.
   """
 
@@ -534,6 +543,8 @@ class Materials(struct.PyTreeNode):
   viscosity: Array
   theta_c: Array
   theta_s: Array
+  dp_cohesion: Array
+  dp_volume_correction: Array
   model_id: Array
 
   @property
@@ -548,7 +559,7 @@ class Materials(struct.PyTreeNode):
 FLOAT_FIELDS = (
   'E', 'nu', 'rho', 'yield_stress', 'hardening', 'xi', 'softening',
   'friction_angle', 'dp_h1', 'dp_h2', 'dp_h3', 'plastic_viscosity',
-  'viscosity', 'theta_c', 'theta_s',
+  'viscosity', 'theta_c', 'theta_s', 'dp_cohesion', 'dp_volume_correction',
 )
 
 # Defaults per model for the fields beyond (E, nu, rho). Sources: PhysGaussian
@@ -560,6 +571,7 @@ _GENERIC = dict(
   yield_stress=1e4, hardening=0.0, xi=0.0, softening=0.0,
   friction_angle=25.0, dp_h1=0.0, dp_h2=0.2, dp_h3=0.0,
   plastic_viscosity=0.0, viscosity=0.0, theta_c=2.5e-2, theta_s=7.5e-3,
+  dp_cohesion=0.0, dp_volume_correction=1.0,
 )
 MODEL_DEFAULTS = {
   'fixed_corotated': {},

@@ -32,6 +32,11 @@ from physsplat_jax.mpm import base
 # Width of the domain-box border in cells (PhysGaussian's bounding_box
 # padding).
 BORDER = 3
+# 'sticky' and 'separate' SurfaceCollider grid constraints act on nodes at
+# least this many cells behind the plane (see ``particle_contact``).
+CONTACT_NODE_DEPTH = 1.0
+# A particle within this many cells of its contact distance touches a plane.
+_TOUCH = 1e-3
 
 
 def _active(t, start, end, dt):
@@ -193,6 +198,79 @@ def _friction(v, vn, n, mu):
   return [v[d] * s for d in range(3)]
 
 
+def contact_planes(config: base.SimConfig, t):
+  """Active ``SurfaceCollider`` planes as ``(point, normal, mu, surface, on)``.
+
+  ``mu`` is ``inf`` for a sticky surface (no sliding); ``on`` is a ()
+  bool.
+  """
+  out = []
+  for bc in config.boundary_conditions:
+    if isinstance(bc, SurfaceCollider):
+      on = _active(t, bc.start_time, bc.end_time, config.dt)
+      mu = math.inf if bc.surface == 'sticky' else float(bc.friction)
+      out.append((bc.point, bc.normal, mu, bc.surface, on))
+  return out
+
+
+def particle_radius(vol0):
+  """Half the side of a particle's cube of volume ``vol0`` [m]: its extent
+  in front of a plane it rests on."""
+  return 0.5 * jnp.cbrt(vol0)
+
+
+def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
+  """Surface colliders as particle constraints in G2P (deformable particles).
+
+  A particle whose advected position ``x + dt v`` lies behind the plane
+  (offset by its ``radius``)
+  loses the approaching part of its normal velocity, down to the speed that
+  brings it exactly onto the plane (``-max(d, 0) / dt``, ``d`` its signed
+  distance), with Coulomb friction on the tangential part ('separate' and
+  'slip'); on a 'sticky' plane every touching particle loses its tangential
+  motion; particles already behind the plane are projected onto
+  it. Together with ``apply_grid_bcs`` (which acts only on nodes a cell or
+  more behind the plane, so it cannot hold bodies above it) the support
+  sits at the plane itself, wherever it lies between grid nodes.
+
+  Args:
+    config: static config.
+    t: () time [s].
+    x, v: 3-tuples of (N,) positions at the start of the substep [m] and G2P
+      velocities [m/s].
+    radius: (N,) or scalar particle extent [m] (``particle_radius``): the
+      distance from the plane at which a particle touches it, so that the
+      material's surface, not the particle centres, rests on the plane.
+
+  Returns:
+    ``(x_new, v_new)``: advected positions and constrained velocities.
+  """
+  dt = config.dt
+  v = list(v)
+  x_new = [x[d] + dt * v[d] for d in range(3)]
+  for p, n, mu, surface, on in contact_planes(config, t):
+    d0 = sum((x[k] - p[k]) * n[k] for k in range(3)) - radius
+    vn = v[0] * n[0] + v[1] * n[1] + v[2] * n[2]
+    target = -jnp.maximum(d0, 0.0) / dt
+    hit = d0 + dt * vn < 0
+    if surface == 'sticky':
+      # Touching particles stick even when not pressed in this substep.
+      hit = hit | (d0 <= _TOUCH * config.grid.dx)
+    hit = on & hit
+    dvn = jnp.where(hit, target - vn, 0.0)  # > 0 where hit
+    w = [v[k] - vn * n[k] for k in range(3)]
+    if surface == 'sticky':
+      w = [jnp.where(hit, 0.0, w[k]) for k in range(3)]
+    else:
+      w = _friction(w, -dvn, n, mu)
+    v = [jnp.where(hit, w[k] + (vn + dvn) * n[k], v[k]) for k in range(3)]
+    x_new = [x[k] + dt * v[k] for k in range(3)]
+    dn = sum((x_new[k] - p[k]) * n[k] for k in range(3)) - radius
+    push = jnp.where(on, jnp.maximum(-dn, 0.0), 0.0)
+    x_new = [x_new[k] + push * n[k] for k in range(3)]
+  return tuple(x_new), tuple(v)
+
+
 def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
   """Grid-node constraints after the grid update.
 
@@ -214,7 +292,14 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
     if isinstance(bc, SurfaceCollider):
       on = _active(t, bc.start_time, bc.end_time, dt)
       n = bc.normal
-      side = sum((xs[d] - bc.point[d]) * n[d] for d in range(3)) < 0
+      # 'sticky'/'separate': only nodes at least a cell behind the plane (a
+      # node closer to it would hold particles up to 1.5 dx - depth in
+      # front of it); the plane itself is enforced on particles
+      # (``particle_contact``). 'slip' is bilateral and keeps every node
+      # behind the plane.
+      depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
+      side = (sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
+              < -depth)
       hit = on & side
       if bc.surface == 'sticky':
         gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]

@@ -34,7 +34,11 @@ the deviatoric part, ``|.|`` the Euclidean norm):
   ``dg <= 0`` is elastic, otherwise ``eps -= dg eps^/|eps^|``. Hardening
   ``phi(q) = friction_angle + (h1 q - h3) exp(-h2 q)`` [deg] with ``q`` the
   accumulated plastic strain (``q += dg``, or ``|eps|`` at the tip). Hencky
-  stress.
+  stress. Tampubolon et al. (2017): with ``dp_volume_correction`` the trial
+  strain is first shifted by ``log(Jp) / 3`` (the log-volume stored by
+  earlier apex projections; ``Jp <- exp(tr eps)`` at the apex, 1 elsewhere),
+  and ``dp_cohesion`` ``c`` moves the apex to ``eps = c``: the map acts on
+  ``eps - c`` and adds ``c`` back.
 - ``snow`` (Stomakhin et al. 2013): singular values clamped to
   ``[1 - theta_c, 1 + theta_s]``, ``Jp *= J_tr / J_e``; fixed-corotated
   stress with ``mu, lam`` scaled by ``h = exp(xi (1 - Jp))`` (clamped to
@@ -165,6 +169,12 @@ def _drucker_prager(s, p):
   sin_phi = jnp.sin(jnp.deg2rad(phi))
   alpha = _SQRT23 * 2.0 * sin_phi / (3.0 - sin_phi)
   e = _log_sig(s)
+  # Volume correction (Tampubolon et al. 2017): log Jp holds the log-volume
+  # gained by earlier apex projections; cohesion c moves the apex to
+  # eps = c (1, 1, 1).
+  vc = p['dp_volume_correction'] * jnp.log(safe_J(p['Jp']))
+  coh = p['dp_cohesion']
+  e = tuple(x + vc / 3.0 - coh for x in e)
   tr, eh, n = _dev(e)
   dg = n + (3.0 * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
   tip = tr > 0.0
@@ -178,9 +188,16 @@ def _drucker_prager(s, p):
   e_norm = jnp.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
                     + jnp.finfo(tr.dtype).tiny)
   dq = jnp.where(tip, e_norm, jnp.where(cone, dg, 0.0))
-  s_new = tuple(jnp.where(tip | cone, jnp.exp(x), y)
+  # The correction is spent (log Jp -> 0) once the state is elastic or on
+  # the cone (both keep the corrected trace); at the apex the whole trace
+  # is stored.
+  on = p['dp_volume_correction'] > 0.0
+  Jp = jnp.where(on, jnp.where(tip, jnp.exp(tr), 1.0), p['Jp'])
+  changed = tip | cone | (on & (vc != 0.0)) | (coh != 0.0)
+  e_new = tuple(x + coh for x in e_new)
+  s_new = tuple(jnp.where(changed, jnp.exp(x), y)
                 for x, y in zip(e_new, s))
-  return s_new, _hencky_k(e_new, mu, lam), {'Jp': p['Jp'], 'ep': q + dq}
+  return s_new, _hencky_k(e_new, mu, lam), {'Jp': Jp, 'ep': q + dq}
 
 
 def _snow(s, p):
@@ -232,7 +249,8 @@ _PARAMS = {
   'stvk': (),
   'von_mises': ('yield_stress', 'hardening', 'xi'),
   'plasticine': ('yield_stress', 'hardening', 'xi', 'softening'),
-  'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3'),
+  'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3',
+                     'dp_cohesion', 'dp_volume_correction'),
   'snow': ('xi', 'theta_c', 'theta_s'),
   'foam': ('yield_stress', 'plastic_viscosity'),
   'bingham': ('yield_stress', 'viscosity'),

@@ -16,7 +16,9 @@ by one Newton orthonormalisation step) so that the particle frames, and the
 Gaussians they carry, rotate with the body. Fixed bodies have
 ``V = omega = 0``. Rigid particles carry no stress, so their stiffness never
 limits the time step; they still take part in P2G, which couples them two
-ways with the other materials.
+ways with the other materials. Fixed planes (``SurfaceCollider``) and the
+domain walls act on a body as a whole (``_plane_contacts``): a contact
+impulse and a translation out of the plane, never a per-particle clamp.
 """
 
 from __future__ import annotations
@@ -40,8 +42,17 @@ def _rodrigues(w):
   return la.add(la.eye(w[0]), la.add(la.scale(K, a), la.scale(K2, b)))
 
 
+def _dot(a, b):
+  return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a, b):
+  return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+          a[0] * b[1] - a[1] * b[0])
+
+
 def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
-            reduce_fn=None):
+            reduce_fn=None, planes=()):
   """Rigid-body projection of the G2P result.
 
   Args:
@@ -55,6 +66,9 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
     F: nested-tuple deformation gradients.
     reduce_fn: sums per-body partial sums over all particles (None: the
       identity; ``lax.psum`` when the particles are split over devices).
+    planes: contact planes ``(point, normal, mu, surface, on, radius)``
+      (``boundary.contact_planes`` with the particles' extent ``radius``,
+      (N,) or scalar [m], and the domain walls): see ``_plane_contacts``.
 
   Returns:
     ``(rigid, x_new, v_new, C_new, F_new)``: (N,) bool mask and the rigid
@@ -99,16 +113,29 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   free = jnp.asarray([not f for f in body_fixed] + [False], dtype)
   V = [V[d] * free for d in range(3)]
   w = [w[d] * free for d in range(3)]
-  Rb = _rodrigues(tuple(dt * w[d] for d in range(3)))
-  Vp = [at(V[d]) for d in range(3)]
-  wp = [at(w[d]) for d in range(3)]
-  Rp = tuple(tuple(at(Rb[a][b]) for b in range(3)) for a in range(3))
+
+  def move(V, w):
+    Rb = _rodrigues(tuple(dt * w[d] for d in range(3)))
+    Vp = [at(V[d]) for d in range(3)]
+    wp = [at(w[d]) for d in range(3)]
+    Rp = tuple(tuple(at(Rb[a][b]) for b in range(3)) for a in range(3))
+    x_new = [at(c[d]) + dt * Vp[d]
+             + Rp[d][0] * r[0] + Rp[d][1] * r[1] + Rp[d][2] * r[2]
+             for d in range(3)]
+    return x_new, Vp, wp, Rp
+
+  if planes:
+    x_new, _, _, _ = move(V, w)
+    V, w, shift = _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V,
+                                  w, I, M, free)
+    x_new, Vp, wp, Rp = move(V, w)
+    x_new = [x_new[d] + at(shift[d]) for d in range(3)]
+  else:
+    x_new, Vp, wp, Rp = move(V, w)
+  x_new = tuple(x_new)
   v_new = (Vp[0] + wp[1] * r[2] - wp[2] * r[1],
            Vp[1] + wp[2] * r[0] - wp[0] * r[2],
            Vp[2] + wp[0] * r[1] - wp[1] * r[0])
-  x_new = tuple(at(c[d]) + dt * Vp[d]
-                + Rp[d][0] * r[0] + Rp[d][1] * r[1] + Rp[d][2] * r[2]
-                for d in range(3))
   C_new = la.skew_from(wp)
   Fr = la.matmul(Rp, F)
   # One Newton step F <- (F + F^{-T}) / 2 removes the round-off drift away
@@ -117,3 +144,71 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   d = jnp.where(jnp.abs(d) < 1e-12, 1.0, d)
   Fr = la.scale(la.add(Fr, la.scale(la.cofactor(Fr), 1.0 / d)), 0.5)
   return rigid, x_new, v_new, C_new, Fr
+
+
+def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
+                    free):
+  """Rigid bodies against fixed planes: one contact impulse per body.
+
+  For each plane, the particles of a body that would end the substep behind
+  it are its contact set; at their mass centre ``r_c`` (relative to the
+  body's centre) an impulse along the normal removes the approach speed
+  ``u_n = (V + omega x r_c) . n < 0`` (plastic contact,
+  ``j = -u_n / (1/M + (r_c x n) . I^-1 (r_c x n))``), and a tangential one
+  removes the sliding speed up to the Coulomb bound ``mu j`` (all of it on a
+  sticky plane). Afterwards the body is translated along the normal out of
+  the plane by the mass-weighted mean penetration of its contact set, plane
+  after plane (a sum, so particles may be split over devices; a flat face
+  comes out at once, a curved one over a few substeps). Bodies stay exactly rigid, and rest on the
+  plane instead of sinking as the grid-only coupling lets them (there the
+  particles away from the bottom keep their full weight in the average).
+
+  Returns:
+    ``(V, omega, shift)``: per-body (B+1,) 3-tuples.
+  """
+  dtype = mass.dtype
+  tiny = jnp.finfo(dtype).tiny
+  Ms = jnp.maximum(M, tiny)
+
+  def impulse(V, w, rc, dirn, j):
+    V = [V[d] + free * j * dirn[d] / Ms for d in range(3)]
+    dw = la.solve_sym(I, _cross(rc, tuple(j * dirn[d] for d in range(3))))
+    w = [w[d] + free * dw[d] for d in range(3)]
+    return V, w
+
+  def k_eff(rc, dirn):
+    a = _cross(rc, dirn)
+    return 1.0 / Ms + _dot(a, la.solve_sym(I, a))
+
+  shift = [jnp.zeros_like(M)] * 3
+  for p, n, mu, surface, on, radius in planes:
+    n_b = tuple(jnp.full_like(M, n[d]) for d in range(3))
+    dist = sum((x_new[d] - p[d]) * n[d] for d in range(3)) - radius
+    hit = rigid & on & (dist < 0)
+    mc = ssum(jnp.where(hit, mass, 0.0))
+    has = mc > 0
+    mcs = jnp.maximum(mc, tiny)
+    rc = tuple(ssum(jnp.where(hit, mass * r[d], 0.0)) / mcs for d in range(3))
+    u = [V[d] + c for d, c in enumerate(_cross(w, rc))]
+    un = _dot(u, n_b)
+    jn = jnp.where(has, jnp.maximum(-un, 0.0) / k_eff(rc, n_b), 0.0)
+    V, w = impulse(V, w, rc, n_b, jn)
+    # Friction at the same point.
+    u = [V[d] + c for d, c in enumerate(_cross(w, rc))]
+    un = _dot(u, n_b)
+    ut = [u[d] - un * n[d] for d in range(3)]
+    st = jnp.sqrt(jnp.maximum(_dot(ut, ut), tiny))
+    t = tuple(ut[d] / st for d in range(3))
+    jt = st / k_eff(rc, t)
+    if not mu == float('inf'):
+      jt = jnp.minimum(jt, mu * jn)
+    jt = jnp.where(has, jt, 0.0)
+    V, w = impulse(V, w, rc, t, -jt)
+    # Mass-weighted mean penetration of the contact set (a sum, so the
+    # same with particles split over devices); any rest is removed in the
+    # next substeps.
+    pen = jnp.where(hit, -dist, 0.0)
+    dmax = ssum(mass * pen) / mcs * free
+    shift = [shift[d] + dmax * n[d] for d in range(3)]
+    x_new = [x_new[d] + at(dmax) * n[d] for d in range(3)]
+  return V, w, shift

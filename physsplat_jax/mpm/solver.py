@@ -6,8 +6,9 @@ One substep (Hu et al. 2018, with PhysGaussian's ordering)::
   2. constitutive update F_e, plastic state = return_map(F); tau(F_e)
   3. P2G                 mass, momentum with A = m C - dt V0 (4/dx^2) tau
   4. grid update         v = p / m + dt g, damping, boundary conditions
-  5. G2P                 v, C from the grid; rigid projection;
-                         x += dt v, F = (I + dt C) F_e; x clamped to the grid
+  5. G2P                 v, C from the grid; plane contact on particles;
+                         rigid projection and contact; x += dt v,
+                         F = (I + dt C) F_e; x clamped to the grid
 
 Step 2 of substep k + 1 is computed at the end of substep k (and once at the
 start of a frame) and carried, so that the stress reaches P2G as a
@@ -193,6 +194,17 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     damp *= float(np.exp(-config.velocity_damping * dt))
   g = config.gravity
   has_bodies = config.num_bodies > 0
+  has_planes = any(isinstance(bc, base.SurfaceCollider)
+                   for bc in config.boundary_conditions)
+  # Domain walls for rigid bodies (moved out as a whole, not clamped per
+  # particle, which would deform them).
+  walls = []
+  for d in range(3):
+    e = tuple(float(k == d) for k in range(3))
+    lo_p = tuple(grid.lower[k] + lo * e[k] for k in range(3))
+    hi_p = tuple(grid.lower[k] + hi * e[k] for k in range(3))
+    walls.append((lo_p, e, 0.0, 'separate', True, 0.0))
+    walls.append((hi_p, tuple(-a for a in e), 0.0, 'separate', True, 0.0))
 
   def constitute(c, aux, mat):
     """Adds the return-mapped state and stress of ``c['F']`` to the carry.
@@ -242,13 +254,21 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
       gv = boundary.apply_grid_bcs(config, forces, t, gv)
       gv = tuple(a.reshape(-1) for a in gv)
     with jax.named_scope('g2p'):
-      v_new, C_new = transfer.g2p(grid, st, gv)
-      x_new = tuple(x[d] + dt * v_new[d] for d in range(3))
+      radius = boundary.particle_radius(vol0) if has_planes else 0.0
+      v_grid, C_new = transfer.g2p(grid, st, gv)
+      if has_planes:
+        x_new, v_new = boundary.particle_contact(config, t, x, v_grid,
+                                                 radius)
+      else:
+        v_new = v_grid
+        x_new = tuple(x[d] + dt * v_new[d] for d in range(3))
       F_new = la.add(Fe, la.scale(la.matmul(C_new, Fe), dt))
       if has_bodies:
         rb, xr, vr, Cr, Fr = rigid_lib.project(
           config.num_bodies, config.body_fixed, grid.dx, dt, aux['body_id'],
-          mass, x, v_new, Fe, reduce_fn)
+          mass, x, v_grid, Fe, reduce_fn,
+          planes=[q + (radius,) for q in boundary.contact_planes(config, t)]
+          + walls)
         sel = lambda a, b: jnp.where(rb, a, b)  # noqa: E731
         x_new = tuple(sel(a, b) for a, b in zip(xr, x_new))
         v_new = tuple(sel(a, b) for a, b in zip(vr, v_new))
