@@ -11,6 +11,7 @@ from absl.testing import parameterized
 from physsplat_jax import segmentation as seg
 from physsplat_jax.cameras import look_at
 from physsplat_jax.cameras import orbit_cameras
+from physsplat_jax import physgaussian
 from physsplat_jax.physgaussian import parse_config
 from physsplat_jax.io.ply import load_ply
 from physsplat_jax.io.ply import save_ply
@@ -118,7 +119,7 @@ class BoxesTest(absltest.TestCase):
     np.testing.assert_array_equal(s.object_ids, [-1, 0])
     cfg = parse_config({'sim_area': [-1, 1, -1, 1, 0.5, 1.5],
                         'opacity_threshold': 0.0})
-    s = seg.segment_from_physgaussian(g, cfg, name='ficus')
+    s = physgaussian.segment_from_physgaussian(g, cfg, name='ficus')
     np.testing.assert_array_equal(s.object_ids, [0, -1])
     self.assertEqual(s.names, ('ficus',))
 

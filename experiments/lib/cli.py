@@ -39,11 +39,16 @@ def _verbose() -> bool:
     return False
 
 
+def _setup() -> None:
+  """What every script does first: the persistent compilation cache."""
+  compile_cache.enable_compilation_cache(_CACHE.value)
+
+
 def guard(main):
   """``main`` with the package's errors turned into one line and exit 1."""
 
   def wrapped(argv):
-    compile_cache.enable_compilation_cache(_CACHE.value)
+    _setup()
     try:
       return main(argv)
     except app.UsageError as e:

@@ -42,3 +42,6 @@ from physsplat_jax.physgaussian.driver import fill_particles as fill_particles
 from physsplat_jax.physgaussian.driver import prepare_config as prepare_config
 from physsplat_jax.physgaussian.driver import simulate_config as simulate_config
 from physsplat_jax.physgaussian.run import run_config as run_config
+from physsplat_jax.physgaussian.segment import (
+  segment_from_physgaussian as segment_from_physgaussian,
+)

@@ -14,9 +14,6 @@ from physsplat_jax.segmentation.base import Segmentation as Segmentation
 from physsplat_jax.segmentation.boxes import (
   segment_by_boxes as segment_by_boxes,
 )
-from physsplat_jax.segmentation.boxes import (
-  segment_from_physgaussian as segment_from_physgaussian,
-)
 from physsplat_jax.segmentation.geometric import (
   cluster_points as cluster_points,
 )

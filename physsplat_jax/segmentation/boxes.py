@@ -80,24 +80,3 @@ def segment_by_boxes(
     raise ValueError(f'{len(names)} names for {n} boxes')
   ids = box_labels(gaussians.means, b, rotation)
   return Segmentation(ids, names, tuple(fixed or ()), method='boxes')
-
-
-def segment_from_physgaussian(gaussians: Gaussians, config,
-                              name: str = 'object') -> Segmentation:
-  """The one object PhysGaussian simulates: opacity threshold + sim_area.
-
-  Args:
-    gaussians: the scene's Gaussians (input coordinates).
-    config: a :class:`~physsplat_jax.physgaussian.PhysGaussianConfig`.
-    name: the object's name.
-
-  Returns:
-    A :class:`Segmentation` with one object (the rest is background).
-  """
-  from physsplat_jax.physgaussian import select_particles
-
-  rows = select_particles(config, np.asarray(gaussians.means),
-                          np.asarray(gaussians.opacities))
-  ids = np.full(gaussians.num, -1, np.int32)
-  ids[rows] = 0
-  return Segmentation(ids, (name,), method='boxes')

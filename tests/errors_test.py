@@ -1,0 +1,196 @@
+"""Bad input ends in one clear error, before any work is lost.
+
+The scripts' one error path (experiments/lib/cli.py), validation at the
+boundary (configs, flags, scenes, materials, output folders), refusal of
+impossible runs, the jitted path's finite flag, and report.json on failure.
+"""
+
+import contextlib
+import io
+import json
+import os
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app
+from absl.testing import absltest
+
+from experiments.lib import cli
+from experiments.lib import simulate as lib
+from physsplat_jax import pipeline as pl
+from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.mpm import SimulationError
+from physsplat_jax.io import outputs
+from physsplat_jax.types import Gaussians
+from physsplat_jax.types import ObjectInfo
+from physsplat_jax.types import Scene
+
+_RUBBER = pl.ObjectMaterial('fixed_corotated', 3e4, 0.3, 1000.0)
+_KEY = jax.random.PRNGKey(0)
+
+
+def _block_scene(n=6, spread=0.05):
+  g = np.stack(np.meshgrid(*[np.linspace(0, spread, n)] * 3, indexing='ij'),
+               -1).reshape(-1, 3).astype(np.float32)
+  k = len(g)
+  gs = Gaussians(
+    means=jnp.asarray(g), log_scales=jnp.full((k, 3), np.log(spread / n)),
+    quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (k, 1)),
+    opacity_logits=jnp.full((k,), 2.0), sh=jnp.full((k, 1, 3), 0.5))
+  return Scene(gaussians=gs, object_ids=jnp.zeros(k, jnp.int32),
+               objects=(ObjectInfo('block'),), name='block')
+
+
+def _run_guarded(exc):
+  def main(argv):
+    del argv
+    raise exc
+
+  err = io.StringIO()
+  with contextlib.redirect_stderr(err), absltest.mock.patch.object(
+      cli, '_verbose', return_value=False), absltest.mock.patch.object(
+        cli, '_setup'):
+    try:
+      cli.guard(main)([])
+    except SystemExit as e:
+      return e.code, err.getvalue()
+  return None, err.getvalue()
+
+
+class ErrorPathTest(absltest.TestCase):
+
+  def test_package_errors_are_one_line_exit_1(self):
+    code, text = _run_guarded(pl.PipelineError('object x: bad, use y'))
+    self.assertEqual(code, 1)
+    self.assertEqual(text, 'error: object x: bad, use y\n')
+    code, text = _run_guarded(FileNotFoundError(2, 'No such file', 'a.ply'))
+    self.assertEqual(code, 1)
+    self.assertIn("a.ply", text)
+
+  def test_usage_errors_exit_2(self):
+    code, text = _run_guarded(app.UsageError('--poke: expected NAME:values'))
+    self.assertEqual(code, 2)
+    self.assertEqual(text, 'error: --poke: expected NAME:values\n')
+
+  def test_unexpected_errors_keep_their_traceback(self):
+    with self.assertRaises(ZeroDivisionError):
+      _run_guarded(ZeroDivisionError('bug'))
+
+  def test_every_error_class_is_a_physsplat_error(self):
+    import physsplat_jax as ps
+    from physsplat_jax.io import mllm
+    from physsplat_jax.io import video
+
+    for cls in (ps.PlyError, ps.SceneFileError, ps.PipelineError,
+                ps.SimulationError, ps.physgaussian.ConfigError,
+                mllm.MLLMError, video.VideoError, outputs.OutputError):
+      self.assertTrue(issubclass(cls, PhysSplatError), cls)
+
+
+class ValidationTest(absltest.TestCase):
+
+  def test_configs_reject_non_finite_and_bad_modes(self):
+    with self.assertRaisesRegex(pl.PipelineError, r'PipelineConfig\.gravity'):
+      pl.PipelineConfig(gravity=float('nan'))
+    with self.assertRaisesRegex(pl.PipelineError, r'PipelineConfig\.fps'):
+      pl.PipelineConfig(fps=float('inf'))
+    with self.assertRaisesRegex(pl.PipelineError, 'num_frames'):
+      pl.PipelineConfig(num_frames=0)
+    with self.assertRaisesRegex(pl.PipelineError, "'slip', 'sticky'"):
+      pl.PipelineConfig(ground='slippery')
+    with self.assertRaisesRegex(pl.PipelineError, 'grid_res'):
+      pl.PipelineConfig(grid_res=1)
+    with self.assertRaisesRegex(pl.PipelineError, 'finite'):
+      pl.ForceSpec(kind='point', vector=(1.0, float('nan'), 0.0), end=1.0)
+    self.assertIs(pl.PipelineConfig(ground='sticky').ground, pl.Ground.STICKY)
+
+  def test_motion_flags_name_the_bad_value(self):
+    with self.assertRaisesRegex(app.UsageError, 'radius'):
+      lib.motion_from_flags(poke=['ball:1,0,0@0,0,0/abc'])
+    with self.assertRaisesRegex(app.UsageError, 'finite'):
+      lib.motion_from_flags(velocity=['ball:inf,0,0'])
+
+  def test_output_folder_checked_first(self):
+    with tempfile.TemporaryDirectory() as d:
+      f = os.path.join(d, 'file')
+      open(f, 'w').close()
+      with self.assertRaisesRegex(outputs.OutputError, 'is a file'):
+        outputs.check_output_dir(f)
+      self.assertEqual(outputs.check_output_dir(os.path.join(d, 'a', 'b')),
+                       os.path.join(d, 'a', 'b'))
+
+  def test_scene_problems_are_named(self):
+    scene = _block_scene()
+    point = scene.replace(gaussians=scene.gaussians.replace(
+      means=jnp.zeros_like(scene.gaussians.means)))
+    with self.assertRaisesRegex(pl.PipelineError, 'zero extent'):
+      pl.prepare_scene(_KEY, point, [_RUBBER], pl.PipelineConfig())
+    nan = scene.replace(gaussians=scene.gaussians.replace(
+      means=scene.gaussians.means.at[3, 1].set(jnp.nan)))
+    with self.assertRaisesRegex(pl.PipelineError, '1 Gaussians have non-'):
+      pl.prepare_scene(_KEY, nan, [_RUBBER], pl.PipelineConfig())
+    with self.assertRaisesRegex(pl.PipelineError, 'one material per object'):
+      pl.prepare_scene(_KEY, scene, [], pl.PipelineConfig())
+
+  def test_unknown_object_names(self):
+    scene = _block_scene()
+    cfg = pl.PipelineConfig(initial_velocity=(('ball', (0.0, 0.0, 1.0)),))
+    with self.assertRaisesRegex(pl.PipelineError, r"\['ball'\].*block"):
+      lib.check_scene_objects(scene, (), cfg)
+    with self.assertRaisesRegex(pl.PipelineError, 'material_override'):
+      lib.check_overrides(scene, {'cube': 'jelly'})
+    lib.check_overrides(scene, {'block': 'jelly', '*': 'wood'})
+
+  def test_impossible_time_step_is_refused_with_the_numbers(self):
+    steel_like = pl.ObjectMaterial('fixed_corotated', 1e15, 0.3, 1000.0)
+    cfg = pl.PipelineConfig(grid_res=16, max_particles=200, use_mpdp=False,
+                            fill=False)
+    with self.assertRaisesRegex(
+        pl.PipelineError, r'max_substeps_per_frame=20000.*rigid'):
+      pl.prepare_scene(_KEY, _block_scene(), [steel_like], cfg)
+
+  def test_initial_speed_enters_the_time_step(self):
+    cfg = dict(grid_res=16, max_particles=200, use_mpdp=False, fill=False)
+    slow, _ = pl.prepare_scene(_KEY, _block_scene(), [_RUBBER],
+                               pl.PipelineConfig(**cfg))
+    fast, _ = pl.prepare_scene(
+      _KEY, _block_scene(), [_RUBBER], pl.PipelineConfig(
+        initial_velocity=(('', (300.0, 0.0, 0.0)),), **cfg))
+    # 300 m/s against a wave speed of ~6 m/s: many more substeps.
+    self.assertGreater(fast.spec.substeps_per_frame,
+                       20 * slow.spec.substeps_per_frame)
+
+
+class FailureTest(absltest.TestCase):
+
+  def test_jitted_path_flags_the_first_bad_frame(self):
+    cfg = pl.PipelineConfig(num_frames=3, grid_res=16, max_particles=200,
+                            use_mpdp=False, fill=False, render='none',
+                            fps=120.0, margin=1.0)
+    prepared, _ = pl.prepare_scene(_KEY, _block_scene(), [_RUBBER], cfg)
+    params = pl.init_params(prepared, cfg)
+    traj = pl.simulate_jit(params, prepared, cfg)
+    self.assertTrue(bool(np.all(traj.finite)))
+    self.assertIs(pl.check_finite(traj, prepared), traj)
+    bad = params.replace(velocity=params.velocity.at[0, 0].set(jnp.nan))
+    traj = pl.simulate_jit(bad, prepared, cfg)
+    self.assertFalse(bool(np.asarray(traj.finite)[-1]))
+    with self.assertRaisesRegex(SimulationError, r"frame \d.*\['block'\]"):
+      pl.check_finite(traj, prepared)
+
+  def test_report_written_when_the_run_fails(self):
+    cfg = pl.PipelineConfig(num_frames=2, grid_res=16, max_particles=200,
+                            use_mpdp=False, fill=False, render='none')
+    with tempfile.TemporaryDirectory() as d:
+      with self.assertRaises(pl.PipelineError):
+        pl.simulate_scene(_block_scene(), cfg, d, materials=[])
+      report = json.load(open(os.path.join(d, 'report.json')))
+      self.assertIn('PipelineError', report['error'])
+      self.assertIn('one material per object', report['error'])
+      self.assertEqual([f for f in os.listdir(d) if 'partial' in f], [])
+
+
+if __name__ == '__main__':
+  absltest.main()
