@@ -31,23 +31,30 @@ _F32_RTOL = 1e-3  # float32 AD vs float64 AD
 
 # Models per scene, grouped so that each ground mode sees SVD and non-SVD
 # models and every model appears once (fewer, smaller compiles).
+# Cohesionless sand at rest sits on the apex of its Drucker-Prager cone,
+# where the return map has no derivative (AD takes the elastic side):
+# loaded by gravity on the ground from exact rest, central differences
+# straddle the apex and differ by ~0.1-1% (measured, and through the shared
+# grid so do its neighbours'). So sand is checked in free fall ('none', F
+# stays at the apex); tests/mpm_grad_test.py checks it against FD away from
+# the apex.
 _GROUPS = {
-  'slip': ('fixed_corotated', 'drucker_prager', 'snow', 'rigid'),
+  'slip': ('fixed_corotated', 'snow', 'von_mises', 'rigid'),
   'sticky': ('neo_hookean', 'stvk', 'plasticine', 'rigid'),
-  'none': ('von_mises', 'foam', 'bingham', 'newtonian'),
+  'none': ('drucker_prager', 'foam', 'bingham', 'newtonian'),
 }
 
 
 def _scene(models, n=40, half=0.02, gap=0.001, seed=0):
-  """One cube per model on a 4-wide row, resting (1 mm gap) on a table."""
+  """One cube per model on a 2 x 2 block, resting (1 mm gap) on a table."""
   rng = np.random.default_rng(seed)
   parts, ids, objs = [], [], []
   for k, m in enumerate(models):
-    c = np.array([0.06 * (k % 4), 0.06 * (k // 4), gap + half])
+    c = np.array([0.06 * (k % 2), 0.06 * (k // 2), gap + half])
     parts.append(rng.uniform(c - half, c + half, (n, 3)))
     ids.append(np.full(n, k, np.int32))
     objs.append(ObjectInfo(m))
-  parts.append(rng.uniform([-0.04, -0.04, -0.02], [0.22, 0.06, 0.0], (n, 3)))
+  parts.append(rng.uniform([-0.04, -0.04, -0.02], [0.1, 0.1, 0.0], (n, 3)))
   ids.append(np.full(n, len(models), np.int32))
   objs.append(ObjectInfo('table', fixed=True))
   m = np.concatenate(parts)
@@ -94,7 +101,13 @@ class PipelineFromRestTest(parameterized.TestCase):
 
   @parameterized.parameters(*_GROUPS)
   def test_models_from_rest_match_fd_x64(self, ground):
-    """Each model's object starts at rest (F = I) touching the ground."""
+    """Each model's object starts at rest (F = I) touching the ground.
+
+    The margin keeps the objects off the domain box: its one-sided
+    constraint (zero any outward node velocity) has a kink at v = 0, which
+    central differences straddle from rest (measured 4% off with margin
+    0.3), while AD takes one side.
+    """
     models = _GROUPS[ground]
     with jax.enable_x64(True):
       mats = [pl.ObjectMaterial(m, 2e4, 0.3, 1000.0, rigid=(m == 'rigid'))
@@ -103,7 +116,7 @@ class PipelineFromRestTest(parameterized.TestCase):
       cfg = pl.PipelineConfig(
         grid_res=16, num_frames=2, fps=120.0, substeps_per_frame=None,
         sampling='kmeans', max_particles=30 * len(models),
-        particles_per_cell=2.0, use_mpdp=False, render='none', margin=0.3,
+        particles_per_cell=2.0, use_mpdp=False, render='none', margin=1.0,
         fill=False, ground=ground)
       prep, _ = pl.prepare_scene(_scene(models), mats, cfg)
       prep = _f64(prep)
