@@ -256,10 +256,12 @@ class ReadmeExampleTest(absltest.TestCase):
       initial_velocity=(('rubber ball', (0.5, 0.0, 1.0)),))
     prepared, _ = ps.prepare_scene(scene, materials, config)
     params = ps.init_params(prepared, config)
-    loss = lambda p: ps.simulate(p, prepared, config).means[-1, :, 2].mean()  # noqa: E731
+
+    def loss(p):
+      return ps.simulate(p, prepared, config).means[-1, :, 2].mean()
+
     g = jax.jit(jax.grad(loss))(params)
-    leaves = jax.tree.leaves(g)
-    for leaf in leaves:
+    for leaf in jax.tree.leaves(g):
       self.assertTrue(np.all(np.isfinite(np.asarray(leaf))))
     # The jelly cube's velocity gradient (the NaN of issue 17) is non-zero.
     j = prepared.spec.object_names.index('jelly cube')
