@@ -143,6 +143,9 @@ class PipelineFromRestTest(absltest.TestCase):
       # Every object's velocity gradient is non-zero (no silent zero).
       self.assertTrue(np.all(np.any(np.asarray(g.velocity) != 0, axis=1)))
 
+  # Each pipeline case compiles a value_and_grad of simulate (~40-80 s on
+  # the shared 2-core VM): slow, as the default run's budget is ~20 s each.
+  @pytest.mark.slow
   def test_slip_ground_matches_fd_x64(self):
     self._check('slip')
 
@@ -242,6 +245,7 @@ class Float32HazardTest(absltest.TestCase):
                                  rtol=_FD_RTOL)
 
 
+@pytest.mark.slow
 class ReadmeExampleTest(absltest.TestCase):
 
   def test_readme_example_gradients_are_finite(self):
