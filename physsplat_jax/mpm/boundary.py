@@ -148,8 +148,9 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
         total = jnp.sum(data * mass)
         if reduce_fn is not None:
           total = reduce_fn(total)
-        s = jnp.where(on, dt, 0.0) * data / jnp.maximum(
-          total, jnp.finfo(mass.dtype).tiny)
+        # Safe division: an empty selection has total 0, and the derivative
+        # of x / max(total, tiny) is x * inf * 0 = NaN there.
+        s = jnp.where(on, dt, 0.0) * data / jnp.where(total > 0, total, 1.0)
       v = [v[d] + s * val[d] for d in range(3)]
     elif isinstance(bc, EnforceTranslation):
       on = _active(t, bc.start_time, bc.end_time, dt) & (data > 0.5)
@@ -193,7 +194,11 @@ def _friction(v, vn, n, mu):
   if mu == 0:
     return v
   vt2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
-  vt = jnp.sqrt(jnp.maximum(vt2, jnp.finfo(vt2.dtype).tiny))
+  # |v_t| floored at sqrt(tiny) by a select, not jnp.maximum: a node at rest
+  # on the collider has v_t = 0, and maximum's derivative multiplies the
+  # (huge) derivative of sqrt there by 0; the select passes exact zeros.
+  tiny = jnp.finfo(vt2.dtype).tiny
+  vt = jnp.sqrt(jnp.where(vt2 > tiny, vt2, tiny))
   s = jnp.where(vn < 0, jnp.maximum(0.0, 1.0 + mu * vn / vt), 1.0)
   return [v[d] * s for d in range(3)]
 

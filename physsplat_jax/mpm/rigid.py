@@ -87,7 +87,9 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
     return a[seg]
 
   M = ssum(mass)
-  Ms = jnp.maximum(M, jnp.finfo(dtype).tiny)
+  # Safe division (an empty segment has M = 0): a select, so that the
+  # derivative of 1 / M is never inf * 0.
+  Ms = jnp.where(M > 0, M, 1.0)
   c = [ssum(mass * x[d]) / Ms for d in range(3)]
   V = [ssum(mass * v[d]) / Ms for d in range(3)]
   r = [x[d] - at(c[d]) for d in range(3)]
