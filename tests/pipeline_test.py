@@ -280,5 +280,29 @@ class RunTest(absltest.TestCase):
       self.assertIn(k, out.timings)
 
 
+class DomainTest(absltest.TestCase):
+
+  def test_grid_holds_the_ballistic_peak(self):
+    # A 1 m/s throw upwards peaks v^2 / 2g = 5.1 cm above the object; the
+    # grid (minus its 3 boundary cells) must reach that high.
+    from physsplat_jax.pipeline import prepare as prep_lib
+
+    lo, hi = np.zeros(3), np.array([0.04, 0.04, 0.04])
+    rlo, rhi = prep_lib.motion_reach(lo, hi, [(0.0, 0.0, 1.0)], 9.8)
+    self.assertAlmostEqual(rhi[2] - hi[2], 1.0 / (2 * 9.8), places=9)
+    np.testing.assert_array_equal(rlo, lo)
+    # Sideways: speed times the flight time back down to the lowest point.
+    _, rhi = prep_lib.motion_reach(lo, hi, [(0.5, 0.0, 0.0)], 9.8)
+    self.assertAlmostEqual(rhi[0] - hi[0], 0.5 * np.sqrt(2 * 0.04 / 9.8))
+    scene = _scene()
+    cfg = _config(initial_velocity=(('', (0.0, 0.0, 1.0)),), margin=0.3)
+    prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene,
+                               [_RUBBER, _WOOD], cfg)
+    top = float(np.max(np.asarray(prep.x0)[:, 2]))
+    spec = prep.spec
+    usable_top = spec.grid_lower[2] + spec.grid_size - 3 * spec.dx
+    self.assertGreater(usable_top, top + 1.0 / (2 * 9.8))
+
+
 if __name__ == '__main__':
   absltest.main()

@@ -125,6 +125,33 @@ class _FrameMaker:
     return np.clip(out.image, 0.0, 1.0)
 
 
+class _WallWatch:
+  """Warns once when particles press on the grid's walls: the domain is too
+  small for the motion and the walls, not the physics, stop them."""
+
+  _NAMES = ('-x', '+x', '-y', '+y', 'floor', 'ceiling')
+
+  def __init__(self, spec):
+    self.lo = np.asarray(spec.grid_lower) + 3.5 * spec.dx
+    self.hi = np.asarray(spec.grid_lower) + spec.grid_size - 3.5 * spec.dx
+    self.warned = False
+
+  def check(self, f: int, x) -> None:
+    if self.warned:
+      return
+    x = np.asarray(x)
+    # (N, 3, 2) -> per wall: -x, +x, -y, +y, floor, ceiling.
+    hit = np.stack([x < self.lo, x > self.hi], -1).reshape(len(x), 6).any(0)
+    if hit.any():
+      self.warned = True
+      which = [n for n, h in zip(self._NAMES, hit) if h]
+      logging.warning(
+        'frame %d: particles press on the domain walls (%s): the grid is too '
+        'small for this motion, so the walls stop them; raise margin (or '
+        'lower the velocities) so the grid holds the whole motion.', f,
+        ', '.join(which))
+
+
 def run(
   params: Params,
   prepared: PreparedScene,
@@ -184,8 +211,11 @@ def run(
   positions, particles = [], []
   num = config.num_frames
 
+  walls = _WallWatch(prepared.spec)
+
   def frame_cb(f, st):
     t1 = time.perf_counter()
+    walls.check(f, st.x)
     frame = maker(f, f * prepared.spec.frame_dt, st)
     t3 = time.perf_counter()
     for w in writers:

@@ -254,9 +254,43 @@ def _quantise(v) -> tuple[float, ...]:
   return tuple(round(float(c), 7) for c in v)
 
 
-def sim_frame_stage(scene: Scene, movable, fixed,
-                    cfg: PrepareConfig) -> _Frame:
-  """Simulation frame, grid (side, corner) and colliders."""
+def motion_reach(lo, hi, velocities, gravity: float):
+  """The box the movable objects can reach when launched (simulation frame).
+
+  Each velocity (initial velocities and impulses, [m/s], +z up) is followed
+  ballistically: up to ``v_z^2 / 2g`` above the top, and sideways over the
+  flight time back down to the lowest point, ``v_h (v_z + sqrt(v_z^2 +
+  2 g h)) / g``. Without gravity nothing bounds the flight: the reach is one
+  second of travel.
+
+  Returns:
+    (lo, hi) of the union of the rest box and the reach.
+  """
+  lo, hi = np.array(lo, np.float64), np.array(hi, np.float64)
+  h = float(hi[2] - lo[2])
+  for v in velocities:
+    v = np.asarray(v, np.float64)
+    up = max(float(v[2]), 0.0)
+    if gravity > 0:
+      t = (up + math.sqrt(up * up + 2 * gravity * h)) / gravity
+      top = up * up / (2 * gravity)
+    else:
+      t, top = 1.0, up
+    travel = v * t
+    travel[2] = top
+    lo = np.minimum(lo, lo + np.minimum(travel, 0.0))
+    hi = np.maximum(hi, hi + np.maximum(travel, 0.0))
+  return lo, hi
+
+
+def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
+                    gravity: float = 9.8) -> _Frame:
+  """Simulation frame, grid (side, corner) and colliders.
+
+  The grid is a cube around the movable objects with ``cfg.margin`` of
+  their size on each side, grown to hold where their initial velocities
+  and impulses can take them (:func:`motion_reach`).
+  """
   ids = np.asarray(scene.object_ids)
   names = [o.name for o in scene.objects]
   R = frames_lib.up_rotation(scene.up_vector)
@@ -265,16 +299,24 @@ def sim_frame_stage(scene: Scene, movable, fixed,
   mov_mask = np.isin(ids, movable)
   lo, hi = x_rs[mov_mask].min(0), x_rs[mov_mask].max(0)
   ext = hi - lo
-  L = float(np.max(ext)) * (1 + 2 * cfg.margin)
-  for _ in range(2):  # vertical room: 4 cells below, 4 above the objects
-    L = max(L, float(ext[2]) + 8 * L / cfg.grid_res)
-  # Static values are quantised (grid side to 6 significant digits,
-  # positions to 0.1 um) so equal geometry gives an equal SimSpec, i.e. one
-  # compilation, whatever the rounding of the input coordinates.
-  L = float(f'{L:.6g}')
-  dx = L / cfg.grid_res
-  colliders = find_colliders(x_rs, ids, movable, fixed, names, tol=dx)
-  ground = colliders.ground_z
+  kicks = [v for _, v in cfg.initial_velocity] + [
+    f.vector for f in cfg.forces if f.kind == 'impulse']
+  lo, hi = motion_reach(lo, hi, [R @ np.asarray(v) for v in kicks], gravity)
+  L = max(float(np.max(ext)) * (1 + 2 * cfg.margin),
+          float(np.max(hi - lo)) * (1 + 2 * min(cfg.margin, 0.1)))
+  zlo = lo[2]
+  for _ in range(2):  # the support may sit under the objects: find it
+    for _ in range(2):  # vertical room: 4 cells below, 4 above
+      L = max(L, float(hi[2] - zlo) + 8 * L / cfg.grid_res)
+    # Static values are quantised (grid side to 6 significant digits,
+    # positions to 0.1 um) so equal geometry gives an equal SimSpec, i.e.
+    # one compilation, whatever the rounding of the input coordinates.
+    L = float(f'{L:.6g}')
+    dx = L / cfg.grid_res
+    colliders = find_colliders(x_rs, ids, movable, fixed, names, tol=dx)
+    ground = colliders.ground_z
+    if cfg.ground is not Ground.NONE:
+      zlo = min(lo[2], ground)
   # With a ground the grid floor sits 4 cells under it (3 boundary cells);
   # without one the objects may fall, so the grid is centred on them.
   if cfg.ground is Ground.NONE:
@@ -481,7 +523,7 @@ def prepare_scene(
   names = [o.name for o in scene.objects]
   mov_names = tuple(names[o] for o in movable)
   mats = [materials[o] for o in movable]
-  fr = sim_frame_stage(scene, movable, fixed, cfg)
+  fr = sim_frame_stage(scene, movable, fixed, cfg, gravity)
   timings['frame_s'], t = time.perf_counter() - t, time.perf_counter()
   k_fill, k_drv = jax.random.split(key)
   cand = candidates_stage(k_fill, fr, len(movable), cfg)
