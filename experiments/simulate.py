@@ -45,6 +45,14 @@ _POKE = flags.DEFINE_multi_string(
 _SEGMENT = flags.DEFINE_string(
   'segment', None, 'segment the scene first: auto, geometric, ... (default: '
   'keep its objects)')
+_UP = flags.DEFINE_enum(
+  'up_axis', None, ['x', 'y', 'z', '-x', '-y', '-z'], 'scene file: its up '
+  'axis (default: from its sidecar or cameras, else z)')
+_UNITS = flags.DEFINE_float('meters_per_unit', None,
+                            'scene file: metres per scene unit')
+_MPDP = flags.DEFINE_string('mpdp_checkpoint', None, 'folder of MPDP '
+                            'weights (train_mpdp --export) instead of the '
+                            'shipped ones')
 _PLY = flags.DEFINE_bool('ply', False, 'write per-frame PLY files')
 _PHYSGAUSSIAN = flags.DEFINE_string(
   'physgaussian', None, 'a PhysGaussian config/*.json to run as is')
@@ -70,6 +78,8 @@ def main(argv):
     _SCENE.value, config, _OUT.value, objects=_OBJECTS.value or (),
     ply=_PLY.value, segment=_SEGMENT.value,
     perception_options=lib.perception_options_from_flags(),
+    scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
+    mpdp_checkpoint=_MPDP.value,
     extra_report=dict(command=' '.join(sys.argv), git=sha))
   print(pl.summary(report))
 

@@ -12,6 +12,8 @@ from typing import Any, Sequence
 
 from absl import app
 
+from physsplat_jax import cameras
+from physsplat_jax import mpdp
 from physsplat_jax import perception
 from physsplat_jax import physgaussian
 from physsplat_jax import pipeline as pl
@@ -156,22 +158,56 @@ def perception_options_from_flags():
     raise app.UsageError(str(e)) from None
 
 
+def load_mpdp(path: str | None):
+  """MPDP params from a checkpoint folder (``save_params`` layout), or None
+  for the shipped weights."""
+  if not path:
+    return None
+  try:
+    params, cfg, _ = mpdp.load_params(path)
+  except ValueError as e:
+    raise pl.PipelineError(f'--mpdp_checkpoint={path!r}: {e}') from None
+  if cfg != mpdp.ModelConfig():
+    raise pl.PipelineError(
+      f'--mpdp_checkpoint={path!r} holds a network of another architecture '
+      f'({cfg}); the pipeline runs the default ModelConfig().')
+  return params
+
+
 def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
               objects: Sequence[str] = (), ply: bool = False,
               segment: str | None = None, perception_options=None,
-              extra_report: dict | None = None) -> dict:
-  """The pipeline on a built-in scene or a scene file; the report."""
+              extra_report: dict | None = None,
+              scene_options: dict | None = None,
+              mpdp_checkpoint: str | None = None) -> dict:
+  """The pipeline on a built-in scene or a scene file; the report.
+
+  ``scene_options`` go to :func:`physsplat_jax.load_scene` for a scene file
+  (``up_axis``, ``meters_per_unit``, ...); ``mpdp_checkpoint`` is a folder of
+  MPDP weights to use instead of the shipped ones.
+  """
   outputs.check_output_dir(out)
-  scene = scenes.load_scene(scene_name)
+  mpdp_params = load_mpdp(mpdp_checkpoint)
+  options = {k: v for k, v in (scene_options or {}).items() if v is not None}
+  if options and scene_name in scenes.list_scenes():
+    raise app.UsageError(f'{sorted(options)} apply to scene files; the '
+                         f'built-in scene {scene_name!r} is already in metres, '
+                         'z up.')
+  scene = scenes.load_scene(scene_name, **options)
   scene = pl.segment_stage(scene, segment)
   check_scene_objects(scene, objects, config)
   if objects:
     scene = pl.select_objects(scene, objects)
   if perception_options is not None:
     check_overrides(scene, perception_options.overrides)
+  try:  # the camera is checked before any expensive work
+    cameras.scene_camera(scene, config.width, config.height,
+                         config.camera_index)
+  except ValueError as e:
+    raise pl.PipelineError(f'--config.camera_index: {e}') from None
   _, report = pl.simulate_scene(
     scene, config, out, perception_options=perception_options, ply=ply,
-    extra_report=extra_report)
+    extra_report=extra_report, mpdp_params=mpdp_params)
   return report
 
 

@@ -70,6 +70,7 @@ def simulate_scene(
   segment: str | None = None,
   ply: bool = False,
   extra_report: dict | None = None,
+  mpdp_params: Any = None,
 ) -> tuple[RunOutput, dict]:
   """The whole job on one scene.
 
@@ -86,6 +87,8 @@ def simulate_scene(
       scene's objects).
     ply: also write per-frame PLY files.
     extra_report: merged into ``report.json`` (e.g. the command line).
+    mpdp_params: MPDP weights (e.g. a user's checkpoint from
+      ``physsplat_jax.mpdp.load_params``); default the shipped ones.
 
   Returns:
     (:class:`RunOutput`, the report dict).
@@ -104,7 +107,7 @@ def simulate_scene(
   t0 = time.perf_counter()
   try:
     out = _run_stages(scene, config, out_dir, materials, perception_options,
-                      segment, ply, stages, report)
+                      segment, ply, stages, report, mpdp_params)
   except Exception as e:
     report['error'] = f'{type(e).__name__}: {e}'
     stages['total'] = time.perf_counter() - t0
@@ -122,7 +125,7 @@ def simulate_scene(
 
 
 def _run_stages(scene, config, out_dir, materials, perception_options,
-                segment, ply, stages, report) -> RunOutput:
+                segment, ply, stages, report, mpdp_params) -> RunOutput:
   t = time.perf_counter()
   scene = segment_stage(scene, segment)
   stages['segmentation'], t = time.perf_counter() - t, time.perf_counter()
@@ -130,8 +133,8 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
     materials = perception.perceive_scene(scene, perception_options)
   stages['perception'], t = time.perf_counter() - t, time.perf_counter()
   key = jax.random.PRNGKey(config.seed)
-  prepared, prep = prepare_scene(key, scene, materials, config)
-  params = init_params(prepared, config)
+  prepared, prep = prepare_scene(key, scene, materials, config, mpdp_params)
+  params = init_params(prepared, config, mpdp_params)
   stages['prepare'] = time.perf_counter() - t
   stages.update({f'prepare.{k[:-2]}': v for k, v in prep.timings.items()})
   objects = []
