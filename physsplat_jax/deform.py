@@ -65,15 +65,13 @@ the ``k`` neighbours (Gaussian kernel, normalised to sum 1).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 from scipy import spatial
 
+from physsplat_jax.types import Array
 from physsplat_jax.types import Gaussians
-
-Array = jax.Array
 
 # Relative threshold on the eigenvalues of the rest moment matrix M: below it
 # (drivers spread along that direction by less than 1% of their largest

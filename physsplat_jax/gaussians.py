@@ -11,11 +11,10 @@ All functions are pure and batched over leading axes.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-Array = jax.Array
+from physsplat_jax.types import Array
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199

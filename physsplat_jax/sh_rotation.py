@@ -24,9 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax import gaussians as gs
+from physsplat_jax.types import Array
 from physsplat_jax.types import sh_degree_from_bases
-
-Array = jax.Array
 
 
 @functools.lru_cache(maxsize=None)

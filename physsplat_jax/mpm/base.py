@@ -26,8 +26,7 @@ from flax import struct
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
-
-Array = jax.Array
+from physsplat_jax.types import Array
 
 INF = float('inf')
 

@@ -48,12 +48,11 @@ values are (nearly) equal. Its gradient is exact, including at F = I
 
 from __future__ import annotations
 
-from typing import Any
-
 import jax
 import jax.numpy as jnp
 
-Array = Any
+from physsplat_jax.types import Array
+
 Mat = tuple  # tuple[tuple[Array, Array, Array], ...] of (N,) arrays
 
 # Scaled Newton iterations: 6 reach float32 round-off even for condition

@@ -43,8 +43,7 @@ from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import rigid as rigid_lib
 from physsplat_jax.mpm import transfer
-
-Array = jax.Array
+from physsplat_jax.types import Array
 
 
 # ------------------------------------------------------------- grid nodes

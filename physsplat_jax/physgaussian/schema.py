@@ -57,8 +57,7 @@ from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.mpm.models import MATERIAL_ALIASES
 from physsplat_jax.mpm.models import MATERIAL_IDS
 from physsplat_jax.mpm.models import canonical_model
-
-Array = Any
+from physsplat_jax.types import Array
 
 BOUNDARY_TYPES = (
   'bounding_box', 'cuboid', 'particle_impulse', 'enforce_particle_translation',

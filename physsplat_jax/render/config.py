@@ -8,7 +8,7 @@ import math
 import jax
 from flax import struct
 
-Array = jax.Array
+from physsplat_jax.types import Array
 
 
 @dataclasses.dataclass(frozen=True)

@@ -60,7 +60,7 @@ from jax import lax
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plgpu
 
-Array = jax.Array
+from physsplat_jax.types import Array
 
 _NUM_FEATURES = 10  # mean x, y; conic a, b, c; opacity; r, g, b; depth
 

@@ -27,9 +27,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
-
-Array = jax.Array
 
 # Floor of the eigenvalue discriminant, as gsplat (``clamp(b^2 - det, 0.01)``).
 _DISCRIMINANT_FLOOR = 0.01

@@ -82,10 +82,9 @@ from physsplat_jax.render.config import RenderConfig as RenderConfig
 from physsplat_jax.render.config import RenderOutput as RenderOutput
 from physsplat_jax.render.project import Projected
 from physsplat_jax.render.project import project
+from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import Gaussians
-
-Array = jax.Array
 
 # Exponent given to masked-out (Gaussian, pixel) pairs: exp(-1e10) == 0 with a
 # zero (not NaN) derivative.

@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-Array = jax.Array
+from physsplat_jax.types import Array
 
 
 def _check_frames(frames) -> Array:

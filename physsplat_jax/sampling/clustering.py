@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-Array = jax.Array
+from physsplat_jax.types import Array
 
 
 class KMeansResult(struct.PyTreeNode):

@@ -35,8 +35,7 @@ import numpy as np
 from flax import struct
 
 from physsplat_jax import gaussians as _g
-
-Array = jax.Array
+from physsplat_jax.types import Array
 
 _MAX_GRID_RES = 256
 

@@ -57,7 +57,7 @@ import numpy as np
 from flax import struct
 from scipy import spatial
 
-Array = jax.Array
+from physsplat_jax.types import Array
 
 _HASH_PRIMES = (73856093, 19349663, 83492791)
 _SQRT3 = np.float32(math.sqrt(3.0))

@@ -52,12 +52,11 @@ from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import synthetic
 from physsplat_jax.mpdp import train as train_lib
 from physsplat_jax.render import raster
+from physsplat_jax.types import Array
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
 from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera
-
-Array = jax.Array
 
 
 @dataclasses.dataclass(frozen=True)
