@@ -32,6 +32,7 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m experiments.benchmark_mpm
 	$(PY) -m experiments.benchmark_render
+	$(PY) -m experiments.benchmark_pipeline --preset=cpu --out=out/bench_pipeline
 
 clean:
 	rm -rf $(VENV) out
