@@ -15,7 +15,9 @@ from physsplat_jax import cameras as cam_lib
 from physsplat_jax import scenes
 from physsplat_jax import test_util
 from physsplat_jax.io.cameras import save_inria_cameras
-from physsplat_jax.io.ply import load_ply, save_ply
+from physsplat_jax.io.ply import gaussians_to_vertex, load_ply, save_ply
+from physsplat_jax.io.ply import write_ply
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io.scene import SceneFileError, save_scene
 from physsplat_jax.scenes import load_scene
 from physsplat_jax.io.scene import sidecar_path
@@ -208,6 +210,23 @@ class SceneIOTest(parameterized.TestCase):
       load_scene('teapot')
     with self.assertRaisesRegex(SceneFileError, "did you mean 'tabletop'"):
       load_scene('tabletopp')
+    g = load_ply(DATA / 'udon_crop.ply')
+    nan = os.path.join(self.dir, 'nan.ply')
+    vertex = dict(gaussians_to_vertex(g))
+    vertex['x'] = vertex['x'].copy()
+    vertex['x'][2] = np.nan  # save_ply refuses this; a broken file has it
+    write_ply(nan, {'vertex': vertex})
+    with self.assertRaisesRegex(PhysSplatError, 'non-finite.*1 of'):
+      load_scene(nan)
+    empty = os.path.join(self.dir, 'empty.ply')
+    write_ply(empty, {'vertex': {k: v[:0] for k, v in vertex.items()}})
+    with self.assertRaisesRegex(PhysSplatError, 'no Gaussians|0 vertices'):
+      load_scene(empty)
+    huge = os.path.join(self.dir, 'huge.ply')
+    save_ply(huge, g.replace(log_scales=g.log_scales.at[:5].set(10.0)))
+    with self.assertLogs(level='WARNING') as logs:
+      load_scene(huge, num_cameras=1)
+    self.assertIn('5 of', ' '.join(logs.output))
     with self.assertRaisesRegex(SceneFileError, 'donut, ficus, tabletop'):
       load_scene(os.path.join(self.dir, 'missing.ply'))
     with self.assertRaisesRegex(SceneFileError, 'name or a path'):

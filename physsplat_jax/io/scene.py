@@ -46,6 +46,7 @@ import re
 
 import jax.numpy as jnp
 import numpy as np
+from absl import logging
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax import cameras as _cameras
@@ -86,6 +87,40 @@ def sidecar_path(path: PathLike) -> str:
 
 # ----------------------------------------------------------------------------
 # Loading.
+
+
+def check_gaussians(g: Gaussians, path: str) -> None:
+  """Refuses an empty or non-finite scene file; warns of absurd scales.
+
+  Raises:
+    SceneFileError: no Gaussians, or non-finite values (with the counts).
+  """
+  if g.num == 0:
+    raise SceneFileError(f'{path}: the file holds no Gaussians (0 vertices); '
+                         'give a trained 3DGS scene.')
+  bad = {}
+  for name in ('means', 'log_scales', 'quats', 'opacity_logits', 'sh'):
+    a = np.asarray(getattr(g, name)).reshape(g.num, -1)
+    n = int(np.sum(~np.all(np.isfinite(a), axis=1)))
+    if n:
+      bad[name] = n
+  if bad:
+    raise SceneFileError(
+      f'{path}: non-finite values in {bad} (field: Gaussians affected); '
+      'remove those vertices or re-export the scene.')
+  means = np.asarray(g.means, np.float64)
+  extent = float(np.max(np.ptp(means, axis=0))) if g.num > 1 else 0.0
+  if g.num > 1 and extent == 0.0:
+    logging.warning('%s: all %d Gaussians sit at one point (zero extent)',
+                    path, g.num)
+  scale = np.exp(np.max(np.asarray(g.log_scales, np.float64), axis=1))
+  huge = int(np.sum(scale > max(extent, 1e-12)))
+  if extent > 0 and huge:
+    logging.warning(
+      '%s: %d of %d Gaussians are larger than the whole scene (largest '
+      'axis up to %.3g, scene extent %.3g): they will cover the frames; '
+      'check the file\'s scale_* fields (log-scales expected).', path, huge,
+      g.num, float(scale.max()), extent)
 
 
 def load_scene(path: str | PathLike, **options) -> Scene:
@@ -178,6 +213,7 @@ def load_scene_file(
       f'{path}: unsupported scene file type {ext or "(none)"!r}; expected '
       '.ply (INRIA or compressed) or .splat'
     )
+  check_gaussians(g, path)
   if up_axis is not None:
     up_vector(up_axis)  # validates
   if meters_per_unit is not None and not (
