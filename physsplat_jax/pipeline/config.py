@@ -330,28 +330,27 @@ class PipelineConfig:
     return 1.0 / self.fps
 
 
+def _part(config, cls, attr: str):
+  """``config`` if it is a ``cls``, its ``attr`` part if a PipelineConfig."""
+  if isinstance(config, cls):
+    return config
+  if isinstance(config, PipelineConfig):
+    return getattr(config, attr)
+  raise PipelineError(
+    f'config is a {type(config).__name__}; give a {cls.__name__} or a '
+    'PipelineConfig.')
+
+
 def as_simulate_config(config: SimulateConfig | PipelineConfig
                        ) -> SimulateConfig:
   """The static simulate config of either config kind."""
-  if isinstance(config, SimulateConfig):
-    return config
-  if isinstance(config, PipelineConfig):
-    return config.simulate
-  raise PipelineError(
-    f'config is a {type(config).__name__}; give a SimulateConfig or a '
-    'PipelineConfig.')
+  return _part(config, SimulateConfig, 'simulate')
 
 
 def as_prepare_config(config: PrepareConfig | PipelineConfig
                       ) -> PrepareConfig:
   """The host-side preparation config of either config kind."""
-  if isinstance(config, PrepareConfig):
-    return config
-  if isinstance(config, PipelineConfig):
-    return config.prepare
-  raise PipelineError(
-    f'config is a {type(config).__name__}; give a PrepareConfig or a '
-    'PipelineConfig.')
+  return _part(config, PrepareConfig, 'prepare')
 
 
 def _force_from_dict(i: int, f: Any) -> ForceSpec:
