@@ -17,8 +17,11 @@ Sec. 3.3). This module is that network, written as a small PointNet/DGCNN
 
 ``p`` are the object's points centred on their (masked) mean and scaled so the
 farthest valid point is at radius 1, so the field is invariant to
-translation and scale. The kNN is static-shaped (``lax.top_k`` over the full
-pairwise-distance matrix, O(N^2) memory; padded points are never chosen).
+translation and scale. The kNN is static-shaped and exact, padded points are
+never chosen (:mod:`physsplat_jax.mpdp.knn`: brute force on small objects,
+sorted cell lists with O(N k) memory on large ones; the same neighbours
+either way), and above :data:`EDGE_CHUNK` points the EdgeConv runs in chunks,
+so memory grows linearly with N.
 The last layer is zero-initialised, so an untrained network gives the
 mean-only baseline ``m = 1`` exactly.
 
@@ -38,12 +41,17 @@ means, mask)``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Sequence
 
 import flax.linen as nn
+from flax.linen.dtypes import promote_dtype
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from physsplat_jax.mpdp import knn as knn_lib
+from physsplat_jax.mpdp.knn import knn_indices as knn_indices  # noqa: F401
 
 # Canonical constitutive-model names (shared across the package).
 MODEL_NAMES = (
@@ -182,36 +190,62 @@ def normalize_points(points, mask):
   return p / r
 
 
-def knn_indices(points, mask, k: int):
-  """Static-shape k nearest valid neighbours (self included).
-
-  Args:
-    points: (N, 3) positions.
-    mask: (N,) bool validity.
-    k: number of neighbours (static).
-
-  Returns:
-    (N, k) int32 indices; slots with no valid neighbour point to self.
-  """
-  n = points.shape[0]
-  d2 = jnp.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=-1)
-  d2 = jnp.where(mask[None, :], d2, jnp.inf)
-  k = min(k, n)
-  neg, idx = jax.lax.top_k(-jax.lax.stop_gradient(d2), k)
-  self_idx = jnp.broadcast_to(jnp.arange(n)[:, None], idx.shape)
-  return jnp.where(jnp.isfinite(neg), idx, self_idx)
-
-
 def _mlp(x, features: Sequence[int]):
   for f in features:
     x = nn.gelu(nn.Dense(f)(x))
   return x
 
 
+# Points per chunk of the EdgeConv above this size (static): the edge
+# tensors are (chunk, k, 2 F + 3) instead of (N, k, 2 F + 3).
+EDGE_CHUNK = 16384
+
+
+def _edge_conv(dense_a, dense_b, h, points, idx, rows=None):
+  """EdgeConv of the points ``rows`` (default all; ``idx`` their (R, k)
+  neighbours): ``gelu(max_j dense_b(gelu(dense_a([h_i, h_j - h_i, p_j -
+  p_i]))))``."""
+  hr, pr = (h, points) if rows is None else (h[rows], points[rows])
+  hj = h[idx]
+  hi = jnp.broadcast_to(hr[:, None, :], hj.shape)
+  rel = points[idx] - pr[:, None, :]
+  e = jnp.concatenate([hi, hj - hi, rel], axis=-1)
+  e = nn.gelu(dense_a(e))
+  e = dense_b(e)
+  return nn.gelu(jnp.max(e, axis=1))
+
+
+def _dense(p, x):
+  """``nn.Dense`` with params ``p``, as a pure function (same ops)."""
+  x, kernel, bias = promote_dtype(x, p['kernel'], p['bias'])
+  y = jax.lax.dot_general(x, kernel, (((x.ndim - 1,), (0,)), ((), ())))
+  return y + jnp.reshape(bias, (1,) * (y.ndim - 1) + (-1,))
+
+
+def _chunked_edge_conv(pa, pb, h, points, idx):
+  """:func:`_edge_conv` of all points, :data:`EDGE_CHUNK` at a time."""
+  n = points.shape[0]
+  nb = -(-n // EDGE_CHUNK)
+  size = -(-n // nb)
+  rows = jnp.arange(nb * size).reshape(nb, size) % n  # pad: repeat rows
+
+  def chunk(pa, pb, r):
+    return _edge_conv(functools.partial(_dense, pa),
+                      functools.partial(_dense, pb), h, points, idx[r], r)
+
+  # Rematerialised: the backward pass keeps one chunk's edges at a time.
+  chunk = jax.checkpoint(chunk)
+  out = jax.lax.map(lambda r: chunk(pa, pb, r), rows)
+  return out.reshape(nb * size, -1)[:n]
+
+
 class PointNet(nn.Module):
   """PointNet/DGCNN-lite producing per-point logits (see module docstring)."""
 
   config: ModelConfig = ModelConfig()
+  # Neighbour search (not part of the weights): 'auto', 'grid' or 'brute'
+  # (see physsplat_jax.mpdp.knn); all give the same neighbours.
+  knn_method: str = 'auto'
 
   @nn.compact
   def __call__(self, points, means, mask):
@@ -230,14 +264,19 @@ class PointNet(nn.Module):
     h = _mlp(points, cfg.features)
     feats = [h]
     if cfg.edge_features > 0 and cfg.k_neighbors > 0:
-      idx = knn_indices(points, mask, cfg.k_neighbors)
-      hj = h[idx]
-      hi = jnp.broadcast_to(h[:, None, :], hj.shape)
-      rel = points[idx] - points[:, None, :]
-      e = jnp.concatenate([hi, hj - hi, rel], axis=-1)
-      e = nn.gelu(nn.Dense(cfg.edge_features)(e))
-      e = nn.Dense(cfg.edge_features)(e)
-      feats.append(nn.gelu(jnp.max(e, axis=1)))
+      idx = knn_lib.knn_indices(points, mask, cfg.k_neighbors,
+                                 self.knn_method)
+      dense_a = nn.Dense(cfg.edge_features)
+      dense_b = nn.Dense(cfg.edge_features)
+      if n <= EDGE_CHUNK:
+        feats.append(_edge_conv(dense_a, dense_b, h, points, idx))
+      else:
+        # One point binds the two layers (and creates them at init); then
+        # the same ops run over chunks of points, so the (N, k, F) edge
+        # tensors never exist at once.
+        _edge_conv(dense_a, dense_b, h, points, idx[:1], jnp.arange(1))
+        pa, pb = dense_a.variables['params'], dense_b.variables['params']
+        feats.append(_chunked_edge_conv(pa, pb, h, points, idx))
     local = jnp.concatenate(feats, axis=-1)
     g = nn.Dense(cfg.global_features)(local)
     g = jnp.max(jnp.where(mask[:, None], g, -jnp.inf), axis=0)
@@ -288,15 +327,25 @@ def _check_inputs(points, means, mask):
       f'= {points.shape[:-1]}.')
 
 
-def make_predict(config: ModelConfig = ModelConfig()):
+def make_predict(config: ModelConfig = ModelConfig(),
+                 knn_method: str = 'auto'):
   """Returns ``predict_fn(params, points, means, mask=None) -> (N, 3)``.
 
   ``predict_fn`` normalises the points, runs :class:`PointNet` and returns
   the field (E, nu, rho multipliers) with masked mean exactly 1. Leading
   batch dimension is supported: points (B, N, 3), means (B, MEANS_DIM),
   mask (B, N).
+
+  Args:
+    config: the architecture.
+    knn_method: EdgeConv neighbour search, 'auto' (brute force up to
+      ``knn.BRUTE_MAX_POINTS`` points, else the cell grid), 'grid' or
+      'brute'; the same weights give the same field with any of them.
   """
-  net = PointNet(config)
+  if knn_method not in knn_lib.METHODS:
+    raise ValueError(f'make_predict: knn_method={knn_method!r}; use one of '
+                     f'{knn_lib.METHODS}')
+  net = PointNet(config, knn_method=knn_method)
 
   def single(params, points, means, mask):
     p = normalize_points(points, mask)

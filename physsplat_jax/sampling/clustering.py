@@ -3,7 +3,9 @@
 Lloyd iterations ``c_k <- mean{x_i : argmin_j |x_i - c_j| = k}`` from a
 k-means++ initialisation (Arthur & Vassilvitskii 2007: each new centre drawn
 with probability proportional to ``D(x)^2``) or a random subset. Empty
-clusters keep their previous centre. Fixed shapes throughout.
+clusters keep their previous centre. Fixed shapes throughout. Points are
+assigned in chunks, so memory is O(N + C) (not an (N, C) distance matrix);
+time stays O(N C) per iteration, and the k-means++ seeding O(N C) in all.
 """
 
 from __future__ import annotations
@@ -29,10 +31,31 @@ class KMeansResult(struct.PyTreeNode):
   inertia: Array
 
 
+# Elements of one (points chunk, centres) distance block: assignment memory
+# is O(N + C + _ASSIGN_BUDGET), not O(N C).
+_ASSIGN_BUDGET = 2**22
+
+
 def _sq_dist(x: Array, c: Array) -> Array:
   d = (jnp.sum(x * x, 1)[:, None] - 2.0 * x @ c.T
        + jnp.sum(c * c, 1)[None, :])
   return jnp.maximum(d, 0.0)
+
+
+def _assign(points: Array, centers: Array) -> tuple[Array, Array]:
+  """Nearest centre and its squared distance, (N,) each, in point chunks."""
+  n, c = points.shape[0], centers.shape[0]
+  chunk = max(1, min(n, _ASSIGN_BUDGET // max(c, 1)))
+  nb = -(-n // chunk)
+  chunk = -(-n // nb)
+  x = jnp.pad(points, ((0, nb * chunk - n), (0, 0))).reshape(nb, chunk, 3)
+
+  def one(xc):
+    d = _sq_dist(xc, centers)
+    return jnp.argmin(d, 1), jnp.min(d, 1)
+
+  a, dmin = jax.lax.map(one, x)
+  return a.reshape(-1)[:n], dmin.reshape(-1)[:n]
 
 
 def kmeans_pp_init(key: Array, points: Array, num_clusters: int,
@@ -93,20 +116,18 @@ def kmeans(
   w = valid.astype(points.dtype)
 
   def step(centers, _):
-    a = jnp.argmin(_sq_dist(points, centers), 1)
-    oh = jax.nn.one_hot(a, num_clusters, dtype=points.dtype) * w[:, None]
-    cnt = oh.sum(0)
-    s = oh.T @ points
+    a, _ = _assign(points, centers)
+    cnt = jax.ops.segment_sum(w, a, num_clusters)
+    s = jax.ops.segment_sum(points * w[:, None], a, num_clusters)
     new = jnp.where(cnt[:, None] > 0, s / jnp.maximum(cnt, 1.0)[:, None],
                     centers)
     return new, None
 
   centers, _ = jax.lax.scan(step, centers, None, length=num_iters)
-  d = _sq_dist(points, centers)
-  a = jnp.argmin(d, 1)
+  a, dmin = _assign(points, centers)
   counts = jnp.zeros((num_clusters,), jnp.int32).at[a].add(
     valid.astype(jnp.int32))
-  inertia = jnp.sum(jnp.where(valid, jnp.min(d, 1), 0.0))
+  inertia = jnp.sum(jnp.where(valid, dmin, 0.0))
   return KMeansResult(centers=centers,
                       assign=jnp.where(valid, a, -1).astype(jnp.int32),
                       counts=counts, inertia=inertia)

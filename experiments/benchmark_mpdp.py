@@ -1,0 +1,171 @@
+"""MPDP at scale: time and peak memory of ``predict`` by neighbour search.
+
+  python -m experiments.benchmark_mpdp --sizes=10000,50000,200000 --k=8
+  python -m experiments.benchmark_mpdp --sizes=200000 --methods=grid \
+      --shapes=donut --out=/tmp/mpdp_bench.json
+
+For every (shape, size, method) a fresh subprocess builds the object, jits
+``mpdp.make_predict(knn_method=method)`` with the shipped weights, measures
+the compile time (``lower().compile()``) apart from the run (minimum wall
+and process CPU time over ``--repeats`` runs, ``block_until_ready``), then
+times the neighbour search alone, and reports its peak resident memory
+(``ru_maxrss``, the whole process: Python, JAX and the data included) as
+one JSON line. ``brute`` (the O(N^2) search) is skipped where its
+distance matrix alone would exceed ``--brute_max_gib``.
+
+Shapes (all valid points, scaled to about 0.1 m):
+- ``torus``: uniform random points in a solid torus;
+- ``donut``: the shipped real donut's Gaussian centres (45,624, a dense
+  shell with sparse floaters), repeated with a small jitter up to N: the
+  strongly varying density of a real capture;
+- ``plate``: a thin plate (1 x 1 x 0.02), uniform random.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app
+from absl import flags
+
+from physsplat_jax import mpdp
+from physsplat_jax.mpdp import knn as knn_lib
+from physsplat_jax.mpdp import model as model_lib
+
+_SIZES = flags.DEFINE_list('sizes', ['10000', '50000', '200000'],
+                           'Point counts N.')
+_SHAPES = flags.DEFINE_list('shapes', ['torus', 'donut'],
+                            'Objects: torus, donut, plate.')
+_METHODS = flags.DEFINE_list('methods', ['grid', 'brute'],
+                             'Neighbour searches: grid, brute.')
+_K = flags.DEFINE_integer(
+  'k', 8, 'Neighbours of the search-only timing (predict uses the '
+  'shipped architecture, k = 8).')
+_REPEATS = flags.DEFINE_integer('repeats', 2, 'Timed runs per case.')
+_BRUTE_MAX_GIB = flags.DEFINE_float(
+  'brute_max_gib', 8.0, 'Skip brute where 4 N^2 bytes exceed this.')
+_OUT = flags.DEFINE_string('out', None, 'Optional JSON results file.')
+_CASE = flags.DEFINE_string('case', None,
+                            'Internal: run one shape,size,method here.')
+
+
+def make_points(shape: str, n: int, seed: int = 0) -> np.ndarray:
+  """(n, 3) float32 points of a benchmark object (see module docstring)."""
+  rng = np.random.default_rng(seed)
+  if shape == 'torus':
+    R, r = 0.035, 0.015
+    out = np.zeros((0, 3))
+    while len(out) < n:
+      p = rng.uniform(-1, 1, (2 * n, 3)) * [R + r, R + r, r]
+      q = np.hypot(p[:, 0], p[:, 1]) - R
+      out = np.concatenate([out, p[q * q + p[:, 2] ** 2 < r * r]])
+    return out[:n].astype(np.float32)
+  if shape == 'plate':
+    return (rng.uniform(-0.5, 0.5, (n, 3)) * [0.1, 0.1, 0.002]).astype(
+      np.float32)
+  if shape == 'donut':
+    from physsplat_jax.io import ply
+    from physsplat_jax.scenes import donut
+    x = np.asarray(ply.load_ply(donut.DONUT_PLY).means, np.float64)
+    reps = -(-n // len(x))
+    base = np.tile(x, (reps, 1))[:n]
+    # Copies after the first are jittered by ~ a tenth of the median
+    # spacing, so no two points coincide.
+    jit = np.repeat(np.arange(reps) > 0, len(x))[:n, None]
+    base = base + jit * rng.normal(0.0, 2e-4, base.shape)
+    return (0.45 * base).astype(np.float32)
+  raise app.UsageError(f'unknown shape {shape!r}; use torus, donut, plate')
+
+
+def _timed(fn, args, repeats):
+  t0 = time.perf_counter()
+  compiled = fn.lower(*args).compile()
+  compile_s = time.perf_counter() - t0
+  walls, cpus = [], []
+  for _ in range(repeats):
+    t, c = time.perf_counter(), time.process_time()
+    jax.block_until_ready(compiled(*args))
+    walls.append(time.perf_counter() - t)
+    cpus.append(time.process_time() - c)
+  return compiled, compile_s, min(walls), min(cpus)
+
+
+def _rss_mib() -> float:
+  return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_case(shape: str, n: int, method: str, k: int, repeats: int) -> dict:
+  """One measurement, in this process (see module docstring)."""
+  pts = jnp.asarray(make_points(shape, n))
+  mask = jnp.ones((n,), bool)
+  params = mpdp.load_pretrained()
+  means = mpdp.encode_means(2e5, 0.3, 800.0, 'fixed_corotated')
+  rss0 = _rss_mib()
+  predict = jax.jit(model_lib.make_predict(knn_method=method))
+  _, compile_s, wall, cpu = _timed(predict, (params, pts, means, mask),
+                                   repeats)
+  res = dict(shape=shape, N=n, method=method, devices=str(jax.devices()),
+             predict_compile_s=round(compile_s, 2),
+             predict_s=round(wall, 3), predict_cpu_s=round(cpu, 3))
+  if method == 'grid':
+    search = jax.jit(lambda p, m: knn_lib.knn_grid(p, m, k))
+  else:
+    search = jax.jit(lambda p, m: knn_lib.knn_brute(p, m, k))
+  compiled, compile_s, wall, cpu = _timed(search, (pts, mask), repeats)
+  res.update(knn_k=k, knn_compile_s=round(compile_s, 2),
+             knn_s=round(wall, 3), knn_cpu_s=round(cpu, 3))
+  if method == 'grid':
+    out = compiled(pts, mask)
+    res.update(num_repaired=int(out.num_repaired),
+               num_brute=int(out.num_brute))
+  res.update(rss_before_mib=round(rss0), peak_rss_mib=round(_rss_mib()))
+  return res
+
+
+def main(argv):
+  del argv
+  if _CASE.value:
+    shape, n, method = _CASE.value.split(',')
+    print(json.dumps(run_case(shape, int(n), method, _K.value,
+                              _REPEATS.value)), flush=True)
+    return
+  results = []
+  for shape in _SHAPES.value:
+    for n in map(int, _SIZES.value):
+      for method in _METHODS.value:
+        if method not in ('grid', 'brute'):
+          raise app.UsageError(f'unknown method {method!r}; use grid, brute')
+        if method == 'brute' and 4.0 * n * n > _BRUTE_MAX_GIB.value * 2**30:
+          res = dict(shape=shape, N=n, method=method,
+                     skipped=f'distance matrix {4.0 * n * n / 2**30:.0f} GiB '
+                     f'> --brute_max_gib={_BRUTE_MAX_GIB.value}')
+        else:
+          cmd = [sys.executable, '-m', 'experiments.benchmark_mpdp',
+                 f'--case={shape},{n},{method}', f'--k={_K.value}',
+                 f'--repeats={_REPEATS.value}']
+          p = subprocess.run(cmd, capture_output=True, text=True,
+                             env=dict(os.environ))
+          lines = [ln for ln in p.stdout.splitlines() if ln.startswith('{')]
+          if p.returncode == 0 and lines:
+            res = json.loads(lines[-1])
+          else:
+            res = dict(shape=shape, N=n, method=method,
+                       failed=f'exit {p.returncode}: '
+                       f'{p.stderr.strip().splitlines()[-1:]}')
+        print(json.dumps(res), flush=True)
+        results.append(res)
+  if _OUT.value:
+    with open(_OUT.value, 'w') as f:
+      json.dump(results, f, indent=1)
+
+
+if __name__ == '__main__':
+  app.run(main)
