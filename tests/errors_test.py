@@ -152,15 +152,23 @@ class ValidationTest(absltest.TestCase):
       pl.prepare_scene(_KEY, _block_scene(), [steel_like], cfg)
 
   def test_initial_speed_enters_the_time_step(self):
-    cfg = dict(grid_res=16, max_particles=200, use_mpdp=False, fill=False)
-    slow, _ = pl.prepare_scene(_KEY, _block_scene(), [_RUBBER],
-                               pl.PipelineConfig(**cfg))
-    fast, _ = pl.prepare_scene(
-      _KEY, _block_scene(), [_RUBBER], pl.PipelineConfig(
-        initial_velocity=(('', (300.0, 0.0, 0.0)),), **cfg))
-    # 300 m/s against a wave speed of ~6 m/s: many more substeps.
-    self.assertGreater(fast.spec.substeps_per_frame,
-                       20 * slow.spec.substeps_per_frame)
+    from physsplat_jax.pipeline import prepare as prep_lib
+
+    dobj = np.zeros(10, np.int32)
+    field = np.ones((10, 3))
+
+    def substeps(**kw):
+      cfg = pl.PrepareConfig(**kw)
+      return prep_lib.time_step_stage([_RUBBER], (False,), field, dobj, 0.01,
+                                      cfg, 9.8)[0]
+
+    slow = substeps()
+    fast = substeps(initial_velocity=(('', (300.0, 0.0, 0.0)),))
+    # Wave speed ~6.3 m/s: 300 m/s more needs ~48x the substeps.
+    self.assertGreater(fast, 40 * slow)
+    with self.assertRaisesRegex(pl.PipelineError, 'initial speed 300'):
+      substeps(initial_velocity=(('', (300.0, 0.0, 0.0)),),
+               substeps_per_frame=slow)
 
 
 class FailureTest(absltest.TestCase):
