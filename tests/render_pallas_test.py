@@ -121,6 +121,7 @@ class PallasParityTest(absltest.TestCase):
     self.assertGreater(np.mean(oj.alpha > 1.0 - 2e-4), 0.05)
     self.assertLess(oj.alpha.min(), 0.5)
 
+  @pytest.mark.slow  # ~45 s in interpret mode; gradients also in x64 test
   def test_deformation_inputs_odd_size_full_tiles(self):
     # Precomputed covariances and view rotations (the deformation path),
     # 16x16 compositing tiles (P = 256), an odd image with an off-centre
@@ -148,6 +149,7 @@ class PallasParityTest(absltest.TestCase):
     oj = _compare(self, g, cam, _PALLAS, params)
     self.assertGreater(float(oj.alpha.mean()), 0.02)  # the object is seen
 
+  @pytest.mark.slow  # ~40 s in interpret mode
   def test_udon_crop_matches_jax(self):
     self._crop('udon_crop.ply', (48, 32))
 
