@@ -112,6 +112,20 @@ class LayoutTest(absltest.TestCase):
     with self.assertWarns(DeprecationWarning):
       self.assertIs(ps.save_ply, ps.io.save_ply)
 
+  def test_flat_config_is_exactly_its_two_parts(self):
+    import dataclasses
+
+    from physsplat_jax import pipeline as pl
+
+    def defaults(cls):
+      return {f.name: f.default for f in dataclasses.fields(cls)}
+
+    flat = defaults(pl.PipelineConfig)
+    parts = {**defaults(pl.PrepareConfig), **defaults(pl.SimulateConfig)}
+    self.assertEqual(set(flat) - set(parts), {'seed'})
+    for name, value in parts.items():
+      self.assertEqual(flat[name], value, msg=name)
+
   def test_one_material_record_and_attribute_list(self):
     import physsplat_jax as ps
     from physsplat_jax.io import scene as scene_io
@@ -119,6 +133,7 @@ class LayoutTest(absltest.TestCase):
 
     self.assertIs(ps.ObjectMaterial, ps.MaterialChoice)
     self.assertIs(attributes.ATTRIBUTE_KEYS, scene_io.ID_PROPERTIES)
+    self.assertIs(ps.mpdp.MODEL_NAMES, ps.mpm.CANONICAL_MODELS)
 
 
 if __name__ == '__main__':

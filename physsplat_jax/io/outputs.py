@@ -156,7 +156,7 @@ class PngOutput:
 
   def __init__(self, directory: str):
     self.directory = os.fspath(directory)
-    self._writer = video_lib.PngFrameWriter(self.directory)
+    self._count = 0
 
   def write(self, frame: Frame) -> None:
     if frame.image is not None:
@@ -167,10 +167,10 @@ class PngOutput:
       tmp = _partial(path)
       video_lib.save_png(tmp, img)
       os.replace(tmp, path)
-      self._writer.num_frames += 1
+      self._count += 1
 
   def close(self) -> dict[str, str]:
-    return {'frames': self.directory} if self._writer.num_frames else {}
+    return {'frames': self.directory} if self._count else {}
 
 
 class PlyOutput:

@@ -51,13 +51,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.mpdp import knn as knn_lib
+from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.mpdp.knn import knn_indices as knn_indices  # noqa: F401
 
-# Canonical constitutive-model names (shared across the package).
-MODEL_NAMES = (
-  'fixed_corotated', 'neo_hookean', 'stvk', 'von_mises', 'drucker_prager',
-  'snow', 'foam', 'plasticine', 'newtonian', 'bingham', 'rigid',
-)
+# Canonical constitutive-model names: the solver's (their order fixes the
+# one-hot encoding of the shipped weights).
+MODEL_NAMES = CANONICAL_MODELS
 NUM_MODELS = len(MODEL_NAMES)
 # log10 E, nu, log10 rho, model one-hot, rigid flag.
 MEANS_DIM = 3 + NUM_MODELS + 1

@@ -41,7 +41,8 @@ def _selected_rows(cfg, gaussians) -> np.ndarray:
 class _Frames:
   """Builds the :class:`~physsplat_jax.io.outputs.Frame` of each step."""
 
-  def __init__(self, cfg, gaussians, camera, render: bool, need_all: bool):
+  def __init__(self, cfg, gaussians, rows, camera, render: bool,
+               need_all: bool):
     self.cfg, self.gaussians, self.camera = cfg, gaussians, camera
     self.render, self.need_all = render, need_all or render
     # PhysGaussian removes Gaussians under opacity_threshold from the
@@ -49,7 +50,7 @@ class _Frames:
     faint = np.asarray(gaussians.opacities) < cfg.opacity_threshold
     self.shown = gaussians.replace(opacity_logits=jnp.where(
       jnp.asarray(faint), -30.0, gaussians.opacity_logits))
-    self.ids = None
+    self.ids = jnp.asarray(rows)
     covs0 = gaussians.covariances
 
     @jax.jit
@@ -62,8 +63,6 @@ class _Frames:
     self.assemble = assemble
 
   def __call__(self, f: int, x, F) -> out_lib.Frame:
-    if self.ids is None:
-      self.ids = jnp.asarray(_selected_rows(self.cfg, self.gaussians))
     frame = out_lib.Frame(index=f, time=f * self.cfg.frame_dt,
                           positions=np.asarray(x, np.float32))
     if self.need_all:
@@ -117,7 +116,7 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
     rows = _selected_rows(cfg, gaussians)
     writers.append(out_lib.TrajectoryOutput(
       os.path.join(out_dir, 'trajectory.npz'), rows))
-    make = _Frames(cfg, gaussians, camera, video, ply)
+    make = _Frames(cfg, gaussians, rows, camera, video, ply)
 
     def on_frame(f, x, F):
       frame = make(f, x, F)
