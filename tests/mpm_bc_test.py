@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from absl.testing import absltest
 from scipy.spatial.distance import pdist
 
@@ -252,9 +253,12 @@ class ContactTest(absltest.TestCase):
     names = ['fixed_corotated'] * len(jelly) + ['rigid'] * len(box)
     mat = mpm.make_materials(names, 2e4, 0.3, 1000.0,
                              config_models=('fixed_corotated', 'rigid'))
+    # model_counts as the pipeline sets it (each model on its own slice;
+    # ModelGroupsTest compares it with the masked substep).
     cfg = mpm.SimConfig(
       grid=_GRID, dt=2e-3, substeps_per_frame=10, velocity_damping=5.0,
       models=('fixed_corotated', 'rigid'), num_bodies=1,
+      model_counts=(len(jelly), len(box)),
       boundary_conditions=(mpm.SurfaceCollider(
         point=(0, 0, ground), surface='separate', friction=0.5),))
     _, res = _run(x, mat, cfg, 12, body_id=body)
@@ -266,6 +270,51 @@ class ContactTest(absltest.TestCase):
       self.assertGreater(pos[:, sel, 2].min(), ground, msg=name)
     np.testing.assert_allclose(pdist(pos[-1, body == 0]), pdist(box),
                                atol=2e-5)
+
+
+class ModelGroupsTest(absltest.TestCase):
+  """``SimConfig.model_counts``: each model on its own particle slice."""
+
+  def _scene(self):
+    ground = 0.2 + 0.37 * _GRID.dx
+    parts = [_box(3, (0.25, 0.45, ground + 0.01)),
+             _box(3, (0.45, 0.45, ground + 0.01)),
+             _box(3, (0.65, 0.45, ground + 0.01))]
+    names = (['fixed_corotated'] * 27 + ['neo_hookean'] * 27
+             + ['rigid'] * 27)
+    body = np.array([-1] * 54 + [0] * 27)
+    # Interleave the materials so that the frame's model sort matters.
+    perm = np.random.default_rng(0).permutation(81)
+    x = np.concatenate(parts)[perm]
+    names = [names[i] for i in perm]
+    models = ('fixed_corotated', 'neo_hookean', 'rigid')
+    mat = mpm.make_materials(names, 2e4, 0.3, 1000.0, config_models=models)
+    cfg = mpm.SimConfig(
+      grid=_GRID, dt=2e-3, substeps_per_frame=10, models=models,
+      num_bodies=1, boundary_conditions=(mpm.SurfaceCollider(
+        point=(0, 0, ground), surface='separate', friction=0.5),))
+    return x, mat, cfg, body[perm]
+
+  @pytest.mark.slow  # ~20 s: two compiles (ContactTest runs grouped)
+  def test_grouped_substep_matches_the_masked_one(self):
+    x, mat, cfg, body = self._scene()
+    _, masked = _run(x, mat, cfg, 4, v=(0.3, 0, -0.5), body_id=body)
+    grouped_cfg = cfg.replace(model_counts=(27, 27, 27))
+    _, grouped = _run(x, mat, grouped_cfg, 4, v=(0.3, 0, -0.5), body_id=body)
+    # Same physics, particles returned in the caller's order; only the
+    # summation order of the scatter differs.
+    self.assertGreater(np.abs(masked.positions[-1] - x).max(), 0.01)
+    np.testing.assert_allclose(grouped.positions, masked.positions,
+                               atol=2e-6)
+    np.testing.assert_allclose(grouped.state.F, masked.state.F, atol=2e-5)
+
+  def test_wrong_counts_are_reported(self):
+    x, mat, cfg, body = self._scene()
+    with self.assertRaisesRegex(ValueError, 'model_counts'):
+      mpm.init_state(x, (0, 0, 0), _SP ** 3, mat,
+                     cfg.replace(model_counts=(30, 24, 27)), body_id=body)
+    with self.assertRaisesRegex(ValueError, 'model_counts'):
+      cfg.replace(model_counts=(27, 27))
 
 
 class ErrorTest(absltest.TestCase):

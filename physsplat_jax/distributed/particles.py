@@ -39,6 +39,7 @@ results. Results equal the single-device run up to float summation order.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -130,6 +131,8 @@ def rollout_sharded(state: mpm.MPMState, materials: mpm.Materials,
     (T+1, N, 3, 3) sharded along N.
   """
   axis = sh._axis(mesh, axis_name)  # noqa: SLF001
+  # Each shard holds its own mix of models: no static per-model slices.
+  config = dataclasses.replace(config, model_counts=None)
   num_frames = config.num_frames if num_frames is None else num_frames
   if num_frames is None or num_frames < 0:
     raise ValueError('rollout_sharded: pass num_frames (or set '

@@ -393,6 +393,10 @@ class SimConfig:
     sort_particles: sort particles by grid cell at the start of every frame
       (better memory locality in the scatter; transparent to callers).
     dtype: 'float32' or 'float64'.
+    model_counts: particles per model (aligned with ``models``; rigid
+      particles exactly the 'rigid' model's): each model's return mapping
+      and the rigid projection then run on their own particles only (the
+      pipeline sets it). None: every model evaluated on every particle.
   """
 
   grid: GridSpec = GridSpec()
@@ -410,6 +414,7 @@ class SimConfig:
   remat_frames: bool = True
   sort_particles: bool = True
   dtype: str = 'float32'
+  model_counts: tuple[int, ...] | None = None
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
@@ -461,6 +466,14 @@ class SimConfig:
         f'{self.num_bodies}; give one flag per body.'
       )
     object.__setattr__(self, 'body_fixed', fixed)
+    if self.model_counts is not None:
+      mc = tuple(int(c) for c in self.model_counts)
+      if len(mc) != len(models) or min(mc) < 0 or (
+          self.num_bodies and 'rigid' not in models):
+        raise ValueError(
+          f'SimConfig.model_counts = {mc}: give one count >= 0 per model of '
+          f'{models} (with rigid bodies, one of them "rigid"), or None.')
+      object.__setattr__(self, 'model_counts', mc)
     if self.dtype not in ('float32', 'float64'):
       raise ValueError(f"SimConfig.dtype = {self.dtype!r}; use 'float32' or "
                        "'float64'.")

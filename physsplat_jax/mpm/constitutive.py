@@ -286,7 +286,7 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
 
   Args:
     models: static tuple of canonical model names (``SimConfig.models``).
-    model_id: (N,) int32 index into ``models``.
+    model_id: (N,) int32 index into ``models`` (unused with one model).
     F: nested-tuple trial deformation gradients.
     C: nested-tuple affine velocity matrices [1/s] (fluid viscosity).
     Jp, ep: (N,) plastic state.

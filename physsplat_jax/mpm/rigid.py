@@ -29,6 +29,39 @@ import jax.numpy as jnp
 from physsplat_jax.mpm import linalg as la
 
 
+# Up to this many segments (bodies + 1) the per-body sums are one dense
+# product with the one-hot body matrix: a few fused kernels for all sums of a
+# stage, deterministic on every backend. Above it, one segment_sum of the
+# stacked columns.
+_DENSE_SEGMENTS = 32
+
+
+def _segment_sums(seg, num_segments, dtype, reduce_fn=None):
+  """``ssum(list of (N,) arrays) -> list of (num_segments,) sums``.
+
+  All columns of one call are summed together (one (N, K) reduction instead
+  of K scatters; the scatters dominated the substep of a scene with a rigid
+  body on a CPU). ``reduce_fn`` (e.g. ``lax.psum``) is applied to the
+  stacked partial sums.
+  """
+  if num_segments <= _DENSE_SEGMENTS:
+    onehot = (seg[:, None] == jnp.arange(num_segments)).astype(dtype)
+
+    def total(q):
+      return jnp.dot(q.T, onehot, precision=jax.lax.Precision.HIGHEST)
+  else:
+    def total(q):
+      return jax.ops.segment_sum(q, seg, num_segments=num_segments).T
+
+  def ssum(cols):
+    out = total(jnp.stack(cols, axis=1))  # (K, S)
+    if reduce_fn is not None:
+      out = reduce_fn(out)
+    return list(out)
+
+  return ssum
+
+
 def _rodrigues(w):
   """Rotation matrices exp([w]_x) for a 3-tuple of (B,) rotation vectors."""
   th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -79,33 +112,33 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   seg = jnp.where(rigid, body_id, B)
   dtype = mass.dtype
 
-  def ssum(a):
-    out = jax.ops.segment_sum(a, seg, num_segments=B + 1)
-    return out if reduce_fn is None else reduce_fn(out)
+  ssum = _segment_sums(seg, B + 1, dtype, reduce_fn)
 
   def at(a):  # per-body (B+1,) -> per-particle
     return a[seg]
 
-  M = ssum(mass)
+  M, *mxv = ssum([mass] + [mass * x[d] for d in range(3)]
+                 + [mass * v[d] for d in range(3)])
   # Safe division (an empty segment has M = 0): a select, so that the
   # derivative of 1 / M is never inf * 0.
   Ms = jnp.where(M > 0, M, 1.0)
-  c = [ssum(mass * x[d]) / Ms for d in range(3)]
-  V = [ssum(mass * v[d]) / Ms for d in range(3)]
+  c = [mxv[d] / Ms for d in range(3)]
+  V = [mxv[3 + d] / Ms for d in range(3)]
   r = [x[d] - at(c[d]) for d in range(3)]
   mr = [mass * r[d] for d in range(3)]
-  L = [ssum(mr[1] * v[2] - mr[2] * v[1]),
-       ssum(mr[2] * v[0] - mr[0] * v[2]),
-       ssum(mr[0] * v[1] - mr[1] * v[0])]
   r2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+  pairs = [(a, b) for a in range(3) for b in range(a, 3)]
+  sums = ssum([mr[1] * v[2] - mr[2] * v[1], mr[2] * v[0] - mr[0] * v[2],
+               mr[0] * v[1] - mr[1] * v[0], mass * r2]
+              + [mr[a] * r[b] for a, b in pairs])
+  L = sums[:3]
   own = M * dx * dx / 24.0
   I = [[None] * 3 for _ in range(3)]
-  for a in range(3):
-    for b in range(a, 3):
-      s = -ssum(mr[a] * r[b])
-      if a == b:
-        s = s + ssum(mass * r2) + own
-      I[a][b] = I[b][a] = s
+  for (a, b), s in zip(pairs, sums[4:]):
+    s = -s
+    if a == b:
+      s = s + sums[3] + own
+    I[a][b] = I[b][a] = s
   I = tuple(tuple(row) for row in I)
   # Empty (dump) segment: make I the identity so the solve stays finite.
   empty = M <= 0
@@ -187,10 +220,13 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
     n_b = tuple(jnp.full_like(M, n[d]) for d in range(3))
     dist = sum((x_new[d] - p[d]) * n[d] for d in range(3)) - radius
     hit = rigid & on & (dist < 0)
-    mc = ssum(jnp.where(hit, mass, 0.0))
+    # Mass, first moment and penetration of the contact set, in one sum.
+    mh = jnp.where(hit, mass, 0.0)
+    mc, *mrc, mpen = ssum([mh] + [mh * r[d] for d in range(3)]
+                          + [mh * jnp.maximum(-dist, 0.0)])
     has = mc > 0
     mcs = jnp.maximum(mc, tiny)
-    rc = tuple(ssum(jnp.where(hit, mass * r[d], 0.0)) / mcs for d in range(3))
+    rc = tuple(mrc[d] / mcs for d in range(3))
     u = [V[d] + c for d, c in enumerate(_cross(w, rc))]
     un = _dot(u, n_b)
     jn = jnp.where(has, jnp.maximum(-un, 0.0) / k_eff(rc, n_b), 0.0)
@@ -209,8 +245,7 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
     # Mass-weighted mean penetration of the contact set (a sum, so the
     # same with particles split over devices); any rest is removed in the
     # next substeps.
-    pen = jnp.where(hit, -dist, 0.0)
-    dmax = ssum(mass * pen) / mcs * free
+    dmax = mpen / mcs * free
     shift = [shift[d] + dmax * n[d] for d in range(3)]
     x_new = [x_new[d] + at(dmax) * n[d] for d in range(3)]
   return V, w, shift

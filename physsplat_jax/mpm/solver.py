@@ -172,6 +172,19 @@ def init_state(x, v, volume, materials: base.Materials,
           f'init_state: {int(orphan.sum())} particles have model "rigid" but '
           'no body (body_id = -1); give each rigid object a body id and set '
           'SimConfig.num_bodies.')
+    if config.model_counts is not None:
+      counts = tuple(np.bincount(mh, minlength=len(config.models)).tolist())
+      if counts != config.model_counts:
+        raise ValueError(
+          f'init_state: materials.model_id gives {counts} particles per '
+          f'model of {config.models} but SimConfig.model_counts = '
+          f'{config.model_counts}; set model_counts to those counts or None.')
+      if bh is not None and np.any((bh >= 0) != (mh == config.models.index(
+          'rigid') if 'rigid' in config.models else False)):
+        raise ValueError(
+          'init_state: with SimConfig.model_counts, the rigid particles '
+          '(body_id >= 0) must be exactly those of model "rigid"; fix '
+          'body_id/model_id or set model_counts=None.')
   if F is None:
     F = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (n, 3, 3))
   F = jnp.asarray(F, dtype)
@@ -242,6 +255,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     walls.append((lo_p, e, 0.0, 'separate', True, 0.0))
     walls.append((hi_p, tuple(-a for a in e), 0.0, 'separate', True, 0.0))
 
+  groups = model_groups(config)
+  rigid_group = ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
+
   def constitute(c, aux, mat):
     """Adds the return-mapped state and stress of ``c['F']`` to the carry.
 
@@ -250,11 +266,23 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     materialised array: XLA:CPU otherwise fuses the whole stress
     computation into the scatter's per-contribution loop and recomputes it
     for each of the 108 contributions of a particle.
+
+    With ``config.model_counts`` the particles are sorted by model and each
+    model runs on its own slice only.
     """
-    rigid = aux['body_id'] >= 0 if has_bodies else None
-    Fe, Jp, ep, tau = constitutive.constitutive_update(
-      models, mat.model_id, la.to_mat(c['F']), la.to_mat(c['C']), c['Jp'],
-      c['ep'], mat, dt, zero_stress=rigid)
+    F, C = la.to_mat(c['F']), la.to_mat(c['C'])
+    if groups:
+      parts = []
+      for m, a, b in groups:
+        sl = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
+        parts.append(constitutive.constitutive_update(
+          (m,), None, sl(F), sl(C), c['Jp'][a:b], c['ep'][a:b], sl(mat), dt))
+      Fe, Jp, ep, tau = jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
+    else:
+      rigid = aux['body_id'] >= 0 if has_bodies else None
+      Fe, Jp, ep, tau = constitutive.constitutive_update(
+        models, mat.model_id, F, C, c['Jp'], c['ep'], mat, dt,
+        zero_stress=rigid)
     return dict(c, Fe=la.from_mat(Fe), Jpe=Jp, epe=ep, tau=la.from_mat(tau))
 
   def substep(c, aux, mat, forces):
@@ -299,7 +327,22 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
         v_new = v_grid
         x_new = tuple(x[d] + dt * v_new[d] for d in range(3))
       F_new = la.add(Fe, la.scale(la.matmul(C_new, Fe), dt))
-      if has_bodies:
+      if has_bodies and rigid_group is not None:
+        # The rigid particles are the slice [a, b): project only them.
+        a, b = rigid_group
+        sl = lambda t: jax.tree.map(lambda q: q[a:b], t)  # noqa: E731
+        r_rad = radius[a:b] if jnp.ndim(radius) else radius
+        _, xr, vr, Cr, Fr = rigid_lib.project(
+          config.num_bodies, config.body_fixed, grid.dx, dt,
+          aux['body_id'][a:b], mass[a:b], sl(x), sl(v_grid), sl(Fe),
+          reduce_fn, planes=[q + (r_rad,) for q in
+                             boundary.contact_planes(config, t)] + walls)
+        put = lambda full, part: full.at[a:b].set(part)  # noqa: E731
+        x_new = tuple(put(p, q) for p, q in zip(x_new, xr))
+        v_new = tuple(put(p, q) for p, q in zip(v_new, vr))
+        C_new = jax.tree.map(put, C_new, Cr)
+        F_new = jax.tree.map(put, F_new, Fr)
+      elif has_bodies:
         rb, xr, vr, Cr, Fr = rigid_lib.project(
           config.num_bodies, config.body_fixed, grid.dx, dt, aux['body_id'],
           mass, x, v_grid, Fe, reduce_fn,
@@ -356,6 +399,20 @@ def make_substep(config: base.SimConfig) -> Callable:
   return substep_fn
 
 
+def model_groups(config: base.SimConfig) -> tuple[tuple[str, int, int], ...]:
+  """``(model, start, end)`` particle slices after the frame's model sort
+  (empty without ``config.model_counts``; models without particles left
+  out)."""
+  if config.model_counts is None:
+    return ()
+  out, a = [], 0
+  for m, c in zip(config.models, config.model_counts):
+    if c:
+      out.append((m, a, a + c))
+    a += c
+  return tuple(out)
+
+
 def _cell_key(grid: base.GridSpec, x):
   q = jnp.floor((x - jnp.asarray(grid.lower, x.dtype)) * grid.inv_dx)
   q = jnp.clip(q, 0, grid.res - 1).astype(jnp.int32)
@@ -385,9 +442,18 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
   def frame_fn(state, materials, forces=None):
     forces = _check_inputs(state, materials, forces, config)
     n = state.x.shape[0]
-    if config.sort_particles and n > 1:
-      perm = jnp.argsort(_cell_key(config.grid, jax.lax.stop_gradient(
-        state.x)))
+    grouped = config.model_counts is not None
+    if grouped and sum(config.model_counts) != n:
+      raise ValueError(
+        f'SimConfig.model_counts = {config.model_counts} sums to '
+        f'{sum(config.model_counts)} but there are {n} particles.')
+    permute = (config.sort_particles or grouped) and n > 1
+    if permute:
+      cell = (_cell_key(config.grid, jax.lax.stop_gradient(state.x))
+              if config.sort_particles else jnp.zeros((n,), jnp.int32))
+      # By model first (model_counts' slices), then by cell.
+      perm = (jnp.lexsort((cell, materials.model_id)) if grouped
+              else jnp.argsort(cell))
       inv = jnp.argsort(perm)
       state = _permute(state, perm)
       materials = _permute(materials, perm)
@@ -398,7 +464,7 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
       body = jax.checkpoint(body)
     carry, _ = jax.lax.scan(body, carry, None, length=n_sub)
     out = _from_soa(carry, aux)
-    if config.sort_particles and n > 1:
+    if permute:
       out = _permute(out, inv)
     return out
 

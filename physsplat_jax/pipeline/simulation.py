@@ -94,14 +94,19 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
       point=p, radius=radius, force=(0.0, 0.0, 0.0), start_time=start,
       end_time=end, per_particle=False))
   nb = int(sum(spec.rigid))
+  models = tuple(dict.fromkeys(spec.models))
+  counts = [0] * len(models)
+  for m, (_, c) in zip(spec.models, spec.object_ranges):
+    counts[models.index(m)] += c
   return mpm.SimConfig(
     grid=mpm.GridSpec(res=spec.grid_res, lower=spec.grid_lower,
                       size=spec.grid_size),
     dt=spec.dt, substeps_per_frame=spec.substeps_per_frame,
     num_frames=config.num_frames, gravity=(0.0, 0.0, -config.gravity),
-    models=tuple(dict.fromkeys(spec.models)), boundary_conditions=tuple(bcs),
+    models=models, boundary_conditions=tuple(bcs),
     num_bodies=nb, body_fixed=(False,) * nb,
-    remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)))
+    remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)),
+    model_counts=tuple(counts))
 
 
 def driver_materials(params: Params, prepared: PreparedScene,
