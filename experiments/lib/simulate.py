@@ -193,7 +193,12 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
     raise app.UsageError(f'{sorted(options)} apply to scene files; the '
                          f'built-in scene {scene_name!r} is already in metres, '
                          'z up.')
+  if scene_name not in scenes.list_scenes():
+    options['details'] = details = {}
   scene = scenes.load_scene(scene_name, **options)
+  if 'details' in options:
+    extra_report = {**(extra_report or {}), 'scene_frame': dict(
+      details, meters_per_unit=scene.meters_per_unit)}
   scene = pl.segment_stage(scene, segment)
   check_scene_objects(scene, objects, config)
   if objects:
