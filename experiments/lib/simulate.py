@@ -222,15 +222,15 @@ def run_physgaussian(scene_path: str, json_path: str, out: str,
                      num_frames: int | None = None) -> dict:
   """A PhysGaussian JSON config as PhysGaussian runs it; the report.
 
-  Physics and frame count come from the JSON (``num_frames`` overrides
-  its ``frame_num``); ``config`` gives the video size, camera, filling and
-  whether to render.
+  Physics, frame count and camera come from the JSON (``num_frames``
+  overrides its ``frame_num``); ``config`` gives the video size, filling
+  and whether to render.
   """
   return physgaussian.run_config(
     scene_path, json_path, out, num_frames=num_frames,
     auto_substeps=auto_substeps, fill=config.fill,
     video=config.render != 'none', ply=ply, width=config.width,
-    height=config.height, camera_index=max(config.camera_index, 0))
+    height=config.height)
 
 
 def git_sha() -> str:
