@@ -5,6 +5,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from absl.testing import absltest
 
 from physsplat_jax import cameras as cam_lib
@@ -154,6 +155,28 @@ class FilterTest(absltest.TestCase):
                                  camera_path='orbit'))
     self.assertEqual((c.prepare.roi, c.prepare.camera_path),
                      ((0.0, 1.0, 0.0, 1.0, 0.0, 1.0), 'orbit'))
+
+
+class GroundHeightTest(absltest.TestCase):
+
+  @pytest.mark.slow  # ~4-9 s: compiles the frame stage's eager ops
+  def test_ground_height_sets_the_support_plane(self):
+    from physsplat_jax.pipeline import prepare  # noqa: PLC0415
+    x = np.random.default_rng(2).uniform(0, 0.2, (64, 3))
+    sc = _scene(x, np.zeros(64, int))  # 0.5 m per unit, z up
+    found = prepare.sim_frame_stage(sc, [0], [], pl.PrepareConfig())
+    fr = prepare.sim_frame_stage(sc, [0], [],
+                                 pl.PrepareConfig(ground_height=-0.5))
+    # Found: the lowest point; given: -0.5 units = -0.25 m, 0.25 m lower
+    # (in the shifted simulation frame).
+    shift = float(fr.frame.shift[2])
+    self.assertAlmostEqual(fr.colliders.ground_z - shift, -0.25, places=5)
+    self.assertAlmostEqual(
+      found.colliders.ground_z - float(found.frame.shift[2]),
+      0.5 * x[:, 2].min(), places=5)
+    self.assertIn('ground_height=-0.5', fr.colliders.notes[0])
+    with self.assertRaisesRegex(pl.PipelineError, 'ground_height.*above'):
+      prepare.sim_frame_stage(sc, [0], [], pl.PrepareConfig(ground_height=1))
 
 
 class CameraPathTest(absltest.TestCase):

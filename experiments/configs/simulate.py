@@ -43,6 +43,8 @@ def get_config():
   c.roi = config_dict.placeholder(tuple)
   c.min_opacity = 0.0  # fainter Gaussians stay static
   c.floater_factor = 8.0  # 0: keep floaters in the simulation
+  # Support plane height along up [scene units]; None: found.
+  c.ground_height = config_dict.placeholder(float)
   c.fill = True
   c.bind_k = 8
   c.use_driver_F = False

@@ -179,6 +179,9 @@ class PrepareConfig:
     min_opacity: movable Gaussians of activated opacity below this stay
       static and are not simulated (PhysGaussian's ``opacity_threshold``,
       which removes them from the render too); 0 keeps all.
+    ground_height: height of the support plane along the scene's up axis
+      [scene units] (``x . up``), or None to find it (the top of a fixed
+      support under the movable objects, else their lowest point).
     floater_factor: a movable Gaussian whose 8th-nearest neighbour (within
       its object) is farther than this many times the object's median such
       distance is a floater: it stays static and does not size the grid;
@@ -208,6 +211,7 @@ class PrepareConfig:
   roi: tuple[float, float, float, float, float, float] | None = None
   min_opacity: float = 0.0
   floater_factor: float = 8.0
+  ground_height: float | None = None
 
   def __post_init__(self):
     object.__setattr__(self, 'ground',
@@ -248,6 +252,8 @@ class PrepareConfig:
        'use a finite angle [degrees]'),
       (_finite(self.min_opacity) and 0 <= self.min_opacity < 1,
        'min_opacity', 'use an activated opacity in [0, 1)'),
+      (self.ground_height is None or _finite(self.ground_height),
+       'ground_height', 'use a finite height [scene units] or None'),
       (_finite(self.floater_factor) and (
         self.floater_factor == 0 or self.floater_factor >= 2),
        'floater_factor', 'use 0 (off) or >= 2 (times the median '
@@ -349,6 +355,7 @@ class PipelineConfig:
   roi: tuple[float, float, float, float, float, float] | None = None
   min_opacity: float = 0.0
   floater_factor: float = 8.0
+  ground_height: float | None = None
   render: RenderMode = RenderMode.FAST
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True

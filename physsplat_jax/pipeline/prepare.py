@@ -288,6 +288,16 @@ def motion_reach(lo, hi, velocities, gravity: float):
   return lo, hi
 
 
+def _given_ground(z: float, lowest: float, dx: float) -> float:
+  if z > lowest + dx:
+    raise PipelineError(
+      f'ground_height puts the ground at z={z:.4g} m, above the lowest '
+      f'simulated Gaussian (z={lowest:.4g} m, scene up axis, metres): lower '
+      'ground_height, or leave the floor out of the simulation (roi, '
+      'fixed objects).')
+  return z
+
+
 def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
                     gravity: float = 9.8) -> _Frame:
   """Simulation frame, grid (side, corner) and colliders.
@@ -320,6 +330,12 @@ def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
     dx = L / cfg.grid_res
     colliders = find_colliders(x_rs, ids, movable, fixed, names, tol=dx)
     ground = colliders.ground_z
+    if cfg.ground_height is not None:
+      ground = _given_ground(cfg.ground_height * s, lo[2], dx)
+      colliders = dataclasses.replace(colliders, ground_z=ground, notes=(
+        f'ground plane set by ground_height={cfg.ground_height} '
+        f'(z={ground:.4f} m)',) + tuple(
+          n for n in colliders.notes if 'ground plane' not in n))
     if cfg.ground is not Ground.NONE:
       zlo = min(lo[2], ground)
   # With a ground the grid floor sits 4 cells under it (3 boundary cells);
