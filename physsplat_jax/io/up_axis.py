@@ -167,6 +167,7 @@ def guess_up(means, opacities=None, cameras=(), *,
     up_vector(given)  # validates
     return UpGuess(given, 'given', 'up_axis set by the user')
   if sidecar is not None:
+    up_vector(sidecar)  # validates
     return UpGuess(sidecar, 'sidecar', 'from the scene sidecar')
   v, agree = up_from_cameras(cameras)
   if v is not None:
