@@ -45,9 +45,10 @@ _POKE = flags.DEFINE_multi_string(
 _SEGMENT = flags.DEFINE_string(
   'segment', None, 'segment the scene first: auto, geometric, ... (default: '
   'keep its objects)')
-_UP = flags.DEFINE_enum(
-  'up_axis', None, ['x', 'y', 'z', '-x', '-y', '-z'], 'scene file: its up '
-  'axis (default: from its sidecar or cameras, else z)')
+_UP = flags.DEFINE_string(
+  'up_axis', None, "scene file: its up axis: x, y, z, -x, -y, -z, a "
+  "direction 'x,y,z', or auto (default: from its sidecar, cameras or "
+  'dominant plane, else z; reported in report.json)')
 _UNITS = flags.DEFINE_float('meters_per_unit', None,
                             'scene file: metres per scene unit')
 _MPDP = flags.DEFINE_string('mpdp_checkpoint', None, 'folder of MPDP '

@@ -170,6 +170,36 @@ def orbit_position(center, radius, azimuth_deg, elevation_deg, up=(0, 0, 1)):
   return np.asarray(center, np.float64) + radius * (d + math.sin(el) * u)
 
 
+def orbit_viewmat(viewmat, center, axis, angle_deg) -> Array:
+  """World-to-camera matrix of a camera turned about an axis.
+
+  The camera (its centre and orientation) turns by ``angle_deg`` about the
+  line through ``center`` along ``axis``, counter-clockwise seen from
+  ``+axis``: a point ``x`` of the turned camera's view is the point
+  ``R^T (x - c) + c`` of the original's. Pure jnp: ``angle_deg`` may be
+  traced (one compilation for every frame of a moving camera).
+
+  Args:
+    viewmat: (4, 4) world-to-camera matrix.
+    center: (3,) a point on the axis.
+    axis: (3,) axis direction (need not be unit).
+    angle_deg: () turn [degrees].
+
+  Returns:
+    (4, 4) world-to-camera matrix.
+  """
+  viewmat = jnp.asarray(viewmat)
+  dtype = jnp.result_type(viewmat.dtype, jnp.float32)
+  k = _normalize(jnp.asarray(axis, dtype))
+  c = jnp.asarray(center, dtype)
+  a = jnp.deg2rad(jnp.asarray(angle_deg, dtype))
+  K = jnp.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]],
+                 [-k[1], k[0], 0.0]], dtype)
+  R = jnp.eye(3, dtype=dtype) + jnp.sin(a) * K + (1 - jnp.cos(a)) * K @ K
+  M = jnp.eye(4, dtype=dtype).at[:3, :3].set(R.T).at[:3, 3].set(c - R.T @ c)
+  return viewmat.astype(dtype) @ M
+
+
 def orbit_cameras(
   center,
   radius: float,

@@ -320,7 +320,8 @@ class Scene(struct.PyTreeNode):
       -1 means background (not simulated).
     objects: static tuple of :class:`ObjectInfo`.
     cameras: tuple of :class:`Camera` (may be empty).
-    up_axis: static, one of 'x', 'y', 'z', '-x', '-y', '-z': the world's up.
+    up_axis: static, the world's up: one of 'x', 'y', 'z', '-x', '-y',
+      '-z', or a direction 'x,y,z' (see :func:`up_vector`).
     meters_per_unit: static, metres per scene unit (physics runs in metres).
     name: static label.
   """
@@ -360,14 +361,27 @@ class Scene(struct.PyTreeNode):
 
 
 def up_vector(axis: str) -> np.ndarray:
-  """Unit vector for an axis label such as ``'z'`` or ``'-y'``."""
+  """Unit vector for an up label: a signed axis such as ``'z'`` or ``'-y'``,
+  or a general direction written ``'x,y,z'`` (e.g. ``'0.1,-0.99,0.05'``,
+  normalised here)."""
   table = {'x': 0, 'y': 1, 'z': 2}
   a = axis.strip().lower()
+  if ',' in a:
+    try:
+      v = np.array([float(c) for c in a.split(',')], np.float64)
+    except ValueError:
+      v = np.zeros(0)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or not v.any():
+      raise ValueError(
+        f"up axis {axis!r} is not a direction: write three finite numbers "
+        "'x,y,z', not all zero, or one of 'x', 'y', 'z', '-x', '-y', '-z'")
+    return v / np.linalg.norm(v)
   sign = -1.0 if a.startswith('-') else 1.0
   a = a.lstrip('+-')
   if a not in table:
     raise ValueError(
-      f"up axis {axis!r} is not one of 'x', 'y', 'z', '-x', '-y', '-z'"
+      f"up axis {axis!r} is not one of 'x', 'y', 'z', '-x', '-y', '-z' "
+      "(or a direction 'x,y,z')"
     )
   v = np.zeros(3)
   v[table[a]] = sign

@@ -382,6 +382,9 @@ class OfflineTest(parameterized.TestCase):
     self.assertIn("scene material key 'terracotta'", cs[2].reason)
     self.assertIn("name 'blob' matched nothing", ' '.join(cs[3].warnings)
                   .replace('matched no library material', 'matched nothing'))
+    # The warning says how to choose a material and names library keys.
+    self.assertIn('--material_override="blob=KEY"', cs[3].warnings[-1])
+    self.assertIn('steel', cs[3].warnings[-1])
     lines = [x for x in logs.output if 'perception: object' in x]
     self.assertLen(lines, 4)
     self.assertIn('offline (library)', ' '.join(logs.output))

@@ -101,14 +101,20 @@ class SceneIOTest(parameterized.TestCase):
   )
   def test_load_test_data_ply(self, fname):
     path = DATA / fname
-    sc = load_scene(path)
+    details = {}
+    sc = load_scene(path, details=details)
     g = load_ply(path)
     self.assertEqual(sc.gaussians.num, g.num)
     np.testing.assert_array_equal(np.asarray(sc.gaussians.means),
                                   np.asarray(g.means))
     self.assertEqual(sc.objects, (ObjectInfo(fname[:-4]),))
     np.testing.assert_array_equal(np.asarray(sc.object_ids), 0)
-    self.assertEqual(sc.up_axis, 'z')
+    # No cameras: up is the normal of the ground (a general direction, 30+
+    # degrees from every axis for these captures), reported.
+    self.assertEqual(details['up_source'], 'plane')
+    self.assertEqual(sc.up_axis, details['up_axis'])
+    self.assertIn(',', sc.up_axis)
+    self.assertEqual(load_scene(path, up_axis='z').up_axis, 'z')
     self.assertEqual(sc.meters_per_unit, 1.0)
     self.assertLen(sc.cameras, 8)
     # Fitted cameras see the (robust) centre of the scene.

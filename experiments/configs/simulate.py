@@ -36,6 +36,15 @@ def get_config():
   c.height = 384
   c.camera_index = 0
   c.background = (1.0, 1.0, 1.0)
+  c.camera_path = 'fixed'  # 'orbit': the camera turns orbit_degrees
+  c.orbit_degrees = 360.0
+  # Captures: (xmin, xmax, ymin, ymax, zmin, zmax) in scene units, e.g.
+  # --config.roi="(-1,1,-1,1,0,2)"; outside stays static. None: all.
+  c.roi = config_dict.placeholder(tuple)
+  c.min_opacity = 0.0  # fainter Gaussians stay static
+  c.floater_factor = 8.0  # 0: keep floaters in the simulation
+  # Support plane height along up [scene units]; None: found.
+  c.ground_height = config_dict.placeholder(float)
   c.fill = True
   c.bind_k = 8
   c.use_driver_F = False

@@ -193,7 +193,12 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
     raise app.UsageError(f'{sorted(options)} apply to scene files; the '
                          f'built-in scene {scene_name!r} is already in metres, '
                          'z up.')
+  if scene_name not in scenes.list_scenes():
+    options['details'] = details = {}
   scene = scenes.load_scene(scene_name, **options)
+  if 'details' in options:
+    extra_report = {**(extra_report or {}), 'scene_frame': dict(
+      details, meters_per_unit=scene.meters_per_unit)}
   scene = pl.segment_stage(scene, segment)
   check_scene_objects(scene, objects, config)
   if objects:
@@ -217,15 +222,15 @@ def run_physgaussian(scene_path: str, json_path: str, out: str,
                      num_frames: int | None = None) -> dict:
   """A PhysGaussian JSON config as PhysGaussian runs it; the report.
 
-  Physics and frame count come from the JSON (``num_frames`` overrides
-  its ``frame_num``); ``config`` gives the video size, camera, filling and
-  whether to render.
+  Physics, frame count and camera come from the JSON (``num_frames``
+  overrides its ``frame_num``); ``config`` gives the video size, filling
+  and whether to render.
   """
   return physgaussian.run_config(
     scene_path, json_path, out, num_frames=num_frames,
     auto_substeps=auto_substeps, fill=config.fill,
     video=config.render != 'none', ply=ply, width=config.width,
-    height=config.height, camera_index=max(config.camera_index, 0))
+    height=config.height)
 
 
 def git_sha() -> str:

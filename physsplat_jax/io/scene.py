@@ -30,10 +30,14 @@ For a file, the scene is assembled from what lies next to it, in this order:
    orbit cameras fitted to the scene (:func:`physsplat_jax.cameras.
    fit_camera` around the 1st-99th percentile box of the centres, so
    floaters do not shrink the object).
-4. Up axis: ``up_axis=`` if given; else the sidecar's; else, with cameras
-   from a file, the signed world axis closest to the cameras' mean up
-   direction (captures are shot upright: that is ``-y`` for typical COLMAP
-   scenes); else ``'z'``.
+4. Up axis (:func:`physsplat_jax.io.up_axis.guess_up`): ``up_axis=`` if
+   given (not ``'auto'``); else the sidecar's; else, with cameras from a
+   file, the cameras' mean up direction (captures are shot upright: ``-y``
+   for typical COLMAP scenes); else the normal of the dominant plane of the
+   centres (the ground), pointing to most of the mass; else ``'z'``. A
+   direction within 5 degrees of a signed axis is snapped to it, any other
+   is kept as ``'x,y,z'``. The choice is logged, and written to
+   ``details`` (a dict) when one is passed.
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ from physsplat_jax import cameras as _cameras
 from physsplat_jax.io.cameras import load_cameras
 from physsplat_jax.io.ply import PlyError, load_ply, save_ply
 from physsplat_jax.io.splat import load_splat
+from physsplat_jax.io import up_axis as up_lib
 from physsplat_jax.types import Camera, Gaussians, ObjectInfo, Scene
 from physsplat_jax.types import make_camera, up_vector
 
@@ -71,7 +76,7 @@ SCENE_VERSION = 1
 DEFAULT_WIDTH, DEFAULT_HEIGHT, DEFAULT_FOV_DEG = 384, 288, 40.0
 _FILE_OPTIONS = (
   'up_axis', 'meters_per_unit', 'object_property', 'cameras', 'num_cameras',
-  'width', 'height', 'fov_deg', 'name', 'dtype',
+  'width', 'height', 'fov_deg', 'name', 'dtype', 'details',
 )  # fmt: skip
 
 
@@ -131,14 +136,16 @@ def load_scene(path: str | PathLike, **options) -> Scene:
 
   Args:
     path: a ``.ply`` / ``.splat`` path, or a 3DGS output folder.
-    **options: ``up_axis`` ('x', 'y', 'z', '-x', '-y', '-z'),
+    **options: ``up_axis`` ('x', 'y', 'z', '-x', '-y', '-z', a direction
+      'x,y,z', or 'auto' / None to guess it),
       ``meters_per_unit`` (> 0, default 1 or the sidecar's),
       ``object_property`` (a property name, or False to ignore ids),
       ``cameras`` (a camera file path, or False to skip camera files and fit
       an orbit), ``num_cameras`` (fitted orbit size, default 8), ``width`` /
       ``height`` (image size of fitted cameras, default 384x288; file
       cameras are resized when given), ``fov_deg`` (fitted cameras),
-      ``name``, ``dtype`` (float32).
+      ``name``, ``dtype`` (float32), ``details`` (a dict that receives
+      how the up axis was chosen: ``UpGuess.to_dict()``).
 
   Returns:
     A :class:`~physsplat_jax.types.Scene`.
@@ -200,6 +207,7 @@ def load_scene_file(
   fov_deg: float = DEFAULT_FOV_DEG,
   name: str | None = None,
   dtype=jnp.float32,
+  details: dict | None = None,
 ) -> Scene:
   """Loads a ``.ply`` / ``.splat`` file as a scene; see :func:`load_scene`."""
   path = os.fspath(path)
@@ -214,8 +222,11 @@ def load_scene_file(
       '.ply (INRIA or compressed) or .splat'
     )
   check_gaussians(g, path)
-  if up_axis is not None:
-    up_vector(up_axis)  # validates
+  if up_axis is not None and up_axis != 'auto':
+    try:
+      up_vector(up_axis)
+    except ValueError as e:
+      raise SceneFileError(f'up_axis: {e}') from None
   if meters_per_unit is not None and not (
     math.isfinite(float(meters_per_unit)) and float(meters_per_unit) > 0
   ):
@@ -275,10 +286,16 @@ def load_scene_file(
     if found:
       cams = tuple(load_cameras(found))
       from_file = True
-  if up_axis is None:
-    up_axis = side.get('up_axis') if side else None
-  if up_axis is None:
-    up_axis = _up_from_cameras(cams) if from_file and cams else 'z'
+  guess = up_lib.guess_up(
+    np.asarray(g.means), np.asarray(g.opacities),
+    cams if from_file else (), given=up_axis,
+    sidecar=side.get('up_axis') if side else None)
+  up_axis = guess.axis
+  if guess.source not in ('given', 'sidecar'):
+    logging.info('%s: up axis %s (%s: %s)', path, up_axis, guess.source,
+                 guess.detail)
+  if details is not None:
+    details.update(guess.to_dict())
   if cams and (width is not None or height is not None):
     cams = tuple(
       c.resized(width or c.width, height or c.height) for c in cams
@@ -337,16 +354,6 @@ def _find_camera_file(path: str) -> str | None:
       if hits:
         return hits[0]
   return None
-
-
-def _up_from_cameras(cams) -> str:
-  """Signed world axis nearest to the mean camera up (``-y`` camera row)."""
-  ups = np.stack([-np.asarray(c.viewmat, np.float64)[1, :3] for c in cams])
-  m = ups.mean(0)
-  if np.linalg.norm(m) < 0.3:  # cameras disagree: no reliable up
-    return 'z'
-  a = int(np.argmax(np.abs(m)))
-  return ('-' if m[a] < 0 else '') + 'xyz'[a]
 
 
 def fitted_orbit(

@@ -342,9 +342,23 @@ def _entry_offline(info: ObjectInfo, library: MaterialLibrary,
     return library[m.key], m.describe(info.name), warnings
   if default is not None:
     warnings.append(f'name {info.name!r} matched no library material; '
-                    f'default {default!r} used')
+                    f'default {default!r} used. '
+                    + material_hint(info.name, library))
     return library[default], f'default material {default!r}', warnings
   return None, '', warnings
+
+
+def material_hint(name: str, library: MaterialLibrary) -> str:
+  """How to choose a material for object ``name``, with a few library keys
+  (the closest to the name first)."""
+  keys = library.suggest(name, n=4)
+  for k in ('steel', 'wood', 'rubber', 'jelly', 'sand', 'plasticine'):
+    if k in library and k not in keys and len(keys) < 8:
+      keys.append(k)
+  return (f'Choose one with --material_override="{name}=KEY" (scripts) or '
+          'PerceptionOptions.overrides / ObjectInfo.material (API), KEY a '
+          f'library key such as {", ".join(keys)} ({len(library.keys)} in '
+          'all, docs/materials.md).')
 
 
 def _offline_choice(info, library, options, warnings=(),
@@ -353,9 +367,7 @@ def _offline_choice(info, library, options, warnings=(),
   if entry is None:
     raise MaterialNotFoundError(
       f'object {info.name!r}: no library material matches its name and no '
-      f'default is set; close keys: {library.suggest(info.name)}. Set '
-      'ObjectInfo.material, pass an override (name=key) or a '
-      'default_material.')
+      'default_material is set. ' + material_hint(info.name, library))
   return choice_lib.choice_from_entry(
     info.name, entry, 'library', prefix + reason, tuple(warnings) + tuple(w))
 

@@ -4,9 +4,10 @@ PhysGaussian mode of ``experiments/simulate.py``: every selected Gaussian
 is a particle in the normalised domain (:mod:`.driver`); each frame goes
 to the :mod:`physsplat_jax.io.outputs` writers (video and PNG frames with
 every Gaussian rendered, the simulated ones with ``Sigma' = F Sigma F^T``
-and their SH view direction rotated by ``polar(F)``; per-frame PLY;
-``trajectory.npz``) and ``report.json`` is written, also when the run
-fails.
+and their SH view direction rotated by ``polar(F)``, from the config's
+camera (:mod:`.camera`: a dataset camera, or PhysGaussian's orbit, moving
+with ``move_camera``); per-frame PLY; ``trajectory.npz``) and
+``report.json`` is written, also when the run fails.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from physsplat_jax import deform
 from physsplat_jax.io import outputs as out_lib
 from physsplat_jax.io import ply as ply_io
 from physsplat_jax.io import scene as scene_io
+from physsplat_jax.physgaussian import camera as camera_lib
 from physsplat_jax.physgaussian import driver
 from physsplat_jax.physgaussian import schema
 from physsplat_jax.physgaussian import transform
@@ -43,7 +45,8 @@ class _Frames:
 
   def __init__(self, cfg, gaussians, rows, camera, render: bool,
                need_all: bool):
-    self.cfg, self.gaussians, self.camera = cfg, gaussians, camera
+    self.cfg, self.gaussians = cfg, gaussians
+    self.camera = camera  # a Camera, or frame -> Camera
     self.render, self.need_all = render, need_all or render
     # PhysGaussian removes Gaussians under opacity_threshold from the
     # scene; those outside sim_area stay, static.
@@ -71,24 +74,52 @@ class _Frames:
       frame.gaussians = self.gaussians.replace(means=means)
       frame.covariances, frame.rotations = covs, rots
       if self.render:
+        cam = self.camera(f) if callable(self.camera) else self.camera
         img = raster.render_image(
-          self.shown.replace(means=means), self.camera,
+          self.shown.replace(means=means), cam,
           background=(1.0, 1.0, 1.0), covariances=covs, view_rotations=rots)
         frame.image = np.clip(img.image, 0.0, 1.0)
     return frame
+
+
+def _camera(cfg, scene, gaussians, rows, width, height, camera_index,
+            report):
+  """The render camera: a Camera, or frame -> Camera for an orbit."""
+  index = cfg.camera.default_camera_index if camera_index is None else (
+    camera_index)
+  base = cam_lib.scene_camera(scene, width, height, max(index, 0))
+  centre, axes = camera_lib.viewpoint(cfg, driver.transform_host(
+    cfg, np.asarray(gaussians.means, np.float64)[rows]))
+  if cfg.camera.show_hint:
+    hint = camera_lib.camera_hint(base, centre, axes)
+    report['camera_hint'] = hint
+    logging.info('show_hint: camera %d has azimuth %.3f, elevation %.3f, '
+                 'radius %.4g about the viewpoint centre (init_azimuthm, '
+                 'init_elevation, init_radius)', max(index, 0),
+                 hint['init_azimuthm'], hint['init_elevation'],
+                 hint['init_radius'])
+  if index >= 0:
+    return base
+  report['camera'] = dict(
+    path='moving orbit' if cfg.camera.move_camera else 'orbit',
+    first=camera_lib.frame_angles(cfg, 0))
+  camera_lib.frame_camera(cfg, base, centre, axes, 0)  # checks the radius
+  return lambda f: camera_lib.frame_camera(cfg, base, centre, axes, f)
 
 
 def run_config(scene_path: str, config_path: str, out_dir: str, *,
                num_frames: int | None = None, auto_substeps: bool = False,
                fill: bool = True, video: bool = False, ply: bool = False,
                width: int = 512, height: int = 384,
-               camera_index: int = 0) -> dict:
+               camera_index: int | None = None) -> dict:
   """Simulates ``config_path`` on ``scene_path`` as PhysGaussian does.
 
   Writes ``out_dir/trajectory.npz`` (``x`` (T+1, K, 3) float32 positions of
   the selected Gaussians in the scene's coordinates, ``ids`` their rows,
   ``t`` seconds) and ``report.json``; with ``video`` also ``video.mp4`` and
-  ``frames/``, with ``ply`` ``ply/frame_%04d.ply``.
+  ``frames/``, with ``ply`` ``ply/frame_%04d.ply``. The camera is the
+  config's (``default_camera_index``, or its orbit for -1; see
+  :mod:`.camera`) unless ``camera_index`` names a scene camera.
 
   Returns:
     The report dict (``files`` names what was written).
@@ -102,10 +133,13 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
     cfg = schema.load_config(config_path)
     gaussians = ply_io.load_ply(scene_path)
     report['material'] = cfg.material
+    rows = _selected_rows(cfg, gaussians)
     camera = None
-    if video:
+    if video or cfg.camera.show_hint:
       scene = scene_io.load_scene(scene_path)
-      camera = cam_lib.scene_camera(scene, width, height, camera_index)
+      camera = _camera(cfg, scene, gaussians, rows, width, height,
+                       camera_index, report)
+    if video:
       writers += [
         out_lib.VideoOutput(os.path.join(out_dir, 'video.mp4'),
                             1.0 / cfg.frame_dt),
@@ -113,7 +147,6 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
     if ply:
       writers.append(out_lib.PlyOutput(os.path.join(out_dir, 'ply'),
                                        gaussians))
-    rows = _selected_rows(cfg, gaussians)
     writers.append(out_lib.TrajectoryOutput(
       os.path.join(out_dir, 'trajectory.npz'), rows))
     make = _Frames(cfg, gaussians, rows, camera, video, ply)

@@ -16,7 +16,8 @@ Accepts the schema of PhysGaussian (Xie et al., CVPR 2024,
   ``rotation_axis[]``, ``sim_area``, ``scale``, ``particle_filling{...}``.
 - camera: ``mpm_space_vertical_upward_axis``, ``mpm_space_viewpoint_center``,
   ``default_camera_index``, ``init_azimuthm`` [sic], ``init_elevation``,
-  ``init_radius``, ``move_camera``, ``delta_a``, ``delta_e``, ``delta_r``.
+  ``init_radius``, ``move_camera``, ``delta_a``, ``delta_e``, ``delta_r``,
+  ``show_hint`` (honoured by :mod:`physsplat_jax.physgaussian.camera`).
 - ``boundary_conditions``: a list of ``{type, ...}`` with the types of
   PhysGaussian's ``set_boundary_conditions``.
 
@@ -107,7 +108,7 @@ _KNOWN_TOP = {
   'scale', 'particle_filling', 'mpm_space_vertical_upward_axis',
   'mpm_space_viewpoint_center', 'default_camera_index', 'init_azimuthm',
   'init_elevation', 'init_radius', 'move_camera', 'delta_a', 'delta_e',
-  'delta_r', 'boundary_conditions',
+  'delta_r', 'show_hint', 'boundary_conditions',
 }
 
 # Fields that are parsed and validated but that no part of this package acts
@@ -116,12 +117,7 @@ _KNOWN_TOP = {
 # search_exclude_direction, ray_cast_direction, smooth and visualize have no
 # counterpart in physsplat_jax.sampling.filling (docs/configs.md).
 PARTLY_HONOURED = ('particle_filling',)
-NOT_HONOURED = (
-  'mpm_space_vertical_upward_axis',
-  'mpm_space_viewpoint_center', 'default_camera_index', 'init_azimuthm',
-  'init_elevation', 'init_radius', 'move_camera', 'delta_a', 'delta_e',
-  'delta_r',
-)
+NOT_HONOURED = ()
 
 
 class ConfigError(PhysSplatError, ValueError):
@@ -180,7 +176,9 @@ class ParticleFilling:
 
 @dataclasses.dataclass(frozen=True)
 class CameraConfig:
-  """PhysGaussian camera fields (parsed; not used by the simulator)."""
+  """PhysGaussian camera fields (the video camera of
+  :mod:`physsplat_jax.physgaussian.camera`; ``init_azimuth`` is the JSON's
+  ``init_azimuthm``)."""
 
   vertical_upward_axis: tuple[float, ...] = (0.0, 0.0, 1.0)
   viewpoint_center: tuple[float, ...] = (1.0, 1.0, 1.0)
@@ -192,6 +190,7 @@ class CameraConfig:
   delta_a: float = 0.0
   delta_e: float = 0.0
   delta_r: float = 0.0
+  show_hint: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -576,8 +575,9 @@ def parse_config(
   for name, (attr, kind) in cam_fields.items():
     if raw.get(name) is not None:
       cam[attr] = _check_kind(source, name, raw[name], kind)
-  if raw.get('move_camera') is not None:
-    cam['move_camera'] = _bool(source, 'move_camera', raw['move_camera'])
+  for name in ('move_camera', 'show_hint'):
+    if raw.get(name) is not None:
+      cam[name] = _bool(source, name, raw[name])
   kw['camera'] = CameraConfig(**cam)
   config = _validate(PhysGaussianConfig(**kw))
   present = [f for f in NOT_HONOURED if raw.get(f) is not None]

@@ -15,6 +15,7 @@ from physsplat_jax.physgaussian.schema import ConfigError
 from physsplat_jax.physgaussian.schema import MaterialParams
 from physsplat_jax.physgaussian.schema import NormTransform
 from physsplat_jax.physgaussian.schema import PhysGaussianConfig
+from physsplat_jax.segmentation import boxes
 from physsplat_jax.types import Array
 
 
@@ -118,10 +119,8 @@ def select_particles(
   if opacity is not None:
     keep &= np.asarray(opacity) > config.opacity_threshold
   if config.sim_area is not None:
-    x = means @ rotation_matrix(config).T
-    a = config.sim_area
-    for d in range(3):
-      keep &= (x[:, d] > a[2 * d]) & (x[:, d] < a[2 * d + 1])
+    keep &= boxes.inside_box(means, config.sim_area,
+                             rotation=rotation_matrix(config), strict=True)
   ids = np.nonzero(keep)[0]
   if ids.size == 0:
     raise ConfigError(

@@ -56,6 +56,13 @@ class RenderMode(enum.StrEnum):
   NONE = 'none'
 
 
+class CameraPath(enum.StrEnum):
+  """How the video camera moves during the simulation."""
+
+  FIXED = 'fixed'
+  ORBIT = 'orbit'  # turns orbit_degrees about the up axis over the video
+
+
 class ForceKind(enum.StrEnum):
   IMPULSE = 'impulse'  # a velocity change applied once, at ``start``
   POINT = 'point'  # a constant acceleration inside a ball over a window
@@ -160,6 +167,25 @@ class PrepareConfig:
     width, height: rendered frame size [pixels].
     camera_index: which scene camera renders (-1: a fitted default).
     background: RGB in [0, 1].
+    camera_path: :class:`CameraPath`: 'fixed', or 'orbit' (the camera turns
+      about the scene's up axis through the centre of the simulated
+      objects, ``orbit_degrees`` over the whole video).
+    orbit_degrees: total turn of an orbit [degrees]; the sign is the
+      direction (counter-clockwise seen from above for > 0).
+    roi: region of interest ``(xmin, xmax, ymin, ymax, zmin, zmax)`` in
+      scene units and axes (PhysGaussian's ``sim_area`` order), or None:
+      movable Gaussians outside it stay static in the render and are not
+      simulated.
+    min_opacity: movable Gaussians of activated opacity below this stay
+      static and are not simulated (PhysGaussian's ``opacity_threshold``,
+      which removes them from the render too); 0 keeps all.
+    ground_height: height of the support plane along the scene's up axis
+      [scene units] (``x . up``), or None to find it (the top of a fixed
+      support under the movable objects, else their lowest point).
+    floater_factor: a movable Gaussian whose 8th-nearest neighbour (within
+      its object) is farther than this many times the object's median such
+      distance is a floater: it stays static and does not size the grid;
+      0 disables the test.
   """
 
   fps: float = 30.0
@@ -180,10 +206,26 @@ class PrepareConfig:
   height: int = 384
   camera_index: int = 0
   background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+  camera_path: CameraPath = CameraPath.FIXED
+  orbit_degrees: float = 360.0
+  roi: tuple[float, float, float, float, float, float] | None = None
+  min_opacity: float = 0.0
+  floater_factor: float = 8.0
+  ground_height: float | None = None
 
   def __post_init__(self):
     object.__setattr__(self, 'ground',
                        _enum(Ground, self.ground, 'PrepareConfig', 'ground'))
+    object.__setattr__(self, 'camera_path', _enum(
+      CameraPath, self.camera_path, 'PrepareConfig', 'camera_path'))
+    roi = self.roi
+    if roi is not None and not (
+        len(roi) == 6 and all(_finite(v) for v in roi)
+        and all(roi[2 * i] < roi[2 * i + 1] for i in range(3))):
+      raise PipelineError(
+        f'PrepareConfig.roi={roi!r} is invalid: give six finite numbers '
+        '(xmin, xmax, ymin, ymax, zmin, zmax) in scene units with each min '
+        'below its max, or None for the whole scene.')
     object.__setattr__(self, 'sampling', _enum(
       Sampling, self.sampling, 'PrepareConfig', 'sampling'))
     _check('PrepareConfig', self, [
@@ -206,6 +248,16 @@ class PrepareConfig:
       (len(self.background) == 3 and all(
         _finite(c) and 0 <= c <= 1 for c in self.background),
        'background', 'use three numbers in [0, 1]'),
+      (_finite(self.orbit_degrees), 'orbit_degrees',
+       'use a finite angle [degrees]'),
+      (_finite(self.min_opacity) and 0 <= self.min_opacity < 1,
+       'min_opacity', 'use an activated opacity in [0, 1)'),
+      (self.ground_height is None or _finite(self.ground_height),
+       'ground_height', 'use a finite height [scene units] or None'),
+      (_finite(self.floater_factor) and (
+        self.floater_factor == 0 or self.floater_factor >= 2),
+       'floater_factor', 'use 0 (off) or >= 2 (times the median '
+       '8th-neighbour distance)'),
     ])
     for name, v in self.initial_velocity:
       if len(v) != 3 or not all(_finite(c) for c in v):
@@ -298,6 +350,12 @@ class PipelineConfig:
   height: int = 384
   camera_index: int = 0
   background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+  camera_path: CameraPath = CameraPath.FIXED
+  orbit_degrees: float = 360.0
+  roi: tuple[float, float, float, float, float, float] | None = None
+  min_opacity: float = 0.0
+  floater_factor: float = 8.0
+  ground_height: float | None = None
   render: RenderMode = RenderMode.FAST
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
@@ -315,6 +373,7 @@ class PipelineConfig:
       raise PipelineError(msg) from None
     object.__setattr__(self, 'ground', p.ground)
     object.__setattr__(self, 'sampling', p.sampling)
+    object.__setattr__(self, 'camera_path', p.camera_path)
     object.__setattr__(self, 'render', s.render)
 
   @property
@@ -390,6 +449,8 @@ def config_from_dict(d) -> PipelineConfig:
       (str(n), tuple(float(c) for c in v)) for n, v in items)
   if 'background' in d:
     d['background'] = tuple(float(v) for v in d['background'])
+  if d.get('roi') is not None:
+    d['roi'] = tuple(float(v) for v in d['roi'])
   if isinstance(d.get('render_config'), dict):
     d['render_config'] = raster.RenderConfig(**d['render_config'])
   return PipelineConfig(**d)

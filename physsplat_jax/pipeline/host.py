@@ -21,6 +21,7 @@ from absl import logging
 
 from physsplat_jax import mpm
 from physsplat_jax.io import outputs as out_lib
+from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import PipelineConfig
 from physsplat_jax.pipeline.config import RenderMode
 from physsplat_jax.pipeline.config import SimulateConfig
@@ -93,6 +94,9 @@ class _FrameMaker:
     self.deform = jax.jit(deformed_gaussians, static_argnames='config')
     self.assemble = jax.jit(assemble_scene)
     self.to_scene = jax.jit(lambda fr, x: fr.to_scene(x))
+    # The camera of each frame (camera_path): traced, so one compilation.
+    self.camera_at = jax.jit(capture_lib.frame_camera,
+                             static_argnames='num_frames')
 
   def __call__(self, f: int, t: float, state) -> out_lib.Frame:
     t1 = time.perf_counter()
@@ -114,8 +118,10 @@ class _FrameMaker:
 
   def _render(self, frame: out_lib.Frame) -> np.ndarray:
     g = frame.gaussians
+    camera = self.camera_at(self.prepared.camera, self.prepared.orbit,
+                            frame.index, num_frames=self.config.num_frames)
     out = raster.render_image(
-      g, self.prepared.camera, background=self.prepared.background,
+      g, camera, background=self.prepared.background,
       covariances=frame.covariances, view_rotations=frame.rotations,
       config=self.rcfg)
     if out.num_intersections > self.rcfg.resolved_capacity(g.num):

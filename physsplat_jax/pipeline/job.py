@@ -146,7 +146,7 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
     num_gaussians=prep.num_gaussians,
     num_simulated_gaussians=prep.num_simulated_gaussians,
     num_candidates=prep.num_candidates, num_particles=prep.num_particles,
-    grid=prep.grid, time_step=prep.time_step)
+    grid=prep.grid, time_step=prep.time_step, capture=prep.capture)
   field = prepared.field if config.use_mpdp else None
   out = run(params, prepared, config, out_dir=out_dir, ply=ply, field=field)
   stages.update(out.timings)

@@ -33,6 +33,7 @@ from physsplat_jax import deform as deform_lib
 from physsplat_jax import mpdp
 from physsplat_jax import sampling
 from physsplat_jax.mpm import timestep
+from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline import frames as frames_lib
 from physsplat_jax.pipeline.colliders import Colliders
 from physsplat_jax.pipeline.colliders import find_colliders
@@ -136,7 +137,9 @@ class PreparedScene(struct.PyTreeNode):
       pass it as ``simulate(..., field=prepared.field)`` to reuse it.
     means: (O, 3) perceived mean (E [Pa], nu, rho [kg/m^3]).
     frame: scene -> simulation map.
-    camera: the rendering camera (scene coordinates).
+    camera: the rendering camera (scene coordinates) of frame 0.
+    orbit: how it turns during the video (``camera_path``; see
+      :func:`physsplat_jax.pipeline.capture.frame_camera`).
     background: (3,) RGB.
     spec: static :class:`SimSpec` (grid, dt, models, colliders, ...).
   """
@@ -157,6 +160,7 @@ class PreparedScene(struct.PyTreeNode):
   means: Array
   frame: SimFrame
   camera: Camera
+  orbit: capture_lib.CameraOrbit
   background: Array
   spec: SimSpec = struct.field(pytree_node=False)
 
@@ -182,6 +186,7 @@ class PrepareReport:
   grid: dict
   time_step: dict
   timings: dict
+  capture: dict = dataclasses.field(default_factory=dict)
 
 
 # ------------------------------------------------------------------ stages
@@ -283,6 +288,16 @@ def motion_reach(lo, hi, velocities, gravity: float):
   return lo, hi
 
 
+def _given_ground(z: float, lowest: float, dx: float) -> float:
+  if z > lowest + dx:
+    raise PipelineError(
+      f'ground_height puts the ground at z={z:.4g} m, above the lowest '
+      f'simulated Gaussian (z={lowest:.4g} m, scene up axis, metres): lower '
+      'ground_height, or leave the floor out of the simulation (roi, '
+      'fixed objects).')
+  return z
+
+
 def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
                     gravity: float = 9.8) -> _Frame:
   """Simulation frame, grid (side, corner) and colliders.
@@ -315,6 +330,12 @@ def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
     dx = L / cfg.grid_res
     colliders = find_colliders(x_rs, ids, movable, fixed, names, tol=dx)
     ground = colliders.ground_z
+    if cfg.ground_height is not None:
+      ground = _given_ground(cfg.ground_height * s, lo[2], dx)
+      colliders = dataclasses.replace(colliders, ground_z=ground, notes=(
+        f'ground plane set by ground_height={cfg.ground_height} '
+        f'(z={ground:.4f} m)',) + tuple(
+          n for n in colliders.notes if 'ground plane' not in n))
     if cfg.ground is not Ground.NONE:
       zlo = min(lo[2], ground)
   # With a ground the grid floor sits 4 cells under it (3 boundary cells);
@@ -520,6 +541,7 @@ def prepare_scene(
   timings = {}
   t = time.perf_counter()
   movable, fixed = check_inputs(scene, materials)
+  scene, capture = capture_lib.filter_scene(scene, cfg)
   names = [o.name for o in scene.objects]
   mov_names = tuple(names[o] for o in movable)
   mats = [materials[o] for o in movable]
@@ -565,9 +587,11 @@ def prepare_scene(
     mpdp_mask=jnp.asarray(mask), mpdp_means=f32(cond), field=f32(field),
     means=f32([[m.E, m.nu, m.rho] for m in mats]), frame=fr.frame,
     camera=frames_lib.render_camera(scene, cfg),
+    orbit=capture_lib.camera_orbit(scene, fr.rows, cfg),
     background=f32(cfg.background), spec=spec)
   report = _report(scene, materials, movable, counts, fr, cand, x0, spec,
                    c_max, cfg, timings)
+  report.capture = capture
   logging.info('prepared %r: %d particles for %d Gaussians of %d objects, '
                'grid %d^3 (dx %.4f m), %d substeps/frame (dt %.3g s)',
                scene.name, len(x0), len(fr.rows), len(movable), cfg.grid_res,

@@ -30,6 +30,7 @@ from flax import struct
 from physsplat_jax import deform as deform_lib
 from physsplat_jax import mpdp
 from physsplat_jax import mpm
+from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import ForceKind
 from physsplat_jax.pipeline.config import Ground
 from physsplat_jax.pipeline.config import PipelineConfig
@@ -225,11 +226,15 @@ def deformed_gaussians(prepared: PreparedScene, config: SimulateConfig | Pipelin
 
 def render_frame(prepared: PreparedScene, config: SimulateConfig | PipelineConfig, means,
                  covs, rots, differentiable: bool = False,
-                 render_config: raster.RenderConfig | None = None):
-  """Renders the whole scene with the simulated rows replaced (pure)."""
+                 render_config: raster.RenderConfig | None = None,
+                 frame: Array | int = 0):
+  """Renders the whole scene with the simulated rows replaced (pure), from
+  the camera of frame ``frame`` (``camera_path``; may be traced)."""
   g_all, covs_all, rots_all = assemble_scene(prepared, means, covs, rots)
   fn = raster.render_differentiable if differentiable else raster.render
-  return fn(g_all, prepared.camera, background=prepared.background,
+  camera = capture_lib.frame_camera(prepared.camera, prepared.orbit, frame,
+                                    as_simulate_config(config).num_frames)
+  return fn(g_all, camera, background=prepared.background,
             covariances=covs_all, view_rotations=rots_all,
             config=render_config or as_simulate_config(config).render_config)
 
@@ -270,8 +275,9 @@ def simulate(params: Params, prepared: PreparedScene,
   if config.render is not RenderMode.NONE:
     diff = config.render is RenderMode.DIFFERENTIABLE
     outs = jax.lax.map(
-      lambda a: render_frame(prepared, config, *a, differentiable=diff),
-      (means, covs, rots))
+      lambda a: render_frame(prepared, config, *a[:3], differentiable=diff,
+                             frame=a[3]),
+      (means, covs, rots, jnp.arange(config.num_frames + 1)))
     images, overflow = outs.image, outs.overflow
   x_scene = prepared.frame.to_scene(xs)
   ok = jnp.all(jnp.isfinite(xs), axis=(1, 2))

@@ -34,6 +34,20 @@ def _as_boxes(boxes) -> np.ndarray:
   return b
 
 
+def inside_box(means, box, rotation=None, strict: bool = False
+               ) -> np.ndarray:
+  """(K,) bool: centres inside ``box`` = (xmin, xmax, ymin, ymax, zmin,
+  zmax), after ``rotation`` (3, 3) when given; ``strict`` excludes the
+  faces (PhysGaussian's ``sim_area`` test), else they are inside."""
+  x = np.asarray(means, np.float64)
+  if rotation is not None:
+    x = x @ np.asarray(rotation, np.float64).T
+  b = _as_boxes(box)[0]
+  if strict:
+    return np.all((x > b[0::2]) & (x < b[1::2]), axis=1)
+  return np.all((x >= b[0::2]) & (x <= b[1::2]), axis=1)
+
+
 def box_labels(means, boxes, rotation=None) -> np.ndarray:
   """(K,) index of the smallest containing box (inclusive), -1 for none."""
   x = np.asarray(means, np.float64)
@@ -44,7 +58,7 @@ def box_labels(means, boxes, rotation=None) -> np.ndarray:
   out = np.full(x.shape[0], -1, np.int32)
   best = np.full(x.shape[0], np.inf)
   for i in np.argsort(vol, kind='stable'):
-    inside = np.all((x >= b[i, 0::2]) & (x <= b[i, 1::2]), axis=1)
+    inside = inside_box(x, b[i])
     take = inside & (vol[i] < best)
     out[take] = i
     best[take] = vol[i]
