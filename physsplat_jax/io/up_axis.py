@@ -169,20 +169,20 @@ def guess_up(means, opacities=None, cameras=(), *,
   if sidecar is not None:
     up_vector(sidecar)  # validates
     return UpGuess(sidecar, 'sidecar', 'from the scene sidecar')
+  def guess(v, source, what):
+    label, angle = axis_label(v)
+    return UpGuess(label, source, (
+      f'{what}, {angle:.1f} deg from the nearest axis'
+      + (' (snapped)' if angle <= SNAP_DEG else '')))
+
   v, agree = up_from_cameras(cameras)
   if v is not None:
-    label, angle = axis_label(v)
-    return UpGuess(label, 'cameras', (
-      f'mean up of {len(cameras)} cameras (agreement {agree:.2f}), '
-      f'{angle:.1f} deg from the nearest axis'
-      + (' (snapped)' if angle <= SNAP_DEG else '')))
+    return guess(v, 'cameras', f'mean up of {len(cameras)} cameras '
+                 f'(agreement {agree:.2f})')
   v, share = up_from_plane(means, opacities)
   if v is not None:
-    label, angle = axis_label(v)
-    return UpGuess(label, 'plane', (
-      f'normal of the dominant plane ({100 * share:.0f}% of the centres), '
-      f'{angle:.1f} deg from the nearest axis'
-      + (' (snapped)' if angle <= SNAP_DEG else '')))
+    return guess(v, 'plane', 'normal of the dominant plane '
+                 f'({100 * share:.0f}% of the centres)')
   why = ('no cameras' if not cameras else
          f'cameras disagree (agreement {agree:.2f})')
   return UpGuess('z', 'default', f'{why} and no dominant plane (best holds '
