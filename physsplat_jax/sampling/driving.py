@@ -7,6 +7,8 @@ driving particles are then chosen by one of
   (:mod:`physsplat_jax.sampling.pgas`),
 - ``'uniform'``: Poisson disk with one radius everywhere,
 - ``'kmeans'``: K-means centres (PhysDreamer),
+- ``'pgas-cvt'``: the PGAS density allocated per object and placed by
+  weighted Lloyd iterations (:mod:`physsplat_jax.sampling.centroidal`),
 
 optionally scaled to a fixed budget (a secant search on the radius scale,
 3-5 Poisson-disk evaluations; for PGAS the base radius stays an upper bound
@@ -27,8 +29,9 @@ import numpy as np
 from flax import struct
 from scipy import spatial
 
-from physsplat_jax.sampling import filling
+from physsplat_jax.sampling import centroidal
 from physsplat_jax.sampling import clustering
+from physsplat_jax.sampling import filling
 from physsplat_jax.sampling import pgas
 from physsplat_jax.sampling import poisson
 
@@ -195,15 +198,16 @@ def select_drivers(
   kmeans_iters: int = 20, bisect_iters: int = 12,
   backend: str = 'host', budget_rtol: float = 0.02,
   pgas_cap_first: bool = True, lloyd_steps: int = 0,
+  cvt: centroidal.CVTConfig | None = None,
 ) -> Drivers:
   """Chooses driving particles among the candidates.
 
   Args:
     key: PRNG key.
     cand: from :func:`make_candidates`.
-    method: 'pgas', 'uniform' or 'kmeans'.
+    method: 'pgas-cvt', 'pgas', 'uniform' or 'kmeans'.
     E: Young's modulus [Pa] per candidate (M,) or dict object id -> E;
-      needed for 'pgas'.
+      needed for 'pgas' and 'pgas-cvt'.
     config: :class:`~physsplat_jax.sampling.pgas.PGASConfig` (its
       ``base_radius`` is the uniform radius for 'uniform').
     budget: target driver count; required for 'kmeans', optional otherwise
@@ -230,6 +234,9 @@ def select_drivers(
       driver then sits at the centre of the mass it carries. The drivers
       stop being candidate points, and the Poisson-disk separation holds
       only approximately.
+    cvt: :class:`~physsplat_jax.sampling.centroidal.CVTConfig` for
+      'pgas-cvt' (default settings if None). 'pgas-cvt' needs ``budget``
+      and returns exactly ``min(budget, M)`` drivers.
 
   Returns:
     :class:`Drivers`.
@@ -260,23 +267,30 @@ def select_drivers(
   if backend not in ('host', 'jax'):
     raise ValueError(f"select_drivers: backend={backend!r}; use 'host' or "
                      "'jax'")
-  if method == 'pgas':
+  if method in ('pgas', 'pgas-cvt'):
     if E is None:
-      raise ValueError("select_drivers: method='pgas' needs E=")
+      raise ValueError(f"select_drivers: method={method!r} needs E=")
     if isinstance(E, dict):
       missing = set(np.unique(cand.object_ids).tolist()) - set(E)
       if missing:
         raise ValueError(f'select_drivers: E has no entry for objects '
                          f'{sorted(missing)}')
       E = np.array([E[int(o)] for o in cand.object_ids], np.float64)
+  if method == 'pgas-cvt':
+    x, ob, idx, spacing, _ = centroidal.select_cvt(
+      key, cand, E, config, budget,
+      centroidal.CVTConfig() if cvt is None else cvt)
+    return Drivers(x=x, object_ids=ob, volume=_voronoi_volume(cand, x, ob),
+                   candidate_index=idx, radius=spacing)
+  if method == 'pgas':
     k_hat, _ = pgas.pgas_curvature(cand.x, cand.is_surface, cand.object_ids,
                                    cand.covariances, config)
     radius = pgas.adaptive_radius(np.asarray(E, np.float64), k_hat, config)
   elif method == 'uniform':
     radius = np.full(m, config.base_radius)
   else:
-    raise ValueError(f"select_drivers: method={method!r}; use 'pgas', "
-                     "'uniform' or 'kmeans'")
+    raise ValueError(f"select_drivers: method={method!r}; use 'pgas-cvt', "
+                     "'pgas', 'uniform' or 'kmeans'")
   cap = m if budget is None else min(m, budget)
   if backend == 'host':
     sample_fn = poisson.make_poisson_host(key, cand.x)
