@@ -13,7 +13,12 @@ every Gaussian directly.
     0.4 x 0.4 x 0.25 m); they touch, so MPM moves them as one body;
   * ``leaf``: one material (E = 3e5 Pa), a thin plate (0.45 x 0.3 x
     0.03 m, thinner than a grid cell) sticking out of a thick block
-    (0.3 m cube) at mid-height: geometry varies, stiffness does not.
+    (0.3 m cube) at mid-height: geometry varies, stiffness does not;
+  * ``tabletop``: the built-in scene's jelly cube (E = 1e5 Pa), rubber
+    ball and metal can (both 2e6 Pa here: elastic, to keep the time step),
+    scaled 2.5x;
+  * ``ficus``: the built-in plant's stem (3e5 Pa) and leaves (1e5 Pa),
+    scaled 2x: thin leaves on a thin stem.
 - Reference: MLS-MPM (``physsplat_jax.mpm``) on *every* candidate, i.e.
   every Gaussian centre plus the interior fill particles; the Gaussians'
   reference trajectory is that of their own particles.
@@ -58,7 +63,12 @@ from physsplat_jax.types import Gaussians
 
 E_OBJ = {0: 1e5, 1: 2e6}
 # E per object of each scene.
-SCENE_E = {'spheres': E_OBJ, 'soft-on-stiff': E_OBJ, 'leaf': {0: 3e5, 1: 3e5}}
+SCENE_E = {'spheres': E_OBJ, 'soft-on-stiff': E_OBJ, 'leaf': {0: 3e5, 1: 3e5},
+           'tabletop': {0: 1e5, 1: 2e6, 2: 2e6}, 'ficus': {0: 3e5, 1: 1e5}}
+# Built-in scenes: the objects taken (in this order, as objects 0, 1, ...)
+# and the scale into the 2 m domain.
+BUILTIN = {'tabletop': (('jelly cube', 'rubber ball', 'metal can'), 2.5),
+           'ficus': (('stem', 'leaves'), 2.0)}
 NU, RHO = 0.3, 1000.0
 RADIUS = 0.25  # error unit: distances are reported relative to it
 CENTRE = {0: np.array([0.65, 1.0, 0.45]), 1: np.array([1.35, 1.0, 0.45])}
@@ -109,6 +119,28 @@ def _boxes(rng, boxes, num):
   return np.concatenate(ms), np.concatenate(ns), np.concatenate(ids)
 
 
+def _builtin(name):
+  """Objects of a built-in scene, scaled by ``BUILTIN[name][1]`` and set
+  down above the floor in the middle of the domain (no other change)."""
+  from physsplat_jax import scenes  # noqa: PLC0415 - only for these scenes
+  sc = scenes.load_scene(name)
+  names, scale = BUILTIN[name]
+  oid = np.asarray(sc.object_ids)
+  rows, ids = [], []
+  for i, nm in enumerate(names):
+    r = np.nonzero(oid == sc.object_names.index(nm))[0]
+    rows.append(r)
+    ids.append(np.full(len(r), i))
+  g = sc.gaussians.subset(np.concatenate(rows))
+  m = np.asarray(g.means, np.float64) * scale
+  lo, hi = m.min(0), m.max(0)
+  shift = np.array([1.0, 1.0, FLOOR_Z + 0.05]) - [
+    0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]]
+  g = g.replace(means=jnp.asarray(m + shift, jnp.float32),
+                log_scales=g.log_scales + np.log(scale))
+  return g, np.concatenate(ids).astype(np.int32)
+
+
 def make_scene(num, seed, scene='spheres'):
   """Flat Gaussians tangent to the surface of the scene's objects."""
   rng = np.random.default_rng(seed)
@@ -134,9 +166,10 @@ def make_scene(num, seed, scene='spheres'):
       ((0.55, 0.85, z0 + 0.135), (1.0, 1.15, z0 + 0.165), 0),  # leaf
       ((1.0, 0.85, z0), (1.3, 1.15, z0 + 0.3), 1)], num)  # trunk
     spacing = np.sqrt(0.5 / num)
+  elif scene in BUILTIN:
+    return _builtin(scene)
   else:
-    raise ValueError(f"scene={scene!r}; use 'spheres', 'soft-on-stiff' or "
-                     "'leaf'")
+    raise ValueError(f"scene={scene!r}; use one of {sorted(SCENE_E)}")
   qs = _quat_to(nrm)
   n = len(m)
   ls = np.log(0.5 * spacing) + rng.normal(0.0, 0.1, (n, 3))
@@ -263,7 +296,7 @@ def run(budgets, seed=0, num=3000, grid_res=24, num_frames=12,
       t0 = time.perf_counter()
       d = _select(key, cand, method, e_obj, cfg, b)
       t_sel = time.perf_counter() - t0
-      n_obj = [int(np.sum(d.object_ids == o)) for o in (0, 1)]
+      n_obj = [int(np.sum(d.object_ids == o)) for o in sorted(e_obj)]
       if min(n_obj) < 4:
         log(f'| {b} | {method} | {len(d.x)} ({n_obj[0]}/{n_obj[1]}) | '
             'an object has < 4 drivers: cannot bind |')
@@ -279,6 +312,8 @@ def run(budgets, seed=0, num=3000, grid_res=24, num_frames=12,
                  n_0=n_obj[0], n_1=n_obj[1],
                  err_0=float(err[:, ids == 0].mean()),
                  err_1=float(err[:, ids == 1].mean()),
+                 n_objs=n_obj, err_objs=[float(err[:, ids == o].mean())
+                                         for o in sorted(e_obj)],
                  err_all=float(err.mean()), err_last=float(err[-1].mean()),
                  t_sel=t_sel, t_sim=tr)
       rows.append(row)
@@ -308,8 +343,7 @@ def _define_flags():
       "driver selection methods ('pgas-scaled': pgas_cap_first=False; "
       "'+lloyd': lloyd_steps=1; 'pgas-cvt[:field=value/...]': allocation "
       "+ weighted Lloyd with those CVTConfig fields)"),
-    scene=flags.DEFINE_enum('scene', 'spheres',
-                            ['spheres', 'soft-on-stiff', 'leaf'], 'scene'),
+    scene=flags.DEFINE_enum('scene', 'spheres', sorted(SCENE_E), 'scene'),
     json=flags.DEFINE_string('json', '', 'append the rows to this JSON '
                              'file (a list of rows)'),
     ppc=flags.DEFINE_float('particles_per_cell', 4.0,

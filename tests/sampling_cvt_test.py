@@ -1,23 +1,15 @@
 """Tests for physsplat_jax.sampling.centroidal (PGAS allocation + Lloyd)."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 from scipy import spatial
 
 from physsplat_jax import sampling
 from physsplat_jax.errors import PhysSplatError
-from physsplat_jax.types import Gaussians
 
 # Volumes are sums of the same float64 numbers in another grouping.
 VOLUME_RTOL = 1e-12
-
-
-def _sphere(n, seed=0):
-  rng = np.random.default_rng(seed)
-  v = rng.normal(size=(n, 3))
-  return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 class AllocateTest(absltest.TestCase):
@@ -65,17 +57,20 @@ class SelectCVTTest(absltest.TestCase):
   @classmethod
   def setUpClass(cls):
     super().setUpClass()
-    pts = np.concatenate([_sphere(600), _sphere(600, seed=1) + [3.0, 0, 0]])
-    n = len(pts)
-    g = Gaussians(
-      means=jnp.asarray(pts, jnp.float32),
-      log_scales=jnp.full((n, 3), -3.0), quats=jnp.tile(
-        jnp.array([1.0, 0, 0, 0]), (n, 1)),
-      opacity_logits=jnp.full((n,), 3.0), sh=jnp.zeros((n, 1, 3)))
-    ids = np.r_[np.zeros(600), np.ones(600)].astype(np.int32)
-    cls.cand = sampling.make_candidates(
-      jax.random.PRNGKey(0), g, ids,
-      fill_config=sampling.FillConfig(grid_res=12))
+    # Two lattice balls of radius 1 (cheaper than make_candidates): the
+    # outer layer stands for the Gaussians, the rest for the fill.
+    h = 0.15
+    g = np.arange(-1, 1 + 1e-9, h)
+    p = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)
+    p = p[np.linalg.norm(p, axis=1) <= 1.0]
+    x = np.concatenate([p, p + [3.0, 0, 0]])
+    m = len(x)
+    surf = np.tile(np.linalg.norm(p, axis=1) > 1.0 - h, 2)
+    cls.cand = sampling.Candidates(
+      x=x, is_surface=surf,
+      object_ids=np.repeat([0, 1], len(p)).astype(np.int32),
+      covariances=np.tile(np.diag([1e-3, 1e-3, 1e-4]), (m, 1, 1)),
+      volume=np.full(m, h**3), gaussian_index=np.full(m, -1, np.int32))
     cls.cfg = sampling.PGASConfig(base_radius=0.5)
     cls.E = {0: 1e5, 1: 5e6}  # soft, stiff: same shape and size
 
@@ -85,7 +80,8 @@ class SelectCVTTest(absltest.TestCase):
       config=self.cfg, budget=budget, cvt=sampling.CVTConfig(**cvt))
 
   def test_count_mass_and_softness(self):
-    d = self._select(150)
+    # The paper's physics density (off by default, see docs/sampling.md).
+    d = self._select(150, density_power=1.0)
     self.assertLen(d.x, 150)
     for o in (0, 1):
       np.testing.assert_allclose(
@@ -107,12 +103,14 @@ class SelectCVTTest(absltest.TestCase):
   def test_lloyd_lowers_the_energy_of_the_poisson_start(self):
     # Same key, same allocation and Poisson start; Lloyd steps only lower
     # the weighted quantisation energy of each object.
-    d0 = self._select(100, lloyd_iters=0)
-    d1 = self._select(100)
+    kw = dict(density_power=1.0, placement_power=5.0 / 3.0)
+    d0 = self._select(100, lloyd_iters=0, **kw)
+    d1 = self._select(100, **kw)
     self.assertTrue(np.all(d0.candidate_index >= 0))
     np.testing.assert_array_equal(d0.object_ids, d1.object_ids)
     n, _ = sampling.target_density(
-      self.cand, np.where(self.cand.object_ids == 0, 1e5, 5e6), self.cfg)
+      self.cand, np.where(self.cand.object_ids == 0, 1e5, 5e6), self.cfg,
+      sampling.CVTConfig(**kw))
     w = n ** (5.0 / 3.0)
     for o in (0, 1):
       c = self.cand.object_ids == o
@@ -133,6 +131,30 @@ class SelectCVTTest(absltest.TestCase):
     inner = np.all((block > 0.3) & (block < 0.7), axis=1)
     self.assertGreater(phi[:8000][inner].min(), 0.99)
     self.assertLess(np.median(phi[8000:]), 0.45)
+
+  def test_thin_part_gets_more_drivers_per_volume(self):
+    # A 1 m block and a 1 x 1 x 0.05 m plate beside it, one material: the
+    # default allocation gives the plate more drivers per volume (K-means
+    # would split by candidate count, i.e. by volume here).
+    h = 0.05
+    g = np.arange(0, 1, h) + h / 2
+    block = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)
+    plate = np.stack(np.meshgrid(g + 1.0, g, [0.5]), -1).reshape(-1, 3)
+    x = np.concatenate([block, plate])
+    m = len(x)
+    cand = sampling.Candidates(
+      x=x, is_surface=np.ones(m, bool),
+      object_ids=np.r_[np.zeros(len(block)), np.ones(len(plate))].astype(
+        np.int32), covariances=np.zeros((m, 3, 3)),
+      volume=np.full(m, h**3), gaussian_index=np.full(m, -1, np.int32))
+    d = sampling.select_drivers(
+      jax.random.PRNGKey(0), cand, 'pgas-cvt', E={0: 1e5, 1: 1e5},
+      config=sampling.PGASConfig(base_radius=0.1), budget=300,
+      cvt=sampling.CVTConfig(floor=0.0))
+    n = [np.sum(d.object_ids == o) for o in (0, 1)]
+    v = [np.sum(cand.volume[cand.object_ids == o]) for o in (0, 1)]
+    self.assertGreater(n[1] / v[1], 2.0 * n[0] / v[0], n)
+    np.testing.assert_allclose(d.volume.sum(), m * h**3, rtol=VOLUME_RTOL)
 
   def test_bad_input(self):
     with self.assertRaisesRegex(PhysSplatError, 'density_power'):

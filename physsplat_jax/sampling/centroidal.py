@@ -13,7 +13,10 @@ module does both, per object:
      (:func:`~physsplat_jax.sampling.pgas.adaptive_radius`): a softer or
      more curved region gets up to ``min_radius_frac^-3`` (125x) the base
      density, raised to ``density_power`` (1 = the paper's radius taken
-     literally, 0 = uniform);
+     literally, 0 = ignored; **default 0**: in the ablation, docs/sampling.md
+     section 7, more drivers on the softer object made the driven Gaussians
+     *less* accurate at every budget, 1.3-7x, because the stiffer object
+     then lost drivers it needed just as much);
    - geometry: thin or sharp parts (a leaf on a trunk, a cube's edge) from
      the *fill fraction* ``phi`` of a ``(2 s + 1)^3`` window of voxels of
      side ``r`` around each candidate (1 inside a bulk, ~0.6 on a flat face,
@@ -29,13 +32,17 @@ module does both, per object:
    Inside an object the allocation to regions is implicit in step 3: a
    centroidal Voronoi tessellation with weight ``rho`` puts points at a
    density ``~ rho^(3/5)`` in 3-D (Gersho 1979), so weights ``n^(5/3)``
-   give drivers at the density ``n``.
+   would give drivers at the density ``n`` (``placement_power = 5/3``).
 
 3. **Placement** by weighted Lloyd iterations (K-means with weights
-   ``q_i n_i^(5/3)``, ``q_i`` the candidate's volume or 1 per candidate),
-   initialised from the Poisson-disk picks at radii ``~ n^(-1/3)`` scaled to
-   the object's count. Each Lloyd step can only lower the weighted
-   quantisation energy ``sum_i w_i |x_i - c(i)|^2``.
+   ``q_i n_i^p``, ``q_i`` the candidate's volume or 1 per candidate, ``p``
+   = ``placement_power``), initialised from the Poisson-disk picks at radii
+   ``~ n^(-p / 5)`` scaled to the object's count. Each Lloyd step can only
+   lower the weighted quantisation energy ``sum_i w_i |x_i - c(i)|^2``.
+   **Default** ``p = 0`` and ``q = 1``: inside an object the drivers follow
+   the candidates, as K-means does (``p = 5/3`` piles drivers onto the
+   curved shell and leaves the interior's mass to few of them: 1.5-4x the
+   error in the ablation); the density then acts through the allocation.
 
 Each driver then gets the volume of the candidates nearest to it (discrete
 Voronoi volume), so ``rho * volume`` sums to the object's mass exactly.
@@ -95,7 +102,7 @@ class CVTConfig:
       fraction.
   """
 
-  density_power: float = 1.0
+  density_power: float = 0.0
   geometry_power: float = 1.0
   geom_window: int = 2
   geom_ref: float = 0.6
@@ -103,7 +110,7 @@ class CVTConfig:
   weights: str = 'count'
   floor: float = 1.0
   min_per_object: int = 8
-  placement_power: float = 5.0 / 3.0
+  placement_power: float = 0.0
   lloyd_iters: int = 30
   lloyd_tol: float = 1e-4
 
@@ -170,10 +177,13 @@ def target_density(cand, E, config: pgas.PGASConfig,
     (n (M,), info dict: 'physics' (M,), 'geometry' (M,)).
   """
   r = config.base_radius
-  k_hat, _ = pgas.pgas_curvature(cand.x, cand.is_surface, cand.object_ids,
-                                 cand.covariances, config)
-  r_hat = pgas.adaptive_radius(np.asarray(E, np.float64), k_hat, config)
-  phys = (r / r_hat) ** (3.0 * cvt.density_power)
+  if cvt.density_power > 0:
+    k_hat, _ = pgas.pgas_curvature(cand.x, cand.is_surface,
+                                   cand.object_ids, cand.covariances, config)
+    r_hat = pgas.adaptive_radius(np.asarray(E, np.float64), k_hat, config)
+    phys = (r / r_hat) ** (3.0 * cvt.density_power)
+  else:
+    phys = np.ones(len(cand.x))
   phi = fill_fraction(cand.x, cand.object_ids, r, cvt.geom_window)
   geom = np.clip(cvt.geom_ref / phi, 1.0, cvt.geom_max) ** cvt.geometry_power
   return phys * geom, {'physics': phys, 'geometry': geom}
@@ -281,7 +291,15 @@ def weighted_lloyd(points, weights, init, iters: int = 30,
   return c, energies
 
 
-def _poisson_init(key, x, volume, density, count: int, base_radius: float):
+def _host_rng(key, *extra: int) -> np.random.Generator:
+  """NumPy generator seeded by a JAX key (no per-shape JAX compiles)."""
+  if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+    key = jax.random.key_data(key)
+  seed = np.asarray(key).ravel().astype(np.uint64).tolist()
+  return np.random.default_rng(seed + [int(e) for e in extra])
+
+
+def _poisson_init(rng, x, volume, density, count: int, base_radius: float):
   """``count`` candidates: Poisson disk at radii ``~ density^(-1/3)``.
 
   The radius field is scaled for ``count`` by
@@ -292,7 +310,8 @@ def _poisson_init(key, x, volume, density, count: int, base_radius: float):
   if count >= m:
     return np.arange(m)
   radius = base_radius * density ** (-1.0 / 3.0)
-  sample_fn = poisson.make_poisson_host(key, x)
+  sample_fn = poisson.make_poisson_host(
+    points=x, priority=rng.random(m, dtype=np.float32))
 
   def fn(r):
     return sample_fn(np.asarray(r), count, count)
@@ -304,8 +323,7 @@ def _poisson_init(key, x, volume, density, count: int, base_radius: float):
                                  iters=12, rtol=0.05, x0=x0, dim=3.0)
   idx = np.asarray(res.index)[np.asarray(res.valid)]
   if len(idx) < count:
-    g = np.asarray(jax.random.gumbel(jax.random.fold_in(key, 1), (m,)))
-    score = np.log(density) + g
+    score = np.log(density) + rng.gumbel(size=m)
     score[idx] = -np.inf
     extra = np.argsort(-score, kind='stable')[:count - len(idx)]
     idx = np.concatenate([idx, extra])
@@ -352,10 +370,10 @@ def select_cvt(key, cand, E, config: pgas.PGASConfig, budget: int,
   for i, o in enumerate(objs):
     sel = np.nonzero(ob == o)[0]
     n = int(counts[i])
-    k = jax.random.fold_in(key, int(o))
+    rng = _host_rng(key, int(o))
     # The density the Lloyd steps converge to: weight^(3/5).
     d_in = dens[sel] ** (0.6 * cvt.placement_power)
-    init = _poisson_init(k, x[sel], vol[sel], d_in, n, r)
+    init = _poisson_init(rng, x[sel], vol[sel], d_in, n, r)
     if n >= len(sel):
       xs.append(x[sel])
       idxs.append(sel.astype(np.int32))

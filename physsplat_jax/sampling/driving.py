@@ -26,6 +26,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import logging
 from flax import struct
 from scipy import spatial
 
@@ -210,9 +211,12 @@ def select_drivers(
       needed for 'pgas' and 'pgas-cvt'.
     config: :class:`~physsplat_jax.sampling.pgas.PGASConfig` (its
       ``base_radius`` is the uniform radius for 'uniform').
-    budget: target driver count; required for 'kmeans', optional otherwise
-      (the radius is then scaled to keep at most ``budget``, and at least
-      ``(1 - budget_rtol) budget`` when the search gets there).
+    budget: target driver count; required for 'kmeans' and 'pgas-cvt'
+      (exactly ``budget`` drivers), optional for the Poisson disks (the
+      radius is then scaled to keep at most ``budget``, and at least
+      ``(1 - budget_rtol) budget`` when the search gets there). A budget
+      of at least the candidate count keeps every candidate, with its own
+      volume, whatever the method (there is nothing to choose; logged).
     max_per_cell, max_neighbors: capacities of the jittable Poisson disk
       (``backend='jax'`` only).
     kmeans_iters: Lloyd iterations.
@@ -242,6 +246,19 @@ def select_drivers(
     :class:`Drivers`.
   """
   m = len(cand.x)
+  if method not in ('pgas-cvt', 'pgas', 'uniform', 'kmeans'):
+    raise centroidal.SamplingError(
+      f"select_drivers: method={method!r}; use 'pgas-cvt', 'pgas', "
+      "'uniform' or 'kmeans'")
+  if budget is not None and budget >= m:
+    # Nothing to choose: every candidate drives, with its own volume.
+    logging.info('select_drivers: budget %d >= %d candidates; every '
+                 'candidate is a driver (no sampling)', budget, m)
+    return Drivers(x=np.array(cand.x, np.float64),
+                   object_ids=np.asarray(cand.object_ids, np.int32),
+                   volume=np.array(cand.volume, np.float64),
+                   candidate_index=np.arange(m, dtype=np.int32),
+                   radius=np.zeros(m))
   x32 = jnp.asarray(cand.x, jnp.float32)
   if method == 'kmeans':
     if budget is None:
