@@ -31,6 +31,13 @@ class AllocateTest(absltest.TestCase):
     n = sampling.allocate(10, demand=[1.0, 1.0], floor=[20, 20],
                           cap=[100, 100])
     np.testing.assert_array_equal(n, [5, 5])
+    n = sampling.allocate(10, demand=[1.0, 1.0, 1.0], floor=[20, 20, 20],
+                          cap=[100, 100, 100])
+    np.testing.assert_array_equal(np.sort(n), [3, 3, 4])
+    # ... but not below min_count (8 drivers per object to bind to).
+    n = sampling.allocate(20, demand=[1.0, 1.0, 1.0], floor=[90, 10, 10],
+                          cap=[100, 100, 100], min_count=8)
+    np.testing.assert_array_equal(n, [8, 8, 8])
     # A budget over the candidates keeps them all.
     n = sampling.allocate(500, demand=[1.0, 1.0], floor=[0, 0], cap=[7, 9])
     np.testing.assert_array_equal(n, [7, 9])

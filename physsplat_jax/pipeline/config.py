@@ -173,7 +173,7 @@ class PrepareConfig:
   grid_res: int = 48
   margin: float = 0.3
   ground: Ground = Ground.SLIP
-  sampling: Sampling = Sampling.PGAS
+  sampling: Sampling = Sampling.PGAS_CVT
   particles_per_cell: float = 4.0
   max_particles: int = 40_000
   fill: bool = True
@@ -289,7 +289,7 @@ class PipelineConfig:
   gravity: float = 9.8
   ground: Ground = Ground.SLIP
   friction: float = 0.4
-  sampling: Sampling = Sampling.PGAS
+  sampling: Sampling = Sampling.PGAS_CVT
   particles_per_cell: float = 4.0
   max_particles: int = 40_000
   fill: bool = True

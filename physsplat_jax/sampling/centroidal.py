@@ -24,7 +24,10 @@ module does both, per object:
      raised to ``geometry_power``.
 
 2. **Allocation** of the budget across objects in proportion to
-   ``integral n dV`` (water-filling), with a floor per object: its base
+   ``sum_i n_i`` over its candidates (``allocate_by='count'``, default: the
+   K-means split modulated by the density; 'volume': ``integral n dV``,
+   which trusts the fill's volume estimate) by water-filling, with a floor
+   per object: its base
    resolution ``1.24 V_o / r^3`` (so a stiff object is never starved below
    ``particles_per_cell``, the lesson of the old single-factor budget
    search), at least ``min_per_object``, and never more than its candidate
@@ -90,6 +93,10 @@ class CVTConfig:
     weights: Lloyd weight per candidate before the density: 'volume' (the
       mass each candidate carries) or 'count' (1 per candidate, as K-means:
       drivers follow the candidates, i.e. the Gaussians on the surface).
+    allocate_by: the measure the density is integrated over for the
+      split across objects: 'count' (candidates, i.e. Gaussians + fill: as
+      K-means splits, and robust to a mis-estimated fill volume) or
+      'volume'.
     floor: per-object floor as a fraction of its base resolution
       ``1.24 V / r^3``.
     min_per_object: smallest count of an object (capped by its candidates).
@@ -108,6 +115,7 @@ class CVTConfig:
   geom_ref: float = 0.6
   geom_max: float = 8.0
   weights: str = 'count'
+  allocate_by: str = 'count'
   floor: float = 1.0
   min_per_object: int = 8
   placement_power: float = 0.0
@@ -122,6 +130,8 @@ class CVTConfig:
       (0 < self.geom_ref <= 1, 'geom_ref', 'use a fraction in (0, 1]'),
       (self.geom_max >= 1, 'geom_max', 'use >= 1'),
       (self.weights in ('volume', 'count'), 'weights',
+       "use 'volume' or 'count'"),
+      (self.allocate_by in ('volume', 'count'), 'allocate_by',
        "use 'volume' or 'count'"),
       (self.floor >= 0, 'floor', 'use >= 0'),
       (self.min_per_object >= 1, 'min_per_object', 'use >= 1'),
@@ -189,19 +199,23 @@ def target_density(cand, E, config: pgas.PGASConfig,
   return phys * geom, {'physics': phys, 'geometry': geom}
 
 
-def allocate(budget: int, demand, floor, cap) -> np.ndarray:
+def allocate(budget: int, demand, floor, cap,
+             min_count: int = 1) -> np.ndarray:
   """Integer counts ``N_o = clip(lam demand_o, floor_o, cap_o)``, sum budget.
 
   Water-filling on ``lam`` (bisection; the sum is monotone in it), then
   largest-remainder rounding within the bounds. If the floors exceed the
-  budget they are scaled down in proportion (each still >= 1); if the caps
-  do not reach it, every object gets its cap.
+  budget they are scaled down in proportion (each still at least
+  ``min(min_count, cap)``; the sum may then exceed a budget below
+  ``O * min_count``); if the caps do not reach it, every object gets its
+  cap.
 
   Args:
     budget: total count.
     demand: (O,) >= 0 relative demand (``integral n dV``).
     floor: (O,) smallest count per object.
     cap: (O,) largest count per object (its candidates), >= 1.
+    min_count: smallest count per object (capped by its candidates).
 
   Returns:
     (O,) int counts.
@@ -211,25 +225,28 @@ def allocate(budget: int, demand, floor, cap) -> np.ndarray:
   floor = np.minimum(np.asarray(floor, np.float64), cap)
   if budget >= cap.sum():
     return cap.astype(np.int64)
+  least = np.minimum(max(int(min_count), 1), cap)
   if floor.sum() > budget:
-    floor = np.maximum(1.0, floor * budget / floor.sum())
-    floor = np.minimum(floor, cap)
-  d = np.maximum(demand, 1e-300)
+    floor = np.maximum(least, floor * budget / floor.sum())
+  floor = np.minimum(np.maximum(floor, least), cap)
+  if floor.sum() >= budget:
+    want = floor
+  else:
+    d = np.maximum(demand, 1e-300)
 
-  def total(lam):
-    return np.clip(lam * d, floor, cap).sum()
+    def total(lam):
+      return np.clip(lam * d, floor, cap).sum()
 
-  lo, hi = 0.0, 1.0
-  while total(hi) < budget:
-    hi *= 2.0
-  for _ in range(200):
-    mid = 0.5 * (lo + hi)
-    lo, hi = (mid, hi) if total(mid) < budget else (lo, mid)
-  want = np.clip(hi * d, floor, cap)
-  n = np.floor(want).astype(np.int64)
-  n = np.maximum(n, np.minimum(1, cap.astype(np.int64)))
+    lo, hi = 0.0, 1.0
+    while total(hi) < budget:
+      hi *= 2.0
+    for _ in range(200):
+      mid = 0.5 * (lo + hi)
+      lo, hi = (mid, hi) if total(mid) < budget else (lo, mid)
+    want = np.clip(hi * d, floor, cap)
+  n = np.maximum(np.floor(want), least).astype(np.int64)
   rest = budget - int(n.sum())
-  order = np.argsort(-(want - n), kind='stable')
+  order = np.argsort(-(want - np.floor(want)), kind='stable')
   while rest != 0:
     moved = False
     for o in order:
@@ -237,7 +254,7 @@ def allocate(budget: int, demand, floor, cap) -> np.ndarray:
         n[o] += 1
         rest -= 1
         moved = True
-      elif rest < 0 and n[o] > max(1, floor[o] // 1):
+      elif rest < 0 and n[o] > least[o]:
         n[o] -= 1
         rest += 1
         moved = True
@@ -360,12 +377,14 @@ def select_cvt(key, cand, E, config: pgas.PGASConfig, budget: int,
   dens, dinfo = target_density(cand, E, config, cvt)
   r = config.base_radius
   vol = np.asarray(cand.volume, np.float64)
-  demand = np.array([np.sum(vol[ob == o] * dens[ob == o]) for o in objs])
+  q = vol if cvt.allocate_by == 'volume' else np.ones(len(vol))
+  demand = np.array([np.sum(q[ob == o] * dens[ob == o]) for o in objs])
   v_obj = np.array([np.sum(vol[ob == o]) for o in objs])
   cap = np.array([np.sum(ob == o) for o in objs])
   floor = np.maximum(cvt.floor * BASE_DENSITY * v_obj / r**3,
                      cvt.min_per_object)
-  counts = allocate(budget, demand, np.ceil(floor), cap)
+  counts = allocate(budget, demand, np.ceil(floor), cap,
+                    min_count=cvt.min_per_object)
   xs, obs, idxs, energy = [], [], [], {}
   for i, o in enumerate(objs):
     sel = np.nonzero(ob == o)[0]
