@@ -251,8 +251,9 @@ def select_drivers(
       f"select_drivers: method={method!r}; use 'pgas-cvt', 'pgas', "
       "'uniform' or 'kmeans'")
   if budget is not None and budget >= m:
-    # Nothing to choose: every candidate drives, with its own volume.
-    logging.info('select_drivers: budget %d >= %d candidates; every '
+    # Nothing to choose: every candidate drives, with its own volume (the
+    # pipeline logs this at INFO with the field to change).
+    logging.debug('select_drivers: budget %d >= %d candidates; every '
                  'candidate is a driver (no sampling)', budget, m)
     return Drivers(x=np.array(cand.x, np.float64),
                    object_ids=np.asarray(cand.object_ids, np.int32),
