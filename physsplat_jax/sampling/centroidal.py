@@ -15,8 +15,8 @@ module does both, per object:
      density, raised to ``density_power`` (1 = the paper's radius taken
      literally, 0 = ignored; **default 0**: in the ablation, docs/sampling.md
      section 7, more drivers on the softer object made the driven Gaussians
-     *less* accurate at every budget, 1.3-7x, because the stiffer object
-     then lost drivers it needed just as much);
+     *less* accurate, 1.1-5.2x, because the stiffer object then lost
+     drivers it needed just as much);
    - geometry: thin or sharp parts (a leaf on a trunk, a cube's edge) from
      the *fill fraction* ``phi`` of a ``(2 s + 1)^3`` window of voxels of
      side ``r`` around each candidate (1 inside a bulk, ~0.6 on a flat face,
@@ -43,9 +43,10 @@ module does both, per object:
    ``~ n^(-p / 5)`` scaled to the object's count. Each Lloyd step can only
    lower the weighted quantisation energy ``sum_i w_i |x_i - c(i)|^2``.
    **Default** ``p = 0`` and ``q = 1``: inside an object the drivers follow
-   the candidates, as K-means does (``p = 5/3`` piles drivers onto the
-   curved shell and leaves the interior's mass to few of them: 1.5-4x the
-   error in the ablation); the density then acts through the allocation.
+   the candidates, as K-means does (``p = 5/3`` piles drivers onto edges
+   and the shell and leaves the interior's mass to few of them: 1.2-2.6x
+   the error in the ablation); the density then acts through the
+   allocation.
 
 Each driver then gets the volume of the candidates nearest to it (discrete
 Voronoi volume), so ``rho * volume`` sums to the object's mass exactly.
@@ -398,8 +399,8 @@ def select_cvt(key, cand, E, config: pgas.PGASConfig, budget: int,
       idxs.append(sel.astype(np.int32))
       energy[int(o)] = [0.0]
     else:
-      q = vol[sel] if cvt.weights == 'volume' else np.ones(len(sel))
-      w = q * dens[sel] ** cvt.placement_power
+      qw = vol[sel] if cvt.weights == 'volume' else np.ones(len(sel))
+      w = qw * dens[sel] ** cvt.placement_power
       c, e = weighted_lloyd(x[sel], w, x[sel][init], cvt.lloyd_iters,
                             cvt.lloyd_tol)
       xs.append(c)
