@@ -68,8 +68,10 @@ class Drivers(struct.PyTreeNode):
     x: (N, 3) rest positions.
     object_ids: (N,) int32.
     volume: (N,) Voronoi volume over the candidates.
-    candidate_index: (N,) int32 index into the candidates (-1 for K-means).
-    radius: (N,) the Poisson radius used (0 for K-means).
+    candidate_index: (N,) int32 index into the candidates (-1 for K-means
+      and for 'pgas-cvt' drivers moved by the Lloyd steps).
+    radius: (N,) the Poisson radius used (0 for K-means; for 'pgas-cvt'
+      the target spacing ``r n^(-1/3)`` at the driver).
   """
 
   x: np.ndarray
