@@ -12,11 +12,13 @@ class AblateSamplingTest(absltest.TestCase):
 
   def test_tiny_run(self):
     rows = ablate_sampling.run([150], num=400, grid_res=16, num_frames=2,
-                               methods=('pgas', 'uniform', 'kmeans'),
+                               methods=('pgas', 'uniform', 'kmeans',
+                                        'pgas-cvt'),
                                fill_res=12, log=lambda s: None)
     self.assertEqual(rows[0]['method'], 'all (reference)')
     by = {r['method']: r for r in rows[1:]}
-    self.assertEqual(set(by), {'pgas', 'uniform', 'kmeans'})
+    self.assertEqual(set(by), {'pgas', 'uniform', 'kmeans', 'pgas-cvt'})
+    self.assertEqual(by['pgas-cvt']['n'], 150)  # exactly the budget
     for r in by.values():
       self.assertLessEqual(r['n'], 150)
       # Driven Gaussians follow the reference to within the sphere radius

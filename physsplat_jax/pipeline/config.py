@@ -43,7 +43,8 @@ class Ground(enum.StrEnum):
 class Sampling(enum.StrEnum):
   """How the driving particles are picked from the candidates."""
 
-  PGAS = 'pgas'
+  PGAS_CVT = 'pgas-cvt'  # PGAS allocation + weighted Lloyd placement
+  PGAS = 'pgas'  # PGAS radius, Poisson-disk placement
   UNIFORM = 'uniform'
   KMEANS = 'kmeans'
 
@@ -158,7 +159,10 @@ class PrepareConfig:
     sampling: :class:`Sampling` driving-particle method.
     particles_per_cell: target driving particles per grid cell of the
       stiffest material (sets PGAS's base radius).
-    max_particles: upper bound on the number of driving particles.
+    max_particles: the number of driving particles (exactly this many
+      for 'pgas-cvt' and 'kmeans', at most for the Poisson disks); a scene
+      with no more candidates than this simulates every candidate (nothing
+      to choose; logged).
     fill: fill object interiors with candidate particles.
     bind_k: drivers per Gaussian for the deformation.
     forces: :class:`ForceSpec` tuple (targets and ball centres resolved).
@@ -195,7 +199,7 @@ class PrepareConfig:
   grid_res: int = 48
   margin: float = 0.3
   ground: Ground = Ground.SLIP
-  sampling: Sampling = Sampling.PGAS
+  sampling: Sampling = Sampling.PGAS_CVT
   particles_per_cell: float = 4.0
   max_particles: int = 40_000
   fill: bool = True
@@ -337,7 +341,7 @@ class PipelineConfig:
   gravity: float = 9.8
   ground: Ground = Ground.SLIP
   friction: float = 0.4
-  sampling: Sampling = Sampling.PGAS
+  sampling: Sampling = Sampling.PGAS_CVT
   particles_per_cell: float = 4.0
   max_particles: int = 40_000
   fill: bool = True

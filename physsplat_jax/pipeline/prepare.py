@@ -377,6 +377,10 @@ def candidates_stage(key, fr: _Frame, num_movable: int, cfg: PrepareConfig):
 
 def drivers_stage(key, cand, mats, names, dx: float, cfg: PrepareConfig):
   """Driving particles sorted by object: (x0, volume, object, counts)."""
+  if cfg.max_particles >= len(cand.x):
+    logging.info('max_particles=%d >= %d candidates: every candidate is a '
+                 'driving particle (no sampling)', cfg.max_particles,
+                 len(cand.x))
   if cfg.sampling is Sampling.KMEANS:
     drv = sampling.select_drivers(key, cand, 'kmeans',
                                   budget=min(cfg.max_particles, len(cand.x)))

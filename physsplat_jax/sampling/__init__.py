@@ -11,6 +11,13 @@ from physsplat_jax.sampling.filling import fill_mesh
 from physsplat_jax.sampling.filling import fill_objects
 from physsplat_jax.sampling.filling import interior_cells
 from physsplat_jax.sampling.filling import occupancy_grid
+from physsplat_jax.sampling.centroidal import CVTConfig
+from physsplat_jax.sampling.centroidal import SamplingError
+from physsplat_jax.sampling.centroidal import allocate
+from physsplat_jax.sampling.centroidal import fill_fraction
+from physsplat_jax.sampling.centroidal import select_cvt
+from physsplat_jax.sampling.centroidal import target_density
+from physsplat_jax.sampling.centroidal import weighted_lloyd
 from physsplat_jax.sampling.clustering import KMeansResult
 from physsplat_jax.sampling.clustering import kmeans
 from physsplat_jax.sampling.pgas import PGASConfig

@@ -7,6 +7,8 @@ driving particles are then chosen by one of
   (:mod:`physsplat_jax.sampling.pgas`),
 - ``'uniform'``: Poisson disk with one radius everywhere,
 - ``'kmeans'``: K-means centres (PhysDreamer),
+- ``'pgas-cvt'``: the PGAS density allocated per object and placed by
+  weighted Lloyd iterations (:mod:`physsplat_jax.sampling.centroidal`),
 
 optionally scaled to a fixed budget (a secant search on the radius scale,
 3-5 Poisson-disk evaluations; for PGAS the base radius stays an upper bound
@@ -24,11 +26,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from absl import logging
 from flax import struct
 from scipy import spatial
 
-from physsplat_jax.sampling import filling
+from physsplat_jax.sampling import centroidal
 from physsplat_jax.sampling import clustering
+from physsplat_jax.sampling import filling
 from physsplat_jax.sampling import pgas
 from physsplat_jax.sampling import poisson
 
@@ -64,8 +68,10 @@ class Drivers(struct.PyTreeNode):
     x: (N, 3) rest positions.
     object_ids: (N,) int32.
     volume: (N,) Voronoi volume over the candidates.
-    candidate_index: (N,) int32 index into the candidates (-1 for K-means).
-    radius: (N,) the Poisson radius used (0 for K-means).
+    candidate_index: (N,) int32 index into the candidates (-1 for K-means
+      and for 'pgas-cvt' drivers moved by the Lloyd steps).
+    radius: (N,) the Poisson radius used (0 for K-means; for 'pgas-cvt'
+      the target spacing ``r n^(-1/3)`` at the driver).
   """
 
   x: np.ndarray
@@ -195,20 +201,24 @@ def select_drivers(
   kmeans_iters: int = 20, bisect_iters: int = 12,
   backend: str = 'host', budget_rtol: float = 0.02,
   pgas_cap_first: bool = True, lloyd_steps: int = 0,
+  cvt: centroidal.CVTConfig | None = None,
 ) -> Drivers:
   """Chooses driving particles among the candidates.
 
   Args:
     key: PRNG key.
     cand: from :func:`make_candidates`.
-    method: 'pgas', 'uniform' or 'kmeans'.
+    method: 'pgas-cvt', 'pgas', 'uniform' or 'kmeans'.
     E: Young's modulus [Pa] per candidate (M,) or dict object id -> E;
-      needed for 'pgas'.
+      needed for 'pgas' and 'pgas-cvt'.
     config: :class:`~physsplat_jax.sampling.pgas.PGASConfig` (its
       ``base_radius`` is the uniform radius for 'uniform').
-    budget: target driver count; required for 'kmeans', optional otherwise
-      (the radius is then scaled to keep at most ``budget``, and at least
-      ``(1 - budget_rtol) budget`` when the search gets there).
+    budget: target driver count; required for 'kmeans' and 'pgas-cvt'
+      (exactly ``budget`` drivers), optional for the Poisson disks (the
+      radius is then scaled to keep at most ``budget``, and at least
+      ``(1 - budget_rtol) budget`` when the search gets there). A budget
+      of at least the candidate count keeps every candidate, with its own
+      volume, whatever the method (there is nothing to choose; logged).
     max_per_cell, max_neighbors: capacities of the jittable Poisson disk
       (``backend='jax'`` only).
     kmeans_iters: Lloyd iterations.
@@ -230,11 +240,28 @@ def select_drivers(
       driver then sits at the centre of the mass it carries. The drivers
       stop being candidate points, and the Poisson-disk separation holds
       only approximately.
+    cvt: :class:`~physsplat_jax.sampling.centroidal.CVTConfig` for
+      'pgas-cvt' (default settings if None). 'pgas-cvt' needs ``budget``
+      and returns exactly ``min(budget, M)`` drivers.
 
   Returns:
     :class:`Drivers`.
   """
   m = len(cand.x)
+  if method not in ('pgas-cvt', 'pgas', 'uniform', 'kmeans'):
+    raise centroidal.SamplingError(
+      f"select_drivers: method={method!r}; use 'pgas-cvt', 'pgas', "
+      "'uniform' or 'kmeans'")
+  if budget is not None and budget >= m:
+    # Nothing to choose: every candidate drives, with its own volume (the
+    # pipeline logs this at INFO with the field to change).
+    logging.debug('select_drivers: budget %d >= %d candidates; every '
+                 'candidate is a driver (no sampling)', budget, m)
+    return Drivers(x=np.array(cand.x, np.float64),
+                   object_ids=np.asarray(cand.object_ids, np.int32),
+                   volume=np.array(cand.volume, np.float64),
+                   candidate_index=np.arange(m, dtype=np.int32),
+                   radius=np.zeros(m))
   x32 = jnp.asarray(cand.x, jnp.float32)
   if method == 'kmeans':
     if budget is None:
@@ -260,23 +287,30 @@ def select_drivers(
   if backend not in ('host', 'jax'):
     raise ValueError(f"select_drivers: backend={backend!r}; use 'host' or "
                      "'jax'")
-  if method == 'pgas':
+  if method in ('pgas', 'pgas-cvt'):
     if E is None:
-      raise ValueError("select_drivers: method='pgas' needs E=")
+      raise ValueError(f"select_drivers: method={method!r} needs E=")
     if isinstance(E, dict):
       missing = set(np.unique(cand.object_ids).tolist()) - set(E)
       if missing:
         raise ValueError(f'select_drivers: E has no entry for objects '
                          f'{sorted(missing)}')
       E = np.array([E[int(o)] for o in cand.object_ids], np.float64)
+  if method == 'pgas-cvt':
+    x, ob, idx, spacing, _ = centroidal.select_cvt(
+      key, cand, E, config, budget,
+      centroidal.CVTConfig() if cvt is None else cvt)
+    return Drivers(x=x, object_ids=ob, volume=_voronoi_volume(cand, x, ob),
+                   candidate_index=idx, radius=spacing)
+  if method == 'pgas':
     k_hat, _ = pgas.pgas_curvature(cand.x, cand.is_surface, cand.object_ids,
                                    cand.covariances, config)
     radius = pgas.adaptive_radius(np.asarray(E, np.float64), k_hat, config)
   elif method == 'uniform':
     radius = np.full(m, config.base_radius)
   else:
-    raise ValueError(f"select_drivers: method={method!r}; use 'pgas', "
-                     "'uniform' or 'kmeans'")
+    raise ValueError(f"select_drivers: method={method!r}; use 'pgas-cvt', "
+                     "'pgas', 'uniform' or 'kmeans'")
   cap = m if budget is None else min(m, budget)
   if backend == 'host':
     sample_fn = poisson.make_poisson_host(key, cand.x)
