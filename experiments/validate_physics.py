@@ -227,7 +227,8 @@ def cantilever_pg(res, L_over_h=10.0, h=0.140625, clamp_length=0.2,
   (0, 0, -9.8) and a zero-velocity ``cuboid`` clamp whose ``size`` is the
   half-extent (PhysGaussian tests ``|x - point| < size``) and whose face is
   on a node plane. It starts undeformed, so the tip oscillates about its
-  sag; the frequency is from crossings of the midpoint of the tip's range.
+  sag; the frequency is from crossings of the midpoint of the tip's range
+  after its first lowest point.
   """
   import jax.numpy as jnp
   from physsplat_jax import physgaussian as pgm
@@ -272,14 +273,18 @@ def cantilever_pg(res, L_over_h=10.0, h=0.140625, clamp_length=0.2,
   r = mpm.run(prep.state, prep.materials, prep.forces, sc, frames)
   tip = x[:, 0] > x[:, 0].max() - sp / 2
   y = r.positions[:, tip, 2].mean(1)
-  f = crossing_frequency(r.times, y, 0.5 * (y.max() + y.min()))
+  # Swing about the sag: the midpoint of the range after the first lowest
+  # point (a coarse beam loses part of its first swing).
+  after = y[np.argmin(y[:len(y) // 2 + 1]):]
+  mid = 0.5 * (after.max() + after.min())
+  f = crossing_frequency(r.times, y, mid)
   f_timo = timoshenko_cantilever_frequency(E, nu, rho, L, h)
   return dict(
     case=f'cantilever_pg_L{L_over_h:g}h', res=res, particles=num, dt=sc.dt,
     metric='first bending frequency [Hz]', value=f, reference=f_ref,
     rel_error=(f - f_ref) / f_ref, seconds=r.run_s + r.compile_s,
     cells_across=h / dx, L_over_h=L_over_h,
-    sag=float(y[0] - 0.5 * (y.max() + y.min())),
+    sag=float(y[0] - mid),
     timoshenko=f_timo, rel_error_timoshenko=(f - f_timo) / f_timo)
 
 
@@ -471,7 +476,9 @@ def main(argv):
       (cantilever, dict(res=r, L=0.7, h=0.07, root=0.15,
                         case='cantilever_slender'))
       for r in ((32,) if quick else (32, 64))],
-    'cantilever_pg': [(cantilever_pg, dict(res=r, L_over_h=a))
+    # 3 periods at 32^3: the slender beam (2.25 cells thick) is soft there.
+    'cantilever_pg': [(cantilever_pg, dict(res=r, L_over_h=a,
+                                           periods=3.0 if r < 64 else 1.6))
                       for r in ((32,) if quick else (32, 64))
                       for a in (5.0, 10.0)],
     'sand_slope': [(sand_slope, dict(res=r, phi=p))
