@@ -284,9 +284,10 @@ def cantilever_pg(res, L_over_h=10.0, h=0.140625, clamp_length=0.2,
   mid = 0.5 * (after.max() + after.min())
   f = crossing_frequency(r.times, y, mid)
   f_timo = timoshenko_cantilever_frequency(E, nu, rho, L, h)
+  tag = '_exact_vol' if exact_volumes else ''
   return dict(
-    case=f'cantilever_pg_L{L_over_h:g}h' + ('_exact_vol' if exact_volumes
-                                            else ''), res=res, particles=num, dt=sc.dt,
+    case=f'cantilever_pg_L{L_over_h:g}h{tag}', res=res, particles=num,
+    dt=sc.dt,
     metric='first bending frequency [Hz]', value=f, reference=f_ref,
     rel_error=(f - f_ref) / f_ref, seconds=r.run_s + r.compile_s,
     cells_across=h / dx, L_over_h=L_over_h,
