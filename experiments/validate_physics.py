@@ -5,8 +5,11 @@ Cases (each at two resolutions unless --quick):
 - free_fall: centre of mass vs x0 + v0 t + g t^2 / 2.
 - bar_mode: first longitudinal mode of a free-free elastic bar,
   f = sqrt(E / rho) / (2 L).
-- cantilever: first bending mode of a clamped cantilever vs Euler-Bernoulli,
-  f = 1.8751^2 / (2 pi L^2) sqrt(E I / (rho A)).
+- cantilever, cantilever_slender: first bending mode of a clamped
+  cantilever (L/h = 5, 10) vs Euler-Bernoulli,
+  f = 1.8751^2 / (2 pi L^2) sqrt(E I / (rho A)), and Timoshenko.
+- cantilever_pg: the same through a PhysGaussian config (a lattice of
+  Gaussians, a ``cuboid`` clamp, gravity), L/h = 5 and 10.
 - sand_slope: flank slope of a collapsed Drucker-Prager sand column vs the
   friction angle (two angles).
 - contact: blocks of jelly, metal, sand and a rigid box resting on a plane
@@ -140,44 +143,155 @@ def timoshenko_cantilever_frequency(E, nu, rho, L, h, elements=400):
   return float(np.sqrt(w2[0]) / (2 * math.pi))
 
 
-def cantilever(res):
+def cantilever_mode(xi):
+  """Euler-Bernoulli first clamped-free mode shape, xi = x / L (tip: 1)."""
+  bl, sg = 1.8751, 0.7341
+
+  def phi(s):
+    s = np.clip(s, 0, None)
+    return (np.cosh(bl * s) - np.cos(bl * s)
+            - sg * (np.sinh(bl * s) - np.sin(bl * s)))
+  return phi(xi) / phi(1.0)
+
+
+def euler_bernoulli_frequency(E, rho, L, h):
+  """First bending frequency [Hz] of a clamped-free square beam of side h."""
+  return 1.8751 ** 2 / (2 * math.pi * L ** 2) * math.sqrt(E * h ** 2
+                                                           / (12 * rho))
+
+
+def crossing_frequency(t, y, level):
+  """Frequency [Hz] from successive crossings of ``level`` by y(t)."""
+  y = np.asarray(y) - level
+  s = np.sign(y)
+  idx = np.flatnonzero(s[:-1] * s[1:] < 0)
+  tz = t[idx] - y[idx] * (t[idx + 1] - t[idx]) / (y[idx + 1] - y[idx])
+  if len(tz) < 2:
+    return float('nan')
+  return 0.5 * (len(tz) - 1) / (tz[-1] - tz[0])
+
+
+def cantilever(res, L=0.4, h=0.08, root=0.2, root_offset=0.0, periods=2.2,
+               case='cantilever'):
+  """First bending mode of a clamped cantilever (native API, no gravity).
+
+  The clamp is a ``Cuboid`` holding the grid nodes at ``x <= root``; the
+  beam starts 3 cells inside it. A grid clamp holds the beam at its last
+  held node plane, so the root face is put on a node plane
+  (``root_offset`` = 0); ``root_offset`` (cells, in [0, 1)) puts it that
+  far past the node instead, which lengthens the free beam by as much.
+  ``root`` [m] is rounded to a node.
+  """
   grid = mpm.GridSpec(res=res, size=1.0)
   E, rho, nu = 1e5, 1000.0, 0.3
-  L, h = 0.4, 0.08
-  root = 0.2
-  # The beam starts inside a clamped block of grid nodes x < root.
+  root = (round(root / grid.dx) + root_offset) * grid.dx
   lo = np.array([root - 3 * grid.dx, 0.46, 0.46])
   x, vol = lattice(lo, np.array([root + L, lo[1] + h, lo[2] + h]),
                    grid.dx / 2)
-  bl, sg = 1.8751, 0.7341
-  xi = np.clip((x[:, 0] - root) / L, 0, None)
-  phi = (np.cosh(bl * xi) - np.cos(bl * xi)
-         - sg * (np.sinh(bl * xi) - np.sin(bl * xi)))
-  phi1 = (np.cosh(bl) - np.cos(bl) - sg * (np.sinh(bl) - np.sin(bl)))
   v = np.zeros_like(x)
-  v[:, 2] = 0.05 * phi / phi1
+  v[:, 2] = 0.05 * cantilever_mode((x[:, 0] - root) / L)
   mat = mpm.make_materials('fixed_corotated', E, nu, rho, num=len(x))
-  f_ref = bl ** 2 / (2 * math.pi * L ** 2) * math.sqrt(E * h ** 2
-                                                       / (12 * rho))
+  f_ref = euler_bernoulli_frequency(E, rho, L, h)
   frame_dt = 1.0 / (f_ref * 40)
   n = mpm.choose_substeps(grid.dx, frame_dt, mat)
-  # Clamp: grid nodes with x < root are held at zero velocity.
-  clamp = mpm.Cuboid(point=(root - 0.25, 0.5, 0.5), size=(0.25 + 1e-6, 0.5,
-                                                           0.5))
+  # Clamp: grid nodes with x <= root are held at zero velocity.
+  clamp = mpm.Cuboid(point=(root - 0.25, 0.5, 0.5),
+                     size=(0.25 + 1e-3 * grid.dx, 0.5, 0.5))
   cfg = mpm.SimConfig(grid=grid, dt=frame_dt / n, substeps_per_frame=n,
                       gravity=(0, 0, 0), boundary_conditions=(clamp,))
   s = mpm.init_state(x, v, vol, mat, cfg)
-  frames = int(2.2 / f_ref / frame_dt)
+  frames = int(periods / f_ref / frame_dt)
   tip = x[:, 0] > root + L - grid.dx / 2
   r = mpm.run(s, mat, None, cfg, frames)
   y = r.positions[:, tip, 2].mean(1)
-  f = frequency(r.times, y)
+  # Crossings of the rest position (no gravity), t = 0 excluded.
+  f = crossing_frequency(r.times[1:], y[1:], y[0])
   f_timo = timoshenko_cantilever_frequency(E, nu, rho, L, h)
   return dict(
-    case='cantilever', res=res, particles=len(x), dt=cfg.dt,
+    case=case, res=res, particles=len(x), dt=cfg.dt,
     metric='first bending frequency [Hz]', value=f, reference=f_ref,
     rel_error=(f - f_ref) / f_ref, seconds=r.run_s + r.compile_s,
-    cells_across=h / grid.dx, tip_amplitude=float(np.ptp(y) / 2),
+    cells_across=h / grid.dx, L_over_h=L / h, root_offset_cells=root_offset,
+    tip_amplitude=float(np.ptp(y) / 2),
+    timoshenko=f_timo, rel_error_timoshenko=(f - f_timo) / f_timo)
+
+
+def cantilever_pg(res, L_over_h=10.0, h=0.140625, clamp_length=0.2,
+                  E=3e7, rho=200.0, nu=0.3, periods=1.6,
+                  exact_volumes=False):
+  """First bending mode of a cantilever run through a PhysGaussian config.
+
+  A beam of Gaussians on a lattice (2 per cell per axis on the ``res``^3
+  grid, ``grid_lim`` 2: h = 0.140625 is 4.5 cells at 64^3) is normalised by
+  ``physgaussian.prepare_config`` (``scale`` = its extent, so lengths are
+  unchanged; centred at (1, 1, 1)), with occupancy volumes, gravity
+  (0, 0, -9.8) and a zero-velocity ``cuboid`` clamp whose ``size`` is the
+  half-extent (PhysGaussian tests ``|x - point| < size``) and whose face is
+  on a node plane. It starts undeformed, so the tip oscillates about its
+  sag; the frequency is from crossings of the midpoint of the tip's range
+  after its first lowest point. ``exact_volumes``: give every particle the
+  lattice cell volume instead of PhysGaussian's occupancy volume.
+  """
+  import jax.numpy as jnp
+  from physsplat_jax import physgaussian as pgm
+  from physsplat_jax.types import Gaussians
+  lim = 2.0
+  dx = lim / res
+  L = L_over_h * h
+  nh = int(round(h / (dx / 2)))
+  sp = h / nh
+  # Root face on a node plane: the beam is centred at x = 1 (a node).
+  k = round((L - clamp_length) / (2 * dx))
+  clamp_length = L - 2 * k * dx
+  total = clamp_length + L
+  x0 = 1.0 - total / 2
+  root = x0 + clamp_length
+  x, cell_vol = lattice((x0, 1 - h / 2, 1 - h / 2),
+                        (x0 + total, 1 + h / 2, 1 + h / 2), sp)
+  num = len(x)
+  g = Gaussians(
+    means=jnp.asarray(x - 1.0, jnp.float32),
+    log_scales=jnp.full((num, 3), math.log(sp / 2), jnp.float32),
+    quats=jnp.tile(jnp.array([1.0, 0.0, 0.0, 0.0]), (num, 1)),
+    opacity_logits=jnp.full((num,), 5.0), sh=jnp.zeros((num, 1, 3)))
+  f_ref = euler_bernoulli_frequency(E, rho, L, h)
+  frame_dt = 1.0 / (f_ref * 40)
+  frames = int(periods / f_ref / frame_dt)
+  raw = {
+    'material': 'jelly', 'E': E, 'nu': nu, 'density': rho,
+    'g': [0.0, 0.0, -9.8], 'n_grid': res, 'grid_lim': lim,
+    'substep_dt': 1e-5, 'frame_dt': frame_dt, 'frame_num': frames,
+    'scale': float(np.ptp(x, 0).max()), 'opacity_threshold': 0.02,
+    'boundary_conditions': [
+      {'type': 'bounding_box'},
+      {'type': 'cuboid', 'point': [root / 2, 1.0, 1.0],
+       'size': [root / 2 + 1e-3 * dx, 1.0, 1.0],
+       'velocity': [0.0, 0.0, 0.0], 'start_time': 0.0, 'end_time': 1e3}]}
+  prep = pgm.prepare_config(g, pgm.parse_config(raw, warn=False))
+  xs = np.asarray(prep.state.x)
+  assert np.abs(xs - x).max() < 1e-5 * lim, 'normalisation moved the beam'
+  n = mpm.choose_substeps(prep.sim_config, frame_dt, prep.materials)
+  sc = prep.sim_config.replace(dt=frame_dt / n, substeps_per_frame=n)
+  state = prep.state
+  if exact_volumes:
+    state = mpm.init_state(xs, np.zeros(3), cell_vol, prep.materials, sc)
+  r = mpm.run(state, prep.materials, prep.forces, sc, frames)
+  tip = x[:, 0] > x[:, 0].max() - sp / 2
+  y = r.positions[:, tip, 2].mean(1)
+  # Swing about the sag: the midpoint of the range after the first lowest
+  # point (a coarse beam loses part of its first swing).
+  after = y[np.argmin(y[:len(y) // 2 + 1]):]
+  mid = 0.5 * (after.max() + after.min())
+  f = crossing_frequency(r.times, y, mid)
+  f_timo = timoshenko_cantilever_frequency(E, nu, rho, L, h)
+  tag = '_exact_vol' if exact_volumes else ''
+  return dict(
+    case=f'cantilever_pg_L{L_over_h:g}h{tag}', res=res, particles=num,
+    dt=sc.dt,
+    metric='first bending frequency [Hz]', value=f, reference=f_ref,
+    rel_error=(f - f_ref) / f_ref, seconds=r.run_s + r.compile_s,
+    cells_across=h / dx, L_over_h=L_over_h,
+    sag=float(y[0] - mid),
     timoshenko=f_timo, rel_error_timoshenko=(f - f_timo) / f_timo)
 
 
@@ -365,6 +479,15 @@ def main(argv):
                                                    else (32, 64))],
     'cantilever': [(cantilever, dict(res=r)) for r in ((32,) if quick
                                                        else (32, 64))],
+    'cantilever_slender': [
+      (cantilever, dict(res=r, L=0.7, h=0.07, root=0.15,
+                        case='cantilever_slender'))
+      for r in ((32,) if quick else (32, 64))],
+    # 3 periods at 32^3: the slender beam (2.25 cells thick) is soft there.
+    'cantilever_pg': [(cantilever_pg, dict(res=r, L_over_h=a,
+                                           periods=3.0 if r < 64 else 1.6))
+                      for r in ((32,) if quick else (32, 64))
+                      for a in (5.0, 10.0)],
     'sand_slope': [(sand_slope, dict(res=r, phi=p))
                    for r in ((32,) if quick else (32, 48))
                    for p in (20.0, 35.0)],
