@@ -174,9 +174,8 @@ class Cuboid:
   ``velocity`` during the window; the box moves with that velocity. With
   ``reset``, all grid velocities are zeroed outside the window until 15
   substeps after ``end_time`` (as PhysGaussian does). ``velocity`` here is
-  the default of the differentiable ``Forces`` entry. A zero-velocity box
-  clamps material at its last held node plane, not at its face: a face
-  ``d`` cells past a node plane lengthens a clamped beam by ``d`` cells.
+  the default of the differentiable ``Forces`` entry. A fixed box clamps at
+  its last held node plane, not its face (docs/mpm.md).
 
   Attributes:
     point: (3,) box centre at ``start_time`` [m].
