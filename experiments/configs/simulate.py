@@ -30,7 +30,7 @@ def get_config():
   c.gravity = 9.8
   c.ground = 'slip'
   c.friction = 0.4
-  c.sampling = 'pgas'
+  c.sampling = 'pgas-cvt'  # 'pgas', 'uniform', 'kmeans' (docs/sampling.md)
   c.use_mpdp = True
   c.width = 512
   c.height = 384
