@@ -1,0 +1,127 @@
+"""Where a scene's MLS-MPM substep spends its time (variants, one process).
+
+  python -m experiments.benchmark_substep                  # tabletop, demo
+  python -m experiments.benchmark_substep --scene=ficus --out=sub.json
+
+Prepares the scene with the `make demo` settings (experiments/configs/
+demo.py), then times one frame of ``--substeps`` substeps from the initial
+state for each variant of the static MPM config, all compiled first and
+timed in turns (best of ``--rounds``):
+
+- ``scene``: the pipeline's config (materials grouped by model,
+  ``SimConfig.model_counts``);
+- ``masked``: the same without ``model_counts`` (every model evaluated on
+  every particle and selected, the rigid sums masked over all particles);
+- ``no_plane``: the scene's config without the support plane;
+- ``no_plane_no_body``: also without rigid bodies (their particles stay
+  stress-free);
+- ``bare``: every particle one fixed-corotated material, no body, no plane.
+
+The differences say what the materials, the rigid bodies and the plane
+contact cost per substep. ``--clock=cpu`` reports process CPU time instead
+of wall time (steadier on a shared machine). Figures: docs/benchmarks.md.
+"""
+
+import dataclasses
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+from absl import flags
+
+from experiments.configs import demo as demo_config
+from experiments.lib import cli
+from experiments.lib import simulate as lib
+from physsplat_jax import mpm
+from physsplat_jax import perception
+from physsplat_jax import pipeline as pl
+from physsplat_jax import scenes
+from physsplat_jax.pipeline import simulation
+
+VARIANTS = ('scene', 'masked', 'no_plane', 'no_plane_no_body', 'bare')
+
+_SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
+_SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
+_ROUNDS = flags.DEFINE_integer('rounds', 5, 'timed calls per variant')
+_VARIANTS = flags.DEFINE_list('variants', list(VARIANTS), 'variants to time')
+_CLOCK = flags.DEFINE_enum('clock', 'wall', ['wall', 'cpu'], 'what to time')
+_OUT = flags.DEFINE_string('out', None, 'JSON file for the results')
+
+
+def variant(name, state, materials, forces, config):
+  """The (state, materials, forces, config) of one variant."""
+  if name not in VARIANTS:
+    raise cli.usage_error(f'--variants: unknown variant {name!r}; use '
+                          f'some of {", ".join(VARIANTS)}.')
+  if name in ('masked', 'bare'):
+    config = dataclasses.replace(config, model_counts=None)
+  if name in ('no_plane', 'no_plane_no_body', 'bare'):
+    keep = [i for i, bc in enumerate(config.boundary_conditions)
+            if not isinstance(bc, mpm.SurfaceCollider)]
+    # Particle conditions keep their per-particle data (bc_data follows
+    # config.particle_bcs, whose order does not change).
+    config = dataclasses.replace(config, boundary_conditions=tuple(
+      config.boundary_conditions[i] for i in keep))
+    forces = mpm.Forces(values=tuple(forces.values[i] for i in keep))
+  if name in ('no_plane_no_body', 'bare'):
+    # The rigid particles stay stress-free ('rigid' model), without a body.
+    config = dataclasses.replace(config, num_bodies=0, body_fixed=())
+    state = state.replace(body_id=-jnp.ones_like(state.body_id))
+  if name == 'bare':
+    config = dataclasses.replace(config, models=('fixed_corotated',))
+    materials = materials.replace(
+      model_id=jnp.zeros_like(materials.model_id))
+  return state, materials, forces, config
+
+
+def main(argv):
+  del argv
+  config = lib.build_config(_SCENE.value, demo_config.get_config(),
+                            motions=demo_config.SCENE_MOTIONS)
+  scene = scenes.load_scene(_SCENE.value)
+  materials = perception.perceive_scene(scene, None)
+  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
+                                 materials, config)
+  params = pl.init_params(prepared, config)
+  state, mats, forces, sim_config = simulation.initial_state(
+    params, prepared, config, field=prepared.field)
+  sim_config = dataclasses.replace(sim_config,
+                                   substeps_per_frame=_SUBSTEPS.value)
+  n = prepared.num_particles
+  clock = time.perf_counter if _CLOCK.value == 'wall' else time.process_time
+  runs = {}
+  for name in _VARIANTS.value:
+    s, m, f, c = variant(name, state, mats, forces, sim_config)
+    fn = jax.jit(mpm.make_frame(c))
+    out = fn(s, m, f)
+    jax.block_until_ready(out)
+    runs[name] = (fn, out, m, f)
+  best = {name: float('inf') for name in runs}
+  for _ in range(_ROUNDS.value):
+    for name, (fn, s, m, f) in runs.items():
+      t = clock()
+      jax.block_until_ready(fn(s, m, f))
+      best[name] = min(best[name], (clock() - t) / _SUBSTEPS.value)
+  rows = []
+  for name, sec in best.items():
+    finite = bool(jnp.all(jnp.isfinite(runs[name][1].x)))
+    rows.append(dict(variant=name, ms_per_substep=1e3 * sec,
+                     m_particle_substeps_per_s=n / sec / 1e6, finite=finite))
+    print(f'{name:18s} {1e3 * sec:7.3f} ms/substep  '
+          f'{n / sec / 1e6:5.2f} M particle-substeps/s ({_CLOCK.value})'
+          + ('' if finite else '  (went non-finite: timing not meaningful)'))
+  result = dict(scene=_SCENE.value, particles=n, models=sim_config.models,
+                num_bodies=sim_config.num_bodies, clock=_CLOCK.value,
+                substeps=_SUBSTEPS.value, devices=[str(d) for d in
+                                                   jax.devices()],
+                jax_version=jax.__version__, rows=rows)
+  if _OUT.value:
+    os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
+    with open(_OUT.value, 'w') as fh:
+      json.dump(result, fh, indent=1)
+
+
+if __name__ == '__main__':
+  cli.run(main)
