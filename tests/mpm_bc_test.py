@@ -336,6 +336,12 @@ class ModelGroupsTest(absltest.TestCase):
     np.testing.assert_allclose(grouped.positions, masked.positions,
                                atol=2e-6)
     np.testing.assert_allclose(grouped.state.F, masked.state.F, atol=2e-5)
+    # make_substep orders the particles by model too (and back).
+    s = mpm.init_state(x, (0.3, 0, -0.5), _SP ** 3, mat, cfg, body_id=body)
+    one = jax.jit(mpm.make_substep(cfg))(s, mat, None)
+    one_grouped = jax.jit(mpm.make_substep(grouped_cfg))(s, mat, None)
+    np.testing.assert_allclose(one_grouped.x, one.x, atol=1e-6)
+    np.testing.assert_allclose(one_grouped.F, one.F, atol=1e-5)
 
   def test_wrong_counts_are_reported(self):
     x, mat, cfg, body = self._scene()

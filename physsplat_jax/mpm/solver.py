@@ -274,9 +274,10 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     if groups:
       parts = []
       for m, a, b in groups:
-        sl = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
+        rows = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
         parts.append(constitutive.constitutive_update(
-          (m,), None, sl(F), sl(C), c['Jp'][a:b], c['ep'][a:b], sl(mat), dt))
+          (m,), None, rows(F), rows(C), c['Jp'][a:b], c['ep'][a:b],
+          rows(mat), dt))
       Fe, Jp, ep, tau = jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
     else:
       rigid = aux['body_id'] >= 0 if has_bodies else None
@@ -327,32 +328,26 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
         v_new = v_grid
         x_new = tuple(x[d] + dt * v_new[d] for d in range(3))
       F_new = la.add(Fe, la.scale(la.matmul(C_new, Fe), dt))
-      if has_bodies and rigid_group is not None:
-        # The rigid particles are the slice [a, b): project only them.
-        a, b = rigid_group
-        sl = lambda t: jax.tree.map(lambda q: q[a:b], t)  # noqa: E731
-        r_rad = radius[a:b] if jnp.ndim(radius) else radius
+      if has_bodies:
+        if rigid_group is not None:  # the rigid particles are [a, b)
+          a, b = rigid_group
+          take = lambda q: q[a:b]  # noqa: E731
+          merge = lambda full, part: full.at[a:b].set(part)  # noqa: E731
+        else:
+          rb = aux['body_id'] >= 0
+          take = lambda q: q  # noqa: E731
+          merge = lambda full, part: jnp.where(rb, part, full)  # noqa: E731
+        rad = take(radius) if jnp.ndim(radius) else radius
         _, xr, vr, Cr, Fr = rigid_lib.project(
           config.num_bodies, config.body_fixed, grid.dx, dt,
-          aux['body_id'][a:b], mass[a:b], sl(x), sl(v_grid), sl(Fe),
-          reduce_fn, planes=[q + (r_rad,) for q in
-                             boundary.contact_planes(config, t)] + walls)
-        put = lambda full, part: full.at[a:b].set(part)  # noqa: E731
-        x_new = tuple(put(p, q) for p, q in zip(x_new, xr))
-        v_new = tuple(put(p, q) for p, q in zip(v_new, vr))
-        C_new = jax.tree.map(put, C_new, Cr)
-        F_new = jax.tree.map(put, F_new, Fr)
-      elif has_bodies:
-        rb, xr, vr, Cr, Fr = rigid_lib.project(
-          config.num_bodies, config.body_fixed, grid.dx, dt, aux['body_id'],
-          mass, x, v_grid, Fe, reduce_fn,
-          planes=[q + (radius,) for q in boundary.contact_planes(config, t)]
+          take(aux['body_id']), take(mass), jax.tree.map(take, x),
+          jax.tree.map(take, v_grid), jax.tree.map(take, Fe), reduce_fn,
+          planes=[q + (rad,) for q in boundary.contact_planes(config, t)]
           + walls)
-        sel = lambda a, b: jnp.where(rb, a, b)  # noqa: E731
-        x_new = tuple(sel(a, b) for a, b in zip(xr, x_new))
-        v_new = tuple(sel(a, b) for a, b in zip(vr, v_new))
-        C_new = jax.tree.map(sel, Cr, C_new)
-        F_new = jax.tree.map(sel, Fr, F_new)
+        x_new = tuple(merge(p, q) for p, q in zip(x_new, xr))
+        v_new = tuple(merge(p, q) for p, q in zip(v_new, vr))
+        C_new = jax.tree.map(merge, C_new, Cr)
+        F_new = jax.tree.map(merge, F_new, Fr)
       x_new = tuple(jnp.clip(x_new[d], grid.lower[d] + lo, grid.lower[d] + hi)
                     for d in range(3))
     step = c['step'] + 1
@@ -392,9 +387,13 @@ def make_substep(config: base.SimConfig) -> Callable:
 
   def substep_fn(state, materials, forces=None):
     forces = _check_inputs(state, materials, forces, config)
+    if config.model_counts is not None:  # the model slices need the order
+      state, materials, inv = _order(config, state, materials)
+    else:
+      inv = None
     carry, aux = _to_soa(state)
     carry = constitute(carry, aux, materials)
-    return _from_soa(soa(carry, aux, materials, forces), aux)
+    return _unorder(_from_soa(soa(carry, aux, materials, forces), aux), inv)
 
   return substep_fn
 
@@ -424,6 +423,33 @@ def _permute(tree, perm):
                       perm.shape[0] else a, tree)
 
 
+def _order(config: base.SimConfig, state, materials):
+  """Particles in the order the substep expects: by model (the slices of
+  ``config.model_counts``), then by cell (``sort_particles``).
+
+  Returns ``(state, materials, inv)``; ``inv`` (None: not permuted) undoes
+  it (``_unorder``).
+  """
+  n = state.x.shape[0]
+  grouped = config.model_counts is not None
+  if grouped and sum(config.model_counts) != n:
+    raise ValueError(
+      f'SimConfig.model_counts = {config.model_counts} sums to '
+      f'{sum(config.model_counts)} but there are {n} particles.')
+  if not (config.sort_particles or grouped) or n <= 1:
+    return state, materials, None
+  cell = (_cell_key(config.grid, jax.lax.stop_gradient(state.x))
+          if config.sort_particles else jnp.zeros((n,), jnp.int32))
+  perm = (jnp.lexsort((cell, materials.model_id)) if grouped
+          else jnp.argsort(cell))
+  return (_permute(state, perm), _permute(materials, perm),
+          jnp.argsort(perm))
+
+
+def _unorder(state, inv):
+  return state if inv is None else _permute(state, inv)
+
+
 def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
   """Returns ``frame_fn(state, materials, forces) -> state``.
 
@@ -441,32 +467,14 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
 
   def frame_fn(state, materials, forces=None):
     forces = _check_inputs(state, materials, forces, config)
-    n = state.x.shape[0]
-    grouped = config.model_counts is not None
-    if grouped and sum(config.model_counts) != n:
-      raise ValueError(
-        f'SimConfig.model_counts = {config.model_counts} sums to '
-        f'{sum(config.model_counts)} but there are {n} particles.')
-    permute = (config.sort_particles or grouped) and n > 1
-    if permute:
-      cell = (_cell_key(config.grid, jax.lax.stop_gradient(state.x))
-              if config.sort_particles else jnp.zeros((n,), jnp.int32))
-      # By model first (model_counts' slices), then by cell.
-      perm = (jnp.lexsort((cell, materials.model_id)) if grouped
-              else jnp.argsort(cell))
-      inv = jnp.argsort(perm)
-      state = _permute(state, perm)
-      materials = _permute(materials, perm)
+    state, materials, inv = _order(config, state, materials)
     carry, aux = _to_soa(state)
     carry = constitute(carry, aux, materials)
     body = lambda c, _: (soa(c, aux, materials, forces), None)  # noqa: E731
     if config.remat_frames:
       body = jax.checkpoint(body)
     carry, _ = jax.lax.scan(body, carry, None, length=n_sub)
-    out = _from_soa(carry, aux)
-    if permute:
-      out = _permute(out, inv)
-    return out
+    return _unorder(_from_soa(carry, aux), inv)
 
   if config.remat_frames:
     return jax.checkpoint(frame_fn)
