@@ -39,6 +39,22 @@ class TransferTest(absltest.TestCase):
       xr = np.einsum('kn,knd->nd', np.asarray(st.W).reshape(27, -1), node)
       np.testing.assert_allclose(xr, x, atol=_TOL64)
 
+  def test_g2p_reproduces_affine_velocity_field(self):
+    """Quadratic B-splines: v_p = v(x_p) and C_p = grad v for affine v."""
+    with jax.enable_x64(True):
+      grid = mpm.GridSpec(res=16, size=1.0, lower=(0.5, -1.0, 0.0))
+      rng = np.random.default_rng(2)
+      x = np.asarray(grid.lower) + 0.2 + 0.6 * rng.random((40, 3))
+      a, B = rng.normal(size=3), rng.normal(size=(3, 3))
+      node = np.stack(np.meshgrid(*[np.arange(16)] * 3, indexing='ij'), -1)
+      vel = a + (node * grid.dx + np.asarray(grid.lower)) @ B.T
+      st = transfer.Stencil(grid, tuple(jnp.asarray(x.T)))
+      v, C = transfer.g2p(grid, st, tuple(jnp.asarray(vel[..., d])
+                                          for d in range(3)))
+      np.testing.assert_allclose(np.stack(v, -1), a + x @ B.T, atol=1e-12)
+      np.testing.assert_allclose(np.asarray(C).transpose(2, 0, 1),
+                                 np.broadcast_to(B, (40, 3, 3)), atol=1e-11)
+
   def test_p2g_g2p_conserve_mass_and_momentum(self):
     with jax.enable_x64(True):
       grid = mpm.GridSpec(res=16, size=1.0)
