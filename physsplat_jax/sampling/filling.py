@@ -518,14 +518,17 @@ def _knn_dist(means, k: int) -> np.ndarray:
   return r[:, 1:]
 
 
-def sheet_volume_host(means, log_scales, k: int = 8, knn=None) -> float:
+def sheet_volume_host(means, log_scales, k: int = 8, knn=None,
+                      max_thickness: float = np.inf) -> float:
   """Volume of the Gaussians read as one sheet: area times thickness.
 
   The area is ``sum pi r_k^2 / k`` (``r_k`` the distance to a centre's k-th
   nearest neighbour: a surface sampled at density n holds ``n pi r^2``
   centres within r); the thickness ``2 sqrt(3)`` times the median smallest
-  std dev (the slab with the same second moment). A floor for the volume of
-  open shells (leaves), whose enclosed volume is about 0. ``knn``: the
+  std dev (the slab with the same second moment), at most
+  ``max_thickness`` (:func:`fill_objects` passes the cell size: a thicker
+  object shows in the enclosed volume). A floor for the volume of open
+  shells (leaves), whose enclosed volume is about 0. ``knn``: the
   (K, >= k) neighbour distances if already known.
   """
   if len(means) < 2:
@@ -533,7 +536,8 @@ def sheet_volume_host(means, log_scales, k: int = 8, knn=None) -> float:
   r = _knn_dist(means, k) if knn is None else knn[:, :k]
   area = float(np.sum(np.pi * r[:, -1] ** 2 / r.shape[1]))
   sig = np.exp(np.min(np.asarray(log_scales, np.float64), -1))
-  return area * 2.0 * np.sqrt(3.0) * float(np.median(sig))
+  return area * min(2.0 * np.sqrt(3.0) * float(np.median(sig)),
+                    max_thickness)
 
 def _numpy_rng(key):
   """A NumPy generator seeded from a JAX PRNG key (raw or typed)."""
@@ -672,7 +676,8 @@ def fill_objects(
       'volume': enclosed_volume_host(means[m], np.asarray(res.occupied),
                                      np.asarray(res.inside),
                                      np.asarray(res.origin), res.dx, config),
-      'sheet_volume': sheet_volume_host(means[m], g.log_scales, knn=knn)}
+      'sheet_volume': sheet_volume_host(means[m], g.log_scales, knn=knn,
+                                        max_thickness=float(res.dx))}
     v = np.asarray(res.valid)
     pts_all.append(np.asarray(res.points)[v].astype(np.float32))
     ids_all.append(np.full(int(v.sum()), o, np.int32))
