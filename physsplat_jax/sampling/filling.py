@@ -4,24 +4,29 @@ PhysGaussian-style (Xie et al. 2024, Sec. 5.1 "internal filling"), made
 bounded and vectorised:
 
 1. Occupancy grid. On a cubic grid of ``grid_res^3`` cells spanning the
-   object's bounding box (plus a margin), each Gaussian adds its opacity-
-   weighted density ``a_g exp(-d^T Sigma_g^-1 d / 2)`` to the cell centres in
-   a fixed ``(2 f + 1)^3`` window around it. Standard deviations are clipped
-   to ``[s_min dx, s_max dx]`` (``s_max = f / 3`` so the 3-sigma ellipsoid
-   fits in the window). This is the fix for PhysGaussian's filler hanging for
+   object's bounding box (plus a margin), each Gaussian above the opacity
+   threshold adds its density ``exp(-d^T Sigma_g^-1 d / 2)`` (opacity-
+   weighted if ``opacity_weighted``) to the cell centres in a fixed
+   ``(2 f + 1)^3`` window around it. Standard deviations are clipped to
+   ``[s_min dx, s_max dx]`` (``s_max <= f``; wider Gaussians are truncated
+   to the window). This is the fix for PhysGaussian's filler hanging for
    days on unstable covariances ("Large r ... 2147483647", issue #47): the
    work is ``K (2 f + 1)^3`` and the memory ``grid_res^3 + chunk (2 f + 1)^3``
    whatever the covariances. A cell is occupied if its density reaches
    ``density_threshold`` or it holds a Gaussian centre.
-2. Inside test by ray casting along the 6 axis directions: an empty cell is
-   interior if at least ``min_ray_hits`` of the 6 axis rays from it hit an
-   occupied cell (a cumulative max along each axis, O(grid_res^3)).
-   6 of 6 (the default) is the strictest; 5 tolerates one hole in the shell.
+2. Inside test ('flood', default): the shell is closed by a dilation of
+   ``closing_cells``, the exterior flooded from the grid's border through
+   empty cells (connected components) and grown back; interior = neither
+   exterior nor occupied. Closed shells with small holes fill, open
+   structures (gaps wider than the closing) do not. 'rays': PhysGaussian's
+   6-axis-ray test (``min_ray_hits`` of 6).
 3. ``particles_per_cell`` points per interior cell, jittered uniformly in the
    cell with ``key`` (cell centres when ``key`` is None), written into a
    fixed-capacity array with a valid mask and an overflow flag.
 
-:func:`fill_mesh` does the same from a closed mesh with trimesh's containment
+:func:`enclosed_volume_host` and :func:`sheet_volume_host` estimate the
+object's volume (:func:`fill_objects` info). :func:`fill_mesh` does the same
+from a closed mesh with trimesh's containment
 test when a mesh is known.
 """
 
