@@ -525,12 +525,14 @@ def _knn_dist(means, k: int) -> np.ndarray:
 
 def sheet_volume_host(means, log_scales, k: int = 8, knn=None,
                       max_thickness: float = np.inf) -> float:
-  """Volume of the Gaussians read as one sheet: area times thickness.
+  """Volume of the flat Gaussians read as a sheet: area times thickness.
 
-  The area is ``sum pi r_k^2 / k`` (``r_k`` the distance to a centre's k-th
+  Flat Gaussians (smallest std dev under 0.3 times the middle one) count;
+  round ones (blobs, interior Gaussians) are no sheet. The area is
+  ``sum pi r_k^2 / k`` over them (``r_k`` the distance to a centre's k-th
   nearest neighbour: a surface sampled at density n holds ``n pi r^2``
-  centres within r); the thickness ``2 sqrt(3)`` times the median smallest
-  std dev (the slab with the same second moment), at most
+  centres within r); the thickness ``2 sqrt(3)`` times their median
+  smallest std dev (the slab with the same second moment), at most
   ``max_thickness`` (:func:`fill_objects` passes the cell size: a thicker
   object shows in the enclosed volume). A floor for the volume of open
   shells (leaves), whose enclosed volume is about 0. ``knn``: the
@@ -539,9 +541,13 @@ def sheet_volume_host(means, log_scales, k: int = 8, knn=None,
   if len(means) < 2:
     return 0.0
   r = _knn_dist(means, k) if knn is None else knn[:, :k]
-  area = float(np.sum(np.pi * r[:, -1] ** 2 / r.shape[1]))
-  sig = np.exp(np.min(np.asarray(log_scales, np.float64), -1))
-  return area * min(2.0 * np.sqrt(3.0) * float(np.median(sig)),
+  sig = np.sort(np.exp(np.clip(np.nan_to_num(
+    np.asarray(log_scales, np.float64)), -60.0, 60.0)), -1)
+  flat = sig[:, 0] < 0.3 * sig[:, 1]
+  if not flat.any():
+    return 0.0
+  area = float(np.sum(np.pi * r[flat, -1] ** 2 / r.shape[1]))
+  return area * min(2.0 * np.sqrt(3.0) * float(np.median(sig[flat, 0])),
                     max_thickness)
 
 def _numpy_rng(key):
