@@ -55,6 +55,15 @@ class TransferTest(absltest.TestCase):
       np.testing.assert_allclose(np.asarray(C).transpose(2, 0, 1),
                                  np.broadcast_to(B, (40, 3, 3)), atol=1e-11)
 
+  def test_materialize_is_the_identity_for_values_gradients_and_vmap(self):
+    a = jnp.asarray([[1.0, jnp.nan], [-2.0, 3.0]])
+    for b in (a, a.at[0, 0].set(jnp.nan)):  # either branch of the cond
+      np.testing.assert_array_equal(jax.jit(transfer.materialize)(b), b)
+    x = jnp.arange(6.0).reshape(2, 3)
+    g = jax.grad(lambda y: jnp.sum(transfer.materialize(y) ** 2))(x)
+    np.testing.assert_allclose(g, 2.0 * x)
+    np.testing.assert_array_equal(jax.vmap(transfer.materialize)(x), x)
+
   def test_p2g_g2p_conserve_mass_and_momentum(self):
     with jax.enable_x64(True):
       grid = mpm.GridSpec(res=16, size=1.0)
