@@ -34,14 +34,17 @@ def default_cache_dir() -> str | None:
 
 
 def enable_compilation_cache(path: str | None = None,
-                             min_compile_time_s: float = 0.5) -> str | None:
+                             min_compile_time_s: float = 0.0) -> str | None:
   """Turns the persistent compilation cache on; returns its folder.
 
   Args:
     path: cache folder; None uses :func:`default_cache_dir` ('off' there
       disables the cache and returns None).
     min_compile_time_s: only programs that took at least this long to
-      compile are stored.
+      compile are stored. The default 0 stores every program: preparing a
+      scene compiles ~160 small host-side programs (~30 ms each, below
+      JAX's usual threshold of 1 s), and storing them took the
+      tabletop's warm preparation from 6.7-7.3 s to 3.0 s on a 2-core CPU.
   """
   path = default_cache_dir() if path is None else path
   if path is None or str(path).strip().lower() in _OFF:
