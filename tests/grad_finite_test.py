@@ -245,6 +245,61 @@ class Float32HazardTest(absltest.TestCase):
                                  rtol=_FD_RTOL)
 
 
+class RigidContactGradientTest(absltest.TestCase):
+
+  def test_rigid_projection_with_planes_matches_fd_x64(self):
+    """Bodies in and out of contact, sticky and slip planes, free particles.
+
+    Empty contact sets and a body at rest on a sticky plane (no sliding
+    direction) once made the per-body sums' backward pass NaN (0 * inf),
+    with the right forward values.
+    """
+    from physsplat_jax.mpm import rigid
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(3)
+      # Body 0 just below z = 0.3 (in contact), body 1 high up (no
+      # contact), body 2 fixed, then free particles (the dump segment).
+      x0 = np.concatenate([
+        np.array([0.5, 0.5, 0.305]) + 0.02 * rng.uniform(-1, 1, (8, 3)),
+        np.array([0.3, 0.6, 0.7]) + 0.02 * rng.uniform(-1, 1, (8, 3)),
+        np.array([0.7, 0.3, 0.6]) + 0.02 * rng.uniform(-1, 1, (4, 3)),
+        rng.uniform(0.4, 0.6, (5, 3))])
+      body = np.array([0] * 8 + [1] * 8 + [2] * 4 + [-1] * 5)
+      n = len(x0)
+      mass = jnp.asarray(rng.uniform(0.5, 1.5, n))
+      planes = [((0.0, 0.0, 0.3), (0.0, 0.0, 1.0), np.inf, 'sticky',
+                 jnp.asarray(True), 0.005),
+                ((0.0, 0.0, 0.3), (0.0, 0.0, 1.0), 0.3, 'separate',
+                 jnp.asarray(True), 0.005)]
+      F = tuple(tuple(jnp.full((n,), float(i == j)) for j in range(3))
+                for i in range(3))
+      # Cotangents of the size a long rollout builds up.
+      w = jnp.asarray(100.0 * rng.normal(size=(n, 3)))
+
+      def loss(v):
+        _, x, vn, C, Fr = rigid.project(
+          3, (False, False, True), 0.02, 1e-3, jnp.asarray(body), mass,
+          tuple(jnp.asarray(x0[:, d]) for d in range(3)),
+          tuple(v[:, d] for d in range(3)), F, planes=planes)
+        return (jnp.sum(jnp.stack(x, -1) * w) + jnp.sum(jnp.stack(vn, -1))
+                + sum(jnp.sum(c) for row in C for c in row)
+                + sum(jnp.sum(f ** 2) for row in Fr for f in row))
+
+      # Body 0 falls onto the planes, body 1 rests (no sliding).
+      v = np.zeros((n, 3))
+      v[:8] = [0.1, 0.0, -1.0]
+      v[16:] = rng.normal(size=(n - 16, 3))
+      v = jnp.asarray(v)
+      fn = jax.jit(jax.value_and_grad(loss))
+      _, g = fn(v)
+      self.assertTrue(np.all(np.isfinite(np.asarray(g))))
+      d = jnp.asarray(rng.normal(size=(n, 3)))
+      h = 1e-6
+      fd = (fn(v + h * d)[0] - fn(v - h * d)[0]) / (2 * h)
+      np.testing.assert_allclose(float(jnp.sum(g * d)), float(fd),
+                                 rtol=_FD_RTOL)
+
+
 @pytest.mark.slow
 class ReadmeExampleTest(absltest.TestCase):
 

@@ -203,7 +203,12 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
   """
   dtype = mass.dtype
   tiny = jnp.finfo(dtype).tiny
-  Ms = jnp.maximum(M, tiny)
+  # Divisions by a sum that may be 0 (an empty segment, an empty contact
+  # set) divide by 1 there instead, by a select: the numerator is exactly 0
+  # then, so the values are the same, and the derivative of the quotient
+  # stays finite. Dividing by ``tiny`` gave cotangents of ~1/tiny = inf,
+  # and 0 * inf = NaN in the per-body sums' backward pass.
+  Ms = jnp.where(M > 0, M, 1.0)
 
   def impulse(V, w, rc, dirn, j):
     V = [V[d] + free * j * dirn[d] / Ms for d in range(3)]
@@ -225,7 +230,7 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
     mc, *mrc, mpen = ssum([mh] + [mh * r[d] for d in range(3)]
                           + [mh * jnp.maximum(-dist, 0.0)])
     has = mc > 0
-    mcs = jnp.maximum(mc, tiny)
+    mcs = jnp.where(has, mc, 1.0)
     rc = tuple(mrc[d] / mcs for d in range(3))
     u = [V[d] + c for d, c in enumerate(_cross(w, rc))]
     un = _dot(u, n_b)
@@ -235,12 +240,14 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
     u = [V[d] + c for d, c in enumerate(_cross(w, rc))]
     un = _dot(u, n_b)
     ut = [u[d] - un * n[d] for d in range(3)]
-    st = jnp.sqrt(jnp.maximum(_dot(ut, ut), tiny))
-    t = tuple(ut[d] / st for d in range(3))
-    jt = st / k_eff(rc, t)
+    ut2 = _dot(ut, ut)
+    slides = ut2 > tiny  # else no tangent direction (and no friction)
+    st = jnp.sqrt(jnp.where(slides, ut2, 1.0))
+    t = tuple(jnp.where(slides, ut[d] / st, 0.0) for d in range(3))
+    jt = jnp.where(slides, st / k_eff(rc, t), 0.0)
     if not mu == float('inf'):
       jt = jnp.minimum(jt, mu * jn)
-    jt = jnp.where(has, jt, 0.0)
+    jt = jnp.where(has & slides, jt, 0.0)
     V, w = impulse(V, w, rc, t, -jt)
     # Mass-weighted mean penetration of the contact set (a sum, so the
     # same with particles split over devices); any rest is removed in the
