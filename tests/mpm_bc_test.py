@@ -116,6 +116,41 @@ class BoundaryTest(absltest.TestCase):
     for k, v in out.items():
       self.assertGreater(v[:, 2].min(), 0.28 - _GRID.dx, msg=k)
 
+  def test_sticky_plane_stops_the_grid_velocity_at_the_plane(self):
+    """Node pairs across a sticky plane: zero linear interpolant at it."""
+    from physsplat_jax.mpm import boundary
+    dx = _GRID.dx
+    k0 = 3  # node 3 is 0.37 cells behind the plane, node 4 0.63 in front
+    ground = (k0 + 0.37) * dx
+    a, b = 0.37 * dx, 0.63 * dx
+    shape = (16, 16, 16)
+    rng = np.random.default_rng(0)
+    m = jnp.asarray(rng.uniform(0.5, 2.0, shape))
+    v0 = tuple(jnp.full(shape, c) for c in (0.3, -0.2, -1.0))
+    inner = (slice(4, 12), slice(4, 12))
+    for surface in ('sticky', 'slip', 'separate'):
+      cfg = mpm.SimConfig(grid=_GRID, dt=1e-3, boundary_conditions=(
+        mpm.SurfaceCollider(point=(0, 0, ground), surface=surface),))
+      f = mpm.make_forces(cfg)
+      gv = [np.asarray(c)[inner] for c in
+            boundary.apply_grid_bcs(cfg, f, 0.0, v0, m)]
+      old = [np.asarray(c)[inner] for c in
+             boundary.apply_grid_bcs(cfg, f, 0.0, v0)]
+      if surface != 'sticky':  # only sticky planes pair nodes
+        for c in range(3):
+          np.testing.assert_array_equal(gv[c], old[c])
+        continue
+      for c in range(3):
+        # The pair's linear interpolant vanishes at the plane, nodes a cell
+        # or more behind are held, nodes beyond the pair are free.
+        np.testing.assert_allclose(
+          b * gv[c][..., k0] + a * gv[c][..., k0 + 1], 0.0, atol=1e-7)
+        np.testing.assert_array_equal(gv[c][..., :k0], 0.0)
+        np.testing.assert_array_equal(gv[c][..., k0 + 2:],
+                                      old[c][..., k0 + 2:])
+      # The plane pushes out: both nodes of a pair gain upward momentum.
+      self.assertTrue(np.all(gv[2][..., k0:k0 + 2] > -1.0))
+
   def test_separating_wall_lets_go_but_slip_holds(self):
     # Same configs as above (compiled once): a block leaving the wall.
     x0 = _box(3, (0.3, 0.45, 0.28))

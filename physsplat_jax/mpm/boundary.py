@@ -276,7 +276,47 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   return tuple(x_new), tuple(v)
 
 
-def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
+def _shift(a, k: int, s: int):
+  """``b[i] = a[i + s e_k]`` (``s = +-1``), zero past the grid edge."""
+  sl = [slice(None)] * 3
+  pad = [(0, 0)] * 3
+  sl[k] = slice(1, None) if s > 0 else slice(None, -1)
+  pad[k] = (0, 1) if s > 0 else (1, 0)
+  return jnp.pad(a[tuple(sl)], pad)
+
+
+def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, gv):
+  """Zero velocity at a sticky plane itself, on the grid.
+
+  Each node less than a cell behind the plane (depth ``a``, measured along
+  the normal; a cell is ``h = dx |n_k|`` along the normal's dominant axis
+  ``k``) is paired with its neighbour in front (at ``b = h - a``) along
+  that axis. The pair's velocities are projected, with the least change of
+  kinetic energy (an impulse ``(-b, -a) lam`` on the two masses), onto
+  ``b v_behind + a v_front = 0``: the linear interpolant of the pair
+  vanishes at the plane. Material coming to the plane is then stopped in
+  the velocity field (so ``F`` records its compression) while the nodes in
+  front keep their free velocity wherever no particle is near the plane.
+  """
+  k = int(np.argmax(np.abs(bc.normal)))
+  s = 1 if bc.normal[k] > 0 else -1
+  h = grid.dx * abs(bc.normal[k])
+  a = -dist
+  b = h - a
+  mf = _shift(mass, k, s)
+  den = b * b * mf + a * a * mass
+  ok = on & (a > 0) & (a <= h) & (den > 0)
+  den = jnp.where(ok, den, 1.0)
+  cb = jnp.where(ok, b * mf / den, 0.0)
+  cf = jnp.where(ok, a * mass / den, 0.0)
+  out = []
+  for c in range(3):
+    r = b * gv[c] + a * _shift(gv[c], k, s)
+    out.append(gv[c] - r * cb - _shift(r * cf, k, -s))
+  return out
+
+
+def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None):
   """Grid-node constraints after the grid update.
 
   Args:
@@ -284,6 +324,8 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
     forces: ``Forces``.
     t: () time [s].
     gv: 3-tuple of (G, G, G) node velocities [m/s].
+    mass: (G, G, G) node masses [kg]; None skips the node pairs at a
+      'sticky' plane (``_plane_pairs``).
 
   Returns:
     3-tuple of (G, G, G) node velocities.
@@ -303,11 +345,12 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
       # (``particle_contact``). 'slip' is bilateral and keeps every node
       # behind the plane.
       depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
-      side = (sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
-              < -depth)
-      hit = on & side
+      dist = sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
+      hit = on & (dist < -depth)
       if bc.surface == 'sticky':
         gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
+        if mass is not None:
+          gv = _plane_pairs(grid, bc, on, dist, mass, gv)
         continue
       vn = gv[0] * n[0] + gv[1] * n[1] + gv[2] * n[2]
       if bc.surface == 'slip':
@@ -351,5 +394,3 @@ def collider_summary(config: base.SimConfig) -> str:
       if not (isinstance(v, float) and math.isinf(v))))
   return '; '.join(lines) or 'domain box only'
 
-
-del np

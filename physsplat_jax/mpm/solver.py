@@ -316,7 +316,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
                  for d in range(3))
       if damp != 1.0:
         gv = tuple(a * damp for a in gv)
-      gv = boundary.apply_grid_bcs(config, forces, t, gv)
+      gv = boundary.apply_grid_bcs(config, forces, t, gv, m)
       gv = tuple(a.reshape(-1) for a in gv)
     with jax.named_scope('g2p'):
       radius = boundary.particle_radius(vol0) if has_planes else 0.0
