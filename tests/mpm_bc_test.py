@@ -127,29 +127,36 @@ class BoundaryTest(absltest.TestCase):
     rng = np.random.default_rng(0)
     m = jnp.asarray(rng.uniform(0.5, 2.0, shape))
     v0 = tuple(jnp.full(shape, c) for c in (0.3, -0.2, -1.0))
+    # Particles touch the plane in the columns x < 8 only.
+    touch = jnp.asarray(np.where(np.arange(16)[:, None, None] < 8,
+                                 np.asarray(m), 0.0))
     inner = (slice(4, 12), slice(4, 12))
     for surface in ('sticky', 'slip', 'separate'):
       cfg = mpm.SimConfig(grid=_GRID, dt=1e-3, boundary_conditions=(
         mpm.SurfaceCollider(point=(0, 0, ground), surface=surface),))
       f = mpm.make_forces(cfg)
       gv = [np.asarray(c)[inner] for c in
-            boundary.apply_grid_bcs(cfg, f, 0.0, v0, m)]
+            boundary.apply_grid_bcs(cfg, f, 0.0, v0, m, touch)]
       old = [np.asarray(c)[inner] for c in
              boundary.apply_grid_bcs(cfg, f, 0.0, v0)]
       if surface != 'sticky':  # only sticky planes pair nodes
         for c in range(3):
           np.testing.assert_array_equal(gv[c], old[c])
         continue
+      t = slice(0, 4)  # touching columns (inner x = 4..7)
       for c in range(3):
-        # The pair's linear interpolant vanishes at the plane, nodes a cell
-        # or more behind are held, nodes beyond the pair are free.
+        # The pair's linear interpolant vanishes at the plane where
+        # particles touch it (free elsewhere), nodes a cell or more behind
+        # are held, nodes beyond the pair are free.
         np.testing.assert_allclose(
-          b * gv[c][..., k0] + a * gv[c][..., k0 + 1], 0.0, atol=1e-7)
+          b * gv[c][t, :, k0] + a * gv[c][t, :, k0 + 1], 0.0, atol=1e-7)
+        np.testing.assert_array_equal(gv[c][4:, :, k0:],
+                                      old[c][4:, :, k0:])
         np.testing.assert_array_equal(gv[c][..., :k0], 0.0)
         np.testing.assert_array_equal(gv[c][..., k0 + 2:],
                                       old[c][..., k0 + 2:])
       # The plane pushes out: both nodes of a pair gain upward momentum.
-      self.assertTrue(np.all(gv[2][..., k0:k0 + 2] > -1.0))
+      self.assertTrue(np.all(gv[2][t, :, k0:k0 + 2] > -1.0))
 
   def test_separating_wall_lets_go_but_slip_holds(self):
     # Same configs as above (compiled once): a block leaving the wall.

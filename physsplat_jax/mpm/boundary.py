@@ -285,18 +285,35 @@ def _shift(a, k: int, s: int):
   return jnp.pad(a[tuple(sl)], pad)
 
 
-def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, gv):
-  """Zero velocity at a sticky plane itself, on the grid.
+def sticky_touch(config: base.SimConfig, t, x, radius):
+  """(N,) 1 where a particle touches (or is behind) an active sticky plane.
+
+  The same test as ``particle_contact``'s: a touching particle sticks.
+  """
+  out = jnp.zeros_like(x[0])
+  for p, n, _, surface, on in contact_planes(config, t):
+    if surface == 'sticky':
+      d0 = sum((x[k] - p[k]) * n[k] for k in range(3)) - radius
+      out = jnp.where(on & (d0 <= _TOUCH * config.grid.dx), 1.0, out)
+  return out
+
+
+def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
+  """Zero velocity at a sticky plane itself, where material touches it.
 
   Each node less than a cell behind the plane (depth ``a``, measured along
   the normal; a cell is ``h = dx |n_k|`` along the normal's dominant axis
   ``k``) is paired with its neighbour in front (at ``b = h - a``) along
-  that axis. The pair's velocities are projected, with the least change of
-  kinetic energy (an impulse ``(-b, -a) lam`` on the two masses), onto
-  ``b v_behind + a v_front = 0``: the linear interpolant of the pair
-  vanishes at the plane. Material coming to the plane is then stopped in
-  the velocity field (so ``F`` records its compression) while the nodes in
-  front keep their free velocity wherever no particle is near the plane.
+  that axis. Where particles touching the plane (``sticky_touch``) give
+  either node mass (``touch`` > 0), the pair's velocities are projected,
+  with the least change of kinetic energy (an impulse ``(-b, -a) lam`` on
+  the two masses), onto ``b v_behind + a v_front = 0``: the linear
+  interpolant of the pair vanishes at the plane. Material stopped at the
+  plane is then stopped in the velocity field too, so ``F`` records the
+  compression of what presses on it. Pairs with no touching particle stay
+  free, so approaching bodies are not slowed in front of the plane (they
+  land on it, ``particle_contact``). With several sticky planes a particle
+  touching any of them counts.
   """
   k = int(np.argmax(np.abs(bc.normal)))
   s = 1 if bc.normal[k] > 0 else -1
@@ -305,7 +322,8 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, gv):
   b = h - a
   mf = _shift(mass, k, s)
   den = b * b * mf + a * a * mass
-  ok = on & (a > 0) & (a <= h) & (den > 0)
+  ok = (on & (a > 0) & (a <= h) & (den > 0)
+        & (touch + _shift(touch, k, s) > 0))
   den = jnp.where(ok, den, 1.0)
   cb = jnp.where(ok, b * mf / den, 0.0)
   cf = jnp.where(ok, a * mass / den, 0.0)
@@ -316,7 +334,8 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, gv):
   return out
 
 
-def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None):
+def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
+                   touch=None):
   """Grid-node constraints after the grid update.
 
   Args:
@@ -324,8 +343,9 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None):
     forces: ``Forces``.
     t: () time [s].
     gv: 3-tuple of (G, G, G) node velocities [m/s].
-    mass: (G, G, G) node masses [kg]; None skips the node pairs at a
-      'sticky' plane (``_plane_pairs``).
+    mass, touch: (G, G, G) node masses and masses of particles touching a
+      sticky plane [kg]; None skips the node pairs at a 'sticky' plane
+      (``_plane_pairs``).
 
   Returns:
     3-tuple of (G, G, G) node velocities.
@@ -349,8 +369,8 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None):
       hit = on & (dist < -depth)
       if bc.surface == 'sticky':
         gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
-        if mass is not None:
-          gv = _plane_pairs(grid, bc, on, dist, mass, gv)
+        if mass is not None and touch is not None:
+          gv = _plane_pairs(grid, bc, on, dist, mass, touch, gv)
         continue
       vn = gv[0] * n[0] + gv[1] * n[1] + gv[2] * n[2]
       if bc.surface == 'slip':
