@@ -343,6 +343,36 @@ class ContactTest(absltest.TestCase):
                                atol=2e-5)
 
 
+  @pytest.mark.slow
+  def test_sand_on_a_sticky_plane_is_compressed_not_compacted(self):
+    """Sand stopped at a sticky plane between nodes builds its pressure (~9 s).
+
+    Before the node pairs at a sticky plane (``boundary._plane_pairs``) the
+    nodes just behind it moved freely, the velocity gradient did not see
+    the particles the plane stops, and the sand drained into a sheet on
+    the plane with no pressure (docs/validation.md, repose).
+    """
+    ground = 0.2 + 0.37 * _GRID.dx
+    x = _box((6, 6, 4), (0.4, 0.4, ground + 0.005))
+    mat = mpm.make_materials('drucker_prager', 5e4, 0.3, 2000.0,
+                             num=len(x), friction_angle=40.0)
+    cfg = mpm.SimConfig(
+      grid=_GRID, dt=1e-3, models=('drucker_prager',), velocity_damping=5.0,
+      boundary_conditions=(mpm.SurfaceCollider(point=(0, 0, ground)),))
+    n = mpm.choose_substeps(cfg, 0.025, mat, max_speed=2.0)
+    cfg = cfg.replace(dt=0.025 / n, substeps_per_frame=n)
+    _, res = _run(x, mat, cfg, 8)
+    z = np.asarray(res.state.x)[:, 2]
+    J = np.linalg.det(np.asarray(res.state.F).reshape(-1, 3, 3))
+    # The underside rests on the plane (no gap), ...
+    self.assertLess(abs(z.min() - _SP / 2 - ground),
+                    self.REST_TOL_CELLS * _GRID.dx)
+    # ... the bottom layer (centres at ground + _SP / 2, 36 particles)
+    # holds about one layer of particles, and it is compressed.
+    bottom = z < ground + _SP
+    self.assertLess(bottom.sum(), 1.25 * 36)
+    self.assertLess(J[bottom].mean(), 0.99)
+
 class ModelGroupsTest(absltest.TestCase):
   """``SimConfig.model_counts``: each model on its own particle slice."""
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -234,9 +235,11 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   distance), with Coulomb friction on the tangential part ('separate' and
   'slip'); on a 'sticky' plane every touching particle loses its tangential
   motion; particles already behind the plane are projected onto
-  it. Together with ``apply_grid_bcs`` (which acts only on nodes a cell or
-  more behind the plane, so it cannot hold bodies above it) the support
-  sits at the plane itself, wherever it lies between grid nodes.
+  it. Together with ``apply_grid_bcs`` (which holds only nodes a cell or
+  more behind the plane, so it cannot hold bodies above it; on a 'sticky'
+  plane it also stops the grid velocity at the plane where particles touch
+  it, ``_plane_pairs``) the support sits at the plane itself, wherever it
+  lies between grid nodes.
 
   Args:
     config: static config.
@@ -298,6 +301,24 @@ def sticky_touch(config: base.SimConfig, t, x, radius):
   return out
 
 
+@jax.custom_jvp
+def _fraction(m, total):
+  """``m / total`` (0 where ``total == 0``), derivative ``(dm - q dtotal) /
+  total``: no ``total^-2``, which overflows for the tiny masses at a
+  stencil edge (as ``solver.node_velocity``)."""
+  return m / jnp.where(total > 0, total, 1.0)
+
+
+@_fraction.defjvp
+def _fraction_jvp(primals, tangents):
+  m, total = primals
+  dm, dtotal = tangents
+  q = _fraction(m, total)
+  ok = total > jnp.finfo(total.dtype).tiny
+  dq = jnp.where(ok, (dm - q * dtotal) / jnp.where(ok, total, 1.0), 0.0)
+  return q, dq
+
+
 def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   """Zero velocity at a sticky plane itself, where material touches it.
 
@@ -306,7 +327,7 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   ``k``) is paired with its neighbour in front (at ``b = h - a``) along
   that axis. Where particles touching the plane (``sticky_touch``) give
   either node mass (``touch`` > 0), the pair's velocities are projected,
-  with the least change of kinetic energy (an impulse ``(-b, -a) lam`` on
+  with the least change of kinetic energy (an impulse ``-(b, a) lam`` on
   the two masses), onto ``b v_behind + a v_front = 0``: the linear
   interpolant of the pair vanishes at the plane. Material stopped at the
   plane is then stopped in the velocity field too, so ``F`` records the
@@ -320,13 +341,16 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   h = grid.dx * abs(bc.normal[k])
   a = -dist
   b = h - a
-  mf = _shift(mass, k, s)
-  den = b * b * mf + a * a * mass
+  # Mass fractions q (behind) and 1 - q (front): the front node's change
+  # depends on the momentum, not the velocity, of a light node behind (a
+  # node at a stencil edge has a tiny mass and an ill-conditioned velocity).
+  q = _fraction(mass, mass + _shift(mass, k, s))
+  den = b * b * (1.0 - q) + a * a * q
   ok = (on & (a > 0) & (a <= h) & (den > 0)
         & (touch + _shift(touch, k, s) > 0))
   den = jnp.where(ok, den, 1.0)
-  cb = jnp.where(ok, b * mf / den, 0.0)
-  cf = jnp.where(ok, a * mass / den, 0.0)
+  cb = jnp.where(ok, b * (1.0 - q) / den, 0.0)
+  cf = jnp.where(ok, a * q / den, 0.0)
   out = []
   for c in range(3):
     r = b * gv[c] + a * _shift(gv[c], k, s)
@@ -343,9 +367,9 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
     forces: ``Forces``.
     t: () time [s].
     gv: 3-tuple of (G, G, G) node velocities [m/s].
-    mass, touch: (G, G, G) node masses and masses of particles touching a
-      sticky plane [kg]; None skips the node pairs at a 'sticky' plane
-      (``_plane_pairs``).
+    mass, touch: (G, G, G) node masses and masses of the particles touching
+      a sticky plane (``sticky_touch``) [kg]; None skips the node pairs at
+      a 'sticky' plane (``_plane_pairs``).
 
   Returns:
     3-tuple of (G, G, G) node velocities.
@@ -362,8 +386,9 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
       # 'sticky'/'separate': only nodes at least a cell behind the plane (a
       # node closer to it would hold particles up to 1.5 dx - depth in
       # front of it); the plane itself is enforced on particles
-      # (``particle_contact``). 'slip' is bilateral and keeps every node
-      # behind the plane.
+      # (``particle_contact``), and on 'sticky' the grid velocity at the
+      # plane where particles touch it (``_plane_pairs``). 'slip' is
+      # bilateral and keeps every node behind the plane.
       depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
       dist = sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
       hit = on & (dist < -depth)
