@@ -13,7 +13,10 @@ Cases (each at two resolutions unless --quick):
 - sand_slope: flank slope of a collapsed Drucker-Prager sand column vs the
   friction angle (two angles).
 - contact: blocks of jelly, metal, sand and a rigid box resting on a plane
-  placed between grid nodes: rest height of each underside [cells].
+  ('separate' and 'sticky') placed between grid nodes: rest height of each
+  underside [cells].
+- repose: quasi-static angle of repose of a sand pile vs the friction
+  angle (20, 30 and 40 deg).
 
 python -m experiments.validate_physics [--cases=free_fall,bar_mode] [--quick]
   [--out=results.json]
@@ -405,10 +408,11 @@ def angle_of_repose(res, phi=30.0, volume_correction=1.0, radius=0.2,
     final_max_speed=speed)
 
 
-def contact(res, ground=0.2537, seconds=1.0):
+def contact(res, ground=0.2537, seconds=1.0, surface='separate'):
   """Blocks of several materials and a rigid box resting on a fixed plane.
 
-  The plane sits at an arbitrary height between grid nodes (0.2537 m). Each
+  The plane (``surface`` 'separate' with friction 0.5, or 'sticky') sits at
+  an arbitrary height between grid nodes (0.2537 m). Each
   0.12 m block starts 0.02 m above it; after ``seconds`` the rest height of
   each block's underside (lowest particle minus half the lattice spacing)
   above the plane is reported in cells, with the largest penetration of any
@@ -447,25 +451,31 @@ def contact(res, ground=0.2537, seconds=1.0):
   cfg = mpm.SimConfig(
     grid=grid, dt=1e-3, models=models, num_bodies=1,
     boundary_conditions=(mpm.SurfaceCollider(
-      point=(0, 0, ground), surface='separate', friction=0.5),))
+      point=(0, 0, ground), surface=surface, friction=0.5),))
   n = mpm.choose_substeps(cfg, frame_dt, mat, body_id=body, max_speed=2.0)
   cfg = cfg.replace(dt=frame_dt / n, substeps_per_frame=n)
   s = mpm.init_state(x, np.zeros(3), vol, mat, cfg, body_id=body)
   r = mpm.run(s, mat, None, cfg, int(round(seconds / frame_dt)))
   xf = r.positions[-1]
   half = 0.5 * vol ** (1 / 3)  # half the lattice spacing
-  rest = {}
+  rest, layer = {}, {}
   for k, (name, _, _, _) in enumerate(specs):
     z = xf[objs == k, 2]
     rest[name] = float((z.min() - half - ground) / grid.dx)
+    # Compaction: particles within one lattice spacing of the plane at the
+    # end over those in the bottom layer at the start (1: one layer).
+    z0 = x[objs == k, 2]
+    layer[name] = float(np.sum(z < ground + sp)
+                        / np.sum(z0 < z0.min() + 0.5 * sp))
   pen = float(max(0.0, ground - r.positions[..., 2].min()) / grid.dx)
   drift = float(np.abs(pdist(xf[objs == 3]) - pdist(x[objs == 3])).max())
   worst = max(abs(v) for v in rest.values())
   return dict(
-    case='contact', res=res, particles=len(x), dt=cfg.dt,
+    case='contact' + ('' if surface == 'separate' else f'_{surface}'),
+    res=res, particles=len(x), dt=cfg.dt,
     metric='max |rest height - plane| [cells]', value=worst,
     reference='0 (underside on the plane)', rel_error=0.0,
-    seconds=r.run_s + r.compile_s, rest_cells=rest,
+    seconds=r.run_s + r.compile_s, rest_cells=rest, floor_layer_ratio=layer,
     max_penetration_cells=pen, rigid_distance_change_m=drift)
 
 
@@ -491,8 +501,9 @@ def main(argv):
     'sand_slope': [(sand_slope, dict(res=r, phi=p))
                    for r in ((32,) if quick else (32, 48))
                    for p in (20.0, 35.0)],
-    'contact': [(contact, dict(res=r)) for r in ((24,) if quick
-                                                  else (24, 40))],
+    'contact': [(contact, dict(res=r, surface=f))
+                for r in ((24,) if quick else (24, 40))
+                for f in ('separate', 'sticky')],
     'repose': [(angle_of_repose, dict(res=r, phi=p))
                for r in ((32,) if quick else (32, 48))
                for p in (20.0, 30.0, 40.0)],

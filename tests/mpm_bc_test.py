@@ -116,6 +116,48 @@ class BoundaryTest(absltest.TestCase):
     for k, v in out.items():
       self.assertGreater(v[:, 2].min(), 0.28 - _GRID.dx, msg=k)
 
+  def test_sticky_plane_stops_the_grid_velocity_at_the_plane(self):
+    """Node pairs across a sticky plane: zero linear interpolant at it."""
+    from physsplat_jax.mpm import boundary
+    dx = _GRID.dx
+    k0 = 3  # node 3 is 0.37 cells behind the plane, node 4 0.63 in front
+    ground = (k0 + 0.37) * dx
+    a, b = 0.37 * dx, 0.63 * dx
+    shape = (16, 16, 16)
+    rng = np.random.default_rng(0)
+    m = jnp.asarray(rng.uniform(0.5, 2.0, shape))
+    v0 = tuple(jnp.full(shape, c) for c in (0.3, -0.2, -1.0))
+    # Particles touch the plane in the columns x < 8 only.
+    touch = jnp.asarray(np.where(np.arange(16)[:, None, None] < 8,
+                                 np.asarray(m), 0.0))
+    inner = (slice(4, 12), slice(4, 12))
+    for surface in ('sticky', 'slip', 'separate'):
+      cfg = mpm.SimConfig(grid=_GRID, dt=1e-3, boundary_conditions=(
+        mpm.SurfaceCollider(point=(0, 0, ground), surface=surface),))
+      f = mpm.make_forces(cfg)
+      gv = [np.asarray(c)[inner] for c in
+            boundary.apply_grid_bcs(cfg, f, 0.0, v0, m, touch)]
+      old = [np.asarray(c)[inner] for c in
+             boundary.apply_grid_bcs(cfg, f, 0.0, v0)]
+      if surface != 'sticky':  # only sticky planes pair nodes
+        for c in range(3):
+          np.testing.assert_array_equal(gv[c], old[c])
+        continue
+      t = slice(0, 4)  # touching columns (inner x = 4..7)
+      for c in range(3):
+        # The pair's linear interpolant vanishes at the plane where
+        # particles touch it (free elsewhere), nodes a cell or more behind
+        # are held, nodes beyond the pair are free.
+        np.testing.assert_allclose(
+          b * gv[c][t, :, k0] + a * gv[c][t, :, k0 + 1], 0.0, atol=1e-7)
+        np.testing.assert_array_equal(gv[c][4:, :, k0:],
+                                      old[c][4:, :, k0:])
+        np.testing.assert_array_equal(gv[c][..., :k0], 0.0)
+        np.testing.assert_array_equal(gv[c][..., k0 + 2:],
+                                      old[c][..., k0 + 2:])
+      # The plane pushes out: both nodes of a pair gain upward momentum.
+      self.assertTrue(np.all(gv[2][t, :, k0:k0 + 2] > -1.0))
+
   def test_separating_wall_lets_go_but_slip_holds(self):
     # Same configs as above (compiled once): a block leaving the wall.
     x0 = _box(3, (0.3, 0.45, 0.28))
@@ -300,6 +342,36 @@ class ContactTest(absltest.TestCase):
     np.testing.assert_allclose(pdist(pos[-1, body == 0]), pdist(box),
                                atol=2e-5)
 
+
+  @pytest.mark.slow
+  def test_sand_on_a_sticky_plane_is_compressed_not_compacted(self):
+    """Sand stopped at a sticky plane between nodes builds its pressure (~9 s).
+
+    Before the node pairs at a sticky plane (``boundary._plane_pairs``) the
+    nodes just behind it moved freely, the velocity gradient did not see
+    the particles the plane stops, and the sand drained into a sheet on
+    the plane with no pressure (docs/validation.md, repose).
+    """
+    ground = 0.2 + 0.37 * _GRID.dx
+    x = _box((6, 6, 4), (0.4, 0.4, ground + 0.005))
+    mat = mpm.make_materials('drucker_prager', 5e4, 0.3, 2000.0,
+                             num=len(x), friction_angle=40.0)
+    cfg = mpm.SimConfig(
+      grid=_GRID, dt=1e-3, models=('drucker_prager',), velocity_damping=5.0,
+      boundary_conditions=(mpm.SurfaceCollider(point=(0, 0, ground)),))
+    n = mpm.choose_substeps(cfg, 0.025, mat, max_speed=2.0)
+    cfg = cfg.replace(dt=0.025 / n, substeps_per_frame=n)
+    _, res = _run(x, mat, cfg, 8)
+    z = np.asarray(res.state.x)[:, 2]
+    J = np.linalg.det(np.asarray(res.state.F).reshape(-1, 3, 3))
+    # The underside rests on the plane (no gap), ...
+    self.assertLess(abs(z.min() - _SP / 2 - ground),
+                    self.REST_TOL_CELLS * _GRID.dx)
+    # ... the bottom layer (centres at ground + _SP / 2, 36 particles)
+    # holds about one layer of particles, and it is compressed.
+    bottom = z < ground + _SP
+    self.assertLess(bottom.sum(), 1.25 * 36)
+    self.assertLess(J[bottom].mean(), 0.99)
 
 class ModelGroupsTest(absltest.TestCase):
   """``SimConfig.model_counts``: each model on its own particle slice."""

@@ -335,13 +335,16 @@ class SimulationTest(absltest.TestCase):
 
   @pytest.mark.slow
   def test_sand_angle_of_repose_matches_friction_angle(self):
-    """Quasi-static pile (validate_physics.angle_of_repose) at 32^3, ~2 min.
+    """Quasi-static piles (validate_physics.angle_of_repose) at 32^3, ~3 min.
 
-    docs/validation.md has 20-40 deg at 48^3; within 5 deg of phi here too.
+    docs/validation.md has 20-40 deg at 48^3; within 5 deg of phi here for
+    30 and 40 (phi = 20 is +5.0 deg at 32^3). phi = 40 was 10.5 deg low
+    while the sand drained into a pressureless sheet on the sticky floor.
     """
     from experiments import validate_physics
-    r = validate_physics.angle_of_repose(32, phi=30.0)
-    self.assertLess(abs(r['value'] - 30.0), 5.0)
+    for phi in (30.0, 40.0):
+      r = validate_physics.angle_of_repose(32, phi=phi)
+      self.assertLess(abs(r['value'] - phi), 5.0, msg=phi)
 
   def test_sand_column_spreads(self):
     grid = mpm.GridSpec(res=16, size=1.0)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -234,9 +235,11 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   distance), with Coulomb friction on the tangential part ('separate' and
   'slip'); on a 'sticky' plane every touching particle loses its tangential
   motion; particles already behind the plane are projected onto
-  it. Together with ``apply_grid_bcs`` (which acts only on nodes a cell or
-  more behind the plane, so it cannot hold bodies above it) the support
-  sits at the plane itself, wherever it lies between grid nodes.
+  it. Together with ``apply_grid_bcs`` (which holds only nodes a cell or
+  more behind the plane, so it cannot hold bodies above it; on a 'sticky'
+  plane it also stops the grid velocity at the plane where particles touch
+  it, ``_plane_pairs``) the support sits at the plane itself, wherever it
+  lies between grid nodes.
 
   Args:
     config: static config.
@@ -276,7 +279,87 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   return tuple(x_new), tuple(v)
 
 
-def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
+def _shift(a, k: int, s: int):
+  """``b[i] = a[i + s e_k]`` (``s = +-1``), zero past the grid edge."""
+  sl = [slice(None)] * 3
+  pad = [(0, 0)] * 3
+  sl[k] = slice(1, None) if s > 0 else slice(None, -1)
+  pad[k] = (0, 1) if s > 0 else (1, 0)
+  return jnp.pad(a[tuple(sl)], pad)
+
+
+def sticky_touch(config: base.SimConfig, t, x, radius):
+  """(N,) 1 where a particle touches (or is behind) an active sticky plane.
+
+  The same test as ``particle_contact``'s: a touching particle sticks.
+  """
+  out = jnp.zeros_like(x[0])
+  for p, n, _, surface, on in contact_planes(config, t):
+    if surface == 'sticky':
+      d0 = sum((x[k] - p[k]) * n[k] for k in range(3)) - radius
+      out = jnp.where(on & (d0 <= _TOUCH * config.grid.dx), 1.0, out)
+  return out
+
+
+@jax.custom_jvp
+def _fraction(m, total):
+  """``m / total`` (0 where ``total == 0``), derivative ``(dm - q dtotal) /
+  total``: no ``total^-2``, which overflows for the tiny masses at a
+  stencil edge (as ``solver.node_velocity``)."""
+  return m / jnp.where(total > 0, total, 1.0)
+
+
+@_fraction.defjvp
+def _fraction_jvp(primals, tangents):
+  m, total = primals
+  dm, dtotal = tangents
+  q = _fraction(m, total)
+  ok = total > jnp.finfo(total.dtype).tiny
+  dq = jnp.where(ok, (dm - q * dtotal) / jnp.where(ok, total, 1.0), 0.0)
+  return q, dq
+
+
+def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
+  """Zero velocity at a sticky plane itself, where material touches it.
+
+  Each node less than a cell behind the plane (depth ``a``, measured along
+  the normal; a cell is ``h = dx |n_k|`` along the normal's dominant axis
+  ``k``) is paired with its neighbour in front (at ``b = h - a``) along
+  that axis. Where particles touching the plane (``sticky_touch``) give
+  either node mass (``touch`` > 0), the pair's velocities are projected,
+  with the least change of kinetic energy (an impulse ``-(b, a) lam`` on
+  the two masses), onto ``b v_behind + a v_front = 0``: the linear
+  interpolant of the pair vanishes at the plane. Material stopped at the
+  plane is then stopped in the velocity field too, so ``F`` records the
+  compression of what presses on it. Pairs with no touching particle stay
+  free, so approaching bodies are not slowed in front of the plane (they
+  land on it, ``particle_contact``). With several sticky planes a particle
+  touching any of them counts.
+  """
+  k = int(np.argmax(np.abs(bc.normal)))
+  s = 1 if bc.normal[k] > 0 else -1
+  h = grid.dx * abs(bc.normal[k])
+  a = -dist
+  b = h - a
+  # Mass fractions q (behind) and 1 - q (front): the front node's change
+  # depends on the momentum, not the velocity, of a light node behind (a
+  # node at a stencil edge has a tiny mass and an ill-conditioned velocity).
+  q = _fraction(mass, mass + _shift(mass, k, s))
+  den = b * b * (1.0 - q) + a * a * q
+  ok = (on & (a > 0) & (a <= h) & (den > 0)
+        & (touch + _shift(touch, k, s) > 0))
+  den = jnp.where(ok, den, 1.0)
+  cb = jnp.where(ok, b * (1.0 - q) / den, 0.0)
+  cf = jnp.where(ok, a * q / den, 0.0)
+  out = []
+  for c in range(3):
+    r = b * gv[c] + a * _shift(gv[c], k, s)
+    out.append(gv[c] - r * cb - _shift(r * cf, k, -s))
+  return out
+
+
+def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
+                   touch=None):
   """Grid-node constraints after the grid update.
 
   Args:
@@ -284,6 +367,9 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
     forces: ``Forces``.
     t: () time [s].
     gv: 3-tuple of (G, G, G) node velocities [m/s].
+    mass, touch: (G, G, G) node masses and masses of the particles touching
+      a sticky plane (``sticky_touch``) [kg]; None skips the node pairs at
+      a 'sticky' plane (``_plane_pairs``).
 
   Returns:
     3-tuple of (G, G, G) node velocities.
@@ -300,14 +386,16 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv):
       # 'sticky'/'separate': only nodes at least a cell behind the plane (a
       # node closer to it would hold particles up to 1.5 dx - depth in
       # front of it); the plane itself is enforced on particles
-      # (``particle_contact``). 'slip' is bilateral and keeps every node
-      # behind the plane.
+      # (``particle_contact``), and on 'sticky' the grid velocity at the
+      # plane where particles touch it (``_plane_pairs``). 'slip' is
+      # bilateral and keeps every node behind the plane.
       depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
-      side = (sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
-              < -depth)
-      hit = on & side
+      dist = sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
+      hit = on & (dist < -depth)
       if bc.surface == 'sticky':
         gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
+        if mass is not None and touch is not None:
+          gv = _plane_pairs(grid, bc, on, dist, mass, touch, gv)
         continue
       vn = gv[0] * n[0] + gv[1] * n[1] + gv[2] * n[2]
       if bc.surface == 'slip':
@@ -351,5 +439,3 @@ def collider_summary(config: base.SimConfig) -> str:
       if not (isinstance(v, float) and math.isinf(v))))
   return '; '.join(lines) or 'domain box only'
 
-
-del np

@@ -245,6 +245,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   has_bodies = config.num_bodies > 0
   has_planes = any(isinstance(bc, base.SurfaceCollider)
                    for bc in config.boundary_conditions)
+  has_sticky = any(isinstance(bc, base.SurfaceCollider)
+                   and bc.surface == 'sticky'
+                   for bc in config.boundary_conditions)
   # Domain walls for rigid bodies (moved out as a whole, not clamped per
   # particle, which would deform them).
   walls = []
@@ -307,7 +310,11 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
       A = tuple(tuple(mass * C[i][j] + k * tau[i][j] for j in range(3))
                 for i in range(3))
       st = transfer.Stencil(grid, x)
-      gm = red(transfer.p2g(grid, st, v, mass, A))
+      radius = boundary.particle_radius(vol0) if has_planes else 0.0
+      # Mass of the particles touching a sticky plane (``_plane_pairs``).
+      touch = (mass * boundary.sticky_touch(config, t, x, radius)
+               if has_sticky else None)
+      gm = red(transfer.p2g(grid, st, v, mass, A, touch))
     with jax.named_scope('grid_update'):
       m = gm[..., 0]
       has = m > 0
@@ -316,10 +323,10 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
                  for d in range(3))
       if damp != 1.0:
         gv = tuple(a * damp for a in gv)
-      gv = boundary.apply_grid_bcs(config, forces, t, gv)
+      gv = boundary.apply_grid_bcs(config, forces, t, gv, m,
+                                   gm[..., 4] if has_sticky else None)
       gv = tuple(a.reshape(-1) for a in gv)
     with jax.named_scope('g2p'):
-      radius = boundary.particle_radius(vol0) if has_planes else 0.0
       v_grid, C_new = transfer.g2p(grid, st, gv)
       if has_planes:
         x_new, v_new = boundary.particle_contact(config, t, x, v_grid,

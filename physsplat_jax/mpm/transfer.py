@@ -126,7 +126,7 @@ def materialize(a):
   return jax.lax.platform_dependent(a, cpu=on_cpu, default=lambda b: b)
 
 
-def p2g(grid: GridSpec, st: Stencil, v, mass, A):
+def p2g(grid: GridSpec, st: Stencil, v, mass, A, extra=None):
   """Scatters mass and momentum to the grid.
 
   The 27 x 4 contributions ``w_k (m, q + dx A o_k)`` of a particle
@@ -144,9 +144,12 @@ def p2g(grid: GridSpec, st: Stencil, v, mass, A):
     v: 3-tuple of (N,) velocities [m/s].
     mass: (N,) [kg].
     A: nested tuple affine matrix ``m C - dt V0 (4/dx^2) tau`` [kg/s].
+    extra: optional (N,) per-particle quantity scattered with the weights
+      as a fifth channel (e.g. the mass of particles touching a plane).
 
   Returns:
-    (G, G, G, 4) array: node mass [kg] and momentum (3) [kg m/s].
+    (G, G, G, 4) array (5 with ``extra``): node mass [kg], momentum (3)
+    [kg m/s] and the scattered ``extra``.
   """
   dx = grid.dx
   f = st.f
@@ -155,8 +158,10 @@ def p2g(grid: GridSpec, st: Stencil, v, mass, A):
   q = [mass * v[d] - dx * (A[d][0] * f[0] + A[d][1] * f[1] + A[d][2] * f[2])
        for d in range(3)]
   col = lambda a: a[:, None, None, None, :]  # noqa: E731
-  Q = col(jnp.stack([mass] + q, axis=-1))
-  Ae = [col(jnp.stack([z] + [dx * A[d][e] for d in range(3)], axis=-1))
+  tail = [] if extra is None else [extra]
+  Q = col(jnp.stack([mass] + q + tail, axis=-1))
+  Ae = [col(jnp.stack([z] + [dx * A[d][e] for d in range(3)]
+                      + [z] * len(tail), axis=-1))
         for e in range(3)]
   o = [jnp.arange(3, dtype=mass.dtype).reshape(s)
        for s in ((1, 3, 1, 1, 1), (1, 1, 3, 1, 1), (1, 1, 1, 3, 1))]
@@ -168,7 +173,7 @@ def p2g(grid: GridSpec, st: Stencil, v, mass, A):
   dn = jax.lax.ScatterDimensionNumbers(
     update_window_dims=(1, 2, 3, 4), inserted_window_dims=(),
     scatter_dims_to_operand_dims=(0, 1, 2))
-  out = jnp.zeros((G, G, G, 4), mass.dtype)
+  out = jnp.zeros((G, G, G, 4 + len(tail)), mass.dtype)
   # Indices are in bounds by construction (positions are clamped into the
   # grid; NaN positions are caught by run()'s checks): CLIP keeps even a
   # NaN-derived index inside the array.
