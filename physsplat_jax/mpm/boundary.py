@@ -302,21 +302,37 @@ def sticky_touch(config: base.SimConfig, t, x, radius):
 
 
 @jax.custom_jvp
-def _fraction(m, total):
-  """``m / total`` (0 where ``total == 0``), derivative ``(dm - q dtotal) /
-  total``: no ``total^-2``, which overflows for the tiny masses at a
-  stencil edge (as ``solver.node_velocity``)."""
-  return m / jnp.where(total > 0, total, 1.0)
+def node_velocity(p, m):
+  """Grid-node velocity ``p / m`` (momentum over mass), 0 where ``m == 0``.
+
+  The forward value is the plain quotient. Its derivative is written as
+  ``(dp - v dm) / m``: JAX's own rule for ``1 / m`` multiplies by ``m^-2``,
+  which overflows to inf in float32 for the tiny masses (< 1e-19 kg) that a
+  node gets from particles at the very edge of their B-spline support (two
+  axes with ``f - 0.5 ~ 1e-4`` are enough), and ``0 * inf`` then made the
+  gradient NaN (issue 17: at 50k+ particles on the GPU). Nodes with
+  ``0 < m <= tiny`` (subnormal) contribute no derivative: ``1 / m`` itself
+  is not representable there.
+
+  Args:
+    p: (...) momentum component [kg m/s].
+    m: (...) node mass [kg], >= 0.
+
+  Returns:
+    (...) velocity [m/s].
+  """
+  return p / jnp.where(m > 0, m, 1.0)
 
 
-@_fraction.defjvp
-def _fraction_jvp(primals, tangents):
-  m, total = primals
-  dm, dtotal = tangents
-  q = _fraction(m, total)
-  ok = total > jnp.finfo(total.dtype).tiny
-  dq = jnp.where(ok, (dm - q * dtotal) / jnp.where(ok, total, 1.0), 0.0)
-  return q, dq
+@node_velocity.defjvp
+def _node_velocity_jvp(primals, tangents):
+  p, m = primals
+  dp, dm = tangents
+  v = node_velocity(p, m)
+  ok = m > jnp.finfo(m.dtype).tiny
+  r = 1.0 / jnp.where(ok, m, 1.0)
+  dv = jnp.where(ok, (dp - v * dm) * r, 0.0)
+  return v, dv
 
 
 def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
@@ -344,7 +360,8 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   # Mass fractions q (behind) and 1 - q (front): the front node's change
   # depends on the momentum, not the velocity, of a light node behind (a
   # node at a stencil edge has a tiny mass and an ill-conditioned velocity).
-  q = _fraction(mass, mass + _shift(mass, k, s))
+  # (node_velocity is the safe quotient m1 / (m1 + m2) here.)
+  q = node_velocity(mass, mass + _shift(mass, k, s))
   den = b * b * (1.0 - q) + a * a * q
   ok = (on & (a > 0) & (a <= h) & (den > 0)
         & (touch + _shift(touch, k, s) > 0))

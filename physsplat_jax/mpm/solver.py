@@ -49,38 +49,9 @@ from physsplat_jax.types import Array
 # ------------------------------------------------------------- grid nodes
 
 
-@jax.custom_jvp
-def node_velocity(p, m):
-  """Grid-node velocity ``p / m`` (momentum over mass), 0 where ``m == 0``.
-
-  The forward value is the plain quotient. Its derivative is written as
-  ``(dp - v dm) / m``: JAX's own rule for ``1 / m`` multiplies by ``m^-2``,
-  which overflows to inf in float32 for the tiny masses (< 1e-19 kg) that a
-  node gets from particles at the very edge of their B-spline support (two
-  axes with ``f - 0.5 ~ 1e-4`` are enough), and ``0 * inf`` then made the
-  gradient NaN (issue 17: at 50k+ particles on the GPU). Nodes with
-  ``0 < m <= tiny`` (subnormal) contribute no derivative: ``1 / m`` itself
-  is not representable there.
-
-  Args:
-    p: (...) momentum component [kg m/s].
-    m: (...) node mass [kg], >= 0.
-
-  Returns:
-    (...) velocity [m/s].
-  """
-  return p / jnp.where(m > 0, m, 1.0)
-
-
-@node_velocity.defjvp
-def _node_velocity_jvp(primals, tangents):
-  p, m = primals
-  dp, dm = tangents
-  v = node_velocity(p, m)
-  ok = m > jnp.finfo(m.dtype).tiny
-  r = 1.0 / jnp.where(ok, m, 1.0)
-  dv = jnp.where(ok, (dp - v * dm) * r, 0.0)
-  return v, dv
+# The grid velocity p / m with a derivative safe for tiny node masses
+# (defined in boundary, which also uses it for mass fractions).
+node_velocity = boundary.node_velocity
 
 
 # ------------------------------------------------------------------- set-up
