@@ -47,8 +47,9 @@ class Candidates(struct.PyTreeNode):
     covariances: (M, 3, 3) Gaussian covariances (zero for fill points).
     volume: (M,) volume per candidate [scene units^3]. With fill: a fill
       point owns ``dx^3 / particles_per_cell`` of its interior cell and the
-      object's Gaussian centres share half of its shell cells, so the object
-      volume is interior + half the shell and the density is uniform.
+      object's Gaussian centres share the rest of the volume enclosed by the
+      surface through them (``fill_objects`` info 'volume'; at least the
+      open-sheet volume 'sheet_volume'), so the density is uniform.
       Without fill: the convex hull split evenly over the candidates.
     gaussian_index: (M,) int32 source Gaussian (-1 for fill points).
   """
@@ -117,15 +118,17 @@ def make_candidates(
   vol = np.zeros(len(x))
   for o in np.unique(ob):
     m = ob == o
-    if int(o) in info and info[int(o)]['num_inside'] > 0:
+    if int(o) in info:
       # Each fill point owns its share of an interior cell; the Gaussian
-      # centres share half the shell cells (the surface cuts them), so the
-      # density is uniform rather than piled onto the densely splatted shell.
+      # centres share the rest of the volume enclosed by the surface through
+      # them (at least the sheet volume of an open shell), so the density
+      # is uniform rather than piled onto the densely splatted shell.
       f = info[int(o)]
-      cell = f['dx'] ** 3
-      vol[m & ~is_surf] = cell / fill_config.particles_per_cell
+      v_fill = f['num_inside'] * f['dx'] ** 3
+      vol[m & ~is_surf] = f['dx'] ** 3 / fill_config.particles_per_cell
       ms = m & is_surf
-      vol[ms] = 0.5 * f['num_occupied'] * cell / max(int(ms.sum()), 1)
+      vol[ms] = max(f['volume'] - v_fill, f['sheet_volume']) / max(
+        int(ms.sum()), 1)
     else:
       try:
         v = spatial.ConvexHull(x[m]).volume
