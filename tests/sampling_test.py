@@ -352,23 +352,61 @@ class DrivingTest(parameterized.TestCase):
     cls.ids = np.r_[np.zeros(600), np.ones(600)].astype(np.int32)
     cls.cand = sampling.make_candidates(
       jax.random.PRNGKey(0), g, cls.ids,
-      fill_config=sampling.FillConfig(grid_res=12))
+      fill_config=sampling.FillConfig(grid_res=16))
+
+  def test_thin_solid_and_degenerate_objects_get_a_volume(self):
+    from physsplat_jax.types import Gaussians
+    rng = np.random.default_rng(3)
+
+    def gaussians(pts, log_scales):
+      n = len(pts)
+      return Gaussians(
+        means=jnp.asarray(pts, jnp.float32),
+        log_scales=jnp.asarray(log_scales, jnp.float32),
+        quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (n, 1)),
+        opacity_logits=jnp.full((n,), 3.0), sh=jnp.zeros((n, 1, 3)))
+
+    # A bar 0.5 x 0.05 x 0.05 sampled through its volume with round
+    # Gaussians (the MPDP cantilever): the fill band covers it and the
+    # surface level set encloses nothing, so the hull must stand in.
+    half = np.array([0.25, 0.025, 0.025])
+    bar = rng.uniform(-half, half, (96, 3))
+    g = gaussians(bar, np.full((96, 3), np.log(0.02)))
+    c = sampling.make_candidates(jax.random.PRNGKey(0), g,
+                                 np.zeros(96, np.int32),
+                                 fill_config=sampling.FillConfig(grid_res=16))
+    np.testing.assert_allclose(c.volume.sum(), spatial.ConvexHull(
+      c.x).volume, rtol=1e-9)
+    self.assertGreater(c.volume.sum(), 0.5 * 0.5 * 0.05 * 0.05)
+    # Coplanar centres without fill: flat Gaussians are read as a sheet,
+    # round ones are an error that names the object.
+    sheet = np.c_[rng.uniform(-1, 1, (200, 2)), np.zeros(200)]
+    flat = gaussians(sheet, np.tile(np.log([0.1, 0.1, 0.005]), (200, 1)))
+    c = sampling.make_candidates(jax.random.PRNGKey(0), flat,
+                                 np.full(200, 2, np.int32), fill=False)
+    self.assertTrue(np.all(c.volume > 0))
+    np.testing.assert_allclose(c.volume.sum(), 4.0 * 2 * np.sqrt(3) * 0.005,
+                               rtol=0.5)
+    with self.assertRaisesRegex(ValueError, 'object 2 has zero volume'):
+      sampling.make_candidates(
+        jax.random.PRNGKey(0), gaussians(sheet, np.full((200, 3), -3.0)),
+        np.full(200, 2, np.int32), fill=False)
 
   def test_candidates(self):
     c = self.cand
     self.assertEqual(int(c.is_surface.sum()), 1200)
     self.assertGreater(int((~c.is_surface).sum()), 100)
     per_obj = [c.volume[c.object_ids == o].sum() for o in (0, 1)]
-    np.testing.assert_allclose(per_obj, 4 / 3 * np.pi, rtol=0.3)
+    np.testing.assert_allclose(per_obj, 4 / 3 * np.pi, rtol=0.15)
     # Uniform density: a fill point owns one fill cell (dx^3), the Gaussian
-    # centres of an object share half its shell cells equally.
+    # centres of an object share the rest of its enclosed volume equally.
     for o in (0, 1):
       fill = c.volume[(c.object_ids == o) & ~c.is_surface]
       surf = c.volume[(c.object_ids == o) & c.is_surface]
       np.testing.assert_allclose(fill, fill[0], rtol=1e-12)
       np.testing.assert_allclose(surf, surf[0], rtol=1e-12)
       dx = fill[0] ** (1.0 / 3.0)
-      self.assertAlmostEqual(dx, 2.0 / (12 - 4), delta=0.02)  # ext / inner
+      self.assertAlmostEqual(dx, 2.0 / (16 - 8), delta=0.02)  # ext / inner
 
   @parameterized.named_parameters(('_pgas', 'pgas'), ('_uniform', 'uniform'))
   def test_budget_search(self, method):

@@ -259,6 +259,9 @@ def fill_particles(config: pg.PhysGaussianConfig, gaussians, ids, transform,
     density_threshold=float(pf.get('density_threshold', 5.0)),
     opacity_threshold=config.opacity_threshold,
     particles_per_cell=max(1, int(pf.get('max_partciels_per_cell', 1))),
+    # PhysGaussian's semantics (density_threshold is opacity-weighted; axis
+    # rays), not the flood fill make_candidates uses (docs/sampling.md).
+    opacity_weighted=True, inside_test='rays', max_sigma_cells=2.0 / 3.0,
   )
   if key is None:
     key = jax.random.PRNGKey(0)

@@ -369,7 +369,10 @@ def candidates_stage(key, fr: _Frame, num_movable: int, cfg: PrepareConfig):
   means = np.asarray(fr.g_sim.means)
   obj_ext = max(float(np.max(np.ptp(means[fr.local_ids == i], axis=0)))
                 for i in range(num_movable))
-  fill_res = int(np.clip(math.ceil(obj_ext / (0.5 * fr.dx)), 16, 128))
+  # Fill cells of half an MPM cell over the largest object, plus margins.
+  margin = sampling.FillConfig().margin_cells
+  fill_res = int(np.clip(math.ceil(obj_ext / (0.5 * fr.dx)) + 2 * margin,
+                         16, 128))
   return sampling.make_candidates(
     key, fr.g_sim, fr.local_ids, fill=cfg.fill,
     fill_config=sampling.FillConfig(grid_res=fill_res))

@@ -4,7 +4,9 @@ from physsplat_jax.sampling.curvature import gaussian_curvature
 from physsplat_jax.sampling.curvature import local_curvature
 from physsplat_jax.sampling.curvature import normalize_curvature
 from physsplat_jax.sampling.filling import FillConfig
+from physsplat_jax.sampling.filling import FillError
 from physsplat_jax.sampling.filling import FillResult
+from physsplat_jax.sampling.filling import enclosed_cells
 from physsplat_jax.sampling.filling import fill_gaussians
 from physsplat_jax.sampling.filling import fill_gaussians_host
 from physsplat_jax.sampling.filling import fill_mesh
