@@ -322,9 +322,9 @@ def scene_camera(scene, width: int, height: int, index: int = 0) -> Camera:
   ``scene.cameras[index]`` keeps square pixels (the focal length follows
   the height; the principal point is re-centred when the aspect ratio
   changes). With ``index=-1`` or no cameras, a camera is fitted to the
-  scene's Gaussians (1st-99th percentile box). near/far are static fields of
-  :class:`Camera`: they are quantised (near down, far up, 3 significant
-  digits) and the name dropped, so equal views compile once.
+  scene's Gaussians (1st-99th percentile box). The name is dropped and
+  near/far are arrays (:meth:`Camera.unlabelled`), so views that differ
+  only there compile once.
 
   Raises:
     ValueError: ``index`` out of range (the message gives the range).
@@ -349,6 +349,4 @@ def scene_camera(scene, width: int, height: int, index: int = 0) -> Camera:
     lo, hi = np.percentile(m, 1, axis=0), np.percentile(m, 99, axis=0)
     cam = fit_camera(lo, hi, up=scene.up_vector, width=w, height=h,
                      azimuth=-60.0, elevation=25.0, padding=1.05)
-  down = float(f'{cam.near * (1 - 1e-3):.3g}')
-  up = float(f'{cam.far * (1 + 1e-3):.3g}')
-  return cam.replace(near=down, far=up, name='')
+  return cam.unlabelled()

@@ -194,9 +194,12 @@ class Camera(struct.PyTreeNode):
     fx, fy: focal lengths [pixels].
     cx, cy: principal point [pixels]; pixel (i, j) has its centre at
       ``(j + 0.5, i + 0.5)``, so an image-centred camera has ``cx = W / 2``.
-    width, height: image size [pixels] (static).
-    near, far: clipping depths [scene units] (static).
-    name: a label, e.g. the image file name (static).
+    width, height: image size [pixels] (static: they set array shapes).
+    near, far: clipping depths [scene units], scalar arrays (traced, so
+      cameras that differ only in their depth range share compiled code).
+    name: a label, e.g. the image file name (static; the package's jitted
+      renderers drop it with :meth:`unlabelled`, so it never recompiles
+      them).
   """
 
   viewmat: Array
@@ -206,9 +209,16 @@ class Camera(struct.PyTreeNode):
   cy: Array
   width: int = struct.field(pytree_node=False)
   height: int = struct.field(pytree_node=False)
-  near: float = struct.field(pytree_node=False, default=0.01)
-  far: float = struct.field(pytree_node=False, default=1e10)
+  near: Array = 0.01
+  far: Array = 1e10
   name: str = struct.field(pytree_node=False, default='')
+
+  def unlabelled(self) -> Camera:
+    """The camera without its name, near/far as arrays of ``fx``'s dtype:
+    what a jitted function should receive, so that cameras differing only
+    in label or depth range hit the same compiled code."""
+    f = lambda v: jnp.asarray(v, jnp.result_type(self.fx))  # noqa: E731
+    return self.replace(near=f(self.near), far=f(self.far), name='')
 
   @property
   def K(self) -> Array:
@@ -293,8 +303,8 @@ def make_camera(
     cy=f(cy),
     width=int(width),
     height=int(height),
-    near=float(near),
-    far=float(far),
+    near=f(near),
+    far=f(far),
     name=str(name),
   )
 

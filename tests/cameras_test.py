@@ -184,6 +184,33 @@ class CameraUtilTest(parameterized.TestCase):
       cameras.fit_camera(lo, hi, fov_deg=180.0)
 
 
+  def test_label_and_depth_range_do_not_recompile_the_renderer(self):
+    from physsplat_jax.render import raster
+    from physsplat_jax.types import Gaussians
+    rng = np.random.default_rng(0)
+    n = 64
+    g = Gaussians(
+      means=jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3)), jnp.float32),
+      log_scales=jnp.full((n, 3), -3.0), quats=jnp.tile(
+        jnp.array([1.0, 0, 0, 0]), (n, 1)),
+      opacity_logits=jnp.full((n,), 2.0), sh=jnp.zeros((n, 1, 3)))
+    vm = cameras.look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0])
+    cfg = raster.RenderConfig(capacity=4096)
+    raster._render_jit.clear_cache()  # pylint: disable=protected-access
+    images = []
+    for near, far, name in ((0.01, 1e10, 'a.png'), (0.5, 100.0, 'b.png'),
+                            (2.9, 100.0, '')):
+      cam = make_camera(vm, 40.0, 40.0, 32, 24, near=near, far=far,
+                        name=name)
+      images.append(raster.render_image(g, cam, config=cfg).image)
+    # pylint: disable-next=protected-access
+    self.assertEqual(raster._render_jit._cache_size(), 1)
+    # The depth range still clips: a near plane past the centre (depth 3)
+    # drops the nearer half of the cloud.
+    np.testing.assert_array_equal(images[0], images[1])
+    self.assertGreater(np.abs(images[0] - images[2]).max(), 0.05)
+
+
 class CameraFileTest(parameterized.TestCase):
 
   def setUp(self):

@@ -607,7 +607,7 @@ def count_intersections(
   """
   _check_inputs(gaussians, camera, (0.0, 0.0, 0.0), covariances, None, None,
                 config)
-  return int(_count_jit(gaussians, camera, covariances, config))
+  return int(_count_jit(gaussians, camera.unlabelled(), covariances, config))
 
 
 def fit_render_config(
@@ -687,7 +687,8 @@ def render_image(
                                config=config)
     config = dataclasses.replace(config, capacity=_next_capacity(need))
   for _ in range(max_retries + 1):
-    out = fn(gaussians, camera, background=jnp.asarray(background),
+    out = fn(gaussians, camera.unlabelled(),
+             background=jnp.asarray(background),
              covariances=covariances, view_rotations=view_rotations,
              colors=colors, config=config)
     out = jax.tree.map(np.asarray, out)

@@ -61,18 +61,13 @@ def _weights_jit(gaussians, camera, cotangents, config):
   return w, overflow
 
 
-def _static_camera(camera: Camera) -> Camera:
-  """The camera without its name (a static field: one compile per name)."""
-  return camera.replace(name='')
-
-
 def shared_render_config(gaussians: Gaussians, cameras: Sequence[Camera],
                          config: RenderConfig | None = None) -> RenderConfig:
   """One differentiable-path config that fits every view (one compile)."""
   config = config or RenderConfig()
   cap, chunks = 1024, 1
   for cam in cameras:
-    c = fit_render_config(gaussians, _static_camera(cam), config)
+    c = fit_render_config(gaussians, cam.unlabelled(), config)
     cap, chunks = max(cap, c.capacity), max(chunks, c.max_chunks)
   return dataclasses.replace(config, capacity=cap, max_chunks=chunks)
 
@@ -111,7 +106,7 @@ def contribution_weights(
   onehot[cols, np.arange(H)[:, None], np.arange(W)[None, :]] = 1.0
   cot = onehot.reshape(G, 3, H, W).transpose(0, 2, 3, 1)
   cot = jnp.asarray(cot, gaussians.means.dtype)
-  camera = _static_camera(camera)
+  camera = camera.unlabelled()
   config = config or RenderConfig()
   if config.capacity is None or config.max_chunks is None:
     config = fit_render_config(gaussians, camera, config)
