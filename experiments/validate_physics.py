@@ -38,6 +38,12 @@ _CASES = flags.DEFINE_list(
   'cases')
 _QUICK = flags.DEFINE_bool('quick', False, 'one coarse resolution per case')
 _OUT = flags.DEFINE_string('out', None, 'optional JSON output path')
+_REPOSE_SECONDS = flags.DEFINE_float(
+  'repose_seconds', 7.0, 'simulated time of the repose case [s] (the '
+  'piles creep for several seconds: at 4 s the angles were up to 2.6 deg '
+  'steeper)')
+_PHIS = flags.DEFINE_list('phis', ['20', '30', '40'],
+                          'friction angles of the repose case [deg]')
 
 
 def lattice(lo, hi, spacing):
@@ -360,7 +366,7 @@ def pile_slope(xf, centre, floor, dx):
 
 
 def angle_of_repose(res, phi=30.0, volume_correction=1.0, radius=0.2,
-                    height=0.45, damping=40.0, seconds=4.0):
+                    height=0.45, damping=40.0, seconds=7.0):
   """Quasi-static angle of repose of a Drucker-Prager sand column.
 
   A quarter of a tall column (radius 0.2 m, height 0.45 m) stands in the
@@ -504,9 +510,10 @@ def main(argv):
     'contact': [(contact, dict(res=r, surface=f))
                 for r in ((24,) if quick else (24, 40))
                 for f in ('separate', 'sticky')],
-    'repose': [(angle_of_repose, dict(res=r, phi=p))
+    'repose': [(angle_of_repose, dict(res=r, phi=float(p),
+                                      seconds=_REPOSE_SECONDS.value))
                for r in ((32,) if quick else (32, 48))
-               for p in (20.0, 30.0, 40.0)],
+               for p in _PHIS.value],
   }
   unknown = [c for c in _CASES.value if c not in plan]
   if unknown:

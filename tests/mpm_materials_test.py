@@ -335,16 +335,18 @@ class SimulationTest(absltest.TestCase):
 
   @pytest.mark.slow
   def test_sand_angle_of_repose_matches_friction_angle(self):
-    """Quasi-static piles (validate_physics.angle_of_repose) at 32^3, ~3 min.
+    """Quasi-static piles (validate_physics.angle_of_repose) at 32^3, ~2.5 min.
 
-    docs/validation.md has 20-40 deg at 48^3; within 5 deg of phi here for
-    30 and 40 (phi = 20 is +5.0 deg at 32^3). phi = 40 was 10.5 deg low
-    while the sand drained into a pressureless sheet on the sticky floor.
+    docs/validation.md has 20-40 deg at 48^3 and 32^3; within 5 deg of phi
+    after 7 s (23.7 / 31.0 / 36.1 deg at 32^3). phi = 40 was 10.5 deg low
+    while the sand drained into a pressureless sheet on the sticky floor,
+    and at 4 s phi = 20 still crept (25.0 deg).
     """
     from experiments import validate_physics
-    for phi in (30.0, 40.0):
-      r = validate_physics.angle_of_repose(32, phi=phi)
+    for phi in (20.0, 30.0, 40.0):
+      r = validate_physics.angle_of_repose(32, phi=phi, seconds=7.0)
       self.assertLess(abs(r['value'] - phi), 5.0, msg=phi)
+      self.assertLess(r['final_max_speed'], 0.05, msg=phi)  # at rest
 
   def test_sand_column_spreads(self):
     grid = mpm.GridSpec(res=16, size=1.0)
