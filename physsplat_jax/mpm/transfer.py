@@ -158,22 +158,34 @@ def p2g(grid: GridSpec, st: Stencil, v, mass, A, extra=None):
   q = [mass * v[d] - dx * (A[d][0] * f[0] + A[d][1] * f[1] + A[d][2] * f[2])
        for d in range(3)]
   col = lambda a: a[:, None, None, None, :]  # noqa: E731
-  tail = [] if extra is None else [extra]
-  Q = col(jnp.stack([mass] + q + tail, axis=-1))
-  Ae = [col(jnp.stack([z] + [dx * A[d][e] for d in range(3)]
-                      + [z] * len(tail), axis=-1))
+  Q = col(jnp.stack([mass] + q, axis=-1))
+  Ae = [col(jnp.stack([z] + [dx * A[d][e] for d in range(3)], axis=-1))
         for e in range(3)]
   o = [jnp.arange(3, dtype=mass.dtype).reshape(s)
        for s in ((1, 3, 1, 1, 1), (1, 1, 3, 1, 1), (1, 1, 1, 3, 1))]
   w = [jnp.stack(st.w1d(d), axis=-1) for d in range(3)]          # (N, 3)
   W = w[0][:, :, None, None] * w[1][:, None, :, None] * w[2][:, None, None, :]
   U = W[..., None] * (Q + o[0] * Ae[0] + o[1] * Ae[1] + o[2] * Ae[2])
+  out = _scatter(st, U)
+  if extra is None:
+    return out
+  # Its own one-channel scatter: a five-channel window is not vectorised
+  # by XLA:CPU and took 3.3x the time of four channels (0.71 -> 2.4 ms at
+  # 6,000 particles, 32^3); four plus one take 0.80 ms.
+  return jnp.concatenate([out, _scatter(st, (W * extra[:, None, None,
+                                                        None])[..., None])],
+                         axis=-1)
+
+
+def _scatter(st: Stencil, U):
+  """Adds the (N, 3, 3, 3, C) window ``U`` of each particle into a
+  (G, G, G, C) grid at its stencil base."""
   G = st.res
   base = jnp.stack(st.base, axis=-1)                              # (N, 3)
   dn = jax.lax.ScatterDimensionNumbers(
     update_window_dims=(1, 2, 3, 4), inserted_window_dims=(),
     scatter_dims_to_operand_dims=(0, 1, 2))
-  out = jnp.zeros((G, G, G, 4 + len(tail)), mass.dtype)
+  out = jnp.zeros((G, G, G, U.shape[-1]), U.dtype)
   # Indices are in bounds by construction (positions are clamped into the
   # grid; NaN positions are caught by run()'s checks): CLIP keeps even a
   # NaN-derived index inside the array.
