@@ -161,8 +161,9 @@ def p2g(grid: GridSpec, st: Stencil, v, mass, A, extra=None):
   # With ``extra``, eight channels (three of zeros): XLA:CPU does not
   # vectorise a five-channel window (P2G 0.71 -> 2.4 ms at 6,000 particles
   # on 32^3), and a second, one-channel scatter costs as much as the first
-  # inside the substep; eight take 1.15 ms (demo substep at rest: 4.29 ms,
-  # against 5.00 with two scatters and 4.01 without the channel).
+  # inside the substep; eight take 1.15 ms (the demo scene resting on a
+  # paired plane: 4.29 ms per substep, against 6.69 with five channels,
+  # 5.00 with two scatters and 4.01 without the channel).
   tail = [] if extra is None else [extra] + [z] * 3
   Q = col(jnp.stack([mass] + q + tail, axis=-1))
   Ae = [col(jnp.stack([z] + [dx * A[d][e] for d in range(3)] + [z] * len(tail),
