@@ -27,6 +27,7 @@ import numpy as np
 from absl import app
 from absl import flags
 
+from experiments.lib import cli
 from physsplat_jax import mpm
 
 _SIZES = flags.DEFINE_list('sizes', ['10000', '50000', '200000'],
@@ -35,7 +36,7 @@ _STEPS = flags.DEFINE_integer('steps', 100, 'substeps per timed run')
 _REPEATS = flags.DEFINE_integer('repeats', 3, 'timed runs (median)')
 _NAIVE = flags.DEFINE_bool('naive', True, 'also time the naive reference')
 _GRAD = flags.DEFINE_bool('grad', True, 'time a gradient at the first size')
-_OUT = flags.DEFINE_string('out', None, 'optional JSON output')
+_OUT = cli.define_out(None, 'optional JSON output')
 
 GRID = mpm.GridSpec(res=64, size=1.0)
 E, NU, RHO, DT = 2e6, 0.3, 1000.0, 4.34e-5

@@ -31,13 +31,14 @@ from absl import app
 from absl import flags
 from absl import logging
 
+from experiments.lib import cli
 from physsplat_jax import mpm
 
 _CASES = flags.DEFINE_list(
   'cases', ['free_fall', 'bar_mode', 'cantilever', 'sand_slope', 'contact'],
   'cases')
 _QUICK = flags.DEFINE_bool('quick', False, 'one coarse resolution per case')
-_OUT = flags.DEFINE_string('out', None, 'optional JSON output path')
+_OUT = cli.define_out(None, 'optional JSON output path')
 _REPOSE_SECONDS = flags.DEFINE_float(
   'repose_seconds', 7.0, 'simulated time of the repose case [s] (the '
   'piles creep for several seconds: at 4 s the angles were up to 2.6 deg '

@@ -32,6 +32,16 @@ _CACHE = flags.DEFINE_string(
 EXPECTED = (PhysSplatError, OSError)
 
 
+def define_out(default: str | None, help_text: str) -> flags.FlagHolder:
+  """``--out``, or the holder of an ``--out`` another experiment module
+  already defined: the tests import several of these modules into one
+  process (``benchmark_mpm`` and ``validate_physics``), where a second
+  definition raised ``DuplicateFlagError``."""
+  if 'out' in flags.FLAGS:
+    return flags.FlagHolder(flags.FLAGS, flags.FLAGS['out'])
+  return flags.DEFINE_string('out', default, help_text)
+
+
 def _verbose() -> bool:
   try:
     return bool(_DEBUG.value) or flags.FLAGS['verbosity'].value >= 1
