@@ -135,7 +135,6 @@ def make_candidates(
   log_scales = np.asarray(g.log_scales, np.float64)
   for o in np.unique(ob):
     m = ob == o
-    v_hull = _hull_volume(x[m])
     if int(o) in info:
       # Each fill point owns its share of an interior cell; the Gaussian
       # centres share the rest of the volume enclosed by the surface through
@@ -144,8 +143,9 @@ def make_candidates(
       f = info[int(o)]
       v_fill = f['num_inside'] * f['dx'] ** 3
       v_shell = max(f['volume'] - v_fill, f['sheet_volume'])
-      if (f['sheet_volume'] <= 0.0
-          and v_fill + v_shell < _MIN_ENCLOSED_FRACTION * v_hull):
+      # The hull (a Qhull run over every candidate) only where it decides.
+      v_hull = _hull_volume(x[m]) if f['sheet_volume'] <= 0.0 else 0.0
+      if v_fill + v_shell < _MIN_ENCLOSED_FRACTION * v_hull:
         # An object only a few fill cells thick and splatted through (a
         # thin solid bar of round Gaussians, no flat ones to read as a
         # sheet): its centres lie in the middle of the occupancy band, so
@@ -159,7 +159,7 @@ def make_candidates(
       ms = m & is_surf
       vol[ms] = v_shell / max(int(ms.sum()), 1)
     else:
-      v = v_hull
+      v = _hull_volume(x[m])
       if v <= 0.0:  # coplanar centres: read the flat Gaussians as a sheet
         # (no fill points here, so x[m] are this object's Gaussians)
         v = filling.sheet_volume_host(x[m], log_scales[oid[sel] == o])
