@@ -280,6 +280,46 @@ class RunTest(absltest.TestCase):
       self.assertIn(k, out.timings)
 
 
+  def test_other_frame_counts_and_seeds_reuse_the_compiled_programs(self):
+    # pylint: disable=protected-access
+    from physsplat_jax.mpm import solver
+    from physsplat_jax.pipeline import host
+    scene = _scene()
+    programs = (host._deform_jit, host._assemble_jit, host._camera_jit,
+                host._initial_state_jit)
+
+    def go(**kw):
+      cfg = _config(render='fast', **kw)
+      prep, _ = pl.prepare_scene(jax.random.PRNGKey(cfg.seed), scene,
+                                 [_RUBBER, _WOOD], cfg)
+      out = pl.run(pl.init_params(prep, cfg), prep, cfg)
+      sizes = tuple(p._cache_size() for p in programs)
+      return out, prep.spec.substeps_per_frame, len(solver._COMPILED), sizes
+
+    a, n_a, frames_a, sizes_a = go(num_frames=2)
+    b, n_b, frames_b, sizes_b = go(num_frames=4, seed=3,
+                                   orbit_degrees=90.0, camera_path='orbit')
+    self.assertEqual(n_a, n_b)  # same bucket of automatic substeps
+    self.assertEqual(frames_b, frames_a)  # no new MPM frame program
+    self.assertEqual(sizes_b, sizes_a)  # nor deform, assemble, camera, init
+    self.assertLen(b.gaussian_positions, 5)
+    # A new seed moved the particles, so the run did not replay the first.
+    self.assertFalse(np.array_equal(a.particle_positions[0],
+                                    b.particle_positions[0]))
+
+  def test_automatic_substeps_are_bucketed(self):
+    from physsplat_jax.pipeline import prepare
+    ns = np.arange(1, 5000)
+    got = np.array([prepare.bucket_substeps(n) for n in ns])
+    self.assertTrue(np.all(got >= ns))
+    self.assertTrue(np.all(got <= np.ceil(ns * 1.0625)))
+    self.assertTrue(np.all(np.diff(got) >= 0))
+    np.testing.assert_array_equal(got[:31], ns[:31])  # exact below 32
+    values = np.unique(got)
+    for lo in (256, 1024, 2048):  # 16 values per octave
+      self.assertLen(values[(values >= lo) & (values < 2 * lo)], 16)
+
+
 class DomainTest(absltest.TestCase):
 
   def test_grid_holds_the_ballistic_peak(self):

@@ -628,6 +628,10 @@ def run(state: base.MPMState, materials: base.Materials,
   if num_frames is None:
     raise ValueError('run: pass num_frames (or set config.num_frames).')
   forces = _check_inputs(state, materials, forces, config)
+  # The frame program depends on neither the frame count nor rematerialisation
+  # (nothing is differentiated here): keyed without them, a run of another
+  # length reuses the compiled frame.
+  config = dataclasses.replace(config, num_frames=None, remat_frames=False)
   frame_jit, stats_jit = _jitted(config)
   t0 = time.perf_counter()
   leaves, tree = jax.tree.flatten((state, materials, forces))

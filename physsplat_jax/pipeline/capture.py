@@ -153,11 +153,12 @@ def camera_orbit(scene: Scene, rows: np.ndarray, cfg: PrepareConfig
                      degrees=jnp.asarray(deg, jnp.float32))
 
 
-def frame_camera(camera: Camera, orbit: CameraOrbit, frame, num_frames: int
+def frame_camera(camera: Camera, orbit: CameraOrbit, frame, num_frames
                  ) -> Camera:
   """``camera`` turned by ``orbit.degrees * frame / num_frames`` (``frame``
-  may be traced)."""
-  angle = orbit.degrees * jnp.asarray(frame, jnp.float32) / max(
-    int(num_frames), 1)
+  and ``num_frames`` may be traced: a video of another length reuses the
+  compiled camera)."""
+  angle = orbit.degrees * jnp.asarray(frame, jnp.float32) / jnp.maximum(
+    jnp.asarray(num_frames, jnp.float32), 1.0)
   vm = cam_lib.orbit_viewmat(camera.viewmat, orbit.center, orbit.axis, angle)
   return camera.replace(viewmat=vm.astype(camera.viewmat.dtype))

@@ -148,7 +148,10 @@ class PrepareConfig:
   Attributes:
     fps: frames per second of the output [1/s] (the frame step).
     substeps_per_frame: MPM substeps per frame; None picks them from the
-      CFL bound of the stiffest deformable material and the initial speeds.
+      CFL bound of the stiffest deformable material and the initial speeds,
+      rounded up to 16 steps per octave
+      (:func:`~physsplat_jax.pipeline.prepare.bucket_substeps`) so that a
+      new seed or budget does not recompile the simulation.
     cfl: Courant number used when choosing substeps.
     max_substeps_per_frame: refuse automatic step counts above this (a run
       that would never end); raise it to allow very stiff materials.

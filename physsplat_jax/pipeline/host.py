@@ -11,6 +11,7 @@ times each stage.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from typing import Callable, Sequence
@@ -80,6 +81,25 @@ def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
   return writers
 
 
+# The per-frame host programs, compiled once per process and shape (not per
+# run): the frame index, frame count and driver-F switch are their only
+# non-array inputs.
+@functools.partial(jax.jit, static_argnames='use_driver_F')
+def _deform_jit(view, x, F, use_driver_F: bool):
+  return deformed_gaussians(view, SimulateConfig(use_driver_F=use_driver_F),
+                            x, F)
+
+
+_assemble_jit = jax.jit(assemble_scene)
+_to_scene_jit = jax.jit(lambda fr, x: fr.to_scene(x))
+_camera_jit = jax.jit(capture_lib.frame_camera)
+
+
+@functools.partial(jax.jit, static_argnames='config')
+def _initial_state_jit(params, prepared, config, field):
+  return initial_state(params, prepared, config, field)[:3]
+
+
 class _FrameMaker:
   """Deforms and renders one frame on the host (compiled once)."""
 
@@ -91,25 +111,24 @@ class _FrameMaker:
     self.need_all = need_all or self.render
     self.rcfg = config.render_config
     self.timings = timings
-    self.deform = jax.jit(deformed_gaussians, static_argnames='config')
-    self.assemble = jax.jit(assemble_scene)
-    self.to_scene = jax.jit(lambda fr, x: fr.to_scene(x))
-    # The camera of each frame (camera_path): traced, so one compilation.
-    self.camera_at = jax.jit(capture_lib.frame_camera,
-                             static_argnames='num_frames')
+    # What the per-frame helpers see of the scene: no static spec (time
+    # step, particle split, colliders) and no camera (image size), so that
+    # none of these recompiles them.
+    self.view = prepared.replace(spec=None, camera=None)
+    self.camera = prepared.camera.unlabelled()
 
   def __call__(self, f: int, t: float, state) -> out_lib.Frame:
     t1 = time.perf_counter()
-    means, covs, rots = self.deform(self.prepared, self.config, state.x,
-                                    state.F)
+    means, covs, rots = _deform_jit(self.view, state.x, state.F,
+                                    use_driver_F=self.config.use_driver_F)
     means.block_until_ready()
     self.timings['deform'] += time.perf_counter() - t1
     frame = out_lib.Frame(
       index=f, time=t, positions=np.asarray(means, np.float32),
-      particles=np.asarray(self.to_scene(self.prepared.frame, state.x)))
+      particles=np.asarray(_to_scene_jit(self.view.frame, state.x)))
     if self.need_all:
-      frame.gaussians, frame.covariances, frame.rotations = self.assemble(
-        self.prepared, means, covs, rots)
+      frame.gaussians, frame.covariances, frame.rotations = _assemble_jit(
+        self.view, means, covs, rots)
     if self.render:
       t2 = time.perf_counter()
       frame.image = self._render(frame)
@@ -118,8 +137,8 @@ class _FrameMaker:
 
   def _render(self, frame: out_lib.Frame) -> np.ndarray:
     g = frame.gaussians
-    camera = self.camera_at(self.prepared.camera, self.prepared.orbit,
-                            frame.index, num_frames=self.config.num_frames)
+    camera = _camera_jit(self.camera, self.prepared.orbit, frame.index,
+                         self.config.num_frames)
     out = raster.render_image(
       g, camera, background=self.prepared.background,
       covariances=frame.covariances, view_rotations=frame.rotations,
@@ -209,9 +228,10 @@ def run(
       render=config.render is not RenderMode.NONE) + writers
   t0 = time.perf_counter()
   sim_config = make_sim_config(prepared.spec, config, prepared.x0.dtype)
-  state, materials, forces = jax.jit(
-    lambda p, pr, fd: initial_state(p, pr, config, fd)[:3])(
-      params, prepared, field)
+  # Keyed on the config without its frame count (initial_state does not
+  # read it): a run of another length reuses this program too.
+  state, materials, forces = _initial_state_jit(
+    params, prepared, dataclasses.replace(config, num_frames=1), field)
   timings['compile'] += time.perf_counter() - t0
   maker = _FrameMaker(prepared, config, ply, timings)
   positions, particles = [], []
