@@ -43,7 +43,9 @@ colon, separated by slashes:
 ``pgas-cvt:density_power=0.5/weights=volume``.
 
 Usage: python experiments/ablate_sampling.py --scene=spheres \
-  --budgets=500,1000,2000,5000 --json=/tmp/ablate.json
+  --budgets=500,1000,2000,5000 --json=/tmp/ablate.json (once per seed,
+  ``--seed=N``), then ``--summarize --json=/tmp/ablate.json`` for
+  ``pgas-cvt`` over ``kmeans`` per scene and budget across the seeds.
 """
 
 import dataclasses
@@ -323,6 +325,56 @@ def run(budgets, seed=0, num=3000, grid_res=24, num_frames=12,
   return rows
 
 
+def summarize(rows, method: str = 'pgas-cvt', baseline: str = 'kmeans',
+              log=print) -> list[dict]:
+  """Per (scene, budget): ``method``'s error over ``baseline``'s, over seeds.
+
+  A single rollout's error moves by up to 1.5x with the random start of the
+  placement, so one seed decides nothing; this pairs the two methods' rows
+  of each (scene, seed, budget) and reports the geometric mean of the
+  ratios of ``err_all`` with a 95 % interval (Student t on the log ratios)
+  and how many seeds favour ``method``.
+
+  Args:
+    rows: rows of :func:`run` with ``seed`` set (the ``--json`` file).
+    method, baseline: method names as in the rows.
+    log: printer of the Markdown table (None: silent).
+
+  Returns:
+    one dict per (scene, budget): scene, budget, seeds, ratio, lo, hi, wins.
+  """
+  from scipy import stats  # pylint: disable=import-outside-toplevel
+  err = {}
+  for r in rows:
+    err[(r['scene'], r.get('seed', 0), int(r['budget']), r['method'])] = (
+      r['err_all'])
+  cells = sorted({(sc, b) for sc, _, b, m in err if m == method})
+  out = []
+  if log:
+    log(f'| scene | budget | seeds | {method} / {baseline} (geometric mean) '
+        '| 95 % interval | seeds where better |')
+    log('|---|---|---|---|---|---|')
+  for sc, b in cells:
+    seeds = sorted(s for s2, s, b2, m in err
+                   if (s2, b2, m) == (sc, b, method)
+                   and (sc, s, b, baseline) in err)
+    if not seeds:
+      continue
+    lr = np.log([err[(sc, s, b, method)] / err[(sc, s, b, baseline)]
+                 for s in seeds])
+    mean = float(np.mean(lr))
+    half = (float(stats.t.ppf(0.975, len(lr) - 1) * np.std(lr, ddof=1)
+                  / np.sqrt(len(lr))) if len(lr) > 1 else float('inf'))
+    row = dict(scene=sc, budget=b, seeds=len(seeds), ratio=np.exp(mean),
+               lo=np.exp(mean - half), hi=np.exp(mean + half),
+               wins=int(np.sum(lr < 0)))
+    out.append(row)
+    if log:
+      log('| {scene} | {budget} | {seeds} | {ratio:.2f} | {lo:.2f}-{hi:.2f} '
+          '| {wins} |'.format(**row))
+  return out
+
+
 def _define_flags():
   """Flags, defined only when run as a script (importing this module from
   tests must not register flags that other experiment scripts also use)."""
@@ -346,6 +398,9 @@ def _define_flags():
     scene=flags.DEFINE_enum('scene', 'spheres', sorted(SCENE_E), 'scene'),
     json=flags.DEFINE_string('json', '', 'append the rows to this JSON '
                              'file (a list of rows)'),
+    summarize=flags.DEFINE_bool(
+      'summarize', False, 'run nothing: print, from the rows in --json, '
+      'pgas-cvt / kmeans per scene and budget over the seeds'),
     ppc=flags.DEFINE_float('particles_per_cell', 4.0,
                            'sets the base radius dx (1.24 / ppc)^(1/3), as '
                            'the pipeline does'))
@@ -353,6 +408,12 @@ def _define_flags():
 
 def main(argv, f):
   del argv
+  if f['summarize'].value:
+    if not f['json'].value:
+      raise app.UsageError('--summarize reads the rows of --json=FILE')
+    with open(f['json'].value) as fh:
+      summarize(json.load(fh))
+    return
   print('devices:', jax.devices())
   print('| budget | method | drivers (obj 0/obj 1) | err obj 0 | err obj 1 | '
         'err all | err last frame | select s | simulate s |')

@@ -1,4 +1,5 @@
-"""Smoke test of experiments/ablate_sampling.py (tiny scene, marked slow)."""
+"""experiments/ablate_sampling.py: smoke test (tiny scene, marked slow) and
+the summary over seeds."""
 
 import numpy as np
 import pytest
@@ -25,6 +26,27 @@ class AblateSamplingTest(absltest.TestCase):
       # over two frames (they start at the reference positions exactly).
       self.assertTrue(np.isfinite(r['err_all']))
       self.assertLess(r['err_all'], 0.5)
+
+
+class SummarizeTest(absltest.TestCase):
+
+  def test_ratio_interval_and_wins_over_seeds(self):
+    ratios = [0.5, 0.8, 1.25, 0.4]
+    rows = []
+    for seed, r in enumerate(ratios):
+      rows += [dict(scene='s', seed=seed, budget=500, method='kmeans',
+                    err_all=2e-3),
+               dict(scene='s', seed=seed, budget=500, method='pgas-cvt',
+                    err_all=2e-3 * r)]
+    rows.append(dict(scene='s', seed=9, budget=500, method='pgas-cvt',
+                     err_all=1.0))  # no K-means row for seed 9: not paired
+    (out,) = ablate_sampling.summarize(rows, log=None)
+    self.assertEqual(out['seeds'], 4)
+    self.assertEqual(out['wins'], 3)
+    self.assertAlmostEqual(out['ratio'], float(np.prod(ratios)) ** 0.25)
+    self.assertLess(out['lo'], out['ratio'])
+    self.assertLess(out['ratio'], out['hi'])
+    self.assertGreater(out['hi'], 1.0)  # four noisy seeds decide nothing
 
 
 if __name__ == '__main__':
