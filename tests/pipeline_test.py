@@ -279,7 +279,6 @@ class RunTest(absltest.TestCase):
     for k in ('compile', 'simulate', 'deform', 'render', 'write', 'total'):
       self.assertIn(k, out.timings)
 
-
   def test_other_frame_counts_and_seeds_reuse_the_compiled_programs(self):
     # pylint: disable=protected-access
     from physsplat_jax.mpm import solver

@@ -228,10 +228,12 @@ def run(
       render=config.render is not RenderMode.NONE) + writers
   t0 = time.perf_counter()
   sim_config = make_sim_config(prepared.spec, config, prepared.x0.dtype)
-  # Keyed on the config without its frame count (initial_state does not
-  # read it): a run of another length reuses this program too.
+  # Keyed on the config without its frame count and on the scene without
+  # its camera (initial_state reads neither): a run of another length or
+  # image size reuses this program too.
   state, materials, forces = _initial_state_jit(
-    params, prepared, dataclasses.replace(config, num_frames=1), field)
+    params, prepared.replace(camera=None),
+    dataclasses.replace(config, num_frames=1), field)
   timings['compile'] += time.perf_counter() - t0
   maker = _FrameMaker(prepared, config, ply, timings)
   positions, particles = [], []
