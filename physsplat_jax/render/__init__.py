@@ -11,6 +11,9 @@ import warnings as _warnings
 
 from physsplat_jax.render.project import Projected as Projected
 from physsplat_jax.render.project import project as project
+from physsplat_jax.render.config import (
+  RenderConfigError as RenderConfigError,
+)
 from physsplat_jax.render.raster import RenderConfig as RenderConfig
 from physsplat_jax.render.raster import RenderOutput as RenderOutput
 from physsplat_jax.render.raster import fit_render_config as fit_render_config

@@ -8,7 +8,14 @@ import math
 import jax
 from flax import struct
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
+
+RASTERIZE_MODES = ('classic', 'antialiased')
+
+
+class RenderConfigError(PhysSplatError, ValueError):
+  """A :class:`RenderConfig` field has a value it cannot take."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,6 +37,11 @@ class RenderConfig:
     tile_batch: tiles processed together by ``lax.map`` (1 is fastest on a
       2-core CPU; larger batches help GPUs).
     eps2d: low-pass variance added to the 2D covariance [pixels^2].
+    rasterize_mode: 'classic' (3DGS/INRIA, gsplat's default) or
+      'antialiased' (gsplat ``rasterize_mode='antialiased'``, Mip-Splatting's
+      2D filter): each opacity is scaled by ``sqrt(det(Sigma_2d) /
+      det(Sigma_2d + eps2d I))`` so the low-pass blur conserves a splat's
+      weight. Use it for scenes trained in that mode; it changes the image.
     alpha_max: alpha cap (gsplat 0.999; INRIA 0.99).
     alpha_min: alphas below this are skipped (1/255).
     t_min: transmittance at which a pixel stops (exclusive), 1e-4.
@@ -65,6 +77,7 @@ class RenderConfig:
   max_chunks: int | None = None
   tile_batch: int = 1
   eps2d: float = 0.3
+  rasterize_mode: str = 'classic'
   alpha_max: float = 0.999
   alpha_min: float = 1.0 / 255.0
   t_min: float = 1e-4
@@ -76,6 +89,18 @@ class RenderConfig:
   interpret: bool = False
   pallas_block: int = 64
   pallas_num_warps: int | None = None
+
+  def __post_init__(self):
+    if self.rasterize_mode not in RASTERIZE_MODES:
+      raise RenderConfigError(
+        f'RenderConfig.rasterize_mode is {self.rasterize_mode!r}; use '
+        f"{' or '.join(repr(m) for m in RASTERIZE_MODES)} ('antialiased' for "
+        'scenes trained with gsplat\'s antialiased mode / Mip-Splatting)')
+
+  @property
+  def antialiased(self) -> bool:
+    """True in gsplat's antialiased mode (opacity compensation)."""
+    return self.rasterize_mode == 'antialiased'
 
   def resolved_backend(self) -> str:
     """'pallas' or 'jax'.

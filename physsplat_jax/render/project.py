@@ -17,6 +17,17 @@ low-pass term of both gsplat and INRIA (a pixel-sized blur). Culled (invalid)
 are Gaussians with ``z <= near`` or ``z >= far``, a non-positive 2D
 determinant, or a 3-sigma box entirely off-screen.
 
+With ``antialiased=True`` (gsplat ``rasterize_mode='antialiased'``, the 2D
+Mip filter of Mip-Splatting, Yu et al. 2024) the low-pass also scales each
+Gaussian's opacity by the compensation
+
+  rho = sqrt(max(det(Sigma_2d') / det(Sigma_2d' + eps2d I), 0)),
+
+``Sigma_2d' = J Sigma_c J^T`` being the covariance before the low-pass, so
+the blur spreads a splat's weight instead of adding to it (a sub-pixel
+Gaussian no longer renders as a pixel-sized blob of full opacity). gsplat
+1.0-1.5 (``add_blur``) clamp the ratio at 0, as here.
+
 Sources: gsplat ``cuda/_torch_impl.py`` (``_fully_fused_projection``,
 ``_persp_proj``); INRIA ``diff-gaussian-rasterization`` ``forward.cu``.
 """
@@ -46,6 +57,8 @@ class Projected(struct.PyTreeNode):
     depths: (K,) camera-space z [scene units].
     radii: (K,) int32 pixel radius (3 sigma), 0 when culled.
     valid: (K,) bool, False for culled Gaussians.
+    compensations: (K,) opacity factor ``rho`` of the antialiased mode
+      (``project(..., antialiased=True)``), else None.
   """
 
   means2d: Array
@@ -53,10 +66,12 @@ class Projected(struct.PyTreeNode):
   depths: Array
   radii: Array
   valid: Array
+  compensations: Array | None = None
 
 
 def project(
-  means: Array, covariances: Array, camera: Camera, eps2d: float = 0.3
+  means: Array, covariances: Array, camera: Camera, eps2d: float = 0.3,
+  antialiased: bool = False,
 ) -> Projected:
   """Projects 3D Gaussians to 2D conics with the EWA Jacobian.
 
@@ -65,6 +80,9 @@ def project(
     covariances: (K, 3, 3) world covariances.
     camera: the camera (OpenCV conventions, see :class:`Camera`).
     eps2d: low-pass variance added to the 2D covariance [pixels^2].
+    antialiased: static; also return the opacity compensations of gsplat's
+      antialiased mode (module docstring). False adds nothing to the
+      program.
 
   Returns:
     A :class:`Projected`.
@@ -117,6 +135,15 @@ def project(
   )
   valid = in_depth & ok_det & on_screen & (radius > 0)
   radii = jnp.where(valid, radius, 0).astype(jnp.int32)
+  compensations = None
+  if antialiased:
+    # det before the low-pass over det after it; the ratio is clamped at 0
+    # with a zero (not NaN) gradient there.
+    det_orig = cov2d[:, 0, 0] * cov2d[:, 1, 1] - b * b
+    ratio = det_orig * inv_det
+    pos = ok_det & (ratio > 0.0)
+    compensations = jnp.where(pos, jnp.sqrt(jnp.where(pos, ratio, 1.0)), 0.0)
   return Projected(
-    means2d=means2d, conics=conics, depths=z, radii=radii, valid=valid
+    means2d=means2d, conics=conics, depths=z, radii=radii, valid=valid,
+    compensations=compensations,
   )

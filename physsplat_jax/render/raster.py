@@ -3,7 +3,9 @@
 Pipeline (static shapes throughout, so it jits once per scene size and runs
 unchanged on CPU and GPU):
 
-1. :func:`~physsplat_jax.render.project.project`: EWA projection to conics.
+1. :func:`~physsplat_jax.render.project.project`: EWA projection to conics
+   (in ``rasterize_mode='antialiased'`` also gsplat's opacity compensation,
+   which every later stage sees as the Gaussian's opacity).
 2. Binning: each Gaussian covers the tiles ``[floor((m - r) / 16),
    ceil((m + r) / 16))`` in x and y (gsplat's 3-sigma rectangle). With
    ``tight_bounds`` this is intersected with the box of the ellipse where
@@ -221,6 +223,27 @@ def gaussian_colors(
   if view_rotations is not None:
     dirs = jnp.einsum('kji,kj->ki', view_rotations, dirs)
   return gs.eval_sh(gaussians.sh, dirs, sh_degree)
+
+
+def _project(gaussians: Gaussians, covariances: Array | None,
+             camera: Camera, config: RenderConfig) -> Projected:
+  """EWA projection with the config's low-pass and rasterize mode."""
+  dtype = gaussians.means.dtype
+  covs = gaussians.covariances if covariances is None else covariances
+  return project(gaussians.means, covs.astype(dtype), camera, config.eps2d,
+                 antialiased=config.antialiased)
+
+
+def _opacities(gaussians: Gaussians, proj: Projected) -> Array:
+  """(K,) opacities to composite and bin.
+
+  In ``rasterize_mode='antialiased'`` they carry gsplat's compensation, so
+  the tight bounds and both compositors see it; 'classic' compiles to the
+  program without it.
+  """
+  if proj.compensations is None:
+    return gaussians.opacities
+  return gaussians.opacities * proj.compensations
 
 
 class _Binned(struct.PyTreeNode):
@@ -455,12 +478,11 @@ def _render(gaussians, camera, background, covariances, view_rotations,
   tiles_y = -(-H // tile)
   capacity = config.resolved_capacity(K)
   with jax.named_scope('project'):
-    covs = gaussians.covariances if covariances is None else covariances
-    proj = project(gaussians.means, covs.astype(dtype), camera, config.eps2d)
+    proj = _project(gaussians, covariances, camera, config)
     if colors is None:
       colors = gaussian_colors(gaussians, camera, view_rotations,
                                config.sh_degree)
-    feat = _features(proj, colors.astype(dtype), gaussians.opacities)
+    feat = _features(proj, colors.astype(dtype), _opacities(gaussians, proj))
   with jax.named_scope('bin_sort'):
     binned = _bin_and_sort(proj, feat[:, 5], tiles_x, tiles_y, config,
                            capacity)
@@ -583,10 +605,9 @@ def _count_intersections(gaussians, camera, covariances, config):
   tile = config.tile_size
   tiles_x = -(-camera.width // tile)
   tiles_y = -(-camera.height // tile)
-  dtype = gaussians.means.dtype
-  covs = gaussians.covariances if covariances is None else covariances
-  proj = project(gaussians.means, covs.astype(dtype), camera, config.eps2d)
-  n = _footprints(proj, gaussians.opacities, tiles_x, tiles_y, config)[3]
+  proj = _project(gaussians, covariances, camera, config)
+  n = _footprints(proj, _opacities(gaussians, proj), tiles_x, tiles_y,
+                  config)[3]
   return jnp.sum(n)
 
 

@@ -10,6 +10,10 @@ covers the pixel's tile, in global depth order, one Gaussian at a time
   if next_T <= 1e-4: the pixel stops (this Gaussian not blended)
   C += c alpha T;  T = next_T;  image = C + T bg.
 
+``rasterize_mode='antialiased'`` (gsplat's, Mip-Splatting's 2D filter)
+multiplies ``o`` by ``sqrt(max(det(cov2d) / det(cov2d + eps2d I), 0))``,
+``cov2d`` being the projected covariance before the low-pass.
+
 O(K H W): for scenes of a few hundred Gaussians at up to ~128 px.
 """
 
@@ -26,7 +30,8 @@ def project_numpy(means, covariances, viewmat, fx, fy, cx, cy, width, height,
 
   Returns:
     dict with means2d (K, 2), conics (K, 3), depths (K,), radii (K,),
-    valid (K,) bool.
+    valid (K,) bool, compensations (K,) (the antialiased mode's opacity
+    factor; 0 where culled).
   """
   means = np.asarray(means, np.float64)
   covs = np.asarray(covariances, np.float64)
@@ -37,7 +42,7 @@ def project_numpy(means, covariances, viewmat, fx, fy, cx, cy, width, height,
   out = dict(
     means2d=np.zeros((K, 2)), conics=np.zeros((K, 3)),
     depths=np.zeros(K), radii=np.zeros(K, np.int64),
-    valid=np.zeros(K, bool),
+    valid=np.zeros(K, bool), compensations=np.zeros(K),
   )
   tan_fovx = 0.5 * width / fx
   tan_fovy = 0.5 * height / fy
@@ -54,10 +59,12 @@ def project_numpy(means, covariances, viewmat, fx, fy, cx, cy, width, height,
     ty = z * min(lim_yp, max(-lim_yn, y / z))
     J = np.array([[fx / z, 0.0, -fx * tx / z**2],
                   [0.0, fy / z, -fy * ty / z**2]])
-    cov2d = J @ R @ covs[k] @ R.T @ J.T + eps2d * np.eye(2)
+    cov2d_orig = J @ R @ covs[k] @ R.T @ J.T
+    cov2d = cov2d_orig + eps2d * np.eye(2)
     det = np.linalg.det(cov2d)
     if det <= 0:
       continue
+    comp = math.sqrt(max(np.linalg.det(cov2d_orig) / det, 0.0))
     inv = np.linalg.inv(cov2d)
     mid = 0.5 * (cov2d[0, 0] + cov2d[1, 1])
     lam = mid + math.sqrt(max(mid * mid - det, 0.01))
@@ -70,13 +77,15 @@ def project_numpy(means, covariances, viewmat, fx, fy, cx, cy, width, height,
     out['conics'][k] = (inv[0, 0], inv[0, 1], inv[1, 1])
     out['radii'][k] = r
     out['valid'][k] = r > 0
+    out['compensations'][k] = comp
   return out
 
 
 def render_reference(means, covariances, colors, opacities, viewmat, fx, fy,
                      cx, cy, width, height, near=0.01, far=1e10,
                      background=(0.0, 0.0, 0.0), tile_size=16, eps2d=0.3,
-                     alpha_max=0.999, alpha_min=1.0 / 255.0, t_min=1e-4):
+                     alpha_max=0.999, alpha_min=1.0 / 255.0, t_min=1e-4,
+                     rasterize_mode='classic'):
   """Renders with the brute-force reference.
 
   Args:
@@ -84,6 +93,8 @@ def render_reference(means, covariances, colors, opacities, viewmat, fx, fy,
     viewmat, fx, fy, cx, cy, width, height, near, far: the camera.
     background: (3,) RGB.
     tile_size, eps2d, alpha_max, alpha_min, t_min: rasterizer constants.
+    rasterize_mode: 'classic' or 'antialiased' (opacities times the
+      compensations).
 
   Returns:
     (image (H, W, 3), alpha (H, W), depth (H, W)) float64, depth being the
@@ -93,6 +104,10 @@ def render_reference(means, covariances, colors, opacities, viewmat, fx, fy,
                     height, near, far, eps2d)
   colors = np.asarray(colors, np.float64)
   opac = np.asarray(opacities, np.float64)
+  if rasterize_mode == 'antialiased':
+    opac = opac * p['compensations']
+  elif rasterize_mode != 'classic':
+    raise ValueError(f'rasterize_mode {rasterize_mode!r}')
   H, W = int(height), int(width)
   jj, ii = np.meshgrid(np.arange(W), np.arange(H))
   px, py = jj + 0.5, ii + 0.5
