@@ -23,6 +23,7 @@ from physsplat_jax import gaussians as gs
 from physsplat_jax import test_util
 from physsplat_jax.io.scene import load_scene
 from physsplat_jax.render import pallas_raster
+from physsplat_jax.render.project import project
 from physsplat_jax.render import raster
 from physsplat_jax.render import views
 from physsplat_jax.types import make_camera
@@ -120,6 +121,23 @@ class PallasParityTest(absltest.TestCase):
     # stopped pixel.
     self.assertGreater(np.mean(oj.alpha > 1.0 - 2e-4), 0.05)
     self.assertLess(oj.alpha.min(), 0.5)
+
+  def test_antialiased_mode_matches_jax(self):
+    # gsplat's antialiased mode: the compensation rides on the opacity
+    # feature, so the kernels composite it and their VJP carries its
+    # gradient on to means, scales, quaternions and opacities.
+    g = test_util.random_gaussians(jax.random.PRNGKey(5), 120)
+    g = g.replace(log_scales=g.log_scales + 0.3,
+                  opacity_logits=g.opacity_logits + 3.0)
+    cam = _camera(32, 24, focal=30.0)
+    cfg = dataclasses.replace(_PALLAS, pallas_block=16,
+                              rasterize_mode='antialiased')
+    params = {k: getattr(g, k) for k in
+              ('means', 'log_scales', 'quats', 'opacity_logits')}
+    comp = project(g.means, g.covariances, cam, antialiased=True)
+    self.assertLess(float(comp.compensations.min()), 0.5)  # it matters
+    oj = _compare(self, g, cam, cfg, params, seed=2)
+    self.assertGreater(int(oj.max_tile_count), cfg.pallas_block)
 
   @pytest.mark.slow  # ~45 s in interpret mode; gradients also in x64 test
   def test_deformation_inputs_odd_size_full_tiles(self):

@@ -1,6 +1,7 @@
 """Tests for physsplat_jax.render: parity with a brute-force reference,
-capacity/overflow handling, SH view rotation, precomputed covariances and
-gradients against central finite differences (x64)."""
+capacity/overflow handling, SH view rotation, precomputed covariances,
+gradients against central finite differences (x64) and gsplat's antialiased
+rasterize mode."""
 
 import dataclasses
 
@@ -12,7 +13,10 @@ from absl.testing import parameterized
 
 from physsplat_jax import cameras
 from physsplat_jax import gaussians as gs
+from physsplat_jax import pipeline as pl
 from physsplat_jax import test_util
+from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.render.project import project
 from physsplat_jax.render import raster
 from physsplat_jax.render import reference
 from physsplat_jax import sh_rotation
@@ -42,13 +46,14 @@ def _camera(width=64, height=48, eye=(0.0, -3.5, 1.0), focal=60.0, cx=None,
 
 
 def _reference(g, cam, colors, background=(0.0, 0.0, 0.0), covs=None,
-               alpha_max=0.999):
+               alpha_max=0.999, rasterize_mode='classic'):
   covs = g.covariances if covs is None else covs
   return reference.render_reference(
     np.asarray(g.means), np.asarray(covs), np.asarray(colors),
     np.asarray(g.opacities), np.asarray(cam.viewmat), cam.fx, cam.fy,
     cam.cx, cam.cy, cam.width, cam.height, cam.near, cam.far,
-    background=background, alpha_max=alpha_max)
+    background=background, alpha_max=alpha_max,
+    rasterize_mode=rasterize_mode)
 
 
 class ReferenceParityTest(parameterized.TestCase):
@@ -302,6 +307,136 @@ class GradientTest(parameterized.TestCase):
         self.assertGreater(abs(float(an)), 1e-6, msg=name)
         np.testing.assert_allclose(an, fd, rtol=_GRAD_RTOL,
                                    err_msg=f'gradient mismatch: {name}')
+
+
+_AA = raster.RenderConfig(rasterize_mode='antialiased')
+
+
+class AntialiasedTest(absltest.TestCase):
+  """gsplat's ``rasterize_mode='antialiased'`` (Mip-Splatting's 2D filter)."""
+
+  def test_matches_reference_on_both_paths(self):
+    # Small, opaque Gaussians: compensations spread over (0.29, 0.98), pixels
+    # saturate (early stop) and some stay empty.
+    g = _scene(seed=1, num=200, scale_boost=0.3)
+    g = g.replace(opacity_logits=g.opacity_logits + 3.0)
+    cam = _camera()
+    bg = (0.2, 0.5, 1.0)
+    out = raster.render_image(g, cam, background=bg, config=_AA)
+    image, alpha, depth = _reference(g, cam, raster.gaussian_colors(g, cam),
+                                     bg, rasterize_mode='antialiased')
+    self.assertGreater(alpha.max(), 0.999)
+    self.assertLess(alpha.min(), 0.5)
+    np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL,
+                               err_msg='mismatch: image')
+    np.testing.assert_allclose(out.alpha, alpha, atol=_IMAGE_TOL,
+                               err_msg='mismatch: alpha')
+    drawn = alpha > 0.05
+    np.testing.assert_allclose(out.depth[drawn], depth[drawn],
+                               rtol=_DEPTH_RTOL, err_msg='mismatch: depth')
+    diff = raster.render_image(g, cam, background=bg, differentiable=True,
+                               config=dataclasses.replace(_AA, chunk_size=16))
+    np.testing.assert_allclose(diff.image, image, atol=_IMAGE_TOL,
+                               err_msg='mismatch: differentiable image')
+    # The mode matters on this scene, and the tight bounds use the
+    # compensated opacity (fewer intersections), counted exactly on the host.
+    classic = raster.render_image(g, cam, background=bg)
+    self.assertGreater(np.abs(classic.image - out.image).max(), 0.1)
+    self.assertLess(int(out.num_intersections),
+                    int(classic.num_intersections))
+    self.assertEqual(raster.count_intersections(g, cam, config=_AA),
+                     int(out.num_intersections))
+
+  def test_single_gaussian_matches_closed_form(self):
+    # Isotropic, sub-pixel: with s2 = (f s / z)^2 the compensation is
+    # sqrt(s2^2 / (s2 + 0.3)^2) = s2 / (s2 + 0.3), so alpha(p) = o s2 /
+    # (s2 + 0.3) exp(-|d|^2 / 2 (s2 + 0.3)): the low-pass spreads the splat's
+    # weight (o 2 pi s2 before and after) instead of adding to it.
+    s, z, f, o = 0.03, 2.0, 40.0, 0.9
+    g = gs_single(s, o)
+    cam = make_camera(jnp.eye(4).at[2, 3].set(z), f, f, 17, 17)
+    out = raster.render_image(g, cam, colors=jnp.ones((1, 3)), config=_AA)
+    s2 = (f * s / z) ** 2
+    jj, ii = np.meshgrid(np.arange(17) + 0.5, np.arange(17) + 0.5)
+    d2 = (jj - 8.5) ** 2 + (ii - 8.5) ** 2
+    a = o * s2 / (s2 + 0.3) * np.exp(-0.5 * d2 / (s2 + 0.3))
+    a = np.where(a >= 1 / 255, a, 0.0)
+    self.assertLess(a.max(), 0.5)  # classic would give o = 0.9 here
+    np.testing.assert_allclose(out.alpha, a, atol=1e-6)
+
+  def test_compensation_gradients_match_central_differences_x64(self):
+    # The compensation alone (projection: means, covariances), then through
+    # the whole differentiable render (means, scales, quaternions,
+    # opacities).
+    with jax.enable_x64(True):
+      g = _scene(seed=22, num=8, scale_boost=0.8, dtype=jnp.float64)
+      g = g.replace(opacity_logits=g.opacity_logits + 2.0)
+      cam = _camera(24, 20, focal=24.0, dtype=jnp.float64)
+      rng = np.random.default_rng(2)
+      w_comp = jnp.asarray(rng.normal(size=8))
+
+      def comp_loss(p):
+        proj = project(p['means'], p['covariances'], cam, antialiased=True)
+        return jnp.sum(proj.compensations * w_comp), proj.compensations
+
+      fn = jax.jit(jax.value_and_grad(comp_loss, has_aux=True))
+      params = {'means': g.means, 'covariances': g.covariances}
+      comp = _check_directional_fd(self, fn, params, rng)
+      self.assertLess(float(comp.min()), 0.6)  # far from 1: it matters
+      # A point (zero covariance) has compensation 0 and a finite gradient.
+      point = dict(params, covariances=params['covariances'].at[0].set(0.0))
+      (_, comp), grads = fn(point)
+      self.assertEqual(float(comp[0]), 0.0)
+      test_util.assert_tree_all_finite(grads)
+
+      cfg = dataclasses.replace(_AA, chunk_size=4, tile_size=8)
+      w_img = jnp.asarray(rng.normal(size=(20, 24, 3)))
+      w_alpha = jnp.asarray(rng.normal(size=(20, 24)))
+
+      def loss(p):
+        out = raster.render_differentiable(
+          g.replace(**p), cam, background=(0.3, 0.2, 0.1), config=cfg)
+        val = jnp.sum(out.image * w_img) + jnp.sum(out.alpha * w_alpha)
+        return val, out
+
+      fn = jax.jit(jax.value_and_grad(loss, has_aux=True))
+      names = ('means', 'log_scales', 'quats', 'opacity_logits')
+      out = _check_directional_fd(self, fn, {k: getattr(g, k) for k in names},
+                                  rng)
+      self.assertFalse(bool(out.overflow))
+      self.assertGreater(float(out.alpha.max()), 0.5)
+
+  def test_bad_mode_is_a_clear_package_error(self):
+    with self.assertRaisesRegex(PhysSplatError, r"RenderConfig\.rasterize_mode"
+                                r" is 'mip'; use 'classic' or 'antialiased'"):
+      raster.RenderConfig(rasterize_mode='mip')
+    with self.assertRaises(ValueError):
+      dataclasses.replace(_AA, rasterize_mode='Antialiased')
+    with self.assertRaisesRegex(PhysSplatError, 'rasterize_mode'):
+      pl.config_from_dict({'render_config': {'rasterize_mode': 'aa'}})
+    c = pl.config_from_dict({'render_config': {'rasterize_mode':
+                                               'antialiased'}})
+    self.assertEqual(c.simulate.render_config, _AA)
+
+
+def _check_directional_fd(test, fn, params, rng):
+  """Analytic vs central-difference derivative (x64) along a random direction
+  of each leaf of ``params`` (symmetric for covariances); ``fn`` is a jitted
+  ``value_and_grad(loss, has_aux=True)``. Returns the aux at ``params``."""
+  (_, aux), grads = fn(params)
+  test_util.assert_tree_all_finite(grads)
+  for name, x in params.items():
+    d = jnp.asarray(rng.normal(size=x.shape))
+    if name == 'covariances':
+      d = 1e-3 * (d + jnp.swapaxes(d, -1, -2))  # stay symmetric and PD
+    (plus, _), _ = fn(dict(params, **{name: x + _FD_STEP * d}))
+    (minus, _), _ = fn(dict(params, **{name: x - _FD_STEP * d}))
+    fd = (plus - minus) / (2 * _FD_STEP)
+    an = jnp.sum(grads[name] * d)
+    test.assertGreater(abs(float(an)), 1e-6, msg=name)
+    np.testing.assert_allclose(an, fd, rtol=_GRAD_RTOL,
+                               err_msg=f'gradient mismatch: {name}')
+  return aux
 
 
 class ShRotationTest(absltest.TestCase):
