@@ -439,6 +439,26 @@ def _check_directional_fd(test, fn, params, rng):
   return aux
 
 
+class BatchedCamerasTest(absltest.TestCase):
+
+  def test_vmap_over_cameras_equals_one_by_one(self):
+    # Cameras of one size stack into one Camera pytree; jax.vmap renders
+    # them in one program.
+    g = _scene(seed=32, num=60)
+    cams = [_camera(32, 24, eye=e, focal=40.0)
+            for e in ((0.0, -3.5, 1.0), (2.0, -2.5, 1.5))]
+    batch = jax.tree.map(lambda *x: jnp.stack(x), *cams)
+    out = jax.jit(jax.vmap(lambda c: raster.render(g, c)))(batch)
+    self.assertEqual(out.image.shape, (2, 24, 32, 3))
+    for i, cam in enumerate(cams):
+      one = _render_jit(g, cam)
+      self.assertFalse(bool(out.overflow[i]))
+      self.assertGreater(float(one.alpha.max()), 0.5)
+      np.testing.assert_allclose(out.image[i], one.image, atol=1e-6)
+      np.testing.assert_allclose(out.alpha[i], one.alpha, atol=1e-6)
+    self.assertGreater(float(jnp.abs(out.image[0] - out.image[1]).max()), 0.1)
+
+
 class ShRotationTest(absltest.TestCase):
 
   def test_rotate_sh_rotates_the_function(self):
