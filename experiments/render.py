@@ -8,6 +8,8 @@
 file or output folder (physsplat_jax.load_scene). The camera is one
 of the scene's (--camera_index; -1 fits one to the scene) or one from
 --camera_file (INRIA cameras.json or transforms.json).
+--rasterize_mode=antialiased renders as gsplat's antialiased mode, for
+scenes trained with it (Mip-Splatting's 2D filter).
 """
 
 import time
@@ -20,7 +22,9 @@ from absl import logging
 from physsplat_jax.io import cameras as camera_io
 from physsplat_jax.io import video
 from physsplat_jax.scenes import load_scene
+from physsplat_jax.render import RenderConfig
 from physsplat_jax.render import views
+from physsplat_jax.render.config import RASTERIZE_MODES
 
 _SCENE = flags.DEFINE_string('scene', None, 'Built-in name or 3DGS path.')
 _OUT = flags.DEFINE_string('out', None, 'Output PNG.')
@@ -33,6 +37,10 @@ _HEIGHT = flags.DEFINE_integer('height', None, 'Height [px].')
 _BACKGROUND = flags.DEFINE_string('background', 'white',
                                   'white, black, grey or "r,g,b" in [0, 1].')
 _SH_DEGREE = flags.DEFINE_integer('sh_degree', None, 'SH degree (0..3).')
+_RASTERIZE_MODE = flags.DEFINE_enum(
+  'rasterize_mode', 'classic', RASTERIZE_MODES,
+  "RenderConfig.rasterize_mode: 'antialiased' for scenes trained with "
+  "gsplat's antialiased mode (Mip-Splatting).")
 
 
 def main(argv):
@@ -44,8 +52,10 @@ def main(argv):
     cams = camera_io.load_cameras(_CAMERA_FILE.value)
     camera = cams[camera if camera >= 0 else 0]
   t0 = time.perf_counter()
+  config = RenderConfig(rasterize_mode=_RASTERIZE_MODE.value)
   image = views.render_scene(scene, camera, _WIDTH.value, _HEIGHT.value,
-                             _BACKGROUND.value, sh_degree=_SH_DEGREE.value)
+                             _BACKGROUND.value, sh_degree=_SH_DEGREE.value,
+                             config=config)
   video.save_png(_OUT.value, image)
   logging.info('%s: %dx%d, %d Gaussians, %.2f s (incl. compile) -> %s',
                scene.name, image.shape[1], image.shape[0],

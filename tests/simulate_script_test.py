@@ -5,6 +5,7 @@ from absl.testing import absltest
 
 from experiments.lib import simulate as sim
 from physsplat_jax import pipeline as pl
+from physsplat_jax.render import RenderConfig
 
 
 class MotionFlagsTest(absltest.TestCase):
@@ -47,6 +48,17 @@ class BuildConfigTest(absltest.TestCase):
     c = sim.build_config('tabletop', motion=dict(initial_velocity=[
       ('jelly cube', (1.0, 0.0, 0.0))]))
     self.assertEqual(c.initial_velocity, (('jelly cube', (1.0, 0.0, 0.0)),))
+
+  def test_render_config_from_the_file(self):
+    # The file's render_config is the default RenderConfig (same compiled
+    # renderer); --config.render_config.rasterize_mode=... reaches it.
+    d, _ = sim.load_config_file()
+    self.assertEqual(sim.build_config('tabletop', d).render_config,
+                     RenderConfig())
+    d['render_config']['rasterize_mode'] = 'antialiased'
+    c = sim.build_config('tabletop', d)
+    self.assertEqual(c.simulate.render_config,
+                     RenderConfig(rasterize_mode='antialiased'))
 
   def test_unknown_field_is_an_error(self):
     with self.assertRaisesRegex(pl.PipelineError, 'unknown pipeline config'):

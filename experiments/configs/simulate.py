@@ -14,8 +14,9 @@ def get_config():
   """Defaults: 2 s at 24 fps, 40^3 grid, <= 12k driving particles, 512x384.
 
   Every scalar field of ``PipelineConfig`` is here, so each can be set on
-  the command line (``--config.render=none``); motions (velocities, forces)
-  come from ``SCENE_MOTIONS`` or the motion flags.
+  the command line (``--config.render=none``), and ``render_config`` holds
+  the rasterizer's ``rasterize_mode``; motions (velocities, forces) come
+  from ``SCENE_MOTIONS`` or the motion flags.
   """
   c = ml_collections.ConfigDict()
   c.num_frames = 48
@@ -49,6 +50,11 @@ def get_config():
   c.bind_k = 8
   c.use_driver_F = False
   c.render = 'fast'  # 'none': no video or frames
+  # Rasterizer settings (fields of physsplat_jax.render.RenderConfig):
+  # 'antialiased' for scenes trained with gsplat's antialiased mode
+  # (Mip-Splatting), --config.render_config.rasterize_mode=antialiased.
+  c.render_config = ml_collections.ConfigDict(
+    dict(rasterize_mode='classic'))
   c.remat_frames = True
   c.seed = 0
   return c
