@@ -34,49 +34,23 @@ from absl import flags
 from experiments.configs import demo as demo_config
 from experiments.lib import cli
 from experiments.lib import simulate as lib
+from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
 from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
 from physsplat_jax import scenes
 from physsplat_jax.pipeline import simulation
 
-VARIANTS = ('scene', 'masked', 'no_plane', 'no_plane_no_body', 'bare')
-
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
 _SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
 _ROUNDS = flags.DEFINE_integer('rounds', 5, 'timed calls per variant')
-_VARIANTS = flags.DEFINE_list('variants', list(VARIANTS), 'variants to time')
+_VARIANTS = flags.DEFINE_list('variants', list(substep_lib.VARIANTS),
+                              'variants to time')
 _CLOCK = flags.DEFINE_enum('clock', 'wall', ['wall', 'cpu'], 'what to time')
 _OUT = flags.DEFINE_string('out', None, 'JSON file for the results')
 _START_FRAME = flags.DEFINE_integer(
   'start_frame', 0, 'time from the state after this many frames of the '
   'scene (objects resting on the support) instead of its initial state')
-
-
-def variant(name, state, materials, forces, config):
-  """The (state, materials, forces, config) of one variant."""
-  if name not in VARIANTS:
-    raise cli.usage_error(f'--variants: unknown variant {name!r}; use '
-                          f'some of {", ".join(VARIANTS)}.')
-  if name in ('masked', 'bare'):
-    config = dataclasses.replace(config, model_counts=None)
-  if name in ('no_plane', 'no_plane_no_body', 'bare'):
-    keep = [i for i, bc in enumerate(config.boundary_conditions)
-            if not isinstance(bc, mpm.SurfaceCollider)]
-    # Particle conditions keep their per-particle data (bc_data follows
-    # config.particle_bcs, whose order does not change).
-    config = dataclasses.replace(config, boundary_conditions=tuple(
-      config.boundary_conditions[i] for i in keep))
-    forces = mpm.Forces(values=tuple(forces.values[i] for i in keep))
-  if name in ('no_plane_no_body', 'bare'):
-    # The rigid particles stay stress-free ('rigid' model), without a body.
-    config = dataclasses.replace(config, num_bodies=0, body_fixed=())
-    state = state.replace(body_id=-jnp.ones_like(state.body_id))
-  if name == 'bare':
-    config = dataclasses.replace(config, models=('fixed_corotated',))
-    materials = materials.replace(
-      model_id=jnp.zeros_like(materials.model_id))
-  return state, materials, forces, config
 
 
 def main(argv):
@@ -100,7 +74,7 @@ def main(argv):
   clock = time.perf_counter if _CLOCK.value == 'wall' else time.process_time
   runs = {}
   for name in _VARIANTS.value:
-    s, m, f, c = variant(name, state, mats, forces, sim_config)
+    s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
     fn = jax.jit(mpm.make_frame(c))
     out = fn(s, m, f)
     jax.block_until_ready(out)

@@ -334,11 +334,14 @@ svd.defvjp(_svd_fwd, _svd_bwd)
 _JACOBI_SWEEPS = {4: 4, 8: 6}
 
 
-def _jacobi_eigh(S: Mat, sweeps: int):
+def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
   """Eigen-decomposition ``S = V diag(d) V^T`` of symmetric 3x3 fields.
 
   Cyclic Jacobi rotations on the pairs (0, 1), (0, 2), (1, 2), written per
   component (no batched LAPACK call, no (..., 3, 3) layout).
+
+  ``unroll``: None chooses by platform at lowering (a loop on the CPU,
+  unrolled elsewhere, see below); True or False forces one.
 
   Returns:
     ``(d, V)``: 3-tuple of eigenvalues (unsorted), V a rotation.
@@ -376,11 +379,27 @@ def _jacobi_eigh(S: Mat, sweeps: int):
         V[k][q] = sn * vkp + c * vkq
     return (tuple(tuple(r) for r in A), tuple(tuple(r) for r in V))
 
-  # A loop, not an unrolled chain: XLA:CPU would otherwise fuse the whole
-  # chain into each consumer and recompute it many times over.
   V0 = tuple(tuple(one if i == j else zero for j in range(3))
              for i in range(3))
-  A, V = jax.lax.fori_loop(0, sweeps, sweep, (tuple(S), V0))
+
+  # On the CPU a loop, not an unrolled chain: XLA:CPU would otherwise fuse
+  # the whole chain into each consumer and recompute it many times over.
+  # Elsewhere unrolled: on a GPU the loop is a while loop of its own inside
+  # the substep (its state copied in, one kernel launch per sweep), the
+  # unrolled chain one fusion with the rest of the stress update.
+  def looped(carry):
+    return jax.lax.fori_loop(0, sweeps, sweep, carry)
+
+  def unrolled(carry):
+    for i in range(sweeps):
+      carry = sweep(i, carry)
+    return carry
+
+  carry = (tuple(S), V0)
+  if unroll is None:
+    A, V = jax.lax.platform_dependent(carry, cpu=looped, default=unrolled)
+  else:
+    A, V = unrolled(carry) if unroll else looped(carry)
   return [A[0][0], A[1][1], A[2][2]], V
 
 

@@ -36,19 +36,37 @@ from physsplat_jax.mpm import linalg as la
 _DENSE_SEGMENTS = 32
 
 
-def _segment_sums(seg, num_segments, dtype, reduce_fn=None):
+def _onehot_product(q, onehot):
+  return jnp.dot(q.T, onehot, precision=jax.lax.Precision.HIGHEST)
+
+
+def _onehot_reduction(q, onehot):
+  return jnp.sum(q[:, :, None] * onehot[:, None, :], axis=0)
+
+
+def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto'):
   """``ssum(list of (N,) arrays) -> list of (num_segments,) sums``.
 
   All columns of one call are summed together (one (N, K) reduction instead
   of K scatters; the scatters dominated the substep of a scene with a rigid
   body on a CPU). ``reduce_fn`` (e.g. ``lax.psum``) is applied to the
-  stacked partial sums.
+  stacked partial sums. ``form`` (few segments only): 'product' (the
+  columns times the one-hot body matrix, fastest on the CPU), 'reduction'
+  (a masked sum, which XLA:GPU fuses with the columns' producers into one
+  kernel, where the product is a GEMM launch of its own after a copy of
+  its stacked operand) or 'auto' (the product on the CPU, the reduction
+  elsewhere, chosen at lowering).
   """
   if num_segments <= _DENSE_SEGMENTS:
     onehot = (seg[:, None] == jnp.arange(num_segments)).astype(dtype)
 
     def total(q):
-      return jnp.dot(q.T, onehot, precision=jax.lax.Precision.HIGHEST)
+      if form == 'product':
+        return _onehot_product(q, onehot)
+      if form == 'reduction':
+        return _onehot_reduction(q, onehot)
+      return jax.lax.platform_dependent(q, onehot, cpu=_onehot_product,
+                                        default=_onehot_reduction)
   else:
     def total(q):
       return jax.ops.segment_sum(q, seg, num_segments=num_segments).T

@@ -194,23 +194,61 @@ def _scatter(st: Stencil, U):
                              mode=jax.lax.GatherScatterMode.CLIP)
 
 
-def g2p(grid: GridSpec, st: Stencil, gv):
+def _window_moments_dot(w, o4, g):
+  """``R[n, j, d] = sum_k w[n, k] o4[k, j] g[n, k, d]`` as one product."""
+  return jnp.einsum('nk,kj,nkd->njd', w, o4, g,
+                    precision=jax.lax.Precision.HIGHEST)
+
+
+def _window_moments_sum(w, o4, g):
+  """The same as broadcast products and one sum over the 27 nodes."""
+  wo = w[:, :, None] * o4[None]                                   # (N, 27, 4)
+  return jnp.sum(wo[:, :, :, None] * g[:, :, None, :], axis=1)
+
+
+def window_moments(w, o4, g, form: str = 'auto'):
+  """``R = O^T (w * g)`` per particle: (N, 27) weights, (27, 4) rows
+  ``(1, o_k)``, (N, 27, 3) node velocities -> (N, 4, 3).
+
+  ``form``: ``'dot'`` (one batched product: what XLA:CPU runs fastest, 4x
+  the sum's speed at 6,000 particles), ``'sum'`` (broadcast products and
+  a reduction over the 27 nodes, which XLA:GPU fuses with the gather into
+  one loop fusion; the product form is handed to XLA:GPU's Triton GEMM
+  emitter fused with the gather, and with jax 0.10.2 compiling for an
+  H100 fails there with "Couldn't find output tile sizes"), or
+  ``'auto'``: 'dot' on the CPU, 'sum' elsewhere (``lax.platform_dependent``,
+  chosen at lowering).
+  """
+  if form == 'dot':
+    return _window_moments_dot(w, o4, g)
+  if form == 'sum':
+    return _window_moments_sum(w, o4, g)
+  if form != 'auto':
+    raise ValueError(f"window_moments: form must be 'auto', 'dot' or 'sum', "
+                     f'got {form!r}.')
+  return jax.lax.platform_dependent(w, o4, g, cpu=_window_moments_dot,
+                                    default=_window_moments_sum)
+
+
+def g2p(grid: GridSpec, st: Stencil, gv, form: str = 'auto'):
   """Gathers particle velocities and affine matrices from the grid.
 
   One windowed ``gather`` takes the 3 x 3 x 3 x 3 block of node velocities
   of each particle from the (G, G, G, 3) grid; with ``O`` the (27, 4) rows
   ``(1, o_k)``, ``R = O^T (w * g)`` gives ``v_d = sum_k w_k g_kd`` and
-  ``B_ed = sum_k w_k o_ke g_kd`` in one small product per particle. The
-  grid velocity is materialised first (:func:`materialize`). On XLA:CPU
-  (6,000 particles, 32^3) this G2P is about 3x faster than 81 scalar
-  gathers by flat index and per-component products, and the whole
-  MLS-MPM substep about 2x (docs/benchmarks.md).
+  ``B_ed = sum_k w_k o_ke g_kd`` (:func:`window_moments`: one small
+  product per particle on the CPU, a fused sum on GPUs). The grid velocity
+  is materialised first (:func:`materialize`). On XLA:CPU (6,000
+  particles, 32^3) this G2P is about 3x faster than 81 scalar gathers by
+  flat index and per-component products, and the whole MLS-MPM substep
+  about 2x (docs/benchmarks.md).
 
   Args:
     grid: static grid.
     st: the particles' stencil.
     gv: 3-tuple of grid velocity components [m/s], each (G, G, G) or
       flat (G^3,).
+    form: how the window is reduced (:func:`window_moments`).
 
   Returns:
     ``(v, C)``: 3-tuple of (N,) velocities and nested-tuple C [1/s].
@@ -224,8 +262,7 @@ def g2p(grid: GridSpec, st: Stencil, gv):
     start_index_map=(0, 1, 2))
   g = jax.lax.gather(g4, base, dn, slice_sizes=(3, 3, 3, 3),
                      mode=jax.lax.GatherScatterMode.CLIP).reshape(-1, 27, 3)
-  R = jnp.einsum('nk,kj,nkd->njd', st.weights(), _o4(g.dtype), g,
-                 precision=jax.lax.Precision.HIGHEST)            # (N, 4, 3)
+  R = window_moments(st.weights(), _o4(g.dtype), g, form)         # (N, 4, 3)
   v = tuple(R[:, 0, d] for d in range(3))
   s = 4.0 * grid.inv_dx
   C = tuple(tuple(s * (R[:, 1 + e, d] - st.f[e] * v[d]) for e in range(3))

@@ -1,0 +1,127 @@
+"""Kernels per MLS-MPM substep on a GPU, counted without a GPU.
+
+  python -m experiments.gpu_kernels                       # tabletop, H100
+  python -m experiments.gpu_kernels --scene=ficus --out=k.json
+
+On a GPU a substep of a few thousand particles is bound by the number of
+kernels it launches, not by arithmetic (docs/benchmarks.md). XLA can compile
+for a GPU it does not see ("deviceless" compilation, a ``target_config``
+topology): this script prepares the scene with the `make demo` settings
+(experiments/configs/demo.py), compiles one frame of the MPM for the GPU
+described by ``--spec`` (an XLA ``GpuTargetConfigProto``; default an H100
+SXM, experiments/configs/gpu_specs/), and counts in the optimised program
+the kernels of the substep: every instruction of the scan's body that XLA
+emits as a kernel (fusions, copies, custom calls, sorts, ...), and, for a
+loop nested in it, its body's kernels times its trip count. The variants
+(``scene``, ``masked``, ``no_plane``, ``no_plane_no_body``, ``bare``) are
+``benchmark_substep``'s (experiments/lib/substep.py).
+
+Needs a CUDA build of jaxlib installed, e.g. ``pip install 'jax[cuda13]'``
+(the CUDA libraries come as wheels; no GPU or driver needed), in an
+environment of its own if the CPU one must stay as it is; run it with
+``JAX_PLATFORMS=cpu``. Counts are structure, not time: what one kernel costs
+on the device is in docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+from absl import flags
+from absl import logging
+
+from experiments.configs import demo as demo_config
+from experiments.lib import cli
+from experiments.lib import hlo
+from experiments.lib import simulate as lib
+from experiments.lib import substep as substep_lib
+from physsplat_jax import mpm
+from physsplat_jax import perception
+from physsplat_jax import pipeline as pl
+from physsplat_jax import scenes
+from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.pipeline import simulation
+
+SPECS = pathlib.Path(__file__).parent / 'configs' / 'gpu_specs'
+
+_SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
+_SPEC = flags.DEFINE_string(
+  'spec', str(SPECS / 'h100_sxm.txtpb'),
+  'XLA GpuTargetConfigProto (text) of the GPU to compile for')
+_VARIANTS = flags.DEFINE_list('variants', ['scene', 'masked', 'bare'],
+                              'benchmark_substep variants to compile')
+_SUBSTEPS = flags.DEFINE_integer(
+  'substeps', 8, 'substeps of the compiled frame (the scan trip count)')
+_OUT = cli.define_out(None, 'JSON file for the counts')
+
+class GpuCompileError(PhysSplatError, RuntimeError):
+  """No CUDA compiler to compile for a GPU without one."""
+
+
+def gpu_device(spec_path: str):
+  """A compile-only device for the GPU described by ``spec_path``."""
+  from jax.experimental import topologies  # noqa: PLC0415
+
+  try:
+    spec = pathlib.Path(spec_path).read_text()
+  except OSError as e:
+    raise GpuCompileError(f'--spec: cannot read {spec_path}: {e}') from e
+  try:
+    topo = topologies.get_topology_desc(
+      platform='cuda', topology_name='', target_config=spec,
+      topology='1x1x1')
+  except (NotImplementedError, RuntimeError, ValueError) as e:
+    raise GpuCompileError(
+      'compiling for a GPU without one needs a CUDA build of jaxlib: '
+      "pip install 'jax[cuda13]' (no GPU needed), then run with "
+      f'JAX_PLATFORMS=cpu ({type(e).__name__}: {e})') from e
+  return topo.devices[0]
+
+
+def main(argv):
+  del argv
+  device = gpu_device(_SPEC.value)
+  sharding = jax.sharding.SingleDeviceSharding(device)
+  config = lib.build_config(_SCENE.value, demo_config.get_config(),
+                            motions=demo_config.SCENE_MOTIONS)
+  scene = scenes.load_scene(_SCENE.value)
+  materials = perception.perceive_scene(scene, None)
+  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
+                                 materials, config)
+  params = pl.init_params(prepared, config)
+  state, mats, forces, sim_config = simulation.initial_state(
+    params, prepared, config, field=prepared.field)
+  sim_config = dataclasses.replace(sim_config,
+                                   substeps_per_frame=_SUBSTEPS.value)
+  rows = []
+  for name in _VARIANTS.value:
+    s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
+    args = jax.tree.map(
+      lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a),
+                                     sharding=sharding), (s, m, f))
+    t = time.perf_counter()
+    compiled = jax.jit(mpm.make_frame(c)).lower(*args).compile()
+    seconds = time.perf_counter() - t
+    row = dict(variant=name, compile_s=round(seconds, 1),
+               **hlo.substep_kernels(compiled.as_text(), _SUBSTEPS.value))
+    rows.append(row)
+    logging.info('%s', row)
+    print(f"{name:18s} {row['kernels']:4d} kernels/substep  "
+          f"({', '.join(f'{k} {v}' for k, v in row['by_kind'].items())})")
+  result = dict(scene=_SCENE.value, particles=prepared.num_particles,
+                models=sim_config.models, spec=os.path.basename(_SPEC.value),
+                jax_version=jax.__version__, rows=rows)
+  if _OUT.value:
+    os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
+    with open(_OUT.value, 'w') as fh:
+      json.dump(result, fh, indent=1)
+
+
+if __name__ == '__main__':
+  cli.run(main)

@@ -1,0 +1,78 @@
+"""Kernels in an optimised XLA program (``compiled.as_text()``).
+
+Counts what a GPU launches: every instruction of a computation that XLA
+emits as a kernel (fusions, copies, custom calls, sorts, ...), loops
+expanded by their known trip counts. Used by ``experiments/gpu_kernels.py``.
+"""
+
+from __future__ import annotations
+
+import collections
+import re
+
+# Instructions that launch nothing: buffers, views and control.
+_FREE = frozenset((
+  'parameter', 'get-tuple-element', 'tuple', 'bitcast', 'constant',
+  'after-all', 'partition-id', 'replica-id', 'opt-barrier', 'add-dependency',
+))
+
+
+def parse_hlo(text: str) -> tuple[dict[str, list[tuple[str, str]]], str]:
+  """``({computation: [(opcode, line), ...]}, entry name)`` of an HLO
+  module's text (``compiled.as_text()``)."""
+  comps: dict[str, list[tuple[str, str]]] = {}
+  entry, cur = '', None
+  for line in text.splitlines():
+    head = re.match(r'^(ENTRY )?%?([\w.\-]+) .*\{$', line)
+    if head:
+      cur = head.group(2)
+      comps[cur] = []
+      if head.group(1):
+        entry = cur
+      continue
+    inst = re.match(r'^\s+(?:ROOT )?%?[\w.\-]+ = .*? ([a-z][\w\-]*)\(', line)
+    if cur is not None and inst:
+      comps[cur].append((inst.group(1), line))
+  return comps, entry
+
+
+def kernels(comps, name: str) -> collections.Counter:
+  """Kernel launches of computation ``name`` by kind, nested loops
+  counted as body kernels times their known trip count (key 'loop')."""
+  out: collections.Counter = collections.Counter()
+  for op, line in comps[name]:
+    if op in _FREE:
+      continue
+    if op == 'while':
+      body = re.search(r'body=%?([\w.\-]+)', line).group(1)
+      trip = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
+      n = int(trip.group(1)) if trip else 1
+      out['loop'] += n * sum(kernels(comps, body).values())
+      continue
+    if op == 'fusion':
+      out['fusion:' + re.search(r'kind=(\w+)', line).group(1)] += 1
+      continue
+    out[op] += 1
+  return out
+
+
+def substep_kernels(text: str, substeps: int) -> dict:
+  """Kernels of one substep: the body of the loop with trip count
+  ``substeps`` reachable from the entry (the scan over substeps)."""
+  comps, entry = parse_hlo(text)
+  stack, seen = [entry], set()
+  while stack:
+    name = stack.pop()
+    if name in seen:
+      continue
+    seen.add(name)
+    for op, line in comps[name]:
+      if op != 'while':
+        continue
+      body = re.search(r'body=%?([\w.\-]+)', line).group(1)
+      trip = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
+      if trip and int(trip.group(1)) == substeps:
+        k = kernels(comps, body)
+        return dict(kernels=sum(k.values()), by_kind=dict(sorted(k.items())))
+      stack.append(body)
+  raise ValueError(f'no loop with trip count {substeps} in the program')

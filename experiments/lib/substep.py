@@ -1,0 +1,47 @@
+"""The static-config variants of a scene's MPM substep (what
+``benchmark_substep`` times and ``gpu_kernels`` counts).
+
+- ``scene``: the pipeline's config (materials grouped by model,
+  ``SimConfig.model_counts``);
+- ``masked``: the same without ``model_counts`` (every model evaluated on
+  every particle and selected, the rigid sums masked over all particles);
+- ``no_plane``: the scene's config without the support plane;
+- ``no_plane_no_body``: also without rigid bodies (their particles stay
+  stress-free);
+- ``bare``: every particle one fixed-corotated material, no body, no plane.
+"""
+
+import dataclasses
+
+import jax.numpy as jnp
+
+from experiments.lib import cli
+from physsplat_jax import mpm
+
+VARIANTS = ('scene', 'masked', 'no_plane', 'no_plane_no_body', 'bare')
+
+
+def variant(name, state, materials, forces, config):
+  """The (state, materials, forces, config) of one variant."""
+  if name not in VARIANTS:
+    raise cli.usage_error(f'--variants: unknown variant {name!r}; use '
+                          f'some of {", ".join(VARIANTS)}.')
+  if name in ('masked', 'bare'):
+    config = dataclasses.replace(config, model_counts=None)
+  if name in ('no_plane', 'no_plane_no_body', 'bare'):
+    keep = [i for i, bc in enumerate(config.boundary_conditions)
+            if not isinstance(bc, mpm.SurfaceCollider)]
+    # Particle conditions keep their per-particle data (bc_data follows
+    # config.particle_bcs, whose order does not change).
+    config = dataclasses.replace(config, boundary_conditions=tuple(
+      config.boundary_conditions[i] for i in keep))
+    forces = mpm.Forces(values=tuple(forces.values[i] for i in keep))
+  if name in ('no_plane_no_body', 'bare'):
+    # The rigid particles stay stress-free ('rigid' model), without a body.
+    config = dataclasses.replace(config, num_bodies=0, body_fixed=())
+    state = state.replace(body_id=-jnp.ones_like(state.body_id))
+  if name == 'bare':
+    config = dataclasses.replace(config, models=('fixed_corotated',))
+    materials = materials.replace(
+      model_id=jnp.zeros_like(materials.model_id))
+  return state, materials, forces, config

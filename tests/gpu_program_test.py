@@ -1,0 +1,206 @@
+"""What the MPM substep becomes on a GPU, checked without one.
+
+Some steps of the substep are written twice and chosen by platform when
+the program is lowered (``lax.platform_dependent``): the CPU keeps the forms
+XLA:CPU runs fastest (a batched product in G2P and for the rigid-body sums,
+the Jacobi sweeps of the SVD as a loop); other platforms get forms XLA:GPU
+fuses into fewer kernels (sums, an unrolled chain). Lowering for CUDA needs
+no GPU, so these tests lower for 'cuda' and 'cpu' and check which form each
+platform got, and check on the CPU that the two forms agree in value.
+``experiments/gpu_kernels.py`` counts the kernels of the compiled program
+(docs/benchmarks.md).
+"""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+
+from experiments.lib import hlo
+from physsplat_jax import mpm
+from physsplat_jax.mpm import linalg as la
+from physsplat_jax.mpm import rigid
+from physsplat_jax.mpm import transfer
+
+_GRID = mpm.GridSpec(res=16, size=1.0, lower=(0.5, -1.0, 0.0))
+
+
+def _ops(fn, args, platform):
+  """Counts of StableHLO ops in ``fn`` lowered for ``platform``."""
+  text = jax.jit(fn).trace(*args).lower(
+    lowering_platforms=(platform,)).as_text()
+  return {op: len(re.findall(rf'stablehlo\.{op}\b', text))
+          for op in ('while', 'dot_general', 'scatter', 'reduce')}
+
+
+class FormsAgreeTest(absltest.TestCase):
+  """Both forms of each platform-dependent step give the same values."""
+
+  def test_g2p_sum_and_product_reproduce_an_affine_field(self):
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(2)
+      x = np.asarray(_GRID.lower) + 0.2 + 0.6 * rng.random((40, 3))
+      a, B = rng.normal(size=3), rng.normal(size=(3, 3))
+      node = np.stack(np.meshgrid(*[np.arange(16)] * 3, indexing='ij'), -1)
+      vel = a + (node * _GRID.dx + np.asarray(_GRID.lower)) @ B.T
+      st = transfer.Stencil(_GRID, tuple(jnp.asarray(x.T)))
+      gv = tuple(jnp.asarray(vel[..., d]) for d in range(3))
+      out = {form: transfer.g2p(_GRID, st, gv, form=form)
+             for form in ('dot', 'sum')}
+      for form, (v, C) in out.items():
+        np.testing.assert_allclose(np.stack(v, -1), a + x @ B.T,
+                                   atol=1e-12, err_msg=form)
+        np.testing.assert_allclose(np.asarray(C).transpose(2, 0, 1),
+                                   np.broadcast_to(B, (40, 3, 3)),
+                                   atol=1e-11, err_msg=form)
+      # A non-affine field: the two forms still agree.
+      gv = tuple(jnp.asarray(rng.normal(size=(16,) * 3)) for _ in range(3))
+      d, s = (transfer.g2p(_GRID, st, gv, form=f) for f in ('dot', 'sum'))
+      for p, q in zip(jax.tree.leaves(d), jax.tree.leaves(s)):
+        np.testing.assert_allclose(p, q, rtol=1e-12, atol=1e-12)
+
+  def test_g2p_rejects_an_unknown_form(self):
+    st = transfer.Stencil(_GRID, tuple(jnp.full((3, 2), 0.5)))
+    gv = tuple(jnp.zeros((16,) * 3) for _ in range(3))
+    with self.assertRaisesRegex(ValueError, "'auto', 'dot' or 'sum'"):
+      transfer.g2p(_GRID, st, gv, form='einsum')
+
+  def test_jacobi_unrolled_equals_loop(self):
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(0)
+      A = rng.normal(size=(50, 3, 3))
+      S = la.to_mat(jnp.asarray(np.transpose(A + A.transpose(0, 2, 1),
+                                             (1, 2, 0))))
+      (d0, V0), (d1, V1) = (la._jacobi_eigh(S, 6, unroll=u)
+                            for u in (False, True))
+      np.testing.assert_allclose(np.stack(d0), np.stack(d1), atol=1e-13)
+      np.testing.assert_allclose(np.asarray(V0), np.asarray(V1), atol=1e-13)
+      # And they are the eigen-decomposition (sorted eigenvalues agree).
+      ref = np.linalg.eigvalsh(A + A.transpose(0, 2, 1))
+      np.testing.assert_allclose(np.sort(np.stack(d1, -1), -1), ref,
+                                 atol=1e-12)
+
+  def test_rigid_segment_sums_product_equals_reduction(self):
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(1)
+      seg = jnp.asarray(rng.integers(0, 4, 200))
+      cols = [jnp.asarray(rng.normal(size=200)) for _ in range(5)]
+      want = [np.bincount(np.asarray(seg), np.asarray(c), 4) for c in cols]
+      for form in ('product', 'reduction'):
+        got = rigid._segment_sums(seg, 4, jnp.float64, form=form)(cols)
+        np.testing.assert_allclose(np.stack(got), np.stack(want),
+                                   rtol=1e-12, err_msg=form)
+
+
+class PlatformFormsTest(absltest.TestCase):
+  """Which form each platform's program gets."""
+
+  def test_g2p_is_a_product_on_cpu_a_sum_on_cuda(self):
+    x = jnp.full((3, 8), 0.3)
+    gv = tuple(jnp.zeros((16,) * 3) for _ in range(3))
+
+    def g2p(x, gv):
+      return transfer.g2p(_GRID, transfer.Stencil(_GRID, tuple(x)), gv)
+
+    cpu, cuda = (_ops(g2p, (x, gv), p) for p in ('cpu', 'cuda'))
+    self.assertGreaterEqual(cpu['dot_general'], 1)
+    self.assertEqual(cuda['dot_general'], 0)
+    self.assertGreaterEqual(cuda['reduce'], 1)
+
+  def test_multi_material_frame_has_no_loop_or_product_on_cuda(self):
+    """A frame of two SVD models, a fixed-corotated block and a rigid body
+    on a plane: on CUDA the only loop is the scan over substeps (no Jacobi
+    loops) and nothing is a matrix product (G2P, rigid sums); on the CPU
+    the Jacobi loops and the products are there."""
+    g = mpm.GridSpec(res=16, size=1.0)
+    sp = g.dx / 2
+    cell = np.stack(np.meshgrid(*[np.arange(2)] * 3, indexing='ij'),
+                    -1).reshape(-1, 3)
+    models = ('fixed_corotated', 'neo_hookean', 'drucker_prager', 'rigid')
+    x = np.concatenate([0.3 + 0.12 * k + (cell + 0.5) * sp
+                        for k in range(4)])
+    names = [m for m in models for _ in range(8)]
+    mat = mpm.make_materials(names, 2e4, 0.3, 1000.0, config_models=models)
+    cfg = mpm.SimConfig(
+      grid=g, dt=1e-3, substeps_per_frame=2, models=models, num_bodies=1,
+      model_counts=(8, 8, 8, 8),
+      boundary_conditions=(mpm.SurfaceCollider(
+        point=(0, 0, 0.25), surface='separate', friction=0.5),))
+    body = np.array([-1] * 24 + [0] * 8)
+    s = mpm.init_state(x, np.zeros(3), sp ** 3, mat, cfg, body_id=body)
+    forces = mpm.make_forces(cfg)
+    frame = mpm.make_frame(cfg)
+    cpu, cuda = (_ops(frame, (s, mat, forces), p) for p in ('cpu', 'cuda'))
+    self.assertEqual(cuda['while'], 1)
+    self.assertEqual(cuda['dot_general'], 0)
+    # Two Jacobi loops (neo-Hookean, Drucker-Prager) and the products.
+    self.assertEqual(cpu['while'], 3)
+    self.assertGreaterEqual(cpu['dot_general'], 2)
+
+
+_HLO = """HloModule m
+
+%fused (p0: f32[4]) -> f32[4] {
+  %p0 = f32[4]{0} parameter(0)
+  ROOT %s = f32[4]{0} sine(%p0)
+}
+
+%inner (a: (s32[], f32[4])) -> (s32[], f32[4]) {
+  %a = (s32[], f32[4]{0}) parameter(0)
+  %i = s32[] get-tuple-element(%a), index=0
+  %x = f32[4]{0} get-tuple-element(%a), index=1
+  %f = f32[4]{0} fusion(%x), kind=kLoop, calls=%fused
+  ROOT %t = (s32[], f32[4]{0}) tuple(%i, %f)
+}
+
+%body (b: (s32[], f32[4])) -> (s32[], f32[4]) {
+  %b = (s32[], f32[4]{0}) parameter(0)
+  %w = (s32[], f32[4]{0}) while(%b), condition=%cond, body=%inner, backend_config={"known_trip_count":{"n":"3"}}
+  %y = f32[4]{0} get-tuple-element(%w), index=1
+  %c = f32[4]{0} copy(%y)
+  %r = f32[4]{0} fusion(%c), kind=kInput, calls=%fused
+  %i = s32[] get-tuple-element(%w), index=0
+  ROOT %t = (s32[], f32[4]{0}) tuple(%i, %r)
+}
+
+ENTRY %main (e: f32[4]) -> f32[4] {
+  %e = f32[4]{0} parameter(0)
+  %z = s32[] constant(0)
+  %t = (s32[], f32[4]{0}) tuple(%z, %e)
+  %w = (s32[], f32[4]{0}) while(%t), condition=%cond, body=%body, backend_config={"known_trip_count":{"n":"5"}}
+  ROOT %o = f32[4]{0} get-tuple-element(%w), index=1
+}
+"""
+
+
+class KernelCountTest(absltest.TestCase):
+  """experiments/lib/hlo.py, which experiments/gpu_kernels.py uses."""
+
+  def test_counts_a_known_program(self):
+    got = hlo.substep_kernels(_HLO, 5)
+    # The nested loop: 3 x 1 fusion; then a copy and an input fusion.
+    self.assertEqual(got['by_kind'], {'copy': 1, 'fusion:kInput': 1,
+                                      'loop': 3})
+    self.assertEqual(got['kernels'], 5)
+    with self.assertRaisesRegex(ValueError, 'trip count 7'):
+      hlo.substep_kernels(_HLO, 7)
+
+  def test_counts_a_compiled_scan(self):
+    def f(x):
+      def body(c, _):
+        c = jnp.sin(c) * 2 + c[::-1]
+        c = jax.lax.fori_loop(0, 3, lambda i, y: jnp.cos(y) + y[::-1], c)
+        return c, None
+      return jax.lax.scan(body, x, None, length=5)[0]
+
+    got = hlo.substep_kernels(
+      jax.jit(f).lower(jnp.ones(100)).compile().as_text(), 5)
+    self.assertEqual(got['kernels'], sum(got['by_kind'].values()))
+    self.assertGreater(got['by_kind']['loop'], 0)
+    self.assertEqual(got['by_kind']['loop'] % 3, 0)
+
+
+if __name__ == '__main__':
+  absltest.main()
