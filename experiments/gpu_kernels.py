@@ -2,6 +2,7 @@
 
   python -m experiments.gpu_kernels                       # tabletop, H100
   python -m experiments.gpu_kernels --scene=ficus --out=k.json
+  python -m experiments.gpu_kernels --targets=render     # Pallas kernels
 
 On a GPU a substep of a few thousand particles is bound by the number of
 kernels it launches, not by arithmetic (docs/benchmarks.md). XLA can compile
@@ -14,7 +15,9 @@ the kernels of the substep: every instruction of the scan's body that XLA
 emits as a kernel (fusions, copies, custom calls, sorts, ...), and, for a
 loop nested in it, its body's kernels times its trip count. The variants
 (``scene``, ``masked``, ``no_plane``, ``no_plane_no_body``, ``bare``) are
-``benchmark_substep``'s (experiments/lib/substep.py).
+``benchmark_substep``'s (experiments/lib/substep.py). ``--targets=render``
+compiles the Pallas (Triton) compositor of the renderer, forward and
+gradient, for the same GPU: that its kernels build for the device at all.
 
 Needs a CUDA build of jaxlib installed, e.g. ``pip install 'jax[cuda13]'``
 (the CUDA libraries come as wheels; no GPU or driver needed), in an
@@ -47,6 +50,8 @@ from physsplat_jax import pipeline as pl
 from physsplat_jax import scenes
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.pipeline import simulation
+from physsplat_jax.render import pallas_raster
+from physsplat_jax.render.config import RenderConfig
 
 SPECS = pathlib.Path(__file__).parent / 'configs' / 'gpu_specs'
 
@@ -58,6 +63,13 @@ _VARIANTS = flags.DEFINE_list('variants', ['scene', 'masked', 'bare'],
                               'benchmark_substep variants to compile')
 _SUBSTEPS = flags.DEFINE_integer(
   'substeps', 8, 'substeps of the compiled frame (the scan trip count)')
+_TARGETS = flags.DEFINE_list(
+  'targets', ['mpm'], 'what to compile: mpm (a frame of the scene, per '
+  'variant) and/or render (the Pallas compositor, forward and gradient)')
+_RENDER_SIZE = flags.DEFINE_integer('render_size', 1024,
+                                    'render: image edge [pixels]')
+_RENDER_SLOTS = flags.DEFINE_integer(
+  'render_slots', 800_000, 'render: (Gaussian, tile) intersection slots')
 _OUT = cli.define_out(None, 'JSON file for the counts')
 
 class GpuCompileError(PhysSplatError, RuntimeError):
@@ -84,10 +96,62 @@ def gpu_device(spec_path: str):
   return topo.devices[0]
 
 
+def _abstract(tree, sharding):
+  return jax.tree.map(
+    lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a),
+                                   sharding=sharding), tree)
+
+
+def compile_render(sharding, size: int, slots: int) -> list[dict]:
+  """Compiles the Pallas compositor (the Triton kernels of
+  ``render/pallas_raster.py``), forward and gradient, for a ``size``^2
+  image with ``slots`` sorted (Gaussian, sub-tile) slots."""
+  config = RenderConfig(backend='pallas')
+  tiles = -(-size // config.tile_size)
+  sub = (config.tile_size // config.resolved_subtile) ** 2
+  num_gaussians = slots // 8
+  feat = jax.ShapeDtypeStruct((num_gaussians, 10), jnp.float32,
+                              sharding=sharding)
+  gid = jax.ShapeDtypeStruct((slots,), jnp.int32, sharding=sharding)
+  ranges = jax.ShapeDtypeStruct((tiles * tiles * sub + 1,), jnp.int32,
+                                sharding=sharding)
+
+  def forward(feat, gid, ranges):
+    return pallas_raster.rasterize(feat, gid, ranges, tiles, tiles, config)
+
+  def loss(feat, gid, ranges):
+    log_t, acc = forward(feat, gid, ranges)
+    return jnp.sum(acc) + jnp.sum(log_t)
+
+  rows = []
+  for name, fn in (('render forward', forward),
+                   ('render gradient', jax.grad(loss))):
+    t = time.perf_counter()
+    text = jax.jit(fn).lower(feat, gid, ranges).compile().as_text()
+    comps, entry = hlo.parse_hlo(text)
+    k = hlo.kernels(comps, entry)
+    rows.append(dict(variant=name, compile_s=round(time.perf_counter() - t, 1),
+                     kernels=sum(k.values()), by_kind=dict(sorted(k.items())),
+                     triton_kernels=text.count('__gpu$xla.gpu.triton')))
+  return rows
+
+
 def main(argv):
   del argv
   device = gpu_device(_SPEC.value)
   sharding = jax.sharding.SingleDeviceSharding(device)
+  rows = []
+  if 'render' in _TARGETS.value:
+    for row in compile_render(sharding, _RENDER_SIZE.value,
+                              _RENDER_SLOTS.value):
+      rows.append(row)
+      print(f"{row['variant']:18s} compiled in {row['compile_s']} s: "
+            f"{row['kernels']} kernels in all, "
+            f"{row['triton_kernels']} Triton (Pallas)")
+  if 'mpm' not in _TARGETS.value:
+    _write(dict(spec=os.path.basename(_SPEC.value),
+                jax_version=jax.__version__, rows=rows))
+    return
   config = lib.build_config(_SCENE.value, demo_config.get_config(),
                             motions=demo_config.SCENE_MOTIONS)
   scene = scenes.load_scene(_SCENE.value)
@@ -99,12 +163,9 @@ def main(argv):
     params, prepared, config, field=prepared.field)
   sim_config = dataclasses.replace(sim_config,
                                    substeps_per_frame=_SUBSTEPS.value)
-  rows = []
   for name in _VARIANTS.value:
     s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
-    args = jax.tree.map(
-      lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a),
-                                     sharding=sharding), (s, m, f))
+    args = _abstract((s, m, f), sharding)
     t = time.perf_counter()
     compiled = jax.jit(mpm.make_frame(c)).lower(*args).compile()
     seconds = time.perf_counter() - t
@@ -114,9 +175,12 @@ def main(argv):
     logging.info('%s', row)
     print(f"{name:18s} {row['kernels']:4d} kernels/substep  "
           f"({', '.join(f'{k} {v}' for k, v in row['by_kind'].items())})")
-  result = dict(scene=_SCENE.value, particles=prepared.num_particles,
-                models=sim_config.models, spec=os.path.basename(_SPEC.value),
-                jax_version=jax.__version__, rows=rows)
+  _write(dict(scene=_SCENE.value, particles=prepared.num_particles,
+              models=sim_config.models, spec=os.path.basename(_SPEC.value),
+              jax_version=jax.__version__, rows=rows))
+
+
+def _write(result):
   if _OUT.value:
     os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
     with open(_OUT.value, 'w') as fh:
