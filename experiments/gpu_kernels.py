@@ -28,9 +28,16 @@ on the device is in docs/benchmarks.md.
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import os
+
+# Without the device XLA cannot autotune, and jax 0.10.2's default Triton
+# GEMM configuration fails to compile dots fused with their neighbours
+# ("Couldn't find output tile sizes", seen on a Flax Dense layer as on
+# G2P's product): such dots go to cuBLAS here, one kernel either way.
+os.environ.setdefault('XLA_FLAGS', '--xla_gpu_enable_triton_gemm=false')
+
+import dataclasses  # noqa: E402
+import json
 import pathlib
 import time
 

@@ -213,11 +213,9 @@ def window_moments(w, o4, g, form: str = 'auto'):
   ``form``: ``'dot'`` (one batched product: what XLA:CPU runs fastest, 4x
   the sum's speed at 6,000 particles), ``'sum'`` (broadcast products and
   a reduction over the 27 nodes, which XLA:GPU fuses with the gather into
-  one loop fusion; the product form is handed to XLA:GPU's Triton GEMM
-  emitter fused with the gather, and with jax 0.10.2 compiling for an
-  H100 fails there with "Couldn't find output tile sizes"), or
-  ``'auto'``: 'dot' on the CPU, 'sum' elsewhere (``lax.platform_dependent``,
-  chosen at lowering).
+  one kernel, where the product is a GEMM after a transposed copy of the
+  gathered block), or ``'auto'``: 'dot' on the CPU, 'sum' elsewhere
+  (``lax.platform_dependent``, chosen at lowering).
   """
   if form == 'dot':
     return _window_moments_dot(w, o4, g)
