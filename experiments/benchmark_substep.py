@@ -5,17 +5,11 @@
 
 Prepares the scene with the `make demo` settings (experiments/configs/
 demo.py), then times one frame of ``--substeps`` substeps from the initial
-state for each variant of the static MPM config, all compiled first and
-timed in turns (best of ``--rounds``):
-
-- ``scene``: the pipeline's config (materials grouped by model,
-  ``SimConfig.model_counts``);
-- ``masked``: the same without ``model_counts`` (every model evaluated on
-  every particle and selected, the rigid sums masked over all particles);
-- ``no_plane``: the scene's config without the support plane;
-- ``no_plane_no_body``: also without rigid bodies (their particles stay
-  stress-free);
-- ``bare``: every particle one fixed-corotated material, no body, no plane.
+state for each variant of the static MPM config (experiments/lib/
+substep.py: ``scene``, the pipeline's grouped substep; ``masked``;
+``no_plane``; ``no_plane_no_body``; ``bare``, one fixed-corotated material
+with no body and no plane), all compiled first and timed in turns (best of
+``--rounds``).
 
 The differences say what the materials, the rigid bodies and the plane
 contact cost per substep. ``--clock=cpu`` reports process CPU time instead
@@ -23,23 +17,15 @@ of wall time (steadier on a shared machine). Figures: docs/benchmarks.md.
 """
 
 import dataclasses
-import json
-import os
 import time
 
 import jax
 import jax.numpy as jnp
 from absl import flags
 
-from experiments.configs import demo as demo_config
 from experiments.lib import cli
-from experiments.lib import simulate as lib
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
-from physsplat_jax import perception
-from physsplat_jax import pipeline as pl
-from physsplat_jax import scenes
-from physsplat_jax.pipeline import simulation
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
 _SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
@@ -55,15 +41,8 @@ _START_FRAME = flags.DEFINE_integer(
 
 def main(argv):
   del argv
-  config = lib.build_config(_SCENE.value, demo_config.get_config(),
-                            motions=demo_config.SCENE_MOTIONS)
-  scene = scenes.load_scene(_SCENE.value)
-  materials = perception.perceive_scene(scene, None)
-  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
-                                 materials, config)
-  params = pl.init_params(prepared, config)
-  state, mats, forces, sim_config = simulation.initial_state(
-    params, prepared, config, field=prepared.field)
+  prepared, state, mats, forces, sim_config = (
+    substep_lib.demo_scene_state(_SCENE.value))
   if _START_FRAME.value > 0:
     advance = jax.jit(mpm.make_frame(sim_config))
     for _ in range(_START_FRAME.value):
@@ -99,10 +78,7 @@ def main(argv):
                 substeps=_SUBSTEPS.value, devices=[str(d) for d in
                                                    jax.devices()],
                 jax_version=jax.__version__, rows=rows)
-  if _OUT.value:
-    os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
-    with open(_OUT.value, 'w') as fh:
-      json.dump(result, fh, indent=1)
+  cli.write_json(_OUT.value, result)
 
 
 if __name__ == '__main__':

@@ -37,7 +37,6 @@ import os
 os.environ.setdefault('XLA_FLAGS', '--xla_gpu_enable_triton_gemm=false')
 
 import dataclasses  # noqa: E402
-import json
 import pathlib
 import time
 
@@ -46,17 +45,11 @@ import jax.numpy as jnp
 from absl import flags
 from absl import logging
 
-from experiments.configs import demo as demo_config
 from experiments.lib import cli
 from experiments.lib import hlo
-from experiments.lib import simulate as lib
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
-from physsplat_jax import perception
-from physsplat_jax import pipeline as pl
-from physsplat_jax import scenes
 from physsplat_jax.errors import PhysSplatError
-from physsplat_jax.pipeline import simulation
 from physsplat_jax.render import pallas_raster
 from physsplat_jax.render.config import RenderConfig
 
@@ -155,19 +148,12 @@ def main(argv):
       print(f"{row['variant']:18s} compiled in {row['compile_s']} s: "
             f"{row['kernels']} kernels in all, "
             f"{row['triton_kernels']} Triton (Pallas)")
+  info = dict(spec=os.path.basename(_SPEC.value), jax_version=jax.__version__)
   if 'mpm' not in _TARGETS.value:
-    _write(dict(spec=os.path.basename(_SPEC.value),
-                jax_version=jax.__version__, rows=rows))
+    cli.write_json(_OUT.value, dict(info, rows=rows))
     return
-  config = lib.build_config(_SCENE.value, demo_config.get_config(),
-                            motions=demo_config.SCENE_MOTIONS)
-  scene = scenes.load_scene(_SCENE.value)
-  materials = perception.perceive_scene(scene, None)
-  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
-                                 materials, config)
-  params = pl.init_params(prepared, config)
-  state, mats, forces, sim_config = simulation.initial_state(
-    params, prepared, config, field=prepared.field)
+  prepared, state, mats, forces, sim_config = (
+    substep_lib.demo_scene_state(_SCENE.value))
   sim_config = dataclasses.replace(sim_config,
                                    substeps_per_frame=_SUBSTEPS.value)
   for name in _VARIANTS.value:
@@ -182,16 +168,9 @@ def main(argv):
     logging.info('%s', row)
     print(f"{name:18s} {row['kernels']:4d} kernels/substep  "
           f"({', '.join(f'{k} {v}' for k, v in row['by_kind'].items())})")
-  _write(dict(scene=_SCENE.value, particles=prepared.num_particles,
-              models=sim_config.models, spec=os.path.basename(_SPEC.value),
-              jax_version=jax.__version__, rows=rows))
-
-
-def _write(result):
-  if _OUT.value:
-    os.makedirs(os.path.dirname(os.path.abspath(_OUT.value)), exist_ok=True)
-    with open(_OUT.value, 'w') as fh:
-      json.dump(result, fh, indent=1)
+  cli.write_json(_OUT.value, dict(
+    info, scene=_SCENE.value, particles=prepared.num_particles,
+    models=sim_config.models, rows=rows))
 
 
 if __name__ == '__main__':

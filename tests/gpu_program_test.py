@@ -38,24 +38,13 @@ def _ops(fn, args, platform):
 class FormsAgreeTest(absltest.TestCase):
   """Both forms of each platform-dependent step give the same values."""
 
-  def test_g2p_sum_and_product_reproduce_an_affine_field(self):
+  def test_g2p_sum_equals_product(self):
+    """On a random (non-affine) field; mpm_solver_test checks both forms
+    reproduce an affine field exactly."""
     with jax.enable_x64(True):
       rng = np.random.default_rng(2)
       x = np.asarray(_GRID.lower) + 0.2 + 0.6 * rng.random((40, 3))
-      a, B = rng.normal(size=3), rng.normal(size=(3, 3))
-      node = np.stack(np.meshgrid(*[np.arange(16)] * 3, indexing='ij'), -1)
-      vel = a + (node * _GRID.dx + np.asarray(_GRID.lower)) @ B.T
       st = transfer.Stencil(_GRID, tuple(jnp.asarray(x.T)))
-      gv = tuple(jnp.asarray(vel[..., d]) for d in range(3))
-      out = {form: transfer.g2p(_GRID, st, gv, form=form)
-             for form in ('dot', 'sum')}
-      for form, (v, C) in out.items():
-        np.testing.assert_allclose(np.stack(v, -1), a + x @ B.T,
-                                   atol=1e-12, err_msg=form)
-        np.testing.assert_allclose(np.asarray(C).transpose(2, 0, 1),
-                                   np.broadcast_to(B, (40, 3, 3)),
-                                   atol=1e-11, err_msg=form)
-      # A non-affine field: the two forms still agree.
       gv = tuple(jnp.asarray(rng.normal(size=(16,) * 3)) for _ in range(3))
       d, s = (transfer.g2p(_GRID, st, gv, form=f) for f in ('dot', 'sum'))
       for p, q in zip(jax.tree.leaves(d), jax.tree.leaves(s)):

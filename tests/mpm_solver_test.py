@@ -49,11 +49,16 @@ class TransferTest(absltest.TestCase):
       node = np.stack(np.meshgrid(*[np.arange(16)] * 3, indexing='ij'), -1)
       vel = a + (node * grid.dx + np.asarray(grid.lower)) @ B.T
       st = transfer.Stencil(grid, tuple(jnp.asarray(x.T)))
-      v, C = transfer.g2p(grid, st, tuple(jnp.asarray(vel[..., d])
-                                          for d in range(3)))
-      np.testing.assert_allclose(np.stack(v, -1), a + x @ B.T, atol=1e-12)
-      np.testing.assert_allclose(np.asarray(C).transpose(2, 0, 1),
-                                 np.broadcast_to(B, (40, 3, 3)), atol=1e-11)
+      gv = tuple(jnp.asarray(vel[..., d]) for d in range(3))
+      # Both forms of the window sum (the CPU's product, the GPU's sum;
+      # tests/gpu_program_test.py checks which platform gets which).
+      for form in ('auto', 'dot', 'sum'):
+        v, C = transfer.g2p(grid, st, gv, form=form)
+        np.testing.assert_allclose(np.stack(v, -1), a + x @ B.T,
+                                   atol=1e-12, err_msg=form)
+        np.testing.assert_allclose(np.asarray(C).transpose(2, 0, 1),
+                                   np.broadcast_to(B, (40, 3, 3)),
+                                   atol=1e-11, err_msg=form)
 
   def test_materialize_is_the_identity_for_values_gradients_and_vmap(self):
     a = jnp.asarray([[1.0, jnp.nan], [-2.0, 3.0]])

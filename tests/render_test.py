@@ -56,6 +56,20 @@ def _reference(g, cam, colors, background=(0.0, 0.0, 0.0), covs=None,
     rasterize_mode=rasterize_mode)
 
 
+def _assert_matches(test, out, image, alpha, depth):
+  """``out`` equals the reference on a scene that exercises saturation
+  (early stop) and empty pixels."""
+  test.assertGreater(alpha.max(), 0.999)
+  test.assertLess(alpha.min(), 0.5)
+  np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL,
+                             err_msg='mismatch: image')
+  np.testing.assert_allclose(out.alpha, alpha, atol=_IMAGE_TOL,
+                             err_msg='mismatch: alpha')
+  drawn = alpha > 0.05
+  np.testing.assert_allclose(out.depth[drawn], depth[drawn],
+                             rtol=_DEPTH_RTOL, err_msg='mismatch: depth')
+
+
 class ReferenceParityTest(parameterized.TestCase):
 
   @parameterized.named_parameters(
@@ -71,16 +85,7 @@ class ReferenceParityTest(parameterized.TestCase):
     self.assertFalse(out.overflow)
     colors = raster.gaussian_colors(g, cam)
     image, alpha, depth = _reference(g, cam, colors, bg)
-    # The scene must exercise saturation (early stop) and empty pixels.
-    self.assertGreater(alpha.max(), 0.999)
-    self.assertLess(alpha.min(), 0.5)
-    np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL,
-                               err_msg='mismatch: image')
-    np.testing.assert_allclose(out.alpha, alpha, atol=_IMAGE_TOL,
-                               err_msg='mismatch: alpha')
-    drawn = alpha > 0.05
-    np.testing.assert_allclose(out.depth[drawn], depth[drawn],
-                               rtol=_DEPTH_RTOL, err_msg='mismatch: depth')
+    _assert_matches(self, out, image, alpha, depth)
 
   def test_differentiable_path_matches_reference(self):
     g = _scene(seed=5, num=120)
@@ -325,15 +330,7 @@ class AntialiasedTest(absltest.TestCase):
     out = raster.render_image(g, cam, background=bg, config=_AA)
     image, alpha, depth = _reference(g, cam, raster.gaussian_colors(g, cam),
                                      bg, rasterize_mode='antialiased')
-    self.assertGreater(alpha.max(), 0.999)
-    self.assertLess(alpha.min(), 0.5)
-    np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL,
-                               err_msg='mismatch: image')
-    np.testing.assert_allclose(out.alpha, alpha, atol=_IMAGE_TOL,
-                               err_msg='mismatch: alpha')
-    drawn = alpha > 0.05
-    np.testing.assert_allclose(out.depth[drawn], depth[drawn],
-                               rtol=_DEPTH_RTOL, err_msg='mismatch: depth')
+    _assert_matches(self, out, image, alpha, depth)
     diff = raster.render_image(g, cam, background=bg, differentiable=True,
                                config=dataclasses.replace(_AA, chunk_size=16))
     np.testing.assert_allclose(diff.image, image, atol=_IMAGE_TOL,

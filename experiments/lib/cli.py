@@ -14,6 +14,8 @@ It also turns on JAX's persistent compilation cache
 
 from __future__ import annotations
 
+import json
+import os
 import sys
 
 from absl import app
@@ -40,6 +42,16 @@ def define_out(default: str | None, help_text: str) -> flags.FlagHolder:
   if 'out' in flags.FLAGS:
     return flags.FlagHolder(flags.FLAGS, flags.FLAGS['out'])
   return flags.DEFINE_string('out', default, help_text)
+
+
+def write_json(path: str | None, result) -> None:
+  """Writes ``result`` as indented JSON to ``path`` (its folder created);
+  nothing when ``path`` is None or empty."""
+  if not path:
+    return
+  os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+  with open(path, 'w') as fh:
+    json.dump(result, fh, indent=1)
 
 
 def _verbose() -> bool:

@@ -13,12 +13,38 @@
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 
+from experiments.configs import demo as demo_config
 from experiments.lib import cli
+from experiments.lib import simulate as lib
 from physsplat_jax import mpm
+from physsplat_jax import perception
+from physsplat_jax import pipeline as pl
+from physsplat_jax import scenes
+from physsplat_jax.pipeline import simulation
 
 VARIANTS = ('scene', 'masked', 'no_plane', 'no_plane_no_body', 'bare')
+
+
+def demo_scene_state(scene_name: str):
+  """A scene prepared with the `make demo` settings (experiments/configs/
+  demo.py) and its initial MPM state.
+
+  Returns:
+    ``(prepared, state, materials, forces, sim_config)``.
+  """
+  config = lib.build_config(scene_name, demo_config.get_config(),
+                            motions=demo_config.SCENE_MOTIONS)
+  scene = scenes.load_scene(scene_name)
+  materials = perception.perceive_scene(scene, None)
+  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
+                                 materials, config)
+  params = pl.init_params(prepared, config)
+  state, mats, forces, sim_config = simulation.initial_state(
+    params, prepared, config, field=prepared.field)
+  return prepared, state, mats, forces, sim_config
 
 
 def variant(name, state, materials, forces, config):
