@@ -17,7 +17,9 @@ loop nested in it, its body's kernels times its trip count. The variants
 (``scene``, ``masked``, ``no_plane``, ``no_plane_no_body``, ``bare``) are
 ``benchmark_substep``'s (experiments/lib/substep.py). ``--targets=render``
 compiles the Pallas (Triton) compositor of the renderer, forward and
-gradient, for the same GPU: that its kernels build for the device at all.
+gradient, for the same GPU: that its kernels build for the device at all;
+``--targets=simulate`` the whole differentiable ``simulate`` of the scene
+(MPDP field, MPM, deformation, rendering) and its gradient.
 
 Needs a CUDA build of jaxlib installed, e.g. ``pip install 'jax[cuda13]'``
 (the CUDA libraries come as wheels; no GPU or driver needed), in an
@@ -49,6 +51,7 @@ from experiments.lib import cli
 from experiments.lib import hlo
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
+from physsplat_jax import pipeline as pl
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render import pallas_raster
 from physsplat_jax.render.config import RenderConfig
@@ -65,7 +68,10 @@ _SUBSTEPS = flags.DEFINE_integer(
   'substeps', 8, 'substeps of the compiled frame (the scan trip count)')
 _TARGETS = flags.DEFINE_list(
   'targets', ['mpm'], 'what to compile: mpm (a frame of the scene, per '
-  'variant) and/or render (the Pallas compositor, forward and gradient)')
+  'variant), render (the Pallas compositor, forward and gradient), '
+  'simulate (the whole differentiable simulate of the scene and its '
+  'gradient)')
+_FRAMES = flags.DEFINE_integer('frames', 2, 'simulate: frames')
 _RENDER_SIZE = flags.DEFINE_integer('render_size', 1024,
                                     'render: image edge [pixels]')
 _RENDER_SLOTS = flags.DEFINE_integer(
@@ -136,6 +142,35 @@ def compile_render(sharding, size: int, slots: int) -> list[dict]:
   return rows
 
 
+def compile_simulate(sharding, scene_name: str, frames: int) -> list[dict]:
+  """Compiles the whole differentiable ``simulate`` (MPDP field, MPM,
+  deformation, the render-only rasterizer) of a scene with the `make demo`
+  settings for ``frames`` frames, and the gradient of a loss on the final
+  Gaussian means (rendering off) with respect to every parameter."""
+  config, prepared, params = substep_lib.demo_scene(scene_name)
+  config = dataclasses.replace(config, num_frames=frames)
+  sim = config.simulate
+  nograd = dataclasses.replace(sim, render='none')
+
+  def forward(p, s):
+    return pl.simulate(p, s, sim)
+
+  def loss(p, s):
+    return pl.simulate(p, s, nograd).means[-1, :, 2].mean()
+
+  rows = []
+  for name, fn in (('simulate forward', forward),
+                   ('simulate gradient', jax.grad(loss))):
+    t = time.perf_counter()
+    text = jax.jit(fn).lower(_abstract(params, sharding),
+                             _abstract(prepared, sharding)).compile().as_text()
+    comps, entry = hlo.parse_hlo(text)
+    k = hlo.kernels(comps, entry)
+    rows.append(dict(variant=name, compile_s=round(time.perf_counter() - t, 1),
+                     kernels=sum(k.values()), by_kind=dict(sorted(k.items()))))
+  return rows
+
+
 def main(argv):
   del argv
   device = gpu_device(_SPEC.value)
@@ -148,6 +183,10 @@ def main(argv):
       print(f"{row['variant']:18s} compiled in {row['compile_s']} s: "
             f"{row['kernels']} kernels in all, "
             f"{row['triton_kernels']} Triton (Pallas)")
+  if 'simulate' in _TARGETS.value:
+    for row in compile_simulate(sharding, _SCENE.value, _FRAMES.value):
+      rows.append(row)
+      print(f"{row['variant']:18s} compiled in {row['compile_s']} s")
   info = dict(spec=os.path.basename(_SPEC.value), jax_version=jax.__version__)
   if 'mpm' not in _TARGETS.value:
     cli.write_json(_OUT.value, dict(info, rows=rows))

@@ -35,16 +35,22 @@ def demo_scene_state(scene_name: str):
   Returns:
     ``(prepared, state, materials, forces, sim_config)``.
   """
+  config, prepared, params = demo_scene(scene_name)
+  state, mats, forces, sim_config = simulation.initial_state(
+    params, prepared, config, field=prepared.field)
+  return prepared, state, mats, forces, sim_config
+
+
+def demo_scene(scene_name: str):
+  """``(config, prepared, params)`` of a scene with the `make demo`
+  settings."""
   config = lib.build_config(scene_name, demo_config.get_config(),
                             motions=demo_config.SCENE_MOTIONS)
   scene = scenes.load_scene(scene_name)
   materials = perception.perceive_scene(scene, None)
   prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
                                  materials, config)
-  params = pl.init_params(prepared, config)
-  state, mats, forces, sim_config = simulation.initial_state(
-    params, prepared, config, field=prepared.field)
-  return prepared, state, mats, forces, sim_config
+  return config, prepared, pl.init_params(prepared, config)
 
 
 def variant(name, state, materials, forces, config):
