@@ -116,8 +116,9 @@ class BoundaryTest(absltest.TestCase):
     for k, v in out.items():
       self.assertGreater(v[:, 2].min(), 0.28 - _GRID.dx, msg=k)
 
-  def test_sticky_plane_stops_the_grid_velocity_at_the_plane(self):
-    """Node pairs across a sticky plane: zero linear interpolant at it."""
+  def test_plane_node_pairs_stop_the_grid_velocity_at_the_plane(self):
+    """Node pairs across a sticky / separate plane: zero linear
+    interpolant (normal part, when approaching) at it."""
     from physsplat_jax.mpm import boundary
     dx = _GRID.dx
     k0 = 3  # node 3 is 0.37 cells behind the plane, node 4 0.63 in front
@@ -139,11 +140,28 @@ class BoundaryTest(absltest.TestCase):
             boundary.apply_grid_bcs(cfg, f, 0.0, v0, m, touch)]
       old = [np.asarray(c)[inner] for c in
              boundary.apply_grid_bcs(cfg, f, 0.0, v0)]
-      if surface != 'sticky':  # only sticky planes pair nodes
+      t = slice(0, 4)  # touching columns (inner x = 4..7)
+      if surface == 'slip':  # bilateral: every node behind it is held
         for c in range(3):
           np.testing.assert_array_equal(gv[c], old[c])
         continue
-      t = slice(0, 4)  # touching columns (inner x = 4..7)
+      if surface == 'separate':
+        # The pairs stop the approach (the normal interpolant vanishes at
+        # the plane where particles touch it) with an impulse along the
+        # normal; the tangential velocity is the particles' friction's.
+        np.testing.assert_allclose(
+          b * gv[2][t, :, k0] + a * gv[2][t, :, k0 + 1], 0.0, atol=1e-7)
+        for c in range(2):
+          np.testing.assert_array_equal(gv[c], old[c])
+        np.testing.assert_array_equal(gv[2][4:], old[2][4:])
+        self.assertTrue(np.all(gv[2][t, :, k0:k0 + 2] > -1.0))
+        # Leaving the plane: nothing to stop.
+        up = tuple(jnp.full(shape, c) for c in (0.3, -0.2, 1.0))
+        for c, (p, q) in enumerate(zip(
+            boundary.apply_grid_bcs(cfg, f, 0.0, up, m, touch),
+            boundary.apply_grid_bcs(cfg, f, 0.0, up))):
+          np.testing.assert_array_equal(np.asarray(p), np.asarray(q))
+        continue
       for c in range(3):
         # The pair's linear interpolant vanishes at the plane where
         # particles touch it (free elsewhere), nodes a cell or more behind
@@ -343,22 +361,15 @@ class ContactTest(absltest.TestCase):
                                atol=2e-5)
 
 
-  @pytest.mark.slow
-  def test_sand_on_a_sticky_plane_is_compressed_not_compacted(self):
-    """Sand stopped at a sticky plane between nodes builds its pressure (~9 s).
-
-    Before the node pairs at a sticky plane (``boundary._plane_pairs``) the
-    nodes just behind it moved freely, the velocity gradient did not see
-    the particles the plane stops, and the sand drained into a sheet on
-    the plane with no pressure (docs/validation.md, repose).
-    """
+  def _sand_on_a_plane(self, surface):
     ground = 0.2 + 0.37 * _GRID.dx
     x = _box((6, 6, 4), (0.4, 0.4, ground + 0.005))
     mat = mpm.make_materials('drucker_prager', 5e4, 0.3, 2000.0,
                              num=len(x), friction_angle=40.0)
     cfg = mpm.SimConfig(
       grid=_GRID, dt=1e-3, models=('drucker_prager',), velocity_damping=5.0,
-      boundary_conditions=(mpm.SurfaceCollider(point=(0, 0, ground)),))
+      boundary_conditions=(mpm.SurfaceCollider(
+        point=(0, 0, ground), surface=surface, friction=0.5),))
     n = mpm.choose_substeps(cfg, 0.025, mat, max_speed=2.0)
     cfg = cfg.replace(dt=0.025 / n, substeps_per_frame=n)
     _, res = _run(x, mat, cfg, 8)
@@ -372,6 +383,24 @@ class ContactTest(absltest.TestCase):
     bottom = z < ground + _SP
     self.assertLess(bottom.sum(), 1.25 * 36)
     self.assertLess(J[bottom].mean(), 0.99)
+
+  @pytest.mark.slow
+  def test_sand_on_a_sticky_plane_is_compressed_not_compacted(self):
+    """Sand stopped at a sticky plane between nodes builds its pressure (~9 s).
+
+    Before the node pairs at a sticky plane (``boundary._plane_pairs``) the
+    nodes just behind it moved freely, the velocity gradient did not see
+    the particles the plane stops, and the sand drained into a sheet on
+    the plane with no pressure (docs/validation.md, repose).
+    """
+    self._sand_on_a_plane('sticky')
+
+  @pytest.mark.slow
+  def test_sand_on_a_separate_plane_is_compressed_not_compacted(self):
+    """The same on a 'separate' plane (the pipeline's default ground), whose
+    node pairs stop only the approach (~9 s)."""
+    self._sand_on_a_plane('separate')
+
 
 class ModelGroupsTest(absltest.TestCase):
   """``SimConfig.model_counts``: each model on its own particle slice."""

@@ -38,6 +38,15 @@ BORDER = 3
 CONTACT_NODE_DEPTH = 1.0
 # A particle within this many cells of its contact distance touches a plane.
 _TOUCH = 1e-3
+# Surfaces whose grid velocity at the plane is constrained by node pairs.
+_PAIRED = ('sticky', 'separate')
+
+
+def has_node_pairs(config: base.SimConfig) -> bool:
+  """Whether a plane of ``config`` pairs nodes (``_plane_pairs``), so the
+  substep needs the touching mass (a fifth P2G channel)."""
+  return any(isinstance(bc, SurfaceCollider) and bc.surface in _PAIRED
+             for bc in config.boundary_conditions)
 
 
 def _active(t, start, end, dt):
@@ -289,13 +298,15 @@ def _shift(a, k: int, s: int):
 
 
 def sticky_touch(config: base.SimConfig, t, x, radius):
-  """(N,) 1 where a particle touches (or is behind) an active sticky plane.
+  """(N,) 1 where a particle touches (or is behind) an active 'sticky' or
+  'separate' plane (the node pairs of ``_plane_pairs``).
 
-  The same test as ``particle_contact``'s: a touching particle sticks.
+  The same distance test as ``particle_contact``'s (a particle at rest on
+  a 'separate' plane touches it too).
   """
   out = jnp.zeros_like(x[0])
   for p, n, _, surface, on in contact_planes(config, t):
-    if surface == 'sticky':
+    if surface in _PAIRED:
       d0 = sum((x[k] - p[k]) * n[k] for k in range(3)) - radius
       out = jnp.where(on & (d0 <= _TOUCH * config.grid.dx), 1.0, out)
   return out
@@ -336,7 +347,7 @@ def _node_velocity_jvp(primals, tangents):
 
 
 def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
-  """Zero velocity at a sticky plane itself, where material touches it.
+  """The grid velocity at the plane itself, where material touches it.
 
   Each node less than a cell behind the plane (depth ``a``, measured along
   the normal; a cell is ``h = dx |n_k|`` along the normal's dominant axis
@@ -344,13 +355,17 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   that axis. Where particles touching the plane (``sticky_touch``) give
   either node mass (``touch`` > 0), the pair's velocities are projected,
   with the least change of kinetic energy (an impulse ``-(b, a) lam`` on
-  the two masses), onto ``b v_behind + a v_front = 0``: the linear
-  interpolant of the pair vanishes at the plane. Material stopped at the
-  plane is then stopped in the velocity field too, so ``F`` records the
-  compression of what presses on it. Pairs with no touching particle stay
-  free, so approaching bodies are not slowed in front of the plane (they
-  land on it, ``particle_contact``). With several sticky planes a particle
-  touching any of them counts.
+  the two masses), so that their linear interpolant at the plane,
+  ``r = (b v_behind + a v_front) / h``, is zero ('sticky': every
+  component) or does not approach it ('separate': the normal component
+  ``r . n`` is raised to 0 where it is negative, an impulse along the
+  normal, with Coulomb friction on each node's tangential velocity, which
+  shrinks by ``friction`` times its normal change). Material stopped at the plane is then stopped in
+  the velocity field too, so ``F`` records the compression of what presses
+  on it. Pairs with no touching particle stay free, so approaching bodies
+  are not slowed in front of the plane (they land on it,
+  ``particle_contact``). With several such planes a particle touching any
+  of them counts.
   """
   k = int(np.argmax(np.abs(bc.normal)))
   s = 1 if bc.normal[k] > 0 else -1
@@ -368,11 +383,18 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   den = jnp.where(ok, den, 1.0)
   cb = jnp.where(ok, b * (1.0 - q) / den, 0.0)
   cf = jnp.where(ok, a * q / den, 0.0)
-  out = []
-  for c in range(3):
-    r = b * gv[c] + a * _shift(gv[c], k, s)
-    out.append(gv[c] - r * cb - _shift(r * cf, k, -s))
-  return out
+  if bc.surface == 'sticky':
+    out = []
+    for c in range(3):
+      r = b * gv[c] + a * _shift(gv[c], k, s)
+      out.append(gv[c] - r * cb - _shift(r * cf, k, -s))
+    return out
+  n = bc.normal
+  vn = sum(gv[c] * n[c] for c in range(3))
+  r = jnp.minimum(b * vn + a * _shift(vn, k, s), 0.0)
+  dv = r * cb + _shift(r * cf, k, -s)  # <= 0: minus the normal change
+  w = _friction([gv[c] - vn * n[c] for c in range(3)], dv, n, bc.friction)
+  return [w[c] + (vn - dv) * n[c] for c in range(3)]
 
 
 def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
@@ -385,8 +407,8 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
     t: () time [s].
     gv: 3-tuple of (G, G, G) node velocities [m/s].
     mass, touch: (G, G, G) node masses and masses of the particles touching
-      a sticky plane (``sticky_touch``) [kg]; None skips the node pairs at
-      a 'sticky' plane (``_plane_pairs``).
+      a 'sticky' or 'separate' plane (``sticky_touch``) [kg]; None skips
+      the node pairs at those planes (``_plane_pairs``).
 
   Returns:
     3-tuple of (G, G, G) node velocities.
@@ -422,6 +444,9 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
       w = [gv[d] - rem * n[d] for d in range(3)]
       w = _friction(w, vn, n, bc.friction)
       gv = [jnp.where(hit, w[d], gv[d]) for d in range(3)]
+      if (bc.surface == 'separate' and mass is not None
+          and touch is not None):
+        gv = _plane_pairs(grid, bc, on, dist, mass, touch, gv)
     elif isinstance(bc, Cuboid):
       vel = forces.values[i]
       on = _active(t, bc.start_time, bc.end_time, dt)
