@@ -176,6 +176,50 @@ class BoundaryTest(absltest.TestCase):
       # The plane pushes out: both nodes of a pair gain upward momentum.
       self.assertTrue(np.all(gv[2][t, :, k0:k0 + 2] > -1.0))
 
+  def test_plane_on_a_node_plane_pairs_one_node_exactly(self):
+    """A plane on a node plane (as the pipeline places its ground) pairs
+    the node one cell behind it with weight exactly 0.
+
+    With the distances summed from node coordinates, that node lay
+    ``dx - 3.5e-18`` m behind the plane (these grid and plane values are the
+    slip-ground pipeline gradient test's); its round-off normal change
+    made friction stick a node at rest, so the derivative with respect to
+    a tangential velocity was 0 while any perturbation slides (differences:
+    1). Checked in float64 against central differences from rest.
+    """
+    from physsplat_jax.mpm import boundary
+    with jax.enable_x64(True):
+      grid = mpm.GridSpec(res=16, size=0.298274)  # dx = 0.018642125
+      cfg = mpm.SimConfig(
+        grid=grid, dt=1e-3, dtype='float64',
+        boundary_conditions=(mpm.SurfaceCollider(
+          point=(0.0, 0.0, 0.0745685), surface='separate', friction=0.4),))
+      bc = cfg.boundary_conditions[0]
+      dist = np.asarray(
+        boundary.plane_node_distance(grid, bc, jnp.float64)).ravel()
+      self.assertEqual(dist[4], 0.0)
+      self.assertEqual(dist[3], -grid.dx)
+      shape = (16, 16, 16)
+      rng = np.random.default_rng(0)
+      m = np.zeros(shape)
+      m[4:12, 4:12, 2:8] = rng.uniform(0.5, 2.0, (8, 8, 6))
+      m, touch = jnp.asarray(m), jnp.asarray(np.where(
+        np.arange(16) < 6, m, 0.0))
+      # At rest but for gravity: no tangential velocity.
+      v0 = jnp.stack([jnp.zeros(shape), jnp.zeros(shape),
+                      jnp.full(shape, -0.0136)])
+      dv = jnp.asarray(rng.normal(size=(3,) + shape))
+      f = mpm.make_forces(cfg)
+      fn = lambda v: jnp.stack(boundary.apply_grid_bcs(  # noqa: E731
+        cfg, f, 0.0, tuple(v), m, touch))
+      _, jvp = jax.jvp(fn, (v0,), (dv,))
+      eps = 1e-7
+      fd = (fn(v0 + eps * dv) - fn(v0 - eps * dv)) / (2 * eps)
+      # Inside the domain box (its walls have a kink at rest, v = 0).
+      inner = (slice(None), slice(3, 13), slice(3, 13))
+      np.testing.assert_allclose(np.asarray(jvp)[inner],
+                                 np.asarray(fd)[inner], atol=1e-6)
+
   def test_separating_wall_lets_go_but_slip_holds(self):
     # Same configs as above (compiled once): a block leaving the wall.
     x0 = _box(3, (0.3, 0.45, 0.28))

@@ -40,11 +40,17 @@ CONTACT_NODE_DEPTH = 1.0
 _TOUCH = 1e-3
 # Surfaces whose grid velocity at the plane is constrained by node pairs.
 _PAIRED = ('sticky', 'separate')
+# A plane normal to a grid axis within this many cells of a node plane is
+# put on it for the grid constraints (``plane_node_distance``). The
+# pipeline places its ground on a node plane, to 0.1 um (prepare.py): up to
+# 1e-5 cells off at dx = 5 mm.
+_SNAP = 1e-4
 
 
 def has_node_pairs(config: base.SimConfig) -> bool:
   """Whether a plane of ``config`` pairs nodes (``_plane_pairs``), so the
-  substep needs the touching mass (a fifth P2G channel)."""
+  substep needs the touching mass (a fifth P2G channel, in the eight of
+  ``transfer.p2g``)."""
   return any(isinstance(bc, SurfaceCollider) and bc.surface in _PAIRED
              for bc in config.boundary_conditions)
 
@@ -288,6 +294,36 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   return tuple(x_new), tuple(v)
 
 
+def plane_node_distance(grid: base.GridSpec, bc, dtype):
+  """Signed distances of the grid nodes from the plane of ``bc`` [m]
+  (broadcastable to (G, G, G); positive in front of it).
+
+  For a plane normal to a grid axis the distances are exact multiples of
+  ``dx`` from the plane's position in cells, which is put on the nearest
+  node plane when within ``_SNAP`` cells of it. Otherwise a node on the
+  plane, or one cell behind it, sat a round-off (~1e-18 m) off it: the
+  node one cell behind was then paired (``_plane_pairs``) with a weight
+  ``b ~ 1e-18`` instead of 0, and the round-off normal change it got made
+  Coulomb friction stick its (zero) tangential velocity from rest, where
+  any tangential perturbation slides: the gradient from rest was the
+  stuck one (AD 0.24999 against differences 0.24852 in
+  tests/grad_finite_test.py's slip-ground pipeline case).
+  """
+  n = bc.normal
+  axes = [d for d in range(3) if n[d] != 0.0]
+  if len(axes) == 1:
+    k = axes[0]
+    c = (bc.point[k] - grid.lower[k]) / grid.dx
+    if abs(c - round(c)) < _SNAP:
+      c = float(round(c))
+    shape = [1, 1, 1]
+    shape[k] = grid.res
+    d = (np.arange(grid.res) - c) * grid.dx * n[k]  # n[k] = +-1
+    return jnp.asarray(d.reshape(shape), dtype)
+  xs = node_coords(grid, dtype)
+  return sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
+
+
 def _shift(a, k: int, s: int):
   """``b[i] = a[i + s e_k]`` (``s = +-1``), zero past the grid edge."""
   sl = [slice(None)] * 3
@@ -429,7 +465,7 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
       # plane where particles touch it (``_plane_pairs``). 'slip' is
       # bilateral and keeps every node behind the plane.
       depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
-      dist = sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
+      dist = plane_node_distance(grid, bc, gv[0].dtype)
       hit = on & (dist < -depth)
       if bc.surface == 'sticky':
         gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
