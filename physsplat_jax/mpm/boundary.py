@@ -252,8 +252,8 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   motion; particles already behind the plane are projected onto
   it. Together with ``apply_grid_bcs`` (which holds only nodes a cell or
   more behind the plane, so it cannot hold bodies above it; on a 'sticky'
-  plane it also stops the grid velocity at the plane where particles touch
-  it, ``_plane_pairs``) the support sits at the plane itself, wherever it
+  or 'separate' plane it also stops the grid velocity at the plane where
+  particles touch it, ``_plane_pairs``) the support sits at the plane itself, wherever it
   lies between grid nodes.
 
   Args:
@@ -396,12 +396,14 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   component) or does not approach it ('separate': the normal component
   ``r . n`` is raised to 0 where it is negative, an impulse along the
   normal, with Coulomb friction on each node's tangential velocity, which
-  shrinks by ``friction`` times its normal change). Material stopped at the plane is then stopped in
-  the velocity field too, so ``F`` records the compression of what presses
-  on it. Pairs with no touching particle stay free, so approaching bodies
-  are not slowed in front of the plane (they land on it,
-  ``particle_contact``). With several such planes a particle touching any
-  of them counts.
+  shrinks by ``friction`` times its normal change). Material stopped at
+  the plane is then stopped in the velocity field too, so ``F`` records
+  the compression of what presses on it. Pairs with no touching particle
+  stay free, so approaching bodies are not slowed in front of the plane
+  (they land on it, ``particle_contact``). With several such planes a
+  particle touching any of them counts. ``dist`` is
+  ``plane_node_distance``'s (a node on the plane has ``a = 0``, one a
+  cell behind it ``b = 0``, exactly).
   """
   k = int(np.argmax(np.abs(bc.normal)))
   s = 1 if bc.normal[k] > 0 else -1
@@ -461,8 +463,8 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
       # 'sticky'/'separate': only nodes at least a cell behind the plane (a
       # node closer to it would hold particles up to 1.5 dx - depth in
       # front of it); the plane itself is enforced on particles
-      # (``particle_contact``), and on 'sticky' the grid velocity at the
-      # plane where particles touch it (``_plane_pairs``). 'slip' is
+      # (``particle_contact``), and so is the grid velocity at the plane
+      # where particles touch it (``_plane_pairs``). 'slip' is
       # bilateral and keeps every node behind the plane.
       depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
       dist = plane_node_distance(grid, bc, gv[0].dtype)
