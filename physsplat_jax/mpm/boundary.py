@@ -38,6 +38,21 @@ BORDER = 3
 CONTACT_NODE_DEPTH = 1.0
 # A particle within this many cells of its contact distance touches a plane.
 _TOUCH = 1e-3
+# Surfaces whose grid velocity at the plane is constrained by node pairs.
+_PAIRED = ('sticky', 'separate')
+# A plane normal to a grid axis within this many cells of a node plane is
+# put on it for the grid constraints (``plane_node_distance``). The
+# pipeline places its ground on a node plane, to 0.1 um (prepare.py): up to
+# 1e-5 cells off at dx = 5 mm.
+_SNAP = 1e-4
+
+
+def has_node_pairs(config: base.SimConfig) -> bool:
+  """Whether a plane of ``config`` pairs nodes (``_plane_pairs``), so the
+  substep needs the touching mass (a fifth P2G channel, in the eight of
+  ``transfer.p2g``)."""
+  return any(isinstance(bc, SurfaceCollider) and bc.surface in _PAIRED
+             for bc in config.boundary_conditions)
 
 
 def _active(t, start, end, dt):
@@ -237,8 +252,8 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   motion; particles already behind the plane are projected onto
   it. Together with ``apply_grid_bcs`` (which holds only nodes a cell or
   more behind the plane, so it cannot hold bodies above it; on a 'sticky'
-  plane it also stops the grid velocity at the plane where particles touch
-  it, ``_plane_pairs``) the support sits at the plane itself, wherever it
+  or 'separate' plane it also stops the grid velocity at the plane where
+  particles touch it, ``_plane_pairs``) the support sits at the plane itself, wherever it
   lies between grid nodes.
 
   Args:
@@ -279,6 +294,36 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   return tuple(x_new), tuple(v)
 
 
+def plane_node_distance(grid: base.GridSpec, bc, dtype):
+  """Signed distances of the grid nodes from the plane of ``bc`` [m]
+  (broadcastable to (G, G, G); positive in front of it).
+
+  For a plane normal to a grid axis the distances are exact multiples of
+  ``dx`` from the plane's position in cells, which is put on the nearest
+  node plane when within ``_SNAP`` cells of it. Otherwise a node on the
+  plane, or one cell behind it, sat a round-off (~1e-18 m) off it: the
+  node one cell behind was then paired (``_plane_pairs``) with a weight
+  ``b ~ 1e-18`` instead of 0, and the round-off normal change it got made
+  Coulomb friction stick its (zero) tangential velocity from rest, where
+  any tangential perturbation slides: the gradient from rest was the
+  stuck one (AD 0.24999 against differences 0.24852 in
+  tests/grad_finite_test.py's slip-ground pipeline case).
+  """
+  n = bc.normal
+  axes = [d for d in range(3) if n[d] != 0.0]
+  if len(axes) == 1:
+    k = axes[0]
+    c = (bc.point[k] - grid.lower[k]) / grid.dx
+    if abs(c - round(c)) < _SNAP:
+      c = float(round(c))
+    shape = [1, 1, 1]
+    shape[k] = grid.res
+    d = (np.arange(grid.res) - c) * grid.dx * n[k]  # n[k] = +-1
+    return jnp.asarray(d.reshape(shape), dtype)
+  xs = node_coords(grid, dtype)
+  return sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
+
+
 def _shift(a, k: int, s: int):
   """``b[i] = a[i + s e_k]`` (``s = +-1``), zero past the grid edge."""
   sl = [slice(None)] * 3
@@ -289,13 +334,15 @@ def _shift(a, k: int, s: int):
 
 
 def sticky_touch(config: base.SimConfig, t, x, radius):
-  """(N,) 1 where a particle touches (or is behind) an active sticky plane.
+  """(N,) 1 where a particle touches (or is behind) an active 'sticky' or
+  'separate' plane (the node pairs of ``_plane_pairs``).
 
-  The same test as ``particle_contact``'s: a touching particle sticks.
+  The same distance test as ``particle_contact``'s (a particle at rest on
+  a 'separate' plane touches it too).
   """
   out = jnp.zeros_like(x[0])
   for p, n, _, surface, on in contact_planes(config, t):
-    if surface == 'sticky':
+    if surface in _PAIRED:
       d0 = sum((x[k] - p[k]) * n[k] for k in range(3)) - radius
       out = jnp.where(on & (d0 <= _TOUCH * config.grid.dx), 1.0, out)
   return out
@@ -336,7 +383,7 @@ def _node_velocity_jvp(primals, tangents):
 
 
 def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
-  """Zero velocity at a sticky plane itself, where material touches it.
+  """The grid velocity at the plane itself, where material touches it.
 
   Each node less than a cell behind the plane (depth ``a``, measured along
   the normal; a cell is ``h = dx |n_k|`` along the normal's dominant axis
@@ -344,13 +391,19 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   that axis. Where particles touching the plane (``sticky_touch``) give
   either node mass (``touch`` > 0), the pair's velocities are projected,
   with the least change of kinetic energy (an impulse ``-(b, a) lam`` on
-  the two masses), onto ``b v_behind + a v_front = 0``: the linear
-  interpolant of the pair vanishes at the plane. Material stopped at the
-  plane is then stopped in the velocity field too, so ``F`` records the
-  compression of what presses on it. Pairs with no touching particle stay
-  free, so approaching bodies are not slowed in front of the plane (they
-  land on it, ``particle_contact``). With several sticky planes a particle
-  touching any of them counts.
+  the two masses), so that their linear interpolant at the plane,
+  ``r = (b v_behind + a v_front) / h``, is zero ('sticky': every
+  component) or does not approach it ('separate': the normal component
+  ``r . n`` is raised to 0 where it is negative, an impulse along the
+  normal, with Coulomb friction on each node's tangential velocity, which
+  shrinks by ``friction`` times its normal change). Material stopped at
+  the plane is then stopped in the velocity field too, so ``F`` records
+  the compression of what presses on it. Pairs with no touching particle
+  stay free, so approaching bodies are not slowed in front of the plane
+  (they land on it, ``particle_contact``). With several such planes a
+  particle touching any of them counts. ``dist`` is
+  ``plane_node_distance``'s (a node on the plane has ``a = 0``, one a
+  cell behind it ``b = 0``, exactly).
   """
   k = int(np.argmax(np.abs(bc.normal)))
   s = 1 if bc.normal[k] > 0 else -1
@@ -368,11 +421,18 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
   den = jnp.where(ok, den, 1.0)
   cb = jnp.where(ok, b * (1.0 - q) / den, 0.0)
   cf = jnp.where(ok, a * q / den, 0.0)
-  out = []
-  for c in range(3):
-    r = b * gv[c] + a * _shift(gv[c], k, s)
-    out.append(gv[c] - r * cb - _shift(r * cf, k, -s))
-  return out
+  if bc.surface == 'sticky':
+    out = []
+    for c in range(3):
+      r = b * gv[c] + a * _shift(gv[c], k, s)
+      out.append(gv[c] - r * cb - _shift(r * cf, k, -s))
+    return out
+  n = bc.normal
+  vn = sum(gv[c] * n[c] for c in range(3))
+  r = jnp.minimum(b * vn + a * _shift(vn, k, s), 0.0)
+  dv = r * cb + _shift(r * cf, k, -s)  # <= 0: minus the normal change
+  w = _friction([gv[c] - vn * n[c] for c in range(3)], dv, n, bc.friction)
+  return [w[c] + (vn - dv) * n[c] for c in range(3)]
 
 
 def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
@@ -385,8 +445,8 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
     t: () time [s].
     gv: 3-tuple of (G, G, G) node velocities [m/s].
     mass, touch: (G, G, G) node masses and masses of the particles touching
-      a sticky plane (``sticky_touch``) [kg]; None skips the node pairs at
-      a 'sticky' plane (``_plane_pairs``).
+      a 'sticky' or 'separate' plane (``sticky_touch``) [kg]; None skips
+      the node pairs at those planes (``_plane_pairs``).
 
   Returns:
     3-tuple of (G, G, G) node velocities.
@@ -403,11 +463,11 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
       # 'sticky'/'separate': only nodes at least a cell behind the plane (a
       # node closer to it would hold particles up to 1.5 dx - depth in
       # front of it); the plane itself is enforced on particles
-      # (``particle_contact``), and on 'sticky' the grid velocity at the
-      # plane where particles touch it (``_plane_pairs``). 'slip' is
+      # (``particle_contact``), and so is the grid velocity at the plane
+      # where particles touch it (``_plane_pairs``). 'slip' is
       # bilateral and keeps every node behind the plane.
       depth = 0.0 if bc.surface == 'slip' else CONTACT_NODE_DEPTH * grid.dx
-      dist = sum((xs[d] - bc.point[d]) * n[d] for d in range(3))
+      dist = plane_node_distance(grid, bc, gv[0].dtype)
       hit = on & (dist < -depth)
       if bc.surface == 'sticky':
         gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
@@ -422,6 +482,9 @@ def apply_grid_bcs(config: base.SimConfig, forces, t, gv, mass=None,
       w = [gv[d] - rem * n[d] for d in range(3)]
       w = _friction(w, vn, n, bc.friction)
       gv = [jnp.where(hit, w[d], gv[d]) for d in range(3)]
+      if (bc.surface == 'separate' and mass is not None
+          and touch is not None):
+        gv = _plane_pairs(grid, bc, on, dist, mass, touch, gv)
     elif isinstance(bc, Cuboid):
       vel = forces.values[i]
       on = _active(t, bc.start_time, bc.end_time, dt)

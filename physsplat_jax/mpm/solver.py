@@ -216,9 +216,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   has_bodies = config.num_bodies > 0
   has_planes = any(isinstance(bc, base.SurfaceCollider)
                    for bc in config.boundary_conditions)
-  has_sticky = any(isinstance(bc, base.SurfaceCollider)
-                   and bc.surface == 'sticky'
-                   for bc in config.boundary_conditions)
+  has_sticky = boundary.has_node_pairs(config)  # sticky/separate planes
   # Domain walls for rigid bodies (moved out as a whole, not clamped per
   # particle, which would deform them).
   walls = []
@@ -282,7 +280,8 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
                 for i in range(3))
       st = transfer.Stencil(grid, x)
       radius = boundary.particle_radius(vol0) if has_planes else 0.0
-      # Mass of the particles touching a sticky plane (``_plane_pairs``).
+      # Mass of the particles touching a sticky or separate plane
+      # (``_plane_pairs``).
       touch = (mass * boundary.sticky_touch(config, t, x, radius)
                if has_sticky else None)
       gm = red(transfer.p2g(grid, st, v, mass, A, touch))
