@@ -18,6 +18,8 @@ from physsplat_jax import test_util
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render.project import project
 from physsplat_jax.render import raster
+from physsplat_jax.render.config import RenderConfigError
+from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.render import reference
 from physsplat_jax import sh_rotation
 from physsplat_jax.render import views
@@ -203,16 +205,20 @@ class CapacityTest(parameterized.TestCase):
   def test_bad_inputs_raise_clear_errors(self):
     g = _scene(num=5)
     cam = _camera(16, 16)
-    with self.assertRaisesRegex(ValueError, 'covariances has shape'):
+    # The package's own errors (one line in the scripts), still ValueErrors.
+    with self.assertRaisesRegex(RenderInputError, 'covariances has shape'):
       raster.render(g, cam, covariances=jnp.zeros((4, 3, 3)))
-    with self.assertRaisesRegex(ValueError, 'colors has shape'):
+    with self.assertRaisesRegex(RenderInputError, 'colors has shape'):
       raster.render(g, cam, colors=jnp.zeros((5, 4)))
-    with self.assertRaisesRegex(ValueError, 'background has shape'):
+    with self.assertRaisesRegex(RenderInputError, 'background has shape'):
       raster.render(g, cam, background=(1.0, 1.0))
-    with self.assertRaisesRegex(ValueError, 'no Gaussians'):
+    with self.assertRaisesRegex(RenderInputError, 'no Gaussians'):
       raster.render(g.subset(np.zeros(5, bool)), cam)
-    with self.assertRaisesRegex(ValueError, 'prefix'):
+    with self.assertRaisesRegex(RenderConfigError, 'prefix'):
       raster.render(g, cam, config=raster.RenderConfig(prefix='scan'))
+    for cls in (RenderInputError, RenderConfigError):
+      self.assertTrue(issubclass(cls, PhysSplatError))
+      self.assertTrue(issubclass(cls, ValueError))
 
 
 def gs_single(s, o):

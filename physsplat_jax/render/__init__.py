@@ -14,6 +14,9 @@ from physsplat_jax.render.project import project as project
 from physsplat_jax.render.config import (
   RenderConfigError as RenderConfigError,
 )
+from physsplat_jax.render.config import (
+  RenderInputError as RenderInputError,
+)
 from physsplat_jax.render.raster import RenderConfig as RenderConfig
 from physsplat_jax.render.raster import RenderOutput as RenderOutput
 from physsplat_jax.render.raster import fit_render_config as fit_render_config

@@ -18,6 +18,11 @@ class RenderConfigError(PhysSplatError, ValueError):
   """A :class:`RenderConfig` field has a value it cannot take."""
 
 
+class RenderInputError(PhysSplatError, ValueError):
+  """Something given to the renderer (Gaussians, camera, arrays, image)
+  has a shape or value it cannot take."""
+
+
 @dataclasses.dataclass(frozen=True)
 class RenderConfig:
   """Static rasterizer settings (hashable; any change recompiles).

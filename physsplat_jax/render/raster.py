@@ -81,6 +81,8 @@ from jax import lax
 
 from physsplat_jax import gaussians as gs
 from physsplat_jax.render.config import RenderConfig as RenderConfig
+from physsplat_jax.render.config import RenderConfigError
+from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.render.config import RenderOutput as RenderOutput
 from physsplat_jax.render.project import Projected
 from physsplat_jax.render.project import project
@@ -101,81 +103,81 @@ _NUM_FEATURES = 10  # mean x, y; conic a, b, c; opacity; r, g, b; depth
 def _check_inputs(gaussians, camera, background, covariances, view_rotations,
                   colors, config):
   if not isinstance(gaussians, Gaussians):
-    raise ValueError(
+    raise RenderInputError(
       f'render: gaussians must be a physsplat_jax.types.Gaussians, got '
       f'{type(gaussians).__name__}'
     )
   if not isinstance(camera, Camera):
-    raise ValueError(
+    raise RenderInputError(
       f'render: camera must be a physsplat_jax.types.Camera, got '
       f'{type(camera).__name__} (build one with types.make_camera)'
     )
   K = gaussians.means.shape[0]
   if gaussians.means.ndim != 2 or gaussians.means.shape[1] != 3:
-    raise ValueError(
+    raise RenderInputError(
       f'render: gaussians.means has shape {gaussians.means.shape}; expected '
       '(K, 3)'
     )
   if K == 0:
-    raise ValueError(
+    raise RenderInputError(
       'render: the scene has no Gaussians (K = 0); nothing to draw'
     )
   if covariances is not None and covariances.shape != (K, 3, 3):
-    raise ValueError(
+    raise RenderInputError(
       f'render: covariances has shape {covariances.shape}; expected ({K}, 3, '
       '3), one 3x3 covariance per Gaussian (e.g. F Sigma F^T)'
     )
   if view_rotations is not None and view_rotations.shape != (K, 3, 3):
-    raise ValueError(
+    raise RenderInputError(
       f'render: view_rotations has shape {view_rotations.shape}; expected '
       f'({K}, 3, 3), one rotation per Gaussian'
     )
   if colors is not None and colors.shape != (K, 3):
-    raise ValueError(
+    raise RenderInputError(
       f'render: colors has shape {colors.shape}; expected ({K}, 3) RGB'
     )
   if colors is None and (
     gaussians.sh.ndim != 3 or gaussians.sh.shape[0] != K
     or gaussians.sh.shape[2] != 3
   ):
-    raise ValueError(
+    raise RenderInputError(
       f'render: gaussians.sh has shape {gaussians.sh.shape}; expected '
       f'({K}, B, 3)'
     )
   if np.shape(background) != (3,):
-    raise ValueError(
+    raise RenderInputError(
       f'render: background has shape {np.shape(background)}; expected (3,) '
       'RGB, e.g. (1, 1, 1) for white'
     )
   if camera.width < 1 or camera.height < 1:
-    raise ValueError(
+    raise RenderInputError(
       f'render: camera size {camera.width}x{camera.height} must be positive'
     )
   if config.tile_size < 1 or config.chunk_size < 1:
-    raise ValueError(
+    raise RenderConfigError(
       f'RenderConfig: tile_size ({config.tile_size}) and chunk_size '
       f'({config.chunk_size}) must be >= 1'
     )
   st = config.resolved_subtile
   if st < 1 or config.tile_size % st:
-    raise ValueError(
+    raise RenderConfigError(
       f'RenderConfig.subtile_size ({config.subtile_size}) must divide '
       f'tile_size ({config.tile_size}); use e.g. 8 for 16-pixel tiles, or '
       'None'
     )
   if config.resolved_capacity(K) < 1:
-    raise ValueError(
+    raise RenderConfigError(
       f'RenderConfig.capacity must be >= 1, got {config.capacity}'
     )
   if config.backend not in ('auto', 'jax', 'pallas'):
-    raise ValueError(
+    raise RenderConfigError(
       f"RenderConfig.backend must be 'auto', 'jax' or 'pallas', got "
       f'{config.backend!r}'
     )
   if config.resolved_backend() == 'pallas':
     _check_pallas(config)
   if config.prefix not in ('matmul', 'cumsum'):
-    raise ValueError(
+    raise RenderConfigError(
       f"RenderConfig.prefix must be 'matmul' or 'cumsum', got "
       f'{config.prefix!r}'
     )
@@ -185,13 +187,13 @@ def _check_pallas(config):
   st = config.resolved_subtile
   pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
   if not (pow2(st) and pow2(config.pallas_block)):
-    raise ValueError(
+    raise RenderConfigError(
       f"RenderConfig: backend='pallas' needs a power-of-two sub-tile edge "
       f'and pallas_block (Triton block shapes), got {st} and '
       f'{config.pallas_block}'
     )
   if jax.default_backend() != 'gpu' and not config.interpret:
-    raise ValueError(
+    raise RenderConfigError(
       f"RenderConfig: backend='pallas' runs on a GPU; on "
       f"'{jax.default_backend()}' set interpret=True (slow, for tests)"
     )

@@ -23,6 +23,8 @@ import math
 
 import numpy as np
 
+from physsplat_jax.render.config import RenderInputError
+
 
 def project_numpy(means, covariances, viewmat, fx, fy, cx, cy, width, height,
                   near=0.01, far=1e10, eps2d=0.3):
@@ -107,7 +109,7 @@ def render_reference(means, covariances, colors, opacities, viewmat, fx, fy,
   if rasterize_mode == 'antialiased':
     opac = opac * p['compensations']
   elif rasterize_mode != 'classic':
-    raise ValueError(f'rasterize_mode {rasterize_mode!r}')
+    raise RenderInputError(f'rasterize_mode {rasterize_mode!r}')
   H, W = int(height), int(width)
   jj, ii = np.meshgrid(np.arange(W), np.arange(H))
   px, py = jj + 0.5, ii + 0.5

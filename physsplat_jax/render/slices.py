@@ -23,13 +23,14 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.types import Array
 
 
 def _check_frames(frames) -> Array:
   frames = jnp.asarray(frames)
   if frames.ndim != 4 or frames.shape[0] < 1:
-    raise ValueError(
+    raise RenderInputError(
       f'space_time_slice: frames have shape {frames.shape}; expected '
       '(T, H, W, C) with T >= 1'
     )
@@ -52,16 +53,16 @@ def line_points(
   p0 = np.asarray(start, np.float64)
   p1 = np.asarray(end, np.float64)
   if p0.shape != (2,) or p1.shape != (2,):
-    raise ValueError(
+    raise RenderInputError(
       f'line_points: start and end must be (x, y) pairs, got {p0.shape} and '
       f'{p1.shape}'
     )
   if not (np.all(np.isfinite(p0)) and np.all(np.isfinite(p1))):
-    raise ValueError(f'line_points: non-finite points {p0}, {p1}')
+    raise RenderInputError(f'line_points: non-finite points {p0}, {p1}')
   if num_samples is None:
     num_samples = int(math.ceil(float(np.linalg.norm(p1 - p0)))) + 1
   if int(num_samples) < 2:
-    raise ValueError(f'line_points: num_samples must be >= 2, got '
+    raise RenderInputError(f'line_points: num_samples must be >= 2, got '
                      f'{num_samples}')
   s = np.linspace(0.0, 1.0, int(num_samples))[:, None]
   return p0 + s * (p1 - p0)
@@ -128,24 +129,24 @@ def space_time_slice(
   given = [row is not None, column is not None,
            start is not None or end is not None]
   if sum(given) != 1:
-    raise ValueError(
+    raise RenderInputError(
       'space_time_slice: give exactly one of row=, column= or start=/end='
     )
   if time_axis not in (0, 1):
-    raise ValueError(f'space_time_slice: time_axis must be 0 or 1, got '
+    raise RenderInputError(f'space_time_slice: time_axis must be 0 or 1, got '
                      f'{time_axis}')
   if row is not None:
     if not 0 <= int(row) < H:
-      raise ValueError(f'space_time_slice: row {row} outside 0..{H - 1}')
+      raise RenderInputError(f'space_time_slice: row {row} outside 0..{H - 1}')
     out = frames[:, int(row)]
   elif column is not None:
     if not 0 <= int(column) < W:
-      raise ValueError(
+      raise RenderInputError(
         f'space_time_slice: column {column} outside 0..{W - 1}')
     out = frames[:, :, int(column)]
   else:
     if start is None or end is None:
-      raise ValueError('space_time_slice: give both start= and end=')
+      raise RenderInputError('space_time_slice: give both start= and end=')
     out = sample_bilinear(frames, line_points(start, end, num_samples))
   return out if time_axis == 0 else jnp.swapaxes(out, 0, 1)
 
@@ -159,7 +160,7 @@ def draw_line(image, *, row=None, column=None, start=None, end=None,
   """
   image = jnp.asarray(image)
   if image.ndim != 3:
-    raise ValueError(f'draw_line: image has shape {image.shape}; expected '
+    raise RenderInputError(f'draw_line: image has shape {image.shape}; expected '
                      '(H, W, C)')
   H, W, _ = image.shape
   color = jnp.asarray(color, image.dtype)

@@ -17,6 +17,7 @@ import numpy as np
 
 from physsplat_jax import cameras as cam_lib
 from physsplat_jax.render import raster
+from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.types import Camera
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import Scene
@@ -45,7 +46,7 @@ def parse_background(value) -> tuple[float, float, float]:
   except ValueError:
     rgb = ()
   if len(rgb) != 3 or not all(np.isfinite(rgb)):
-    raise ValueError(
+    raise RenderInputError(
       f'background {value!r}: use a name ({", ".join(BACKGROUNDS)}) or three '
       'numbers in [0, 1] such as "1,1,1"'
     )
@@ -61,7 +62,7 @@ def resize_camera(camera: Camera, width: int, height: int) -> Camera:
   """
   width, height = int(width), int(height)
   if width < 1 or height < 1:
-    raise ValueError(f'image size must be positive, got {width}x{height}')
+    raise RenderInputError(f'image size must be positive, got {width}x{height}')
   if (width, height) == (camera.width, camera.height):
     return camera
   if abs(camera.width / camera.height - width / height) < 1e-6:
@@ -128,7 +129,7 @@ def scene_camera(
   else:
     i = int(camera)
     if not 0 <= i < len(cams):
-      raise ValueError(
+      raise RenderInputError(
         f'camera index {i}: the scene has {len(cams)} cameras; use '
         f'0..{len(cams) - 1}, or -1 for a camera fitted to the scene'
       )
@@ -171,7 +172,7 @@ def render_scene(
   """
   gauss = scene.gaussians if isinstance(scene, Scene) else scene
   if not isinstance(gauss, Gaussians):
-    raise ValueError(
+    raise RenderInputError(
       f'render_scene: expected a Scene or Gaussians, got '
       f'{type(scene).__name__} (load one with physsplat_jax.io.scene.'
       'load_scene)'
@@ -179,7 +180,7 @@ def render_scene(
   cam = scene_camera(scene, camera, width, height)
   if sh_degree is not None:
     if not 0 <= int(sh_degree) <= 3:
-      raise ValueError(f'sh_degree must be 0..3, got {sh_degree}')
+      raise RenderInputError(f'sh_degree must be 0..3, got {sh_degree}')
     sh_degree = min(int(sh_degree), gauss.sh_degree)
     config = dataclasses.replace(config, sh_degree=sh_degree)
   out = raster.render_image(gauss, cam, background=parse_background(
