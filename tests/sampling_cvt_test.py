@@ -163,6 +163,56 @@ class SelectCVTTest(absltest.TestCase):
     self.assertGreater(n[1] / v[1], 2.0 * n[0] / v[0], n)
     np.testing.assert_allclose(d.volume.sum(), m * h**3, rtol=VOLUME_RTOL)
 
+  def test_volume_fraction_bulk_and_plate(self):
+    # A solid 1 m block of 0.05 m cells and a 0.05 m plate, voxels 0.1 m,
+    # window 5 voxels: ~1 deep in the block, ~t / (5 voxel) = 0.1 across
+    # the plate (the occupancy measure says ~0.2 for any thickness).
+    h = 0.05
+    g = np.arange(0, 1, h) + h / 2
+    block = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)
+    plate = np.stack(np.meshgrid(g + 2.0, g, [0.5]), -1).reshape(-1, 3)
+    x = np.concatenate([block, plate])
+    ob = np.r_[np.zeros(len(block)), np.ones(len(plate))].astype(int)
+    psi = sampling.volume_fraction(x, ob, np.full(len(x), h**3), voxel=0.1)
+    inner = np.all((block > 0.3) & (block < 0.7), axis=1)
+    np.testing.assert_allclose(psi[:len(block)][inner], 1.0, rtol=1e-9)
+    mid = np.all(np.abs(plate[:, :2] - [2.5, 0.5]) < 0.2, axis=1)
+    np.testing.assert_allclose(psi[len(block):][mid], 0.1, rtol=1e-9)
+
+  def test_twigs_under_a_crown_get_the_count_split(self):
+    # The ficus in small: a twig (a line, object 0) under a crown of
+    # stacked thin leaves (object 1). Both are thin by material, so the
+    # default rule gives both the same factor and the split is K-means'
+    # (by candidates). Counted by occupied voxels (the old rule) the crown
+    # fills its voxels like a bulk and the twig got ~2.5x its share.
+    twig = np.c_[np.zeros((2, 501)).T, np.linspace(0, 1, 501)]
+    g = np.linspace(-0.4, 0.4, 21)
+    crown = np.stack(np.meshgrid(g, g, 1.2 + 0.04 * np.arange(12)),
+                     -1).reshape(-1, 3)
+    x = np.concatenate([twig, crown])
+    m = len(x)
+    vol = np.r_[np.full(len(twig), np.pi * 0.005**2 * 0.002),  # 1 cm twig
+                np.full(len(crown), 0.04**2 * 0.002)]  # 2 mm leaves
+    cand = sampling.Candidates(
+      x=x, is_surface=np.ones(m, bool),
+      object_ids=np.r_[np.zeros(len(twig)), np.ones(len(crown))].astype(
+        np.int32), covariances=np.zeros((m, 3, 3)), volume=vol,
+      gaussian_index=np.full(m, -1, np.int32))
+    budget = 400
+    share = len(twig) / m  # K-means' split: 0.086
+
+    def twig_count(**kw):
+      d = sampling.select_drivers(
+        jax.random.PRNGKey(0), cand, 'pgas-cvt', E={0: 3e5, 1: 1e5},
+        config=sampling.PGASConfig(base_radius=0.1), budget=budget,
+        cvt=sampling.CVTConfig(lloyd_iters=0, **kw))
+      return np.sum(d.object_ids == 0)
+
+    self.assertAlmostEqual(twig_count(), share * budget, delta=1.0)
+    self.assertGreater(twig_count(thinness='occupancy', geom_ref=0.6,
+                                   geom_max=3.0),
+                       2.0 * share * budget)
+
   def test_bad_input(self):
     with self.assertRaisesRegex(PhysSplatError, 'density_power'):
       sampling.CVTConfig(density_power=-1.0)

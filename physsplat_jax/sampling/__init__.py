@@ -19,6 +19,7 @@ from physsplat_jax.sampling.centroidal import allocate
 from physsplat_jax.sampling.centroidal import fill_fraction
 from physsplat_jax.sampling.centroidal import select_cvt
 from physsplat_jax.sampling.centroidal import target_density
+from physsplat_jax.sampling.centroidal import volume_fraction
 from physsplat_jax.sampling.centroidal import weighted_lloyd
 from physsplat_jax.sampling.clustering import KMeansResult
 from physsplat_jax.sampling.clustering import kmeans
