@@ -12,6 +12,15 @@ from physsplat_jax.errors import PhysSplatError
 VOLUME_RTOL = 1e-12
 
 
+
+def _block_and_plate(h, gap):
+  """Cell centres (side ``h``) of a unit cube and of a unit square plate
+  one cell thick at ``z = 0.5``, shifted by ``gap`` along x."""
+  g = np.arange(0, 1, h) + h / 2
+  block = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)
+  plate = np.stack(np.meshgrid(g + gap, g, [0.5]), -1).reshape(-1, 3)
+  return block, plate
+
 class AllocateTest(absltest.TestCase):
 
   def test_proportional_within_bounds(self):
@@ -144,9 +153,7 @@ class SelectCVTTest(absltest.TestCase):
     # default allocation gives the plate more drivers per volume (K-means
     # would split by candidate count, i.e. by volume here).
     h = 0.05
-    g = np.arange(0, 1, h) + h / 2
-    block = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)
-    plate = np.stack(np.meshgrid(g + 1.0, g, [0.5]), -1).reshape(-1, 3)
+    block, plate = _block_and_plate(h, 1.0)
     x = np.concatenate([block, plate])
     m = len(x)
     cand = sampling.Candidates(
@@ -168,9 +175,7 @@ class SelectCVTTest(absltest.TestCase):
     # window 5 voxels: ~1 deep in the block, ~t / (5 voxel) = 0.1 across
     # the plate (the occupancy measure says ~0.2 for any thickness).
     h = 0.05
-    g = np.arange(0, 1, h) + h / 2
-    block = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)
-    plate = np.stack(np.meshgrid(g + 2.0, g, [0.5]), -1).reshape(-1, 3)
+    block, plate = _block_and_plate(h, 2.0)
     x = np.concatenate([block, plate])
     ob = np.r_[np.zeros(len(block)), np.ones(len(plate))].astype(int)
     psi = sampling.volume_fraction(x, ob, np.full(len(x), h**3), voxel=0.1)
