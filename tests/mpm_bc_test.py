@@ -92,7 +92,8 @@ class RigidTest(absltest.TestCase):
     """A resting cube 0.01 into a floor (given twice, as a sticky and a
     separating plane) and 0.02 into a wall comes out of all three in one
     projection, moved exactly by its penetrations (not twice out of the
-    doubled floor), though the planes' contact sets are summed together."""
+    doubled floor), whether the planes' contact sets are measured one
+    after another or all at once."""
     from physsplat_jax.mpm import rigid  # noqa: PLC0415
     cube = _box(4, (0.28, 0.5, 0.29))  # faces at x = 0.28, z = 0.29
     n = len(cube)
@@ -106,16 +107,18 @@ class RigidTest(absltest.TestCase):
     F = tuple(tuple(jnp.full((n,), float(i == j)) for j in range(3))
               for i in range(3))
     zero = tuple(jnp.zeros(n) for _ in range(3))
-    _, x, v, _, _ = rigid.project(
-      1, (False,), _GRID.dx, 1e-4, jnp.zeros(n, jnp.int32),
-      jnp.ones(n), tuple(jnp.asarray(cube[:, d]) for d in range(3)), zero,
-      F, planes=planes)
-    x = np.stack(x, -1)
     lowest = cube[:, 2].min() - rad  # 0.29: 0.01 into the floor
     leftmost = cube[:, 0].min() - rad  # 0.28: 0.02 into the wall
-    np.testing.assert_allclose(x - cube, np.broadcast_to(
-      [0.3 - leftmost, 0.0, 0.3 - lowest], cube.shape), atol=1e-6)
-    np.testing.assert_allclose(np.stack(v, -1), 0.0, atol=1e-6)
+    for form in ('sequential', 'merged'):  # the CPU's and the GPU's
+      _, x, v, _, _ = rigid.project(
+        1, (False,), _GRID.dx, 1e-4, jnp.zeros(n, jnp.int32),
+        jnp.ones(n), tuple(jnp.asarray(cube[:, d]) for d in range(3)), zero,
+        F, planes=planes, contact_form=form)
+      x = np.stack(x, -1)
+      np.testing.assert_allclose(x - cube, np.broadcast_to(
+        [0.3 - leftmost, 0.0, 0.3 - lowest], cube.shape), atol=1e-6,
+        err_msg=form)
+      np.testing.assert_allclose(np.stack(v, -1), 0.0, atol=1e-6)
 
 
 class BoundaryTest(absltest.TestCase):
