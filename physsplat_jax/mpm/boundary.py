@@ -253,8 +253,8 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   it. Together with ``apply_grid_bcs`` (which holds only nodes a cell or
   more behind the plane, so it cannot hold bodies above it; on a 'sticky'
   or 'separate' plane it also stops the grid velocity at the plane where
-  particles touch it, ``_plane_pairs``) the support sits at the plane itself, wherever it
-  lies between grid nodes.
+  particles touch it, ``_plane_pairs``) the support sits at the plane
+  itself, wherever it lies between grid nodes.
 
   Args:
     config: static config.

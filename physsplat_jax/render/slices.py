@@ -63,7 +63,7 @@ def line_points(
     num_samples = int(math.ceil(float(np.linalg.norm(p1 - p0)))) + 1
   if int(num_samples) < 2:
     raise RenderInputError(f'line_points: num_samples must be >= 2, got '
-                     f'{num_samples}')
+                           f'{num_samples}')
   s = np.linspace(0.0, 1.0, int(num_samples))[:, None]
   return p0 + s * (p1 - p0)
 
@@ -133,8 +133,8 @@ def space_time_slice(
       'space_time_slice: give exactly one of row=, column= or start=/end='
     )
   if time_axis not in (0, 1):
-    raise RenderInputError(f'space_time_slice: time_axis must be 0 or 1, got '
-                     f'{time_axis}')
+    raise RenderInputError(
+      f'space_time_slice: time_axis must be 0 or 1, got {time_axis}')
   if row is not None:
     if not 0 <= int(row) < H:
       raise RenderInputError(f'space_time_slice: row {row} outside 0..{H - 1}')
@@ -160,8 +160,8 @@ def draw_line(image, *, row=None, column=None, start=None, end=None,
   """
   image = jnp.asarray(image)
   if image.ndim != 3:
-    raise RenderInputError(f'draw_line: image has shape {image.shape}; expected '
-                     '(H, W, C)')
+    raise RenderInputError(
+      f'draw_line: image has shape {image.shape}; expected (H, W, C)')
   H, W, _ = image.shape
   color = jnp.asarray(color, image.dtype)
   if row is not None:

@@ -187,17 +187,7 @@ def fill_fraction(x, object_ids, voxel: float, window: int = 2):
   Returns:
     (M,) fractions in (0, 1].
   """
-  x = np.asarray(x, np.float64)
-  ob = np.asarray(object_ids)
-  phi = np.ones(len(x))
-  for o in np.unique(ob):
-    m = ob == o
-    v = np.floor((x[m] - x[m].min(0)) / voxel).astype(np.int64) + window
-    occ = np.zeros(tuple(v.max(0) + window + 1), np.float32)
-    occ[v[:, 0], v[:, 1], v[:, 2]] = 1.0
-    frac = ndimage.uniform_filter(occ, size=2 * window + 1, mode='constant')
-    phi[m] = frac[v[:, 0], v[:, 1], v[:, 2]]
-  return np.clip(phi, 1e-6, 1.0)
+  return np.clip(_window_mean(x, object_ids, None, voxel, window), 1e-6, 1.0)
 
 
 def volume_fraction(x, object_ids, volume, voxel: float, window: int = 2):
@@ -219,18 +209,31 @@ def volume_fraction(x, object_ids, volume, voxel: float, window: int = 2):
   Returns:
     (M,) fractions > 0.
   """
+  psi = _window_mean(x, object_ids, np.asarray(volume, np.float64), voxel,
+                     window) / voxel**3
+  return np.clip(psi, 1e-9, None)
+
+
+def _window_mean(x, object_ids, values, voxel: float, window: int):
+  """Per point, the mean over the ``(2 s + 1)^3`` voxels around it of a
+  per-voxel grid of its object: 1 where the object has a point (``values``
+  None, float32) or the sum of ``values`` of its points in the voxel."""
   x = np.asarray(x, np.float64)
   ob = np.asarray(object_ids)
-  vol = np.asarray(volume, np.float64)
-  psi = np.ones(len(x))
+  out = np.ones(len(x))
   for o in np.unique(ob):
     m = ob == o
     v = np.floor((x[m] - x[m].min(0)) / voxel).astype(np.int64) + window
-    grid = np.zeros(tuple(v.max(0) + window + 1))
-    np.add.at(grid, (v[:, 0], v[:, 1], v[:, 2]), vol[m])
+    shape = tuple(v.max(0) + window + 1)
+    if values is None:
+      grid = np.zeros(shape, np.float32)
+      grid[v[:, 0], v[:, 1], v[:, 2]] = 1.0
+    else:
+      grid = np.zeros(shape)
+      np.add.at(grid, (v[:, 0], v[:, 1], v[:, 2]), values[m])
     frac = ndimage.uniform_filter(grid, size=2 * window + 1, mode='constant')
-    psi[m] = frac[v[:, 0], v[:, 1], v[:, 2]] / voxel**3
-  return np.clip(psi, 1e-9, None)
+    out[m] = frac[v[:, 0], v[:, 1], v[:, 2]]
+  return out
 
 
 def target_density(cand, E, config: pgas.PGASConfig,
