@@ -401,10 +401,11 @@ def _define_flags():
     summarize=flags.DEFINE_bool(
       'summarize', False, 'run nothing: print, from the rows in --json, '
       'pgas-cvt / kmeans per scene and budget over the seeds'),
-    versus=flags.DEFINE_string(
+    summarize_method=flags.DEFINE_string(
       'summarize_method', 'pgas-cvt', 'with --summarize: the method (as '
-      "named in the rows, e.g. 'pgas-cvt:thinness=occupancy/geom_max=3') "
-      'compared with kmeans'),
+      "named in the rows, e.g. "
+      "'pgas-cvt:thinness=occupancy/geom_ref=0.6/geom_max=3') compared "
+      'with kmeans'),
     ppc=flags.DEFINE_float('particles_per_cell', 4.0,
                            'sets the base radius dx (1.24 / ppc)^(1/3), as '
                            'the pipeline does'))
@@ -416,7 +417,7 @@ def main(argv, f):
     if not f['json'].value:
       raise app.UsageError('--summarize reads the rows of --json=FILE')
     with open(f['json'].value) as fh:
-      summarize(json.load(fh), method=f['versus'].value)
+      summarize(json.load(fh), method=f['summarize_method'].value)
     return
   print('devices:', jax.devices())
   print('| budget | method | drivers (obj 0/obj 1) | err obj 0 | err obj 1 | '

@@ -36,6 +36,13 @@ def parse_hlo(text: str) -> tuple[dict[str, list[tuple[str, str]]], str]:
   return comps, entry
 
 
+def _loop(line: str) -> tuple[str, int | None]:
+  """Body computation and known trip count (None if unknown) of a while."""
+  body = re.search(r'body=%?([\w.\-]+)', line).group(1)
+  trip = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
+  return body, int(trip.group(1)) if trip else None
+
+
 def kernels(comps, name: str) -> collections.Counter:
   """Kernel launches of computation ``name`` by kind, nested loops
   counted as body kernels times their known trip count (key 'loop')."""
@@ -44,9 +51,8 @@ def kernels(comps, name: str) -> collections.Counter:
     if op in _FREE:
       continue
     if op == 'while':
-      body = re.search(r'body=%?([\w.\-]+)', line).group(1)
-      trip = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
-      n = int(trip.group(1)) if trip else 1
+      body, trip = _loop(line)
+      n = 1 if trip is None else trip
       out['loop'] += n * sum(kernels(comps, body).values())
       continue
     if op == 'fusion':
@@ -69,9 +75,8 @@ def substep_kernels(text: str, substeps: int) -> dict:
     for op, line in comps[name]:
       if op != 'while':
         continue
-      body = re.search(r'body=%?([\w.\-]+)', line).group(1)
-      trip = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
-      if trip and int(trip.group(1)) == substeps:
+      body, trip = _loop(line)
+      if trip == substeps:
         k = kernels(comps, body)
         return dict(kernels=sum(k.values()), by_kind=dict(sorted(k.items())))
       stack.append(body)
