@@ -10,10 +10,9 @@ One substep (Hu et al. 2018, with PhysGaussian's ordering)::
                          rigid projection and contact; x += dt v,
                          F = (I + dt C) F_e; x clamped to the grid
 
-Step 2 of substep k + 1 is computed at the end of substep k (and once at the
-start of a frame) and carried, so that the stress reaches P2G as a
-materialised array (see ``constitute``); the public state keeps
-PhysGaussian's semantics (``F`` before its return mapping).
+The stress of step 2 reaches P2G as a materialised array (see
+``constitute``); the public state keeps PhysGaussian's semantics (``F``
+before its return mapping).
 
 Inside a frame the state is held as structure of arrays (particle index
 last) and, with ``SimConfig.sort_particles``, permuted so that particles are
@@ -231,13 +230,11 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   rigid_group = ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
 
   def constitute(c, aux, mat):
-    """Adds the return-mapped state and stress of ``c['F']`` to the carry.
-
-    Computed at the end of the previous substep (and once at the start of a
-    frame), so the Kirchhoff stress enters the next P2G as a loop-carried,
-    materialised array: XLA:CPU otherwise fuses the whole stress
-    computation into the scatter's per-contribution loop and recomputes it
-    for each of the 108 contributions of a particle.
+    """The return-mapped ``(F_e, Jp, ep, tau)`` of ``c['F']`` (nested-tuple
+    matrices), computed once into memory (``transfer.materialize``):
+    XLA:CPU otherwise fuses the whole stress computation into the
+    scatter's per-contribution loop and recomputes it for each of the 108
+    contributions of a particle.
 
     With ``config.model_counts`` the particles are sorted by model and each
     model runs on its own slice only.
@@ -256,7 +253,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
       Fe, Jp, ep, tau = constitutive.constitutive_update(
         models, mat.model_id, F, C, c['Jp'], c['ep'], mat, dt,
         zero_stress=rigid)
-    return dict(c, Fe=la.from_mat(Fe), Jpe=Jp, epe=ep, tau=la.from_mat(tau))
+    return transfer.materialize((Fe, Jp, ep, tau))
 
   def substep(c, aux, mat, forces):
     x = tuple(c['x'][d] for d in range(3))
@@ -264,10 +261,8 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     C = la.to_mat(c['C'])
     t = c['t']
     mass, vol0 = aux['mass'], aux['vol0']
-    # The return mapping of c['F'] (constitute) was done at the end of the
-    # previous substep.
-    Fe, Jp, ep, tau = (la.to_mat(c['Fe']), c['Jpe'], c['epe'],
-                       la.to_mat(c['tau']))
+    with jax.named_scope('constitutive'):
+      Fe, Jp, ep, tau = constitute(c, aux, mat)
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
@@ -333,10 +328,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
       C=la.from_mat(C_new), Jp=Jp, ep=ep,
       t=(step.astype(t.dtype) * dt).astype(t.dtype), step=step,
     )
-    with jax.named_scope('constitutive'):
-      return constitute(out, aux, mat)
+    return out
 
-  return substep, constitute
+  return substep
 
 
 def _check_inputs(state, materials, forces, config):
@@ -360,7 +354,7 @@ def make_substep(config: base.SimConfig) -> Callable:
   The function converts to structure of arrays and back on every call; use
   ``make_frame`` for many substeps.
   """
-  soa, constitute = _make_soa_substep(config)
+  soa = _make_soa_substep(config)
 
   def substep_fn(state, materials, forces=None):
     forces = _check_inputs(state, materials, forces, config)
@@ -369,7 +363,6 @@ def make_substep(config: base.SimConfig) -> Callable:
     else:
       inv = None
     carry, aux = _to_soa(state)
-    carry = constitute(carry, aux, materials)
     return _unorder(_from_soa(soa(carry, aux, materials, forces), aux), inv)
 
   return substep_fn
@@ -439,14 +432,13 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
   when the particles are sharded (``lax.psum`` inside ``shard_map``, see
   ``physsplat_jax.distributed.rollout_sharded``).
   """
-  soa, constitute = _make_soa_substep(config, reduce_fn)
+  soa = _make_soa_substep(config, reduce_fn)
   n_sub = config.substeps_per_frame
 
   def frame_fn(state, materials, forces=None):
     forces = _check_inputs(state, materials, forces, config)
     state, materials, inv = _order(config, state, materials)
     carry, aux = _to_soa(state)
-    carry = constitute(carry, aux, materials)
     body = lambda c, _: (soa(c, aux, materials, forces), None)  # noqa: E731
     if config.remat_frames:
       body = jax.checkpoint(body)

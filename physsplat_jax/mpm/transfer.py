@@ -106,7 +106,8 @@ def _o4(dtype):
 
 
 def materialize(a):
-  """``a`` itself, computed once into memory before its consumers.
+  """``a`` (an array or a pytree of arrays) itself, computed once into
+  memory before its consumers.
 
   XLA:CPU fuses a cheap elementwise producer into each consumer, and into a
   gather it recomputes the producer for every gathered element: the grid
@@ -121,8 +122,9 @@ def materialize(a):
   ``lax.platform_dependent``.
   """
   def on_cpu(a):
-    first = a.reshape(-1)[0]
-    return jax.lax.cond(first == first, lambda b: b, lambda b: b + 0, a)
+    first = jax.tree.leaves(a)[0].reshape(-1)[0]
+    return jax.lax.cond(first == first, lambda b: b,
+                        lambda b: jax.tree.map(lambda q: q + 0, b), a)
   return jax.lax.platform_dependent(a, cpu=on_cpu, default=lambda b: b)
 
 
