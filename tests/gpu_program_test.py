@@ -1,4 +1,5 @@
-"""What the MPM substep becomes on a GPU, checked without one.
+"""What the MPM substep and the renderer's binning become on a GPU, checked
+without one.
 
 Some steps of the substep are written twice and chosen by platform when
 the program is lowered (``lax.platform_dependent``): the CPU keeps the forms
@@ -23,6 +24,7 @@ from physsplat_jax import mpm
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import rigid
 from physsplat_jax.mpm import transfer
+from physsplat_jax.render import raster
 
 _GRID = mpm.GridSpec(res=16, size=1.0, lower=(0.5, -1.0, 0.0))
 
@@ -55,6 +57,19 @@ class FormsAgreeTest(absltest.TestCase):
     gv = tuple(jnp.zeros((16,) * 3) for _ in range(3))
     with self.assertRaisesRegex(ValueError, "'auto', 'dot' or 'sum'"):
       transfer.g2p(_GRID, st, gv, form='einsum')
+
+  def test_sub_tile_ranges_unrolled_equals_loop(self):
+    """The renderer's sub-tile ranges: both binary searches give numpy's
+    ranges on sorted ids with empty sub-tiles and unused slots (id
+    ``num_sub``)."""
+    rng = np.random.default_rng(5)
+    num_sub = 37
+    ids = np.sort(np.concatenate([rng.choice([0, 3, 4, 9, 20, 36], 50),
+                                  np.full(13, num_sub)])).astype(np.int32)
+    want = np.searchsorted(ids, np.arange(num_sub + 1), side='left')
+    for method in ('scan', 'scan_unrolled', None):
+      got = raster._sub_tile_ranges(jnp.asarray(ids), num_sub, method)
+      np.testing.assert_array_equal(got, want)
 
   def test_jacobi_unrolled_equals_loop(self):
     with jax.enable_x64(True):
@@ -154,6 +169,13 @@ class PlatformFormsTest(absltest.TestCase):
     self.assertGreaterEqual(cpu['dot_general'], 1)
     self.assertEqual(cuda['dot_general'], 0)
     self.assertGreaterEqual(cuda['reduce'], 1)
+
+  def test_render_ranges_have_no_loop_on_cuda(self):
+    ids = jnp.zeros((64,), jnp.int32)
+    fn = lambda a: raster._sub_tile_ranges(a, 16)  # noqa: E731
+    cpu, cuda = (_ops(fn, (ids,), p) for p in ('cpu', 'cuda'))
+    self.assertEqual(cpu['while'], 1)
+    self.assertEqual(cuda['while'], 0)
 
   def test_multi_material_frame_has_no_loop_or_product_on_cuda(self):
     """A frame of two SVD models, a fixed-corotated block and a rigid body
