@@ -15,9 +15,12 @@ The stress of step 2 reaches P2G as a materialised array (see
 before its return mapping).
 
 Inside a frame the state is held as structure of arrays (particle index
-last) and, with ``SimConfig.sort_particles``, permuted so that particles are
-sorted by grid cell (gathers and the scatter then walk memory in order); the
-permutation is undone at the end of the frame, so callers never see it.
+last; positions and velocities as one (6, N) array, ``Jp`` and ``ep`` as
+one (2, N): on a GPU each is then written by one kernel per substep,
+bitwise the same results on the CPU) and, with
+``SimConfig.sort_particles``, permuted so that particles are sorted by grid
+cell (gathers and the scatter then walk memory in order); the permutation
+is undone at the end of the frame, so callers never see it.
 
 ``rollout`` is the differentiable path (nested ``lax.scan`` with
 ``jax.checkpoint`` per frame and per substep); ``run`` is the host loop with
@@ -172,8 +175,9 @@ def init_state(x, v, volume, materials: base.Materials,
 
 def _to_soa(state: base.MPMState):
   carry = dict(
-    x=state.x.T, v=state.v.T, F=jnp.transpose(state.F, (1, 2, 0)),
-    C=jnp.transpose(state.C, (1, 2, 0)), Jp=state.Jp, ep=state.ep,
+    xv=jnp.concatenate([state.x.T, state.v.T]),
+    F=jnp.transpose(state.F, (1, 2, 0)), C=jnp.transpose(state.C, (1, 2, 0)),
+    Jpep=jnp.stack([state.Jp, state.ep]),
     t=state.t, step=state.step,
   )
   aux = dict(mass=state.mass, vol0=state.vol0, body_id=state.body_id,
@@ -183,8 +187,10 @@ def _to_soa(state: base.MPMState):
 
 def _from_soa(carry, aux) -> base.MPMState:
   return base.MPMState(
-    x=carry['x'].T, v=carry['v'].T, F=jnp.transpose(carry['F'], (2, 0, 1)),
-    C=jnp.transpose(carry['C'], (2, 0, 1)), Jp=carry['Jp'], ep=carry['ep'],
+    x=carry['xv'][:3].T, v=carry['xv'][3:].T,
+    F=jnp.transpose(carry['F'], (2, 0, 1)),
+    C=jnp.transpose(carry['C'], (2, 0, 1)), Jp=carry['Jpep'][0],
+    ep=carry['Jpep'][1],
     vol0=aux['vol0'], mass=aux['mass'], body_id=aux['body_id'],
     bc_data=aux['bc_data'], t=carry['t'], step=carry['step'],
   )
@@ -240,24 +246,25 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     model runs on its own slice only.
     """
     F, C = la.to_mat(c['F']), la.to_mat(c['C'])
+    Jp0, ep0 = c['Jpep'][0], c['Jpep'][1]
     if groups:
       parts = []
       for m, a, b in groups:
         rows = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
         parts.append(constitutive.constitutive_update(
-          (m,), None, rows(F), rows(C), c['Jp'][a:b], c['ep'][a:b],
+          (m,), None, rows(F), rows(C), Jp0[a:b], ep0[a:b],
           rows(mat), dt))
       Fe, Jp, ep, tau = jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
     else:
       rigid = aux['body_id'] >= 0 if has_bodies else None
       Fe, Jp, ep, tau = constitutive.constitutive_update(
-        models, mat.model_id, F, C, c['Jp'], c['ep'], mat, dt,
+        models, mat.model_id, F, C, Jp0, ep0, mat, dt,
         zero_stress=rigid)
     return transfer.materialize((Fe, Jp, ep, tau))
 
   def substep(c, aux, mat, forces):
-    x = tuple(c['x'][d] for d in range(3))
-    v = tuple(c['v'][d] for d in range(3))
+    x = tuple(c['xv'][d] for d in range(3))
+    v = tuple(c['xv'][3 + d] for d in range(3))
     C = la.to_mat(c['C'])
     t = c['t']
     mass, vol0 = aux['mass'], aux['vol0']
@@ -324,8 +331,8 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
                     for d in range(3))
     step = c['step'] + 1
     out = dict(
-      x=jnp.stack(x_new), v=jnp.stack(v_new), F=la.from_mat(F_new),
-      C=la.from_mat(C_new), Jp=Jp, ep=ep,
+      xv=jnp.stack(tuple(x_new) + tuple(v_new)), F=la.from_mat(F_new),
+      C=la.from_mat(C_new), Jpep=jnp.stack([Jp, ep]),
       t=(step.astype(t.dtype) * dt).astype(t.dtype), step=step,
     )
     return out
