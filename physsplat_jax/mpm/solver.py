@@ -235,8 +235,8 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   groups = model_groups(config)
   rigid_group = ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
 
-  def constitute(c, aux, mat):
-    """The return-mapped ``(F_e, Jp, ep, tau)`` of ``c['F']`` (nested-tuple
+  def constitute(F, C, Jp0, ep0, aux, mat):
+    """The return-mapped ``(F_e, Jp, ep, tau)`` of ``F`` (nested-tuple
     matrices), computed once into memory (``transfer.materialize``):
     XLA:CPU otherwise fuses the whole stress computation into the
     scatter's per-contribution loop and recomputes it for each of the 108
@@ -245,8 +245,6 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     With ``config.model_counts`` the particles are sorted by model and each
     model runs on its own slice only.
     """
-    F, C = la.to_mat(c['F']), la.to_mat(c['C'])
-    Jp0, ep0 = c['Jpep'][0], c['Jpep'][1]
     if groups:
       parts = []
       for m, a, b in groups:
@@ -269,7 +267,8 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     t = c['t']
     mass, vol0 = aux['mass'], aux['vol0']
     with jax.named_scope('constitutive'):
-      Fe, Jp, ep, tau = constitute(c, aux, mat)
+      Fe, Jp, ep, tau = constitute(la.to_mat(c['F']), C, c['Jpep'][0],
+                                   c['Jpep'][1], aux, mat)
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
