@@ -68,8 +68,8 @@ _PALLAS = flags.DEFINE_bool('pallas', False,
                             'Also time backend=pallas (and its gradient).')
 _INTERPRET = flags.DEFINE_bool('interpret', False,
                                'Pallas interpret mode (CPU, slow).')
-_BLOCK = flags.DEFINE_integer('pallas_block', 64,
-                              'RenderConfig.pallas_block.')
+_BLOCK = flags.DEFINE_integer('pallas_block', None,
+                              'RenderConfig.pallas_block (None: its default).')
 _WARPS = flags.DEFINE_integer('num_warps', None,
                               'RenderConfig.pallas_num_warps.')
 _GSPLAT = flags.DEFINE_bool('gsplat', True,
@@ -259,8 +259,9 @@ def main(argv):
                                tile_batch=_BATCH.value,
                                backend=_BACKEND.value,
                                interpret=_INTERPRET.value,
-                               pallas_block=_BLOCK.value,
                                pallas_num_warps=_WARPS.value)
+  if _BLOCK.value is not None:
+    config = dataclasses.replace(config, pallas_block=_BLOCK.value)
   runs = []
   if _SCENE.value:
     from physsplat_jax.scenes import load_scene

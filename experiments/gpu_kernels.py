@@ -17,7 +17,10 @@ loop nested in it, its body's kernels times its trip count. The variants
 (``scene``, ``masked``, ``no_plane``, ``no_plane_no_body``, ``bare``) are
 ``benchmark_substep``'s (experiments/lib/substep.py). ``--targets=render``
 compiles the Pallas (Triton) compositor of the renderer, forward and
-gradient, for the same GPU: that its kernels build for the device at all;
+gradient, for the same GPU: that its kernels build for the device at all,
+and, where NVIDIA's ``ptxas`` is found (the ``nvidia-cuda-nvcc`` wheel of a
+CUDA jaxlib), each kernel's registers, spills and resident warps per SM
+(experiments/lib/ptxas.py; ``--render_block`` etc. set the kernels' blocks);
 ``--targets=simulate`` the whole differentiable ``simulate`` of the scene
 (MPDP field, MPM, deformation, rendering) and its gradient.
 
@@ -40,6 +43,8 @@ os.environ.setdefault('XLA_FLAGS', '--xla_gpu_enable_triton_gemm=false')
 
 import dataclasses  # noqa: E402
 import pathlib
+import shutil
+import tempfile
 import time
 
 import jax
@@ -49,6 +54,7 @@ from absl import logging
 
 from experiments.lib import cli
 from experiments.lib import hlo
+from experiments.lib import ptxas as ptxas_lib
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
 from physsplat_jax import pipeline as pl
@@ -76,6 +82,12 @@ _RENDER_SIZE = flags.DEFINE_integer('render_size', 1024,
                                     'render: image edge [pixels]')
 _RENDER_SLOTS = flags.DEFINE_integer(
   'render_slots', 800_000, 'render: (Gaussian, tile) intersection slots')
+_RENDER_SUBTILE = flags.DEFINE_integer('render_subtile', 8,
+                                      'render: RenderConfig.subtile_size')
+_RENDER_BLOCK = flags.DEFINE_integer('render_block', 32,
+                                    'render: RenderConfig.pallas_block')
+_RENDER_WARPS = flags.DEFINE_integer('render_warps', None,
+                                    'render: RenderConfig.pallas_num_warps')
 _OUT = cli.define_out(None, 'JSON file for the counts')
 
 class GpuCompileError(PhysSplatError, RuntimeError):
@@ -108,11 +120,11 @@ def _abstract(tree, sharding):
                                    sharding=sharding), tree)
 
 
-def compile_render(sharding, size: int, slots: int) -> list[dict]:
+def compile_render(sharding, size: int, slots: int,
+                   config: RenderConfig) -> list[dict]:
   """Compiles the Pallas compositor (the Triton kernels of
   ``render/pallas_raster.py``), forward and gradient, for a ``size``^2
   image with ``slots`` sorted (Gaussian, sub-tile) slots."""
-  config = RenderConfig(backend='pallas')
   tiles = -(-size // config.tile_size)
   sub = (config.tile_size // config.resolved_subtile) ** 2
   num_gaussians = slots // 8
@@ -173,16 +185,45 @@ def compile_simulate(sharding, scene_name: str, frames: int) -> list[dict]:
 
 def main(argv):
   del argv
+  dump_dir = ptxas = None
+  if 'render' in _TARGETS.value:
+    # ptxas reads the PTX that XLA dumps; the flag must be set before XLA
+    # reads its flags (the first compile).
+    ptxas = ptxas_lib.find_ptxas()
+    if ptxas is None:
+      logging.warning('no ptxas (nvidia-cuda-nvcc wheel or PATH): render '
+                      'kernels compiled without a register report')
+    else:
+      dump_dir = tempfile.mkdtemp(prefix='gpu_kernels_')
+      os.environ['XLA_FLAGS'] += f' --xla_dump_to={dump_dir}'
   device = gpu_device(_SPEC.value)
   sharding = jax.sharding.SingleDeviceSharding(device)
   rows = []
   if 'render' in _TARGETS.value:
+    config = RenderConfig(
+      backend='pallas', subtile_size=_RENDER_SUBTILE.value,
+      pallas_block=_RENDER_BLOCK.value,
+      pallas_num_warps=_RENDER_WARPS.value)
     for row in compile_render(sharding, _RENDER_SIZE.value,
-                              _RENDER_SLOTS.value):
+                              _RENDER_SLOTS.value, config):
       rows.append(row)
       print(f"{row['variant']:18s} compiled in {row['compile_s']} s: "
             f"{row['kernels']} kernels in all, "
             f"{row['triton_kernels']} Triton (Pallas)")
+    if dump_dir is not None:
+      limits = ptxas_lib.spec_limits(pathlib.Path(_SPEC.value).read_text())
+      res = ptxas_lib.kernel_resources(
+        dump_dir, ('splat_forward', 'splat_backward'), limits, ptxas)
+      block, fw, bw = config.resolved_pallas()
+      rows.append(dict(variant='render kernels (ptxas)',
+                       subtile=config.resolved_subtile, block=block,
+                       forward_warps=fw, backward_warps=bw, kernels=res))
+      for name, r in res.items():
+        print(f"{name:18s} {r['registers']} registers, {r['spill_bytes']} B "
+              f"spilled, {r['threads']} threads, {r['shared_bytes']} B "
+              f"shared: {r['warps_per_sm']} warps/SM; "
+              f"{r['ptx_instructions']} PTX instructions")
+      shutil.rmtree(dump_dir, ignore_errors=True)
   if 'simulate' in _TARGETS.value:
     for row in compile_simulate(sharding, _SCENE.value, _FRAMES.value):
       rows.append(row)

@@ -70,8 +70,11 @@ class RenderConfig:
       ``max_chunks``/``chunk_size``/``prefix``/``tile_batch``.
     interpret: run the Pallas kernels in interpret mode (debug/tests: the
       only way to run ``backend='pallas'`` off a GPU).
-    pallas_block: Gaussians per batch of a Pallas program (power of two).
-    pallas_num_warps: Triton warps per program (None: Triton's default).
+    pallas_block: Pallas forward: slots composited between two checks
+      that every pixel of the sub-tile has stopped (power of two).
+    pallas_num_warps: Triton warps per program of both kernels (None:
+      one pixel per thread in the forward, two in the backward; see
+      :meth:`resolved_pallas`).
   """
 
   tile_size: int = 16
@@ -92,7 +95,7 @@ class RenderConfig:
   tight_bounds: bool = True
   backend: str = 'auto'
   interpret: bool = False
-  pallas_block: int = 64
+  pallas_block: int = 32
   pallas_num_warps: int | None = None
 
   def __post_init__(self):
@@ -118,6 +121,21 @@ class RenderConfig:
     pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
     ok = pow2(self.resolved_subtile) and pow2(self.pallas_block)
     return 'pallas' if ok and jax.default_backend() == 'gpu' else 'jax'
+
+  def resolved_pallas(self) -> tuple[int, int, int]:
+    """(forward block, forward warps, backward warps) of the Pallas kernels.
+
+    By default the forward runs one pixel per thread (``P / 32`` warps for
+    the ``P`` pixels of a sub-tile) and the backward two (``P / 64``: one
+    warp for 8x8 sub-tiles, so its per-slot sums over the pixels stay
+    inside a warp); both are 1 to 32 warps. Chosen with ptxas for an H100
+    (docs/rendering.md: no spills, 32 and 55 registers per thread).
+    """
+    p = self.resolved_subtile ** 2
+    if self.pallas_num_warps is not None:
+      return self.pallas_block, self.pallas_num_warps, self.pallas_num_warps
+    clamp = lambda n: int(min(max(n, 1), 32))
+    return self.pallas_block, clamp(p // 32), clamp(p // 64)
 
   @property
   def resolved_subtile(self) -> int:

@@ -7,41 +7,48 @@ Projection, binning and sorting are those of :mod:`~physsplat_jax.render.raster`
 Layout. One Pallas program per compositing sub-tile (``st x st`` pixels,
 ``P = st^2``, a power of two; 8x8 with the default config). The per-slot
 features are gathered once in sorted order and transposed to ``(10,
-capacity + B)`` rows (mean x, y; conic a, b, c; opacity; r, g, b; depth), so a
-program loads each feature of ``B`` consecutive slots with one contiguous
-row load ``feat_ref[f, pl.ds(base, B)]`` (Triton lowers ref indexing, not
-indexing of loaded values, and needs power-of-two shapes). The sub-tile's
-slot range ``[start, end)`` comes from ``ranges``.
+capacity + B)`` rows (mean x, y; conic a, b, c; opacity; r, g, b; depth).
+The sub-tile's slot range ``[start, end)`` comes from ``ranges``. Triton
+lowers ref indexing, not indexing of loaded values, and needs power-of-two
+block shapes.
 
-Forward (per program): a ``lax.while_loop`` over batches of ``B`` slots,
-front to back, stopping when the list ends or every pixel has stopped. Per
-batch a ``(P, B)`` block of alphas, exactly gsplat ``rasterize_to_pixels``::
+Forward (per program, one pixel per thread, as gsplat
+``rasterize_to_pixels``): the slots are walked front to back one at a
+time, each thread loading the slot's 10 features as scalars
+``feat_ref[f, idx]`` (one address across the warp: a broadcast) and
+blending it into its own pixel::
 
   sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,  alpha = min(0.999, o e^-sigma),
   skipped if sigma < 0 or alpha < 1/255; the pixel stops (exclusively) at
-  the first Gaussian whose next_T <= 1e-4.
+  the first Gaussian whose next_T = T (1 - alpha) <= 1e-4.
 
-The transmittance in the batch is ``T0 exp(cumsum(log(1 - alpha)))`` (as the
-JAX path). Outputs per pixel: ``sum w (r, g, b, z)``, ``log T_final`` and the
-``stop`` slot (first slot not blended; ``end`` if the pixel never
-saturated), which is all the backward pass keeps: nothing per (pixel,
-Gaussian) pair.
+No work crosses threads except a ``lax.while_loop`` check, every ``B``
+slots, that the list has ended or every pixel has stopped. Outputs per
+pixel: ``sum w (r, g, b, z)``, ``log T_final`` and the ``stop`` slot (first
+slot not blended; ``end`` if the pixel never saturated), which is all the
+backward pass keeps: nothing per (pixel, Gaussian) pair. (The first
+version blended ``(P, B)`` blocks with a ``cumsum`` across the batch, as the
+JAX path, in both kernels: 227 and 255 registers per thread, the backward
+spilling, 2-3x the instructions per pair; docs/rendering.md.)
 
-Backward (per program, as gsplat ``rasterize_to_pixels_bwd``): the batches
-are walked back to front from the last batch any pixel used. The
-transmittance is recovered from the end, ``log T_start = log T_after - sum
-log(1 - alpha)``, and the colour behind each Gaussian is the running
-suffix sum ``S``::
+Backward (per program, as gsplat ``rasterize_to_pixels_bwd``; two pixels
+per thread, so an 8x8 sub-tile is one warp): the slots are walked back to
+front from the last one any pixel blended, one at a time. Per pixel the
+transmittance in front of a slot is recovered from the one behind it,
+``T_i = T_{i+1} / (1 - alpha_i)`` (from ``T_final``), and the colour behind
+it is a running suffix sum ``S``::
 
   dL/dalpha_i = T_i g_i - (S_i + dL/dlogT) / (1 - alpha_i),
   g_i = c_i . dL/dC + z_i dL/dD,  S_i = sum_{j > i} w_j g_j,
 
-then chained to the opacity, the conic and the 2D mean. Each (Gaussian,
-sub-tile) slot belongs to exactly one program, so the per-slot gradients are
-written without atomics into a ``(10, capacity + B)`` buffer; a
-``segment_sum`` over the slots' Gaussian ids gives the per-Gaussian
-gradient of the 10 features, and the JAX projection carries it on to means,
-scales, quaternions, covariances, SH and view rotations.
+then chained to the opacity, the conic and the 2D mean and summed over the
+program's pixels (inside the warp: shuffles, no shared memory or
+barriers). Each (Gaussian, sub-tile) slot belongs to exactly one program,
+so the per-slot gradients are written without atomics into a ``(10,
+capacity + B)`` buffer; a ``segment_sum`` over the slots' Gaussian ids
+gives the per-Gaussian gradient of the 10 features, and the JAX projection
+carries it on to means, scales, quaternions, covariances, SH and view
+rotations.
 
 On a CPU the kernels run in Pallas interpret mode
 (``RenderConfig.interpret``): same code, same images, slow; this is how the
@@ -63,6 +70,8 @@ from jax.experimental.pallas import triton as plgpu
 from physsplat_jax.types import Array
 
 _NUM_FEATURES = 10  # mean x, y; conic a, b, c; opacity; r, g, b; depth
+_FORWARD_UNROLL = 4  # slots per iteration of the forward's inner loop
+_LOG2E = 1.4426950408889634
 
 
 class _Static(NamedTuple):
@@ -71,12 +80,13 @@ class _Static(NamedTuple):
   tiles_x: int
   tile: int  # tile edge [px]
   st: int  # sub-tile edge [px]
-  block: int  # Gaussians per batch (B)
+  block: int  # forward: slots between two stop checks (B)
   alpha_max: float
   alpha_min: float
   t_min: float
   interpret: bool
-  num_warps: int | None
+  forward_warps: int
+  backward_warps: int
 
 
 def is_power_of_two(n: int) -> bool:
@@ -101,30 +111,6 @@ def _pixels(t, s: _Static, dtype):
   return px, py
 
 
-def _load_batch(feat_ref, base, B):
-  """The 10 feature rows (B,) of slots ``[base, base + B)``."""
-  return [feat_ref[f, pl.ds(base, B)] for f in range(_NUM_FEATURES)]
-
-
-def _alphas(f, px, py, s: _Static):
-  """Per (pixel, slot) quantities of one batch, all (P, B).
-
-  Returns (dx, dy, ok, ex, raw, a): ``ok = sigma >= 0``, ``ex =
-  exp(-sigma)`` (1 where not ok), ``raw = o ex``; ``a`` the blended alpha (0
-  where gsplat skips the Gaussian).
-  """
-  mx, my, ca, cb, cc, op = (v[None, :] for v in f[:6])
-  dx = mx - px[:, None]
-  dy = my - py[:, None]
-  sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-  ok = sigma >= 0.0
-  ex = jnp.exp(-jnp.where(ok, sigma, 0.0))
-  raw = op * ex
-  alpha = jnp.minimum(raw, s.alpha_max)
-  a = jnp.where(ok & (alpha >= s.alpha_min), alpha, 0.0)
-  return dx, dy, ok, ex, raw, a
-
-
 def _forward_kernel(ranges_ref, feat_ref, acc_ref, logt_ref, stop_ref, *,
                     s: _Static):
   t = pl.program_id(0)
@@ -133,46 +119,60 @@ def _forward_kernel(ranges_ref, feat_ref, acc_ref, logt_ref, stop_ref, *,
   B = s.block
   P = s.st * s.st
   dtype = feat_ref.dtype
-  log_t_min = math.log(s.t_min)
   px, py = _pixels(t, s, dtype)
-  lane = lax.broadcasted_iota(jnp.int32, (1, B), 1)
+
+  def gaussian(idx, c):
+    # One slot for every pixel of the program (one pixel per thread):
+    # scalar feature loads (the same address across a warp: a broadcast),
+    # no cross-thread work.
+    T, stop, r, g, b, d = c
+    mx, my, ca, cb, cc, op, cr, cg, cb_, cz = (
+      feat_ref[f, idx] for f in range(_NUM_FEATURES))
+    dx = mx - px
+    dy = my - py
+    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+    ok = sigma >= 0.0
+    alpha = jnp.minimum(op * jnp.exp2(_LOG2E * -jnp.where(ok, sigma, 0.0)),
+                        s.alpha_max)
+    inside = idx < end
+    a = jnp.where(ok & (alpha >= s.alpha_min) & inside, alpha, 0.0)
+    next_t = T * (1.0 - a)
+    running = stop >= end
+    live = running & (next_t > s.t_min)
+    w = jnp.where(live, a * T, 0.0)
+    r = r + w * cr
+    g = g + w * cg
+    b = b + w * cb_
+    d = d + w * cz
+    T = jnp.where(live, next_t, T)
+    stop = jnp.where(running & jnp.logical_not(live) & inside, idx, stop)
+    return T, stop, r, g, b, d
+
+  unroll = math.gcd(B, _FORWARD_UNROLL)
+
+  def steps(j, c):
+    for u in range(unroll):  # lax.fori_loop(unroll=) has no Triton lowering
+      c = gaussian(c[-1] + j * unroll + u, c[:-1]) + (c[-1],)
+    return c
 
   def cond(c):
     base, _, stop, *_ = c
     return (base < end) & (jnp.max(stop) >= end)
 
   def body(c):
-    base, log_t, stop, r, g, b, d = c
-    f = _load_batch(feat_ref, base, B)
-    inside = (base + lane) < end  # (1, B)
-    _, _, _, _, _, a = _alphas(f, px, py, s)
-    a = jnp.where(inside, a, 0.0)
-    la = jnp.log1p(-a)
-    incl = log_t[:, None] + jnp.cumsum(la, axis=1)
-    excl = incl - la
-    done = (stop < end)[:, None]
-    live = jnp.logical_not(done) & (incl > log_t_min)
-    w = jnp.where(live, a * jnp.exp(excl), 0.0)
-    r = r + jnp.sum(w * f[6][None, :], axis=1)
-    g = g + jnp.sum(w * f[7][None, :], axis=1)
-    b = b + jnp.sum(w * f[8][None, :], axis=1)
-    d = d + jnp.sum(w * f[9][None, :], axis=1)
-    log_t = log_t + jnp.sum(jnp.where(live, la, 0.0), axis=1)
-    # T only decreases, so the live slots form a prefix of the batch: the
-    # first slot not blended is base + (their number).
-    n_live = jnp.sum(live.astype(jnp.int32), axis=1, dtype=jnp.int32)
-    stop = jnp.where((stop >= end) & (n_live < B), base + n_live, stop)
-    return base + B, log_t, stop, r, g, b, d
+    base, *rest = c
+    *rest, _ = lax.fori_loop(0, B // unroll, steps, (*rest, base))
+    return (base + B, *rest)
 
   zero = jnp.zeros((P,), dtype)
-  init = (start, zero, jnp.full((P,), end, jnp.int32), zero, zero, zero,
-          zero)
-  _, log_t, stop, r, g, b, d = lax.while_loop(cond, body, init)
+  init = (start, jnp.ones((P,), dtype), jnp.full((P,), end, jnp.int32), zero,
+          zero, zero, zero)
+  _, T, stop, r, g, b, d = lax.while_loop(cond, body, init)
   acc_ref[0, :] = r
   acc_ref[1, :] = g
   acc_ref[2, :] = b
   acc_ref[3, :] = d
-  logt_ref[...] = log_t
+  logt_ref[...] = jnp.log(T)
   stop_ref[...] = stop
 
 
@@ -180,81 +180,65 @@ def _backward_kernel(ranges_ref, feat_ref, logt_ref, stop_ref, dacc_ref,
                      dlogt_ref, _, dslot_ref, *, s: _Static):
   t = pl.program_id(0)
   start = ranges_ref[t]
-  end = ranges_ref[t + 1]
-  B = s.block
   dtype = feat_ref.dtype
   px, py = _pixels(t, s, dtype)
   stop = stop_ref[...]
-  dr, dg, db, dd = (dacc_ref[k, :][:, None] for k in range(4))
-  lane = lax.broadcasted_iota(jnp.int32, (1, B), 1)
-  lane1 = lax.broadcasted_iota(jnp.int32, (B,), 0)
-  # Batches that any pixel blended: [start, max(stop)) in steps of B.
-  num = lax.div(jnp.max(stop) - start + B - 1, jnp.int32(B))
+  dr, dg, db, dd = (dacc_ref[k, :] for k in range(4))
+  last = jnp.max(stop)  # slots [start, last) were blended by some pixel
 
-  def body(k, c):
-    log_t_after, s_after = c
-    base = start + (num - 1 - k) * B
-    idx = base + lane
-    f = _load_batch(feat_ref, base, B)
-    dx, dy, ok, ex, raw, a = _alphas(f, px, py, s)
-    live = (idx < end) & (idx < stop[:, None])
-    a = jnp.where(live, a, 0.0)
-    la = jnp.log1p(-a)
-    cs = jnp.cumsum(la, axis=1)
-    log_t_start = log_t_after - jnp.sum(la, axis=1)
-    t_i = jnp.exp(log_t_start[:, None] + cs - la)  # exclusive T
+  def slot(k, c):
+    # Slot ``last - 1 - k``, back to front, for every pixel of the program.
+    # Per pixel: T is the transmittance behind the slot, ``behind`` the
+    # colour behind it plus dL/dlogT (gsplat's running suffix sum).
+    T, behind = c
+    idx = last - 1 - k
+    mx, my, ca, cb, cc, op, cr, cg, cb_, cz = (
+      feat_ref[f, idx] for f in range(_NUM_FEATURES))
+    dx = mx - px
+    dy = my - py
+    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+    ok = sigma >= 0.0
+    ex = jnp.exp2(_LOG2E * -jnp.where(ok, sigma, 0.0))
+    raw = op * ex
+    alpha = jnp.minimum(raw, s.alpha_max)
+    a = jnp.where((idx < stop) & ok & (alpha >= s.alpha_min), alpha, 0.0)
+    inv = 1.0 / (1.0 - a)
+    t_i = T * inv  # transmittance in front of the slot
     w = a * t_i
-    gi = (f[6][None, :] * dr + f[7][None, :] * dg + f[8][None, :] * db
-          + f[9][None, :] * dd)
-    wg = w * gi
-    cwg = jnp.cumsum(wg, axis=1)
-    tot = jnp.sum(wg, axis=1)
-    behind = s_after[:, None] + (tot[:, None] - cwg)  # S_i + dL/dlogT
-    dalpha = t_i * gi - behind / (1.0 - a)
+    gi = cr * dr + cg * dg + cb_ * db + cz * dd
+    dalpha = t_i * gi - behind * inv
     # Through alpha = min(o e^-sigma, alpha_max), skipped where gsplat skips.
-    pass_ = live & ok & (a > 0.0) & (raw < s.alpha_max)
-    draw = jnp.where(pass_, dalpha, 0.0)
+    draw = jnp.where((a > 0.0) & (raw < s.alpha_max), dalpha, 0.0)
     dsig = -draw * raw
-    ca, cb, cc = (v[None, :] for v in f[2:5])
-    grads = (
-      jnp.sum(dsig * (ca * dx + cb * dy), axis=0),
-      jnp.sum(dsig * (cc * dy + cb * dx), axis=0),
-      jnp.sum(0.5 * dsig * dx * dx, axis=0),
-      jnp.sum(dsig * dx * dy, axis=0),
-      jnp.sum(0.5 * dsig * dy * dy, axis=0),
-      jnp.sum(draw * ex, axis=0),
-      jnp.sum(w * dr, axis=0),
-      jnp.sum(w * dg, axis=0),
-      jnp.sum(w * db, axis=0),
-      jnp.sum(w * dd, axis=0),
-    )
-    mask = (base + lane1) < end
-    for fi, gv in enumerate(grads):
-      plgpu.store(dslot_ref.at[jnp.int32(fi), pl.ds(base, B)], gv.astype(dtype),
-                  mask=mask)
-    return log_t_start, s_after + tot
+    sx = dsig * dx
+    sy = dsig * dy
+    grads = (ca * sx + cb * sy, cc * sy + cb * sx, 0.5 * sx * dx, sx * dy,
+             0.5 * sy * dy, draw * ex, w * dr, w * dg, w * db, w * dd)
+    for f, gv in enumerate(grads):
+      dslot_ref[f, idx] = jnp.sum(gv).astype(dtype)
+    return t_i, behind + w * gi
 
-  init = (logt_ref[...], dlogt_ref[...])
-  lax.fori_loop(0, num, body, init)
+  init = (jnp.exp(logt_ref[...]), dlogt_ref[...])
+  lax.fori_loop(0, last - start, slot, init)
 
 
-def _params(s: _Static):
+def _params(num_warps: int):
   # Triton compiler params select the Triton lowering on NVIDIA (newer jax
   # defaults to Mosaic GPU, which these kernels are not written for).
-  return {'compiler_params': plgpu.CompilerParams(num_warps=s.num_warps)}
+  return {'compiler_params': plgpu.CompilerParams(num_warps=num_warps)}
 
 
-def _sorted_features(feat, gid, B):
+def _sorted_features(feat, gid, s: _Static):
   """(10, capacity + B) features of the sorted slots (zero-padded)."""
   fs = jnp.transpose(feat[gid])
-  return jnp.pad(fs, ((0, 0), (0, B)))
+  return jnp.pad(fs, ((0, 0), (0, s.block)))
 
 
 def _forward(feat, gid, ranges, s: _Static):
   num_sub = ranges.shape[0] - 1
   P = s.st * s.st
   dtype = feat.dtype
-  fs = _sorted_features(feat, gid, s.block)
+  fs = _sorted_features(feat, gid, s)
   full = lambda x: pl.BlockSpec(x.shape, lambda t: (0,) * x.ndim)
   acc, log_t, stop = pl.pallas_call(
     functools.partial(_forward_kernel, s=s),
@@ -272,7 +256,7 @@ def _forward(feat, gid, ranges, s: _Static):
     ],
     interpret=s.interpret,
     name='splat_forward',
-    **_params(s),
+    **_params(s.forward_warps),
   )(ranges, fs)
   return acc, log_t, stop, fs
 
@@ -293,7 +277,7 @@ def _backward(fs, ranges, log_t, stop, dacc, dlog_t, s: _Static):
     input_output_aliases={6: 0},
     interpret=s.interpret,
     name='splat_backward',
-    **_params(s),
+    **_params(s.backward_warps),
   )(ranges, fs, log_t, stop, dacc, dlog_t, zeros)
 
 
@@ -341,11 +325,12 @@ def rasterize(feat: Array, gid: Array, ranges: Array, tiles_x: int,
   sub = config.tile_size // st
   S = sub * sub
   P = st * st
+  block, fwd_warps, bwd_warps = config.resolved_pallas()
   s = _Static(tiles_x=tiles_x, tile=config.tile_size, st=st,
-              block=config.pallas_block, alpha_max=config.alpha_max,
+              block=block, alpha_max=config.alpha_max,
               alpha_min=config.alpha_min, t_min=config.t_min,
               interpret=config.interpret,
-              num_warps=config.pallas_num_warps)
+              forward_warps=fwd_warps, backward_warps=bwd_warps)
   acc, log_t = _composite(feat, gid.astype(jnp.int32),
                           ranges.astype(jnp.int32), s)
   T = tiles_x * tiles_y
