@@ -111,6 +111,26 @@ def _pixels(t, s: _Static, dtype):
   return px, py
 
 
+def _slot(feat_ref, idx, px, py, s: _Static):
+  """Slot ``idx`` at every pixel of the program (one or two per thread).
+
+  The slot's 10 features are scalar loads (one address across a warp: a
+  broadcast). Returns ``(features, dx, dy, ok, ex, raw, alpha)``, pixel
+  vectors but for the features: ``ok = sigma >= 0``, ``ex = exp(-sigma)``
+  (1 where not ok; ``exp2``, one instruction on NVIDIA), ``raw = o ex`` and
+  ``alpha = min(raw, alpha_max)``.
+  """
+  f = [feat_ref[k, idx] for k in range(_NUM_FEATURES)]
+  mx, my, ca, cb, cc, op = f[:6]
+  dx = mx - px
+  dy = my - py
+  sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+  ok = sigma >= 0.0
+  ex = jnp.exp2(_LOG2E * -jnp.where(ok, sigma, 0.0))
+  raw = op * ex
+  return f, dx, dy, ok, ex, raw, jnp.minimum(raw, s.alpha_max)
+
+
 def _forward_kernel(ranges_ref, feat_ref, acc_ref, logt_ref, stop_ref, *,
                     s: _Static):
   t = pl.program_id(0)
@@ -122,18 +142,11 @@ def _forward_kernel(ranges_ref, feat_ref, acc_ref, logt_ref, stop_ref, *,
   px, py = _pixels(t, s, dtype)
 
   def gaussian(idx, c):
-    # One slot for every pixel of the program (one pixel per thread):
-    # scalar feature loads (the same address across a warp: a broadcast),
-    # no cross-thread work.
+    # One slot for every pixel of the program (one pixel per thread), no
+    # work across threads.
     T, stop, r, g, b, d = c
-    mx, my, ca, cb, cc, op, cr, cg, cb_, cz = (
-      feat_ref[f, idx] for f in range(_NUM_FEATURES))
-    dx = mx - px
-    dy = my - py
-    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-    ok = sigma >= 0.0
-    alpha = jnp.minimum(op * jnp.exp2(_LOG2E * -jnp.where(ok, sigma, 0.0)),
-                        s.alpha_max)
+    f, _, _, ok, _, _, alpha = _slot(feat_ref, idx, px, py, s)
+    cr, cg, cb_, cz = f[6:]
     inside = idx < end
     a = jnp.where(ok & (alpha >= s.alpha_min) & inside, alpha, 0.0)
     next_t = T * (1.0 - a)
@@ -192,15 +205,9 @@ def _backward_kernel(ranges_ref, feat_ref, logt_ref, stop_ref, dacc_ref,
     # colour behind it plus dL/dlogT (gsplat's running suffix sum).
     T, behind = c
     idx = last - 1 - k
-    mx, my, ca, cb, cc, op, cr, cg, cb_, cz = (
-      feat_ref[f, idx] for f in range(_NUM_FEATURES))
-    dx = mx - px
-    dy = my - py
-    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-    ok = sigma >= 0.0
-    ex = jnp.exp2(_LOG2E * -jnp.where(ok, sigma, 0.0))
-    raw = op * ex
-    alpha = jnp.minimum(raw, s.alpha_max)
+    f, dx, dy, ok, ex, raw, alpha = _slot(feat_ref, idx, px, py, s)
+    ca, cb, cc = f[2:5]
+    cr, cg, cb_, cz = f[6:]
     a = jnp.where((idx < stop) & ok & (alpha >= s.alpha_min), alpha, 0.0)
     inv = 1.0 / (1.0 - a)
     t_i = T * inv  # transmittance in front of the slot
