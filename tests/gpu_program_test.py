@@ -12,7 +12,9 @@ platform got, and check on the CPU that the two forms agree in value.
 (docs/benchmarks.md).
 """
 
+import pathlib
 import re
+import tempfile
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +22,7 @@ import numpy as np
 from absl.testing import absltest
 
 from experiments.lib import hlo
+from experiments.lib import ptxas
 from physsplat_jax import mpm
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import rigid
@@ -270,6 +273,37 @@ class KernelCountTest(absltest.TestCase):
     self.assertEqual(got['kernels'], sum(got['by_kind'].values()))
     self.assertGreater(got['by_kind']['loop'], 0)
     self.assertEqual(got['by_kind']['loop'] % 3, 0)
+
+
+class PtxasReportTest(absltest.TestCase):
+  """experiments/lib/ptxas.py: occupancy from ptxas' registers and the
+  launches XLA dumps (ptxas itself runs only where a CUDA jaxlib is)."""
+
+  def test_h100_limits_and_occupancy(self):
+    spec = (pathlib.Path(__file__).parent.parent / 'experiments' / 'configs'
+            / 'gpu_specs' / 'h100_sxm.txtpb').read_text()
+    limits = ptxas.spec_limits(spec)
+    self.assertEqual(limits['arch'], 'sm_90a')
+    self.assertEqual(limits['registers'], 65536)
+    # (registers, threads, shared bytes) -> resident warps per SM.
+    cases = {(227, 128, 512): 8,  # registers bound: 2 blocks of 4 warps
+             (255, 128, 512): 8,
+             (113, 256, 512): 16,
+             (32, 64, 8): 64,  # threads bound: 2048 per SM
+             (64, 32, 0): 32,  # blocks bound: 32 per SM
+             (32, 256, 120_000): 8}  # shared memory bound: 1 block
+    for (regs, threads, shared), warps in cases.items():
+      with self.subTest(regs=regs, threads=threads, shared=shared):
+        self.assertEqual(
+          ptxas.occupancy(regs, threads, shared, limits), warps)
+
+  def test_reads_launches_from_a_thunk_dump(self):
+    line = ('002: kCustomKernel [prev=001 (1) | next=003 (1)] splat_forward '
+            'grid: [16384, 1, 1] threads: [64, 1, 1]  shared_memory: 8 '
+            'bytes\n')
+    with tempfile.TemporaryDirectory() as d:
+      pathlib.Path(d, 'm.thunk_sequence.txt').write_text(line)
+      self.assertEqual(ptxas._launches(d), {'splat_forward': (64, 8)})
 
 
 if __name__ == '__main__':
