@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import logging
 
+from physsplat_jax import sorting
 from physsplat_jax.mpm import base
 from physsplat_jax.mpm import boundary
 from physsplat_jax.mpm import constitutive
@@ -414,12 +415,20 @@ def _order(config: base.SimConfig, state, materials):
       f'{sum(config.model_counts)} but there are {n} particles.')
   if not (config.sort_particles or grouped) or n <= 1:
     return state, materials, None
+  cells = config.grid.res ** 3 if config.sort_particles else 1
   cell = (_cell_key(config.grid, jax.lax.stop_gradient(state.x))
           if config.sort_particles else jnp.zeros((n,), jnp.int32))
-  perm = (jnp.lexsort((cell, materials.model_id)) if grouped
-          else jnp.argsort(cell))
+  # One unsigned key (model, then cell): a CUB radix sort on a GPU
+  # (physsplat_jax/sorting.py); jnp.lexsort where it would not fit.
+  if grouped and len(config.models) * cells >= 2 ** 32:
+    perm = jnp.lexsort((cell, materials.model_id))
+  else:
+    key = cell.astype(jnp.uint32)
+    if grouped:
+      key = key + materials.model_id.astype(jnp.uint32) * jnp.uint32(cells)
+    perm = sorting.argsort(key)
   return (_permute(state, perm), _permute(materials, perm),
-          jnp.argsort(perm))
+          sorting.inverse_permutation(perm))
 
 
 def _unorder(state, inv):

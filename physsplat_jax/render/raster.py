@@ -80,6 +80,7 @@ from flax import struct
 from jax import lax
 
 from physsplat_jax import gaussians as gs
+from physsplat_jax import sorting
 from physsplat_jax.render.config import RenderConfig as RenderConfig
 from physsplat_jax.render.config import RenderConfigError
 from physsplat_jax.render.config import RenderInputError
@@ -316,8 +317,10 @@ def _bin_and_sort(proj: Projected, opacities: Array, tiles_x: int,
   # Emit the intersections in depth order (one sort of K depths), then a
   # stable sort on the sub-tile id alone keeps each sub-tile front to back:
   # cheaper than sorting (tile, depth) pairs.
+  # Both sorts are (unsigned key, int32) pairs: CUB's radix sort on a GPU
+  # (physsplat_jax/sorting.py); depths of valid Gaussians are > 0.
   depth = jnp.where(valid, lax.stop_gradient(proj.depths), jnp.inf)
-  order = jnp.argsort(depth).astype(jnp.int32)  # stable: ties by index
+  order = sorting.argsort(depth)  # stable: ties by index
   n_o = n[order]
   ends = jnp.cumsum(n_o)
   total = ends[-1]
@@ -338,7 +341,7 @@ def _bin_and_sort(proj: Projected, opacities: Array, tiles_x: int,
   sub_id = tile_id * S + (Y % sub) * sub + X % sub
   num_sub = tiles_x * tiles_y * S
   sub_id = jnp.where(slots < total, sub_id, num_sub)
-  sub_s, gid = lax.sort((sub_id, g), num_keys=1, is_stable=True)
+  sub_s, gid = sorting.sort_pairs(sub_id, g)
   ranges = _sub_tile_ranges(sub_s, num_sub)
   counts = ranges[1:] - ranges[:-1]
   return _Binned(gid=gid, ranges=ranges, total=total, max_tile=counts.max())
