@@ -1,15 +1,18 @@
 """Tests for physsplat_jax.io.video: MP4 round trip, GIF fallback, PNG frames,
-bad-frame errors."""
+bad-frame errors; and io.outputs' background writers."""
 
 import os
 import shutil
 import tempfile
+import threading
+import time
 
 import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 from absl.testing import parameterized
 
+from physsplat_jax.io import outputs
 from physsplat_jax.io import video
 
 # H.264 at quality 8 on smooth content: mean abs error in 8-bit levels.
@@ -129,6 +132,75 @@ class FallbackAndPngTest(absltest.TestCase):
     np.testing.assert_array_equal(back, np.round(frames[2] * 255))
     with self.assertRaisesRegex(video.VideoError, 'integer field'):
       video.PngFrameWriter(d, pattern='frame.png')
+
+
+class _Recorder:
+  """A writer that records what it got, on which thread, and can fail."""
+
+  def __init__(self, delay=0.0, fail_at=None):
+    self.delay, self.fail_at = delay, fail_at
+    self.indices, self.threads, self.closed = [], set(), False
+
+  def write(self, frame):
+    time.sleep(self.delay)
+    if frame.index == self.fail_at:
+      raise OSError(f'disk full at frame {frame.index}')
+    self.indices.append(frame.index)
+    self.threads.add(threading.get_ident())
+
+  def close(self):
+    self.closed = True
+    return {'rec': str(len(self.indices))}
+
+
+class BackgroundWritersTest(absltest.TestCase):
+
+  def test_frames_in_order_off_the_loop_thread_and_bounded(self):
+    fast, slow = _Recorder(), _Recorder(delay=0.01)
+    sink = outputs.BackgroundWriters([fast, slow], max_pending=3)
+    for i in range(12):
+      sink.write(outputs.Frame(index=i, time=0.1 * i))
+      pending = sink._pending  # noqa: SLF001
+      self.assertLessEqual(max(len(q) for q in pending), 3)
+    self.assertEqual(sink.close(), {'rec': '12'})
+    self.assertEqual(fast.indices, list(range(12)))
+    self.assertEqual(slow.indices, list(range(12)))
+    self.assertTrue(fast.closed and slow.closed)
+    self.assertNotIn(threading.get_ident(), fast.threads | slow.threads)
+
+  def test_a_writer_error_is_raised_and_the_others_still_close(self):
+    bad, good = _Recorder(fail_at=2), _Recorder()
+    sink = outputs.BackgroundWriters([bad, good], max_pending=2)
+    with self.assertRaisesRegex(OSError, 'disk full at frame 2'):
+      for i in range(50):
+        sink.write(outputs.Frame(index=i, time=0.0))
+        time.sleep(0.002)
+    sink.close()  # raised once, by write; close still closes every writer
+    self.assertTrue(bad.closed and good.closed)
+    self.assertEqual(bad.indices, [0, 1])
+    self.assertEqual(good.indices[:3], [0, 1, 2])
+
+  def test_an_error_still_queued_is_raised_by_close(self):
+    bad = _Recorder(delay=0.01, fail_at=1)
+    sink = outputs.BackgroundWriters([bad], max_pending=8)
+    for i in range(3):
+      sink.write(outputs.Frame(index=i, time=0.0))
+    with self.assertRaisesRegex(OSError, 'disk full at frame 1'):
+      sink.close()
+    self.assertTrue(bad.closed)
+
+  def test_png_output_through_the_background_writer(self):
+    d = tempfile.mkdtemp()
+    self.addCleanup(shutil.rmtree, d, ignore_errors=True)
+    frames = _smooth_frames(4, 12, 10)
+    sink = outputs.BackgroundWriters([outputs.PngOutput(d)])
+    for i, f in enumerate(frames):
+      sink.write(outputs.Frame(index=i, time=0.0, image=f))
+    self.assertEqual(sink.close(), {'frames': d})
+    self.assertEqual(sorted(os.listdir(d)),
+                     [f'frame_{i:04d}.png' for i in range(4)])
+    back = video.load_png(os.path.join(d, 'frame_0003.png'))
+    np.testing.assert_array_equal(back, np.round(frames[3] * 255))
 
 
 if __name__ == '__main__':

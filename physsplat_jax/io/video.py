@@ -378,10 +378,13 @@ def read_video(path: PathLike) -> np.ndarray:
   return np.stack(frames)
 
 
-def save_png(path: PathLike, image) -> None:
+def save_png(path: PathLike, image, compress_level: int = 1) -> None:
   """Writes one (H, W, 3) float [0, 1] or uint8 image as PNG.
 
   Also accepts (H, W) grey or (H, W, 4) RGBA floats/uint8.
+  ``compress_level`` (zlib, 0-9): 1 by default, 3.6x faster than Pillow's
+  6 on an 800x800 render (20 against 72 ms on the 2-core CPU) for files
+  about 30 % larger; video frames are written by the hundred.
   """
   from PIL import Image
 
@@ -396,7 +399,7 @@ def save_png(path: PathLike, image) -> None:
   else:
     img = to_uint8(a, path)
   _makedirs_for(path)
-  Image.fromarray(img).save(path)
+  Image.fromarray(img).save(path, format='PNG', compress_level=compress_level)
 
 
 def load_png(path: PathLike) -> np.ndarray:

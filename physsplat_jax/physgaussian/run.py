@@ -150,12 +150,11 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
     writers.append(out_lib.TrajectoryOutput(
       os.path.join(out_dir, 'trajectory.npz'), rows))
     make = _Frames(cfg, gaussians, rows, camera, video, ply)
+    sink = out_lib.BackgroundWriters(writers)  # encoded on writer threads
 
     def on_frame(f, x, F):
-      frame = make(f, x, F)
-      for w in writers:
-        w.write(frame)
-      logging.log_every_n(logging.INFO, 'frame %d written', 1, f)
+      sink.write(make(f, x, F))
+      logging.log_every_n(logging.INFO, 'frame %d queued for writing', 1, f)
 
     t1 = time.perf_counter()
     try:
@@ -163,7 +162,7 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
         gaussians, cfg, num_frames=num_frames, auto_substeps=auto_substeps,
         fill=fill, on_frame_F=on_frame)
     finally:
-      report['files'] = out_lib.close_all(writers)
+      report['files'] = sink.close()
     times['simulate_and_write'] = time.perf_counter() - t1
     report.update(num_gaussians=int(len(ids)), num_frames=int(len(t) - 1))
   except Exception as e:
