@@ -84,8 +84,8 @@ _RENDER_SLOTS = flags.DEFINE_integer(
   'render_slots', 800_000, 'render: (Gaussian, tile) intersection slots')
 _RENDER_SUBTILE = flags.DEFINE_integer('render_subtile', 8,
                                       'render: RenderConfig.subtile_size')
-_RENDER_BLOCK = flags.DEFINE_integer('render_block', 32,
-                                    'render: RenderConfig.pallas_block')
+_RENDER_BLOCK = flags.DEFINE_integer(
+  'render_block', None, 'render: RenderConfig.pallas_block (None: its default)')
 _RENDER_WARPS = flags.DEFINE_integer('render_warps', None,
                                     'render: RenderConfig.pallas_num_warps')
 _OUT = cli.define_out(None, 'JSON file for the counts')
@@ -202,8 +202,9 @@ def main(argv):
   if 'render' in _TARGETS.value:
     config = RenderConfig(
       backend='pallas', subtile_size=_RENDER_SUBTILE.value,
-      pallas_block=_RENDER_BLOCK.value,
       pallas_num_warps=_RENDER_WARPS.value)
+    if _RENDER_BLOCK.value is not None:
+      config = dataclasses.replace(config, pallas_block=_RENDER_BLOCK.value)
     for row in compile_render(sharding, _RENDER_SIZE.value,
                               _RENDER_SLOTS.value, config):
       rows.append(row)

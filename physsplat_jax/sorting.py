@@ -41,18 +41,21 @@ def radix_key(x: Array) -> Array:
   return x.astype(jnp.uint64 if x.dtype.itemsize > 4 else jnp.uint32)
 
 
+def _radix_sort(keys: Array, values: Array) -> tuple[Array, Array]:
+  """(radix keys, values) stably sorted by the keys: one CUB pair sort."""
+  return lax.sort((radix_key(keys), values), num_keys=1, is_stable=True)
+
+
 def sort_pairs(keys: Array, values: Array) -> tuple[Array, Array]:
   """``(keys, values)`` stably sorted by non-negative integer ``keys``;
   the sorted keys come back in their own dtype."""
-  k, v = lax.sort((radix_key(keys), values), num_keys=1, is_stable=True)
+  k, v = _radix_sort(keys, values)
   return k.astype(keys.dtype), v
 
 
 def argsort(keys: Array) -> Array:
   """Stable ``argsort`` (int32) of 1-D ``keys`` (see :func:`radix_key`)."""
-  n = keys.shape[0]
-  return lax.sort((radix_key(keys), jnp.arange(n, dtype=jnp.int32)),
-                  num_keys=1, is_stable=True)[1]
+  return _radix_sort(keys, jnp.arange(keys.shape[0], dtype=jnp.int32))[1]
 
 
 def inverse_permutation(perm: Array) -> Array:

@@ -384,7 +384,7 @@ def save_png(path: PathLike, image, compress_level: int = 1) -> None:
   Also accepts (H, W) grey or (H, W, 4) RGBA floats/uint8.
   ``compress_level`` (zlib, 0-9): 1 by default, 3.6x faster than Pillow's
   6 on an 800x800 render (20 against 72 ms on the 2-core CPU) for files
-  about 30 % larger; video frames are written by the hundred.
+  25-30 % larger; video frames are written by the hundred.
   """
   from PIL import Image
 

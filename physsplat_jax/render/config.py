@@ -118,9 +118,14 @@ class RenderConfig:
     """
     if self.backend != 'auto':
       return self.backend
-    pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
-    ok = pow2(self.resolved_subtile) and pow2(self.pallas_block)
+    ok = self.pallas_shapes_ok
     return 'pallas' if ok and jax.default_backend() == 'gpu' else 'jax'
+
+  @property
+  def pallas_shapes_ok(self) -> bool:
+    """Sub-tile edge and ``pallas_block`` are powers of two (Triton)."""
+    pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
+    return pow2(self.resolved_subtile) and pow2(self.pallas_block)
 
   def resolved_pallas(self) -> tuple[int, int, int]:
     """(forward block, forward warps, backward warps) of the Pallas kernels.
@@ -129,7 +134,7 @@ class RenderConfig:
     the ``P`` pixels of a sub-tile) and the backward two (``P / 64``: one
     warp for 8x8 sub-tiles, so its per-slot sums over the pixels stay
     inside a warp); both are 1 to 32 warps. Chosen with ptxas for an H100
-    (docs/rendering.md: no spills, 32 and 55 registers per thread).
+    (docs/rendering.md: no spills, 32 and 64 registers per thread).
     """
     p = self.resolved_subtile ** 2
     if self.pallas_num_warps is not None:

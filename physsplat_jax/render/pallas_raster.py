@@ -89,11 +89,6 @@ class _Static(NamedTuple):
   backward_warps: int
 
 
-def is_power_of_two(n: int) -> bool:
-  """True for 1, 2, 4, ..."""
-  return n >= 1 and (n & (n - 1)) == 0
-
-
 def _pixels(t, s: _Static, dtype):
   """Pixel-centre coordinates (P,) of sub-tile ``t`` (raster's numbering)."""
   i32 = jnp.int32

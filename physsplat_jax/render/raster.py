@@ -186,8 +186,7 @@ def _check_inputs(gaussians, camera, background, covariances, view_rotations,
 
 def _check_pallas(config):
   st = config.resolved_subtile
-  pow2 = lambda n: n >= 1 and (n & (n - 1)) == 0
-  if not (pow2(st) and pow2(config.pallas_block)):
+  if not config.pallas_shapes_ok:
     raise RenderConfigError(
       f"RenderConfig: backend='pallas' needs a power-of-two sub-tile edge "
       f'and pallas_block (Triton block shapes), got {st} and '
