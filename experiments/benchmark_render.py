@@ -44,6 +44,7 @@ from absl import flags
 
 from physsplat_jax import cameras
 from physsplat_jax import gaussians as gs
+from physsplat_jax.render import images
 from physsplat_jax.render import raster
 from physsplat_jax.render import views
 from physsplat_jax.types import Gaussians
@@ -196,7 +197,7 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
           grad: bool = False, pallas: bool = False,
           interpret: bool = False, use_gsplat: bool = True) -> dict:
   """Times one scene and camera; returns a dict of results."""
-  config = raster.fit_render_config(g, cam, config, margin=1.1)
+  config = images.fit_render_config(g, cam, config, margin=1.1)
   res = {'num': int(g.num), 'width': cam.width, 'height': cam.height,
          'capacity': config.capacity, 'device': str(jax.devices()[0])}
   c, t, tc, out = _time(_render_fn(config), g, cam, repeats=repeats)
@@ -206,7 +207,7 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
   if baseline:
     base = dataclasses.replace(config, subtile_size=None, tight_bounds=False,
                                capacity=None, max_chunks=None)
-    base = raster.fit_render_config(g, cam, base, margin=1.1)
+    base = images.fit_render_config(g, cam, base, margin=1.1)
     c2, t2, tc2, out2 = _time(_render_fn(base), g, cam, repeats=repeats)
     res.update(baseline_render_s=t2, baseline_render_cpu_s=tc2,
                baseline_intersections=int(out2.num_intersections),

@@ -25,6 +25,10 @@ _CONFIG = config_flags.DEFINE_config_file(
 _SCENE = flags.DEFINE_string('scene', 'tabletop',
                              'built-in scene (tabletop, ficus, donut) or PLY')
 _OUT = flags.DEFINE_string('out', 'out/demo', 'output directory')
+_PIPELINED = flags.DEFINE_bool(
+  'pipelined', True, 'overlap the host\'s per-frame work (checks, '
+  'rendering, writing) with the device simulating the next frame; '
+  '--nopipelined runs the stages in turn, for exact per-stage times')
 
 
 def main(argv):
@@ -32,7 +36,8 @@ def main(argv):
   config = lib.build_config(_SCENE.value, _CONFIG.value,
                             motions=lib.load_config_file()[1])
   report = lib.run_scene(_SCENE.value, config, _OUT.value,
-                         extra_report=dict(command='make demo'))
+                         extra_report=dict(command='make demo'),
+                         pipelined=_PIPELINED.value)
   print(pl.summary(report))
   print(f'\nvideo: {report["files"].get("video")}')
 

@@ -59,6 +59,10 @@ _PHYSGAUSSIAN = flags.DEFINE_string(
   'physgaussian', None, 'a PhysGaussian config/*.json to run as is')
 _AUTO = flags.DEFINE_bool('auto_substeps', False, 'PhysGaussian configs: '
                           'replace an unstable substep_dt by a stable one')
+_PIPELINED = flags.DEFINE_bool(
+  'pipelined', True, 'overlap the host\'s per-frame work (checks, '
+  'rendering, writing) with the device simulating the next frame; '
+  '--nopipelined runs the stages in turn, for exact per-stage times')
 flags.mark_flag_as_required('out')
 perception.define_flags()
 
@@ -80,7 +84,7 @@ def main(argv):
     ply=_PLY.value, segment=_SEGMENT.value,
     perception_options=lib.perception_options_from_flags(),
     scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
-    mpdp_checkpoint=_MPDP.value,
+    mpdp_checkpoint=_MPDP.value, pipelined=_PIPELINED.value,
     extra_report=dict(command=' '.join(sys.argv), git=sha))
   print(pl.summary(report))
 

@@ -185,6 +185,7 @@ class CameraUtilTest(parameterized.TestCase):
 
 
   def test_label_and_depth_range_do_not_recompile_the_renderer(self):
+    from physsplat_jax.render import images as host_render
     from physsplat_jax.render import raster
     from physsplat_jax.types import Gaussians
     rng = np.random.default_rng(0)
@@ -202,7 +203,7 @@ class CameraUtilTest(parameterized.TestCase):
                             (2.9, 100.0, '')):
       cam = make_camera(vm, 40.0, 40.0, 32, 24, near=near, far=far,
                         name=name)
-      images.append(raster.render_image(g, cam, config=cfg).image)
+      images.append(host_render.render_image(g, cam, config=cfg).image)
     # pylint: disable-next=protected-access
     self.assertEqual(raster._render_jit._cache_size(), 1)
     # The depth range still clips: a near plane past the centre (depth 3)

@@ -21,7 +21,7 @@ from physsplat_jax import test_util
 from physsplat_jax.io import export
 from physsplat_jax.io import ply
 from physsplat_jax.io import splat
-from physsplat_jax.render import raster
+from physsplat_jax.render import images
 from physsplat_jax.types import make_camera
 
 # float32 PLY + least-squares SH rotation vs the direct render.
@@ -67,7 +67,7 @@ class ExportRenderTest(absltest.TestCase):
     R = deform.polar_rotation(F)
     means = g.means + 0.1 * jnp.sin(3.0 * g.means[:, ::-1])
     cam = _camera()
-    direct = raster.render_image(g.replace(means=means), cam,
+    direct = images.render_image(g.replace(means=means), cam,
                                  covariances=covs, view_rotations=R,
                                  background=(0.2, 0.3, 0.4))
     path = os.path.join(self.dir, 'f.ply')
@@ -85,7 +85,7 @@ class ExportRenderTest(absltest.TestCase):
                                atol=_COV_RTOL * float(jnp.abs(covs).max()))
     # One compiled render for all three (same argument structure).
     eye = jnp.broadcast_to(jnp.eye(3), (K, 3, 3))
-    view = lambda h: raster.render_image(
+    view = lambda h: images.render_image(
       h.replace(normals=None), cam, covariances=h.covariances,
       view_rotations=eye, background=(0.2, 0.3, 0.4))
     out = view(back)

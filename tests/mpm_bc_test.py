@@ -553,6 +553,49 @@ class ErrorTest(absltest.TestCase):
     self.assertIn('frame', str(cm.exception))
     self.assertIn('dt', str(cm.exception))
 
+  def test_frame_loop_lookahead_same_states_one_frame_ahead(self):
+    x = _box(4, (0.4, 0.4, 0.5))
+    mat = mpm.make_materials('fixed_corotated', 2e4, 0.3, 1000.0,
+                             num=len(x))
+    cfg = mpm.SimConfig(grid=_GRID, dt=1e-3, substeps_per_frame=8)
+    s = mpm.init_state(x, (0.3, 0.0, -0.5), _SP ** 3, mat, cfg)
+    ref = mpm.run(s, mat, None, cfg, 4)
+    for lookahead in (False, True):
+      loop = mpm.FrameLoop(s, mat, None, cfg, 4, lookahead=lookahead)
+      calls = []
+      compiled = loop._compiled  # pylint: disable=protected-access
+
+      def counted(*a, _c=compiled, _calls=calls):
+        _calls.append(1)
+        return _c(*a)
+
+      loop._compiled = counted  # pylint: disable=protected-access
+      seen = []
+      for f, st in loop:
+        # Frames dispatched when frame f reaches the consumer: f, or f + 1
+        # (up to the last) with lookahead.
+        self.assertLen(calls, min(f + lookahead, 4))
+        seen.append(np.asarray(st.x))
+      np.testing.assert_array_equal(np.stack(seen), ref.positions)
+      self.assertEqual(loop.frames, 4)
+      self.assertGreater(loop.substeps_per_s, 0.0)
+
+  def test_frame_loop_lookahead_stops_at_the_bad_frame(self):
+    x = _box(3, (0.4, 0.4, 0.4))
+    mat = mpm.make_materials('fixed_corotated', 1e7, 0.3, 100.0, num=len(x))
+    cfg = mpm.SimConfig(grid=_GRID, dt=2e-3, substeps_per_frame=10,
+                        gravity=(0, 0, 0))
+    s = mpm.init_state(x, np.random.default_rng(0).normal(size=x.shape),
+                       _SP ** 3, mat, cfg)
+    with self.assertRaises(mpm.SimulationError) as serial:
+      mpm.run(s, mat, None, cfg, 20)
+    seen = []
+    with self.assertRaises(mpm.SimulationError) as ahead:
+      for f, _ in mpm.FrameLoop(s, mat, None, cfg, 20, lookahead=True):
+        seen.append(f)
+    self.assertEqual(ahead.exception.frame, serial.exception.frame)
+    self.assertEqual(seen, list(range(serial.exception.frame)))
+
   def test_bad_names_and_shapes(self):
     with self.assertRaisesRegex(ValueError, 'unknown model'):
       mpm.SimConfig(models=('jello',))

@@ -10,12 +10,14 @@ for two same-shape scenes, and the host loop's outputs.
 
 import os
 import tempfile
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 
+from physsplat_jax import mpm
 from physsplat_jax import pipeline as pl
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
@@ -278,6 +280,77 @@ class RunTest(absltest.TestCase):
     self.assertGreater(out.gaussian_positions[-1, :, 2].min(), -0.01)
     for k in ('compile', 'simulate', 'deform', 'render', 'write', 'total'):
       self.assertIn(k, out.timings)
+
+  def test_pipelined_run_equals_serial_and_overlaps_the_next_frame(self):
+    scene = _scene()
+    cfg = _config(render='fast', num_frames=3,
+                  initial_velocity=(('cube', (0.2, 0.0, 0.0)),))
+    prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene,
+                               [_RUBBER, _WOOD], cfg)
+    params = pl.init_params(prep, cfg)
+    real = mpm.FrameLoop._dispatch  # pylint: disable=protected-access
+    outs = {}
+    for pipelined in (False, True):
+      events, seen = [], []
+      outs[pipelined] = seen
+
+      def dispatch(loop, state, _real=real, _ev=events):
+        _ev.append('sim')
+        return _real(loop, state)
+
+      def on_frame(f, means, image, _ev=events, _seen=seen):
+        _ev.append(f)
+        _seen.append((f, means, image))
+
+      with mock.patch.object(mpm.FrameLoop, '_dispatch', dispatch):
+        pl.run(params, prep, cfg, on_frame=on_frame, pipelined=pipelined)
+      frames_out = [e for e in events if e != 'sim']
+      self.assertEqual(frames_out, [0, 1, 2, 3])
+      sims_before = [events[:events.index(f)].count('sim') for f in range(4)]
+      # Serial: frame f is handed out after f frames were simulated;
+      # pipelined: the next frame (and the one after, since frame f is
+      # collected an iteration late) is already under way.
+      self.assertEqual(sims_before, [min(f + 2 * pipelined, 3)
+                                     for f in range(4)])
+    for (fa, ma, ia), (fb, mb, ib) in zip(outs[False], outs[True]):
+      self.assertEqual(fa, fb)
+      np.testing.assert_array_equal(ma, mb)
+      np.testing.assert_array_equal(ia, ib)
+
+  def test_pipelined_run_writes_every_frame_before_a_failure(self):
+    scene = _scene()
+    cfg = _config(render='fast', num_frames=4)
+    prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene,
+                               [_RUBBER, _WOOD], cfg)
+    params = pl.init_params(prep, cfg)
+    from physsplat_jax.mpm import solver
+    real = solver.check_state
+
+    def check(config, stats, frame, t):
+      if frame == 2:
+        raise mpm.SimulationError('frame 2: blew up (test)', 2, 'nan')
+      real(config, stats, frame, t)
+
+    class Collect:
+      def __init__(self):
+        self.frames, self.closed = [], False
+
+      def write(self, frame):
+        self.frames.append((frame.index, frame.image))
+
+      def close(self):
+        self.closed = True
+        return {}
+
+    for pipelined in (False, True):
+      w = Collect()
+      with mock.patch.object(solver, 'check_state', check), \
+          self.assertRaisesRegex(mpm.SimulationError, 'frame 2'):
+        pl.run(params, prep, cfg, writers=[w], pipelined=pipelined)
+      self.assertTrue(w.closed)
+      self.assertEqual([f for f, _ in w.frames], [0, 1])
+      self.assertTrue(all(im is not None and np.isfinite(im).all()
+                          for _, im in w.frames))
 
   def test_other_frame_counts_and_seeds_reuse_the_compiled_programs(self):
     # pylint: disable=protected-access

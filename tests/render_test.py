@@ -17,6 +17,7 @@ from physsplat_jax import pipeline as pl
 from physsplat_jax import test_util
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render.project import project
+from physsplat_jax.render import images
 from physsplat_jax.render import raster
 from physsplat_jax.render.config import RenderConfigError
 from physsplat_jax.render.config import RenderInputError
@@ -83,7 +84,7 @@ class ReferenceParityTest(parameterized.TestCase):
     g = _scene(seed=degree, sh_degree=degree)
     cx, cy = principal if principal else (None, None)
     cam = _camera(width, height, cx=cx, cy=cy)
-    out = raster.render_image(g, cam, background=bg)
+    out = images.render_image(g, cam, background=bg)
     self.assertFalse(out.overflow)
     colors = raster.gaussian_colors(g, cam)
     image, alpha, depth = _reference(g, cam, colors, bg)
@@ -93,7 +94,7 @@ class ReferenceParityTest(parameterized.TestCase):
     g = _scene(seed=5, num=120)
     cam = _camera(48, 40)
     cfg = raster.RenderConfig(chunk_size=16)
-    out = raster.render_image(g, cam, config=cfg, differentiable=True)
+    out = images.render_image(g, cam, config=cfg, differentiable=True)
     colors = raster.gaussian_colors(g, cam)
     image, alpha, _ = _reference(g, cam, colors)
     np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL)
@@ -103,7 +104,7 @@ class ReferenceParityTest(parameterized.TestCase):
     g = _scene(seed=7, num=150)
     cam = _camera(48, 48)
     cfg = raster.RenderConfig(alpha_max=0.99, prefix='cumsum', chunk_size=8)
-    out = raster.render_image(g, cam, config=cfg)
+    out = images.render_image(g, cam, config=cfg)
     image, _, _ = _reference(g, cam, raster.gaussian_colors(g, cam),
                              alpha_max=0.99)
     np.testing.assert_allclose(out.image, image, atol=_IMAGE_TOL)
@@ -111,7 +112,7 @@ class ReferenceParityTest(parameterized.TestCase):
   def test_near_plane_and_behind_camera_are_culled(self):
     g = _scene(seed=3, num=60)
     cam = _camera(32, 32, eye=(0.0, -1.5, 0.0), near=0.8)
-    out = raster.render_image(g, cam)
+    out = images.render_image(g, cam)
     z = np.asarray(g.means @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3])[:, 2]
     self.assertGreater(np.sum(z <= 0.8), 5)  # some are culled ...
     self.assertLess(int(out.num_visible), np.sum(z > 0.8) + 1)
@@ -124,21 +125,21 @@ class CapacityTest(parameterized.TestCase):
   def test_overflow_flag_and_rerun(self):
     g = _scene(seed=1)
     cam = _camera()
-    big = raster.render_image(g, cam)
+    big = images.render_image(g, cam)
     total = int(big.num_intersections)
     self.assertGreater(total, 100)
     small = raster.RenderConfig(capacity=total // 3)
     out = jax.tree.map(np.asarray, _render_jit(g, cam, config=small))
     self.assertTrue(out.overflow)
     self.assertEqual(int(out.num_intersections), total)
-    rerun = raster.render_image(g, cam, config=small)
+    rerun = images.render_image(g, cam, config=small)
     self.assertFalse(rerun.overflow)
     np.testing.assert_array_equal(rerun.image, big.image)
 
   def test_capacity_exact_boundary(self):
     g = _scene(seed=2, num=80)
     cam = _camera(48, 32)
-    total = int(raster.render_image(g, cam).num_intersections)
+    total = int(images.render_image(g, cam).num_intersections)
     exact = _render_jit(g, cam, config=raster.RenderConfig(capacity=total))
     short = _render_jit(g, cam,
                         config=raster.RenderConfig(capacity=total - 1))
@@ -152,11 +153,11 @@ class CapacityTest(parameterized.TestCase):
     # bounds change the work, not the image.
     g = _scene(seed=6, num=150)
     cam = _camera(48, 40)
-    out = raster.render_image(g, cam)
-    self.assertEqual(raster.count_intersections(g, cam),
+    out = images.render_image(g, cam)
+    self.assertEqual(images.count_intersections(g, cam),
                      int(out.num_intersections))
     plain = raster.RenderConfig(subtile_size=None, tight_bounds=False)
-    base = raster.render_image(g, cam, config=plain)
+    base = images.render_image(g, cam, config=plain)
     self.assertGreater(int(base.num_intersections), 0)
     np.testing.assert_allclose(out.image, base.image, atol=1e-6)
     with self.assertRaisesRegex(ValueError, 'must divide'):
@@ -170,18 +171,18 @@ class CapacityTest(parameterized.TestCase):
                   static_argnames=('config',))(g, cam, config=cfg)
     self.assertGreater(int(out.max_tile_count), 4)
     self.assertTrue(bool(out.overflow))
-    fitted = raster.fit_render_config(g, cam, cfg)
+    fitted = images.fit_render_config(g, cam, cfg)
     self.assertGreaterEqual(fitted.max_chunks * 4, int(out.max_tile_count))
-    out2 = raster.render_image(g, cam, config=cfg, differentiable=True)
+    out2 = images.render_image(g, cam, config=cfg, differentiable=True)
     self.assertFalse(out2.overflow)
-    ref = raster.render_image(g, cam)
+    ref = images.render_image(g, cam)
     np.testing.assert_allclose(out2.image, ref.image, atol=1e-6)
 
   def test_everything_culled_gives_background(self):
     g = _scene(seed=0, num=10)
     cam = _camera(32, 16, eye=(0.0, -3.5, 1.0))
     g = g.replace(means=11.0 * cam.position[None] + 0.0 * g.means)
-    out = raster.render_image(g, cam, background=(0.1, 0.2, 0.3))
+    out = images.render_image(g, cam, background=(0.1, 0.2, 0.3))
     self.assertEqual(int(out.num_intersections), 0)
     np.testing.assert_allclose(
       out.image, np.broadcast_to([0.1, 0.2, 0.3], (16, 32, 3)), atol=1e-7)
@@ -193,7 +194,7 @@ class CapacityTest(parameterized.TestCase):
     s, z, f, o = 0.05, 2.0, 40.0, 0.7
     g = gs_single(s, o)
     cam = make_camera(jnp.eye(4).at[2, 3].set(z), f, f, 33, 33)
-    out = raster.render_image(g, cam, colors=jnp.ones((1, 3)))
+    out = images.render_image(g, cam, colors=jnp.ones((1, 3)))
     s2 = (f * s / z) ** 2 + 0.3
     jj, ii = np.meshgrid(np.arange(33) + 0.5, np.arange(33) + 0.5)
     d2 = (jj - 16.5) ** 2 + (ii - 16.5) ** 2
@@ -236,16 +237,16 @@ class CovarianceAndShTest(parameterized.TestCase):
   def test_precomputed_covariances_equal_scale_rotation_path(self):
     g = _scene(seed=11, num=150, sh_degree=1)
     cam = _camera()
-    a = raster.render_image(g, cam)
-    b = raster.render_image(g, cam, covariances=g.covariances)
+    a = images.render_image(g, cam)
+    b = images.render_image(g, cam, covariances=g.covariances)
     np.testing.assert_allclose(a.image, b.image, atol=1e-6)
     np.testing.assert_allclose(a.alpha, b.alpha, atol=1e-6)
 
   def test_explicit_colors_equal_sh_dc(self):
     g = _scene(seed=12, num=150, sh_degree=0)
     cam = _camera()
-    a = raster.render_image(g, cam)
-    b = raster.render_image(g, cam, colors=jnp.maximum(g.rgb_dc, 0.0))
+    a = images.render_image(g, cam)
+    b = images.render_image(g, cam, colors=jnp.maximum(g.rgb_dc, 0.0))
     np.testing.assert_allclose(a.image, b.image, atol=1e-6)
 
   def test_rotating_scene_camera_and_view_rotation_keeps_image(self):
@@ -263,16 +264,16 @@ class CovarianceAndShTest(parameterized.TestCase):
     vm[:3, :3] = vm[:3, :3] @ Q.T
     cam_rot = cam.replace(viewmat=jnp.asarray(vm, jnp.float32))
     rots = jnp.broadcast_to(Qj, (g.num, 3, 3))
-    a = raster.render_image(g, cam)
-    b = raster.render_image(g_rot, cam_rot, covariances=covs,
+    a = images.render_image(g, cam)
+    b = images.render_image(g_rot, cam_rot, covariances=covs,
                             view_rotations=rots)
-    c = raster.render_image(g_rot, cam_rot, covariances=covs)
+    c = images.render_image(g_rot, cam_rot, covariances=covs)
     np.testing.assert_allclose(a.image, b.image, atol=2e-4)
     # Without the view rotation the degree-3 colours differ.
     self.assertGreater(np.abs(a.image - c.image).max(), 1e-2)
     # Rotating the SH coefficients instead gives the same image too.
     sh_rot = sh_rotation.rotate_sh(g.sh, rots)
-    d = raster.render_image(g_rot.replace(sh=sh_rot), cam_rot,
+    d = images.render_image(g_rot.replace(sh=sh_rot), cam_rot,
                             covariances=covs)
     np.testing.assert_allclose(a.image, d.image, atol=2e-4)
 
@@ -333,21 +334,21 @@ class AntialiasedTest(absltest.TestCase):
     g = g.replace(opacity_logits=g.opacity_logits + 3.0)
     cam = _camera()
     bg = (0.2, 0.5, 1.0)
-    out = raster.render_image(g, cam, background=bg, config=_AA)
+    out = images.render_image(g, cam, background=bg, config=_AA)
     image, alpha, depth = _reference(g, cam, raster.gaussian_colors(g, cam),
                                      bg, rasterize_mode='antialiased')
     _assert_matches(self, out, image, alpha, depth)
-    diff = raster.render_image(g, cam, background=bg, differentiable=True,
+    diff = images.render_image(g, cam, background=bg, differentiable=True,
                                config=dataclasses.replace(_AA, chunk_size=16))
     np.testing.assert_allclose(diff.image, image, atol=_IMAGE_TOL,
                                err_msg='mismatch: differentiable image')
     # The mode matters on this scene, and the tight bounds use the
     # compensated opacity (fewer intersections), counted exactly on the host.
-    classic = raster.render_image(g, cam, background=bg)
+    classic = images.render_image(g, cam, background=bg)
     self.assertGreater(np.abs(classic.image - out.image).max(), 0.1)
     self.assertLess(int(out.num_intersections),
                     int(classic.num_intersections))
-    self.assertEqual(raster.count_intersections(g, cam, config=_AA),
+    self.assertEqual(images.count_intersections(g, cam, config=_AA),
                      int(out.num_intersections))
 
   def test_single_gaussian_matches_closed_form(self):
@@ -358,7 +359,7 @@ class AntialiasedTest(absltest.TestCase):
     s, z, f, o = 0.03, 2.0, 40.0, 0.9
     g = gs_single(s, o)
     cam = make_camera(jnp.eye(4).at[2, 3].set(z), f, f, 17, 17)
-    out = raster.render_image(g, cam, colors=jnp.ones((1, 3)), config=_AA)
+    out = images.render_image(g, cam, colors=jnp.ones((1, 3)), config=_AA)
     s2 = (f * s / z) ** 2
     jj, ii = np.meshgrid(np.arange(17) + 0.5, np.arange(17) + 0.5)
     d2 = (jj - 8.5) ** 2 + (ii - 8.5) ** 2

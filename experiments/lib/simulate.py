@@ -179,7 +179,8 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
               segment: str | None = None, perception_options=None,
               extra_report: dict | None = None,
               scene_options: dict | None = None,
-              mpdp_checkpoint: str | None = None) -> dict:
+              mpdp_checkpoint: str | None = None,
+              pipelined: bool = True) -> dict:
   """The pipeline on a built-in scene or a scene file; the report.
 
   ``scene_options`` go to :func:`physsplat_jax.load_scene` for a scene file
@@ -212,7 +213,7 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
     raise pl.PipelineError(f'--config.camera_index: {e}') from None
   _, report = pl.simulate_scene(
     scene, config, out, perception_options=perception_options, ply=ply,
-    extra_report=extra_report, mpdp_params=mpdp_params)
+    extra_report=extra_report, mpdp_params=mpdp_params, pipelined=pipelined)
   return report
 
 

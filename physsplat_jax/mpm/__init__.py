@@ -9,7 +9,8 @@ Public API (see docs/mpm.md):
   ``make_forces``;
 - state: ``MPMState`` / ``init_state``;
 - stepping: ``make_substep``, ``make_frame``, ``rollout`` (jit/grad) and
-  ``run`` (host loop with checks) -> ``RunResult``;
+  ``run`` (host loop with checks) -> ``RunResult``, ``FrameLoop`` (the same
+  loop as an iterator, optionally one frame ahead);
 - time step: ``cfl_dt``, ``stable_dt``, ``choose_substeps``, ``check_dt``;
 - errors: ``SimulationError``.
 """
@@ -34,6 +35,7 @@ from physsplat_jax.mpm.base import lame as lame
 from physsplat_jax.mpm.base import make_forces as make_forces
 from physsplat_jax.mpm.base import make_materials as make_materials
 from physsplat_jax.mpm.base import model_default as model_default
+from physsplat_jax.mpm.solver import FrameLoop as FrameLoop
 from physsplat_jax.mpm.solver import RunResult as RunResult
 from physsplat_jax.mpm.solver import init_state as init_state
 from physsplat_jax.mpm.solver import make_frame as make_frame

@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -602,13 +602,116 @@ def _jitted(config: base.SimConfig):
           jax.jit(functools.partial(_stats, config)))
 
 
+class FrameLoop:
+  """The frame-by-frame host loop of :func:`run`, as an iterator.
+
+  Compiles the frame once (cached by config and shapes), then yields
+  ``(f, state)`` for ``f = 0 .. num_frames`` (frame 0 is the initial
+  state), each frame checked for stability first. With ``lookahead`` the
+  next frame is dispatched *before* frame ``f`` is yielded, so whatever the
+  consumer does with frame ``f`` on the host (rendering, writing, checks)
+  overlaps the device computing frame ``f + 1``; JAX's asynchronous
+  dispatch does the rest. Device work the consumer dispatches for frame
+  ``f`` then queues behind frame ``f + 1``; collect its results one
+  iteration later to keep the device busy (``pipeline.run`` does). A frame
+  that fails its check raises before it is yielded; with ``lookahead`` the
+  frame after it has already been dispatched (its result is dropped).
+
+  Attributes:
+    compile_s: seconds compiling (0 when an earlier loop compiled it).
+    sim_s: seconds the host waited for simulated frames, dispatch
+      included. Without lookahead this is the simulation's wall time, as
+      :func:`run` reports it; with it, time the device spent while the
+      consumer held control is not counted.
+    frames: frames yielded after frame 0 so far.
+    state: the last state yielded.
+  """
+
+  def __init__(self, state: base.MPMState, materials: base.Materials,
+               forces: base.Forces | None, config: base.SimConfig,
+               num_frames: int | None = None, *, check: bool = True,
+               lookahead: bool = False, log_every: int = 1):
+    num_frames = config.num_frames if num_frames is None else num_frames
+    if num_frames is None:
+      raise ValueError('run: pass num_frames (or set config.num_frames).')
+    self.forces = _check_inputs(state, materials, forces, config)
+    # The frame program depends on neither the frame count nor
+    # rematerialisation (nothing is differentiated here): keyed without
+    # them, a run of another length reuses the compiled frame.
+    self.config = dataclasses.replace(config, num_frames=None,
+                                      remat_frames=False)
+    frame_jit, self._stats = _jitted(self.config)
+    t0 = time.perf_counter()
+    leaves, tree = jax.tree.flatten((state, materials, self.forces))
+    key = (self.config, tree,
+           tuple((np.shape(a), str(getattr(a, 'dtype', type(a))))
+                 for a in leaves))
+    compiled = _COMPILED.get(key)
+    if compiled is None:
+      compiled = frame_jit.lower(state, materials, self.forces).compile()
+      if len(_COMPILED) >= 32:
+        _COMPILED.pop(next(iter(_COMPILED)))
+      _COMPILED[key] = compiled
+    self._compiled = compiled
+    self.compile_s = time.perf_counter() - t0
+    self.state, self.materials = state, materials
+    self.num_frames, self.check = num_frames, check
+    self.lookahead, self.log_every = lookahead, log_every
+    self.sim_s, self.frames = 0.0, 0
+    logging.info('mpm.run: %d particles, grid %d^3, dt %.3g s x %d '
+                 'substeps per frame, %d frames; compiled in %.2f s',
+                 state.num, self.config.grid.res, self.config.dt,
+                 self.config.substeps_per_frame, num_frames, self.compile_s)
+
+  @property
+  def substeps_per_s(self) -> float:
+    """Particle-substeps per second of ``sim_s`` so far."""
+    total = self.state.num * self.config.substeps_per_frame * self.frames
+    return total / max(self.sim_s, 1e-9)
+
+  def _dispatch(self, state):
+    t = time.perf_counter()
+    nxt = self._compiled(state, self.materials, self.forces)
+    stats = self._stats(nxt) if self.check else None
+    self.sim_s += time.perf_counter() - t
+    return nxt, stats
+
+  def __iter__(self) -> Iterator[tuple[int, base.MPMState]]:
+    config, n = self.config, self.num_frames
+    state = self.state
+    pending = self._dispatch(state) if self.lookahead and n > 0 else None
+    yield 0, state
+    for f in range(1, n + 1):
+      if pending is None:
+        pending = self._dispatch(state)
+      t1 = time.perf_counter()
+      state, stats = pending
+      jax.block_until_ready(state.x)
+      self.sim_s += time.perf_counter() - t1
+      pending = None
+      t = f * config.frame_dt
+      if self.check:
+        check_state(config, jax.device_get(stats), f, t)
+      if self.lookahead and f < n:
+        pending = self._dispatch(state)
+      self.state, self.frames = state, f
+      if f % self.log_every == 0 or f == n:
+        logging.info('mpm.run: frame %d/%d t=%.4g s (%.3g '
+                     'particle-substeps/s)', f, n, t, self.substeps_per_s)
+      yield f, state
+
+
 def run(state: base.MPMState, materials: base.Materials,
         forces: base.Forces | None, config: base.SimConfig,
         num_frames: int | None = None,
         on_frame: Callable[[int, base.MPMState], Any] | None = None,
         keep_positions: bool = True, check: bool = True,
-        log_every: int = 1) -> RunResult:
+        log_every: int = 1, lookahead: bool = False) -> RunResult:
   """Host loop: one jitted frame call per frame, with checks and progress.
+
+  Each frame is waited for, checked, then handed to ``on_frame`` before the
+  next one is dispatched, so ``run_s`` is the simulation's own time; with
+  ``lookahead`` the next frame is dispatched first (:class:`FrameLoop`).
 
   Args:
     state: initial state.
@@ -623,6 +726,9 @@ def run(state: base.MPMState, materials: base.Materials,
       speed, more than a cell per substep, |F| > 100, det F outside
       [0.01, 100]).
     log_every: log progress every this many frames.
+    lookahead: dispatch frame ``f + 1`` before ``on_frame(f, ...)`` runs,
+      so the callback's host work overlaps it; ``run_s`` is then the time
+      spent waiting for frames.
 
   Returns:
     ``RunResult``.
@@ -630,57 +736,19 @@ def run(state: base.MPMState, materials: base.Materials,
   Raises:
     SimulationError: with the frame, the likely cause and the fix.
   """
-  num_frames = config.num_frames if num_frames is None else num_frames
-  if num_frames is None:
-    raise ValueError('run: pass num_frames (or set config.num_frames).')
-  forces = _check_inputs(state, materials, forces, config)
-  # The frame program depends on neither the frame count nor rematerialisation
-  # (nothing is differentiated here): keyed without them, a run of another
-  # length reuses the compiled frame.
-  config = dataclasses.replace(config, num_frames=None, remat_frames=False)
-  frame_jit, stats_jit = _jitted(config)
-  t0 = time.perf_counter()
-  leaves, tree = jax.tree.flatten((state, materials, forces))
-  key = (config, tree, tuple((np.shape(a), str(getattr(a, 'dtype', type(a))))
-                             for a in leaves))
-  compiled = _COMPILED.get(key)
-  if compiled is None:
-    compiled = frame_jit.lower(state, materials, forces).compile()
-    if len(_COMPILED) >= 32:
-      _COMPILED.pop(next(iter(_COMPILED)))
-    _COMPILED[key] = compiled
-  compile_s = time.perf_counter() - t0
-  logging.info('mpm.run: %d particles, grid %d^3, dt %.3g s x %d substeps '
-               'per frame, %d frames; compiled in %.2f s',
-               state.num, config.grid.res, config.dt,
-               config.substeps_per_frame, num_frames, compile_s)
-  positions = [np.asarray(state.x, np.float32)] if keep_positions else None
-  times = [0.0]
-  if on_frame is not None:
-    on_frame(0, state)
-  run_s = 0.0
-  for f in range(1, num_frames + 1):
-    t1 = time.perf_counter()
-    state = compiled(state, materials, forces)
-    jax.block_until_ready(state.x)
-    run_s += time.perf_counter() - t1
-    t = f * config.frame_dt
-    if check:
-      stats = jax.device_get(stats_jit(state))
-      check_state(config, stats, f, t)
+  loop = FrameLoop(state, materials, forces, config, num_frames,
+                   check=check, lookahead=lookahead, log_every=log_every)
+  positions = [] if keep_positions else None
+  times = []
+  for f, st in loop:
     if keep_positions:
-      positions.append(np.asarray(state.x, np.float32))
-    times.append(t)
+      positions.append(np.asarray(st.x, np.float32))
+    times.append(f * loop.config.frame_dt)
     if on_frame is not None:
-      on_frame(f, state)
-    if f % log_every == 0 or f == num_frames:
-      rate = state.num * config.substeps_per_frame * f / max(run_s, 1e-9)
-      logging.info('mpm.run: frame %d/%d t=%.4g s (%.3g particle-substeps/s)',
-                   f, num_frames, t, rate)
-  total = state.num * config.substeps_per_frame * num_frames
+      on_frame(f, st)
   return RunResult(
-    state=state,
+    state=loop.state,
     positions=np.stack(positions) if keep_positions else None,
-    times=np.asarray(times), frames=num_frames, compile_s=compile_s,
-    run_s=run_s, substeps_per_s=total / max(run_s, 1e-9),
+    times=np.asarray(times), frames=loop.frames, compile_s=loop.compile_s,
+    run_s=loop.sim_s, substeps_per_s=loop.substeps_per_s,
   )

@@ -420,8 +420,10 @@ def simulate_config(
                'dt %.3g s x %d substeps/frame, %d frames.', config.source,
                config.material, k, prep.state.num - k, sc.grid.res, sc.dt,
                sc.substeps_per_frame, frames)
+  # The next frame simulates while ``collect`` fetches, renders and queues
+  # this one.
   res = solver.run(prep.state, prep.materials, prep.forces, sc, frames,
-                   on_frame=collect, keep_positions=False)
+                   on_frame=collect, keep_positions=False, lookahead=True)
   t = np.arange(frames + 1) * sc.frame_dt
   del res
   return np.stack(traj), prep.ids, t

@@ -29,7 +29,7 @@ from physsplat_jax.physgaussian import camera as camera_lib
 from physsplat_jax.physgaussian import driver
 from physsplat_jax.physgaussian import schema
 from physsplat_jax.physgaussian import transform
-from physsplat_jax.render import raster
+from physsplat_jax.render import images
 
 
 def _selected_rows(cfg, gaussians) -> np.ndarray:
@@ -75,7 +75,7 @@ class _Frames:
       frame.covariances, frame.rotations = covs, rots
       if self.render:
         cam = self.camera(f) if callable(self.camera) else self.camera
-        img = raster.render_image(
+        img = images.render_image(
           self.shown.replace(means=means), cam,
           background=(1.0, 1.0, 1.0), covariances=covs, view_rotations=rots)
         frame.image = np.clip(img.image, 0.0, 1.0)

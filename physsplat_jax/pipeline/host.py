@@ -33,7 +33,7 @@ from physsplat_jax.pipeline.simulation import assemble_scene
 from physsplat_jax.pipeline.simulation import deformed_gaussians
 from physsplat_jax.pipeline.simulation import initial_state
 from physsplat_jax.pipeline.simulation import make_sim_config
-from physsplat_jax.render import raster
+from physsplat_jax.render import images
 from physsplat_jax.types import Array
 
 
@@ -100,8 +100,30 @@ def _initial_state_jit(params, prepared, config, field):
   return initial_state(params, prepared, config, field)[:3]
 
 
+@dataclasses.dataclass
+class _Pending:
+  """One frame's device work, dispatched and not yet waited for."""
+
+  index: int
+  time: float
+  x: Array
+  means: Array
+  particles: Array
+  gaussians: object = None
+  covariances: Array | None = None
+  rotations: Array | None = None
+  render: images.PendingRender | None = None
+
+
 class _FrameMaker:
-  """Deforms and renders one frame on the host (compiled once)."""
+  """Deforms and renders frames (compiled once), in two halves.
+
+  :meth:`dispatch` queues a frame's deformation and render on the device
+  and returns at once; :meth:`finish` waits for them and builds the
+  :class:`~physsplat_jax.io.outputs.Frame`. ``run`` finishes frame ``f``
+  after dispatching frame ``f + 1``'s work, so the host's per-frame work
+  overlaps the device's.
+  """
 
   def __init__(self, prepared: PreparedScene, config: SimulateConfig,
                need_all: bool, timings: dict):
@@ -117,37 +139,48 @@ class _FrameMaker:
     self.view = prepared.replace(spec=None, camera=None)
     self.camera = prepared.camera.unlabelled()
 
-  def __call__(self, f: int, t: float, state) -> out_lib.Frame:
+  def dispatch(self, f: int, t: float, state) -> _Pending:
     t1 = time.perf_counter()
     means, covs, rots = _deform_jit(self.view, state.x, state.F,
                                     use_driver_F=self.config.use_driver_F)
-    means.block_until_ready()
-    self.timings['deform'] += time.perf_counter() - t1
-    frame = out_lib.Frame(
-      index=f, time=t, positions=np.asarray(means, np.float32),
-      particles=np.asarray(_to_scene_jit(self.view.frame, state.x)))
+    p = _Pending(index=f, time=t, x=state.x, means=means,
+                 particles=_to_scene_jit(self.view.frame, state.x))
     if self.need_all:
-      frame.gaussians, frame.covariances, frame.rotations = _assemble_jit(
+      p.gaussians, p.covariances, p.rotations = _assemble_jit(
         self.view, means, covs, rots)
+    t2 = time.perf_counter()
+    self.timings['deform'] += t2 - t1
     if self.render:
-      t2 = time.perf_counter()
-      frame.image = self._render(frame)
+      camera = _camera_jit(self.camera, self.prepared.orbit, f,
+                           self.config.num_frames)
+      p.render = images.render_image_async(
+        p.gaussians, camera, background=self.prepared.background,
+        covariances=p.covariances, view_rotations=p.rotations,
+        config=self.rcfg)
+      # The counted capacity (first frame) serves the next frames too.
+      self._keep_larger(p.render.config, p.gaussians.num)
+      self.timings['render'] += time.perf_counter() - t2
+    return p
+
+  def finish(self, p: _Pending) -> out_lib.Frame:
+    t1 = time.perf_counter()
+    frame = out_lib.Frame(
+      index=p.index, time=p.time, positions=np.asarray(p.means, np.float32),
+      particles=np.asarray(p.particles), gaussians=p.gaussians,
+      covariances=p.covariances, rotations=p.rotations)
+    t2 = time.perf_counter()
+    self.timings['deform'] += t2 - t1
+    if p.render is not None:
+      out = p.render.result()
+      self._keep_larger(p.render.config, p.gaussians.num)
+      frame.image = np.clip(out.image, 0.0, 1.0)
       self.timings['render'] += time.perf_counter() - t2
     return frame
 
-  def _render(self, frame: out_lib.Frame) -> np.ndarray:
-    g = frame.gaussians
-    camera = _camera_jit(self.camera, self.prepared.orbit, frame.index,
-                         self.config.num_frames)
-    out = raster.render_image(
-      g, camera, background=self.prepared.background,
-      covariances=frame.covariances, view_rotations=frame.rotations,
-      config=self.rcfg)
-    if out.num_intersections > self.rcfg.resolved_capacity(g.num):
-      self.rcfg = dataclasses.replace(
-        self.rcfg, capacity=raster._next_capacity(  # noqa: SLF001
-          int(out.num_intersections)))
-    return np.clip(out.image, 0.0, 1.0)
+  def _keep_larger(self, cfg, k: int) -> None:
+    """Keeps a capacity that a frame needed (counted or grown)."""
+    if cfg.resolved_capacity(k) > self.rcfg.resolved_capacity(k):
+      self.rcfg = dataclasses.replace(self.rcfg, capacity=cfg.capacity)
 
 
 class _WallWatch:
@@ -190,8 +223,14 @@ def run(
   field: Array | None = None,
   on_frame: Callable | None = None,
   fps: float | None = None,
+  pipelined: bool = True,
 ) -> RunOutput:
   """Host loop: simulate frame by frame, streaming frames to writers.
+
+  Pipelined (the default), the device is never left waiting for the host:
+  frame ``f + 1`` is simulated while frame ``f`` is deformed and rendered,
+  and frame ``f - 1`` is fetched, checked and handed to the writers
+  meanwhile. The outputs are the same either way.
 
   Args:
     params: :class:`Params`.
@@ -207,6 +246,11 @@ def run(
     on_frame: optional ``callback(frame, means, image)`` (scene
       coordinates; image None when nothing is rendered).
     fps: video frame rate; default the prepared scene's frame rate.
+    pipelined: overlap the host's per-frame work with the device's. Then
+      ``timings`` are the time the host *waited* for each stage (what
+      overlapped is counted once, or not at all) and
+      ``particle_substeps_per_s`` is over the simulation's waits; False
+      runs the stages one after the other, for exact per-stage times.
 
   Returns:
     :class:`RunOutput`.
@@ -245,36 +289,58 @@ def run(
   # 'write' is the time the loop waited for them.
   sink = out_lib.BackgroundWriters(writers)
 
-  def frame_cb(f, st):
+  def consume(p: _Pending) -> None:
     t1 = time.perf_counter()
-    walls.check(f, st.x)
-    frame = maker(f, f * prepared.spec.frame_dt, st)
+    frame = maker.finish(p)
+    walls.check(p.index, p.x)
     t3 = time.perf_counter()
     sink.write(frame)
     timings['write'] += time.perf_counter() - t3
     positions.append(frame.positions)
     particles.append(frame.particles)
     if on_frame is not None:
-      on_frame(f, frame.positions, frame.image)
-    if f > 0:
-      logging.info('frame %d/%d: deform+render+write %.2f s', f, num,
-                   time.perf_counter() - t1)
+      on_frame(p.index, frame.positions, frame.image)
+    if p.index > 0:
+      logging.info('frame %d/%d: deform+render+write %.2f s on the host%s',
+                   p.index, num, time.perf_counter() - t1,
+                   ' (overlapping the next frame)' if pipelined else '')
 
+  pending = None
   try:
-    res = mpm.run(state, materials, forces, sim_config, num,
-                  on_frame=frame_cb, keep_positions=False)
+    loop = mpm.FrameLoop(state, materials, forces, sim_config, num,
+                         lookahead=pipelined)
+    try:
+      for f, st in loop:
+        p = maker.dispatch(f, f * prepared.spec.frame_dt, st)
+        if pending is not None:
+          q, pending = pending, None
+          consume(q)
+        if pipelined:
+          pending = p
+        else:
+          consume(p)
+      if pending is not None:
+        q, pending = pending, None
+        consume(q)
+    except mpm.SimulationError:
+      # Every frame before the failing one is written, as without the
+      # pipeline.
+      if pending is not None:
+        consume(pending)
+      raise
   finally:
     t3 = time.perf_counter()
     files = sink.close()
     timings['write'] += time.perf_counter() - t3
-  timings['compile'] += res.compile_s
-  timings['simulate'] = res.run_s
+  timings['compile'] += loop.compile_s
+  timings['simulate'] = loop.sim_s
   timings['total'] = time.perf_counter() - t_start
   return RunOutput(
     gaussian_positions=np.stack(positions),
     sim_rows=np.asarray(prepared.sim_rows),
-    particle_positions=np.stack(particles), times=res.times, files=files,
-    timings=timings, particle_substeps_per_s=res.substeps_per_s)
+    particle_positions=np.stack(particles),
+    times=np.arange(loop.frames + 1) * loop.config.frame_dt, files=files,
+    timings=timings, particle_substeps_per_s=loop.substeps_per_s)
 
 
 def save_trajectory(path: str, out: RunOutput) -> None:

@@ -71,6 +71,7 @@ def simulate_scene(
   ply: bool = False,
   extra_report: dict | None = None,
   mpdp_params: Any = None,
+  pipelined: bool = True,
 ) -> tuple[RunOutput, dict]:
   """The whole job on one scene.
 
@@ -89,6 +90,9 @@ def simulate_scene(
     extra_report: merged into ``report.json`` (e.g. the command line).
     mpdp_params: MPDP weights (e.g. a user's checkpoint from
       ``physsplat_jax.mpdp.load_params``); default the shipped ones.
+    pipelined: overlap host and device work frame by frame (see
+      :func:`~physsplat_jax.pipeline.run`); False for exact per-stage
+      times.
 
   Returns:
     (:class:`RunOutput`, the report dict).
@@ -107,7 +111,7 @@ def simulate_scene(
   t0 = time.perf_counter()
   try:
     out = _run_stages(scene, config, out_dir, materials, perception_options,
-                      segment, ply, stages, report, mpdp_params)
+                      segment, ply, stages, report, mpdp_params, pipelined)
   except Exception as e:
     report['error'] = f'{type(e).__name__}: {e}'
     stages['total'] = time.perf_counter() - t0
@@ -125,7 +129,8 @@ def simulate_scene(
 
 
 def _run_stages(scene, config, out_dir, materials, perception_options,
-                segment, ply, stages, report, mpdp_params) -> RunOutput:
+                segment, ply, stages, report, mpdp_params,
+                pipelined) -> RunOutput:
   t = time.perf_counter()
   scene = segment_stage(scene, segment)
   stages['segmentation'], t = time.perf_counter() - t, time.perf_counter()
@@ -148,7 +153,9 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
     num_candidates=prep.num_candidates, num_particles=prep.num_particles,
     grid=prep.grid, time_step=prep.time_step, capture=prep.capture)
   field = prepared.field if config.use_mpdp else None
-  out = run(params, prepared, config, out_dir=out_dir, ply=ply, field=field)
+  report['pipelined'] = pipelined
+  out = run(params, prepared, config, out_dir=out_dir, ply=ply, field=field,
+            pipelined=pipelined)
   stages.update(out.timings)
   stages.pop('total', None)
   report['particle_substeps_per_s'] = out.particle_substeps_per_s

@@ -17,15 +17,22 @@ from physsplat_jax.render.config import (
 from physsplat_jax.render.config import (
   RenderInputError as RenderInputError,
 )
+from physsplat_jax.render.images import PendingRender as PendingRender
 from physsplat_jax.render.raster import RenderConfig as RenderConfig
 from physsplat_jax.render.raster import RenderOutput as RenderOutput
-from physsplat_jax.render.raster import fit_render_config as fit_render_config
+from physsplat_jax.render.images import (
+  count_intersections as count_intersections,
+)
+from physsplat_jax.render.images import fit_render_config as fit_render_config
 from physsplat_jax.render.raster import gaussian_colors as gaussian_colors
 from physsplat_jax.render.raster import render as render
 from physsplat_jax.render.raster import (
   render_differentiable as render_differentiable,
 )
-from physsplat_jax.render.raster import render_image as render_image
+from physsplat_jax.render.images import render_image as render_image
+from physsplat_jax.render.images import (
+  render_image_async as render_image_async,
+)
 from physsplat_jax.sh_rotation import rotate_sh as rotate_sh
 from physsplat_jax.render.slices import draw_line as draw_line
 from physsplat_jax.render.slices import space_time_slice as space_time_slice

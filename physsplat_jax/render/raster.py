@@ -18,8 +18,8 @@ unchanged on CPU and GPU):
    + n_k)`` of a buffer of STATIC size ``capacity`` (``s = cumsum(n) - n``);
    slot ``s`` finds its Gaussian as ``#{k: s_k + n_k <= s}`` (a histogram
    and a prefix sum). When ``sum(n) > capacity`` the output's ``overflow``
-   flag is set (nothing is silently dropped: :func:`render_image` re-runs
-   with a larger capacity).
+   flag is set (nothing is silently dropped: :func:`~physsplat_jax.render.
+   images.render_image` re-runs with a larger capacity).
 3. Gaussians are sorted by depth once (K keys); since slots are emitted in
    depth order, one stable sort on the sub-tile id alone orders every
    sub-tile's list front to back (cheaper than sorting (tile, depth)
@@ -69,7 +69,6 @@ Differences between gsplat (followed here) and INRIA
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 
@@ -613,18 +612,6 @@ _render_jit = jax.jit(render, static_argnames=('config',))
 _render_diff_jit = jax.jit(render_differentiable, static_argnames=('config',))
 
 
-def _next_capacity(needed: int) -> int:
-  """``needed`` plus 10-25 % head-room, on a coarse grid of sizes.
-
-  Sizes are multiples of 1/8 of a power of two (8 per octave), so similar
-  frames share one compiled renderer, while the sort (which runs over the
-  whole buffer) stays within 25 % of the work needed.
-  """
-  x = max(int(math.ceil(max(int(needed), 1) * 1.1)), 1024)
-  step = 2 ** max(int(math.floor(math.log2(x))) - 3, 0)
-  return int(-(-x // step) * step)
-
-
 def _count_intersections(gaussians, camera, covariances, config):
   tile = config.tile_size
   tiles_x = -(-camera.width // tile)
@@ -636,119 +623,3 @@ def _count_intersections(gaussians, camera, covariances, config):
 
 
 _count_jit = jax.jit(_count_intersections, static_argnames=('config',))
-
-
-def count_intersections(
-  gaussians: Gaussians,
-  camera: Camera,
-  *,
-  covariances: Array | None = None,
-  config: RenderConfig = RenderConfig(),
-) -> int:
-  """(Gaussian, sub-tile) pairs a render needs (host side, cheap).
-
-  Projection and counting only (no sort, no compositing), to size
-  ``RenderConfig.capacity`` before the first render.
-  """
-  _check_inputs(gaussians, camera, (0.0, 0.0, 0.0), covariances, None, None,
-                config)
-  return int(_count_jit(gaussians, camera.unlabelled(), covariances, config))
-
-
-def fit_render_config(
-  gaussians: Gaussians,
-  camera: Camera,
-  config: RenderConfig = RenderConfig(),
-  *,
-  covariances: Array | None = None,
-  margin: float = 1.25,
-) -> RenderConfig:
-  """Sizes ``capacity`` and ``max_chunks`` for a scene/camera (host side).
-
-  Runs the render-only path once and returns a config whose capacity and
-  per-tile chunk count fit this view with ``margin`` to spare (for the
-  differentiable path, or for a sequence of similar frames).
-
-  Args:
-    gaussians: the Gaussians.
-    camera: the camera.
-    config: the starting config.
-    covariances: optional precomputed covariances.
-    margin: >= 1, head-room factor.
-
-  Returns:
-    A :class:`RenderConfig`.
-  """
-  out = render_image(gaussians, camera, covariances=covariances,
-                     config=config)
-  cap = int(math.ceil(max(int(out.num_intersections), 1) * margin))
-  chunks = int(math.ceil(max(int(out.max_tile_count), 1) * margin
-                         / config.chunk_size))
-  return dataclasses.replace(config, capacity=max(cap, 1024),
-                             max_chunks=chunks)
-
-
-def render_image(
-  gaussians: Gaussians,
-  camera: Camera,
-  *,
-  background=(0.0, 0.0, 0.0),
-  covariances: Array | None = None,
-  view_rotations: Array | None = None,
-  colors: Array | None = None,
-  config: RenderConfig = RenderConfig(),
-  differentiable: bool = False,
-  max_retries: int = 4,
-) -> RenderOutput:
-  """Host wrapper: jitted render that never drops Gaussians; NumPy outputs.
-
-  Without ``config.capacity``, scenes larger than ``min_capacity /
-  capacity_factor`` Gaussians are first counted (:func:`count_intersections`)
-  and rendered with that capacity plus head-room. Re-runs with a larger
-  ``capacity`` (and ``max_chunks`` on the differentiable path) when a pass
-  overflows.
-
-  Args:
-    gaussians, camera, background, covariances, view_rotations, colors,
-      config: as for :func:`render`.
-    differentiable: use :func:`render_differentiable` (for tests of that
-      path).
-    max_retries: re-runs allowed before giving up.
-
-  Returns:
-    :class:`RenderOutput` of NumPy arrays (``overflow`` is False).
-
-  Raises:
-    RuntimeError: still overflowing after ``max_retries`` re-runs.
-  """
-  fn = _render_diff_jit if differentiable else _render_jit
-  K = gaussians.means.shape[0]
-  if config.capacity is None and (
-    config.capacity_factor * K > config.min_capacity
-  ):
-    # Count first (cheap): one render at a fitting size instead of a render
-    # that overflows and a second one (small scenes fit the minimum).
-    need = count_intersections(gaussians, camera, covariances=covariances,
-                               config=config)
-    config = dataclasses.replace(config, capacity=_next_capacity(need))
-  for _ in range(max_retries + 1):
-    out = fn(gaussians, camera.unlabelled(),
-             background=jnp.asarray(background),
-             covariances=covariances, view_rotations=view_rotations,
-             colors=colors, config=config)
-    out = jax.tree.map(np.asarray, out)
-    if not bool(out.overflow):
-      return out
-    total = int(out.num_intersections)
-    cap = config.resolved_capacity(K)
-    if total > cap:
-      config = dataclasses.replace(config, capacity=_next_capacity(total))
-    if differentiable:
-      need = -(-int(out.max_tile_count) // config.chunk_size)
-      if need > config.resolved_max_chunks(K):
-        config = dataclasses.replace(config, max_chunks=need)
-  raise RuntimeError(
-    f'render_image: still overflowing after {max_retries} re-runs '
-    f'(intersections {int(out.num_intersections)}, capacity '
-    f'{config.resolved_capacity(K)}); pass a larger RenderConfig.capacity'
-  )

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax import cameras as cam_lib
+from physsplat_jax.render import images
 from physsplat_jax.render import raster
 from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.types import Camera
@@ -183,7 +184,7 @@ def render_scene(
       raise RenderInputError(f'sh_degree must be 0..3, got {sh_degree}')
     sh_degree = min(int(sh_degree), gauss.sh_degree)
     config = dataclasses.replace(config, sh_degree=sh_degree)
-  out = raster.render_image(gauss, cam, background=parse_background(
+  out = images.render_image(gauss, cam, background=parse_background(
     background), config=config)
   if return_output:
     return out

@@ -51,6 +51,7 @@ from physsplat_jax import pipeline as pl
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import synthetic
 from physsplat_jax.mpdp import train as train_lib
+from physsplat_jax.render import images as render_images
 from physsplat_jax.render import raster
 from physsplat_jax.types import Array
 from physsplat_jax.types import Gaussians
@@ -271,7 +272,7 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
   scene, materials, obj = make_cantilever(seed, tc)
   rc = None
   if render != 'none':
-    rc = raster.fit_render_config(scene.gaussians, scene.cameras[0],
+    rc = render_images.fit_render_config(scene.gaussians, scene.cameras[0],
                                   margin=render_margin)
   config = tc.pipeline_config(render, rc)
   if tc.dtype == 'float64' and not jax.config.jax_enable_x64:

@@ -1,0 +1,219 @@
+"""Host-side rendering: never drops Gaussians, returns NumPy, may not wait.
+
+:func:`render_image` calls the jitted :func:`~physsplat_jax.render.raster.
+render` (or its differentiable twin) and re-runs it with a larger
+``capacity`` when the overflow flag is set, so no Gaussian is ever dropped;
+large scenes are counted first (:func:`count_intersections`) so one render
+usually suffices. :func:`render_image_async` dispatches the same render and
+returns a :class:`PendingRender` at once (JAX's asynchronous dispatch), so
+a host loop can render one frame while it writes the previous one
+(``pipeline.run``). :func:`fit_render_config` sizes a config for a view.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from physsplat_jax.render import raster
+from physsplat_jax.render.config import RenderConfig
+from physsplat_jax.render.config import RenderOutput
+from physsplat_jax.types import Array
+from physsplat_jax.types import Camera
+from physsplat_jax.types import Gaussians
+
+# pylint: disable=protected-access
+
+
+def _next_capacity(needed: int) -> int:
+  """``needed`` plus 10-25 % head-room, on a coarse grid of sizes.
+
+  Sizes are multiples of 1/8 of a power of two (8 per octave), so similar
+  frames share one compiled renderer, while the sort (which runs over the
+  whole buffer) stays within 25 % of the work needed.
+  """
+  x = max(int(math.ceil(max(int(needed), 1) * 1.1)), 1024)
+  step = 2 ** max(int(math.floor(math.log2(x))) - 3, 0)
+  return int(-(-x // step) * step)
+
+
+def count_intersections(
+  gaussians: Gaussians,
+  camera: Camera,
+  *,
+  covariances: Array | None = None,
+  config: RenderConfig = RenderConfig(),
+) -> int:
+  """(Gaussian, sub-tile) pairs a render needs (host side, cheap).
+
+  Projection and counting only (no sort, no compositing), to size
+  ``RenderConfig.capacity`` before the first render.
+  """
+  raster._check_inputs(gaussians, camera, (0.0, 0.0, 0.0), covariances,
+                       None, None, config)
+  return int(raster._count_jit(gaussians, camera.unlabelled(), covariances,
+                               config))
+
+
+def fit_render_config(
+  gaussians: Gaussians,
+  camera: Camera,
+  config: RenderConfig = RenderConfig(),
+  *,
+  covariances: Array | None = None,
+  margin: float = 1.25,
+) -> RenderConfig:
+  """Sizes ``capacity`` and ``max_chunks`` for a scene/camera (host side).
+
+  Runs the render-only path once and returns a config whose capacity and
+  per-tile chunk count fit this view with ``margin`` to spare (for the
+  differentiable path, or for a sequence of similar frames).
+
+  Args:
+    gaussians: the Gaussians.
+    camera: the camera.
+    config: the starting config.
+    covariances: optional precomputed covariances.
+    margin: >= 1, head-room factor.
+
+  Returns:
+    A :class:`RenderConfig`.
+  """
+  out = render_image(gaussians, camera, covariances=covariances,
+                     config=config)
+  cap = int(math.ceil(max(int(out.num_intersections), 1) * margin))
+  chunks = int(math.ceil(max(int(out.max_tile_count), 1) * margin
+                         / config.chunk_size))
+  return dataclasses.replace(config, capacity=max(cap, 1024),
+                             max_chunks=chunks)
+
+
+class PendingRender:
+  """A render dispatched by :func:`render_image_async`; :meth:`result` waits.
+
+  Attributes:
+    config: the config it ran with; after :meth:`result`, the one that fit
+      (capacity grown on overflow): pass it to the next similar render to
+      skip the counting pass and the re-runs.
+  """
+
+  def __init__(self, fn, args: tuple, kwargs: dict, config: RenderConfig,
+               num: int, differentiable: bool, max_retries: int):
+    self._fn, self._args, self._kwargs = fn, args, kwargs
+    self._num, self._differentiable = num, differentiable
+    self._max_retries = max_retries
+    self.config = config
+    self._out = fn(*args, config=config, **kwargs)
+    self._result = None
+
+  def result(self) -> RenderOutput:
+    """The :class:`RenderOutput` as NumPy arrays, never overflowing.
+
+    Raises:
+      RuntimeError: still overflowing after ``max_retries`` re-runs.
+    """
+    if self._result is not None:
+      return self._result
+    config, K = self.config, self._num
+    for attempt in range(self._max_retries + 1):
+      if attempt:
+        self._out = self._fn(*self._args, config=config, **self._kwargs)
+      out = jax.tree.map(np.asarray, self._out)
+      if not bool(out.overflow):
+        self.config, self._result, self._out = config, out, None
+        self._args = self._kwargs = None
+        return out
+      total = int(out.num_intersections)
+      if total > config.resolved_capacity(K):
+        config = dataclasses.replace(config, capacity=_next_capacity(total))
+      if self._differentiable:
+        need = -(-int(out.max_tile_count) // config.chunk_size)
+        if need > config.resolved_max_chunks(K):
+          config = dataclasses.replace(config, max_chunks=need)
+    raise RuntimeError(
+      f'render_image: still overflowing after {self._max_retries} re-runs '
+      f'(intersections {int(out.num_intersections)}, capacity '
+      f'{config.resolved_capacity(K)}); pass a larger RenderConfig.capacity'
+    )
+
+
+def render_image_async(
+  gaussians: Gaussians,
+  camera: Camera,
+  *,
+  background=(0.0, 0.0, 0.0),
+  covariances: Array | None = None,
+  view_rotations: Array | None = None,
+  colors: Array | None = None,
+  config: RenderConfig = RenderConfig(),
+  differentiable: bool = False,
+  max_retries: int = 4,
+) -> PendingRender:
+  """:func:`render_image` without waiting: dispatches and returns at once.
+
+  The render runs on the device while the caller goes on (JAX's
+  asynchronous dispatch); ``.result()`` waits for it, checks the overflow
+  flag and re-runs larger if needed. Only a scene that needs counting
+  first (no ``config.capacity`` and more than ``min_capacity /
+  capacity_factor`` Gaussians) waits here, for the count: pass the
+  ``.config`` of an earlier render of similar frames to avoid it.
+  Arguments as for :func:`render_image`.
+  """
+  fn = raster._render_diff_jit if differentiable else raster._render_jit
+  K = gaussians.means.shape[0]
+  if config.capacity is None and (
+    config.capacity_factor * K > config.min_capacity
+  ):
+    # Count first (cheap): one render at a fitting size instead of a render
+    # that overflows and a second one (small scenes fit the minimum).
+    need = count_intersections(gaussians, camera, covariances=covariances,
+                               config=config)
+    config = dataclasses.replace(config, capacity=_next_capacity(need))
+  return PendingRender(
+    fn, (gaussians, camera.unlabelled()),
+    dict(background=jnp.asarray(background), covariances=covariances,
+         view_rotations=view_rotations, colors=colors),
+    config, K, differentiable, max_retries)
+
+
+def render_image(
+  gaussians: Gaussians,
+  camera: Camera,
+  *,
+  background=(0.0, 0.0, 0.0),
+  covariances: Array | None = None,
+  view_rotations: Array | None = None,
+  colors: Array | None = None,
+  config: RenderConfig = RenderConfig(),
+  differentiable: bool = False,
+  max_retries: int = 4,
+) -> RenderOutput:
+  """Host wrapper: jitted render that never drops Gaussians; NumPy outputs.
+
+  Without ``config.capacity``, scenes larger than ``min_capacity /
+  capacity_factor`` Gaussians are first counted (:func:`count_intersections`)
+  and rendered with that capacity plus head-room. Re-runs with a larger
+  ``capacity`` (and ``max_chunks`` on the differentiable path) when a pass
+  overflows. :func:`render_image_async` is the same without waiting.
+
+  Args:
+    gaussians, camera, background, covariances, view_rotations, colors,
+      config: as for :func:`render`.
+    differentiable: use :func:`render_differentiable` (for tests of that
+      path).
+    max_retries: re-runs allowed before giving up.
+
+  Returns:
+    :class:`RenderOutput` of NumPy arrays (``overflow`` is False).
+
+  Raises:
+    RuntimeError: still overflowing after ``max_retries`` re-runs.
+  """
+  return render_image_async(
+    gaussians, camera, background=background, covariances=covariances,
+    view_rotations=view_rotations, colors=colors, config=config,
+    differentiable=differentiable, max_retries=max_retries).result()
