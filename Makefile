@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 OUT ?= out/demo
 SCENE ?= tabletop
 
-.PHONY: demo test test-slow bench venv clean
+.PHONY: demo test test-slow bench gpu-wheels venv clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,17 @@ bench: $(STAMP)
 	$(PY) -m experiments.benchmark_mpm
 	$(PY) -m experiments.benchmark_render
 	$(PY) -m experiments.benchmark_pipeline --preset=cpu --out=out/bench_pipeline
+
+# Wheels the lent GPU machine's image lacks (shared/GPU.md), for
+# experiments/gpu_session.sh there (carry .whl): Python 3.12, x86-64.
+GPU_WHEELS := trimesh==5.2.0 rtree==1.4.1 ml_collections==1.1.0 \
+  PyYAML==6.0.4 gsplat==1.5.3
+gpu-wheels:
+	rm -rf .whl && mkdir -p .whl
+	$(PYTHON) -m pip download --quiet --no-deps --only-binary=:all: \
+	  --python-version 3.12 --implementation cp \
+	  --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+	  --platform manylinux2014_x86_64 -d .whl $(GPU_WHEELS)
 
 clean:
 	rm -rf $(VENV) out

@@ -8,7 +8,9 @@ empty compilation cache (cold) and once more with the cache it filled
 (warm), then writes ``pipeline.json``: per scene and run, the stage times
 from ``report.json`` (segmentation, perception, prepare and its stages,
 compile, simulate, deform, render, write, total), the process wall time,
-particle counts and substeps. Presets: ``paper`` is the paper's setting
+particle counts and substeps. ``--runs=cold,warm,serial`` adds a warm run
+with the host loop unpipelined (``--nopipelined``): its stage times are
+exact, and its total against the warm run's is what the pipelining saves. Presets: ``paper`` is the paper's setting
 (64^3 grid, 768 substeps per frame at 30 fps, 150 frames = a 5 s video,
 800x800, up to 200k particles) for a GPU; ``cpu`` is sized for a 2-core
 CPU (the ``make demo`` settings).
@@ -37,13 +39,17 @@ _OUT = flags.DEFINE_string('out', 'out/bench_pipeline', 'output folder')
 _SCENES = flags.DEFINE_list('scenes', ['tabletop', 'ficus', 'donut'],
                             'scenes (built-in names or PLY paths)')
 _PRESET = flags.DEFINE_enum('preset', 'cpu', sorted(PRESETS), 'settings')
-_RUNS = flags.DEFINE_list('runs', ['cold', 'warm'], 'cold and/or warm')
+_RUNS = flags.DEFINE_list(
+  'runs', ['cold', 'warm'], 'cold, warm and/or serial (a warm run with the '
+  'host loop\'s stages in turn, --nopipelined: exact per-stage times)')
 
 
-def run_once(scene: str, preset: dict, out: str, cache: str) -> dict:
+def run_once(scene: str, preset: dict, out: str, cache: str,
+             pipelined: bool = True) -> dict:
   """One ``experiments.simulate`` process; its report plus the wall time."""
   cmd = [sys.executable, '-m', 'experiments.simulate', f'--scene={scene}',
-         f'--out={out}', f'--compile_cache={cache}']
+         f'--out={out}', f'--compile_cache={cache}',
+         '--pipelined' if pipelined else '--nopipelined']
   cmd += [f'--config.{k}={v}' for k, v in preset.items()]
   t0 = time.perf_counter()
   proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -63,6 +69,9 @@ def run_once(scene: str, preset: dict, out: str, cache: str) -> dict:
 def main(argv):
   del argv
   preset = PRESETS[_PRESET.value]
+  bad = sorted(set(_RUNS.value) - {'cold', 'warm', 'serial'})
+  if bad:
+    raise cli.usage_error(f'--runs: {bad} are not cold, warm or serial')
   os.makedirs(_OUT.value, exist_ok=True)
   results = dict(preset=_PRESET.value, settings=preset, scenes={})
   for scene in _SCENES.value:
@@ -71,7 +80,8 @@ def main(argv):
       runs = {}
       for run in _RUNS.value:
         out = os.path.join(_OUT.value, os.path.basename(scene), run)
-        runs[run] = run_once(scene, preset, out, cache)
+        runs[run] = run_once(scene, preset, out, cache,
+                             pipelined=run != 'serial')
         print(f'{scene} {run}: {runs[run].get("wall_s")} s', flush=True)
       results['scenes'][scene] = runs
     finally:

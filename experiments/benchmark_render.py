@@ -19,8 +19,10 @@ through the differentiable path.
 GPU path: ``--backend`` picks the compositor of the main run (``auto``:
 Pallas on a GPU, JAX elsewhere); ``--pallas`` also times the Pallas
 compositor (forward, and the gradient with ``--grad``) beside it and reports
-its max abs difference to the main run (off a GPU it needs ``--interpret``:
-slow, a correctness run only). If ``gsplat`` imports and CUDA is available,
+its max abs difference and PSNR to the main run's image, and the largest
+difference of its gradients (means, SH) relative to the main run's (with
+``--backend=jax`` this checks the compiled kernels against the JAX path;
+off a GPU it needs ``--interpret``: slow, a correctness run only). If ``gsplat`` imports and CUDA is available,
 gsplat 1.5.3's ``rasterization`` is timed in the same process on the same
 Gaussians and camera (quaternions wxyz, OpenCV world-to-camera viewmat,
 black background), forward and (with ``--grad``) the gradient of the mean
@@ -224,7 +226,7 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
   res['backend'] = config.resolved_backend()
   if grad:
     gfn = _grad_fn(g, cam, config)
-    cg, tg, tgc, _ = _time(gfn, g.means, g.sh, repeats=repeats)
+    cg, tg, tgc, grads = _time(gfn, g.means, g.sh, repeats=repeats)
     res.update(grad_compile_s=cg, grad_s=tg, grad_cpu_s=tgc,
                max_chunks=config.max_chunks)
   if pallas:
@@ -234,12 +236,18 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
     res.update(pallas_compile_s=cp, pallas_render_s=tp,
                pallas_render_cpu_s=tpc,
                pallas_max_abs_diff=float(
-                 jnp.abs(out_p.image - out.image).max()))
+                 jnp.abs(out_p.image - out.image).max()),
+               pallas_psnr_db=_psnr(out_p.image, out.image))
     if grad:
-      cg, tg, tgc, _ = _time(_grad_fn(g, cam, cfg_p), g.means, g.sh,
-                             repeats=repeats)
+      cg, tg, tgc, grads_p = _time(_grad_fn(g, cam, cfg_p), g.means, g.sh,
+                                   repeats=repeats)
       res.update(pallas_grad_compile_s=cg, pallas_grad_s=tg,
                  pallas_grad_cpu_s=tgc)
+      # The compiled kernels' gradients against the configured path's
+      # (the JAX compositor with --backend=jax), relative to the largest.
+      for name, a, b in zip(('means', 'sh'), grads, grads_p):
+        res[f'pallas_grad_{name}_rel_diff'] = float(
+          jnp.abs(a - b).max() / jnp.maximum(jnp.abs(a).max(), 1e-30))
   if use_gsplat:
     gres = bench_gsplat(g, cam, repeats, grad, image=out.image)
     res.update(gres)

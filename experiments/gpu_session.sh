@@ -1,0 +1,109 @@
+#!/usr/bin/env bash
+# Every GPU figure the open issues ask for, in one call on a lent GPU.
+#
+#   make gpu-wheels                        # here: the wheels the GPU image lacks
+#   bash experiments/gpu_session.sh [BUDGET_S]   # there (device tool: carry .whl)
+#
+# Runs each step under `timeout`, all within BUDGET_S seconds (default
+# 500, to fit one 10-minute device call with the install and the copy back;
+# a step that would not fit is skipped, so the last ones may be):
+#   env       nvidia-smi, jax devices and versions
+#   substep   benchmark_substep on the tabletop: grouped / masked / bare
+#   mpm       benchmark_mpm block at 10k / 100k / 1M (no naive reference)
+#   render    benchmark_render at 1024^2, 100k and 1M Gaussians on a sphere:
+#             the JAX compositor, the compiled Pallas kernels (image PSNR
+#             and gradient differences against JAX) and gsplat, forward and
+#             gradient (issue 15's table)
+#   donut     the same on the donut scene (issue 15)
+#   sorts     the optimised render program: are its sorts CUB radix sorts?
+#   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
+#             substeps/frame), tabletop, cold and warm (issue 17);
+#             pipeline_serial: the warm run unpipelined (exact stages)
+#   sweep_*   Pallas block and warps around the defaults, 1M at 1024^2
+#   tests     the render, sorting and pipeline tests on the GPU
+# gsplat (carried as a wheel) builds in the background during the MPM
+# steps (~80 s on 16 cores). Everything lands in $OUT/gpu_session.tar.gz (the device tool
+# returns at most 8 files) and a one-line-per-step $OUT/steps.txt.
+set -u
+BUDGET=${1:-500}
+START=$(date +%s)
+OUT=${OUT:-out/gpu_session}
+WORK=$(mktemp -d /tmp/gpu_session.XXXX)
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+PY=${PYTHON:-python3}
+
+if ls .whl/*.whl >/dev/null 2>&1; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
+    --upgrade --target /tmp/site .whl/*.whl > "$WORK/install.log" 2>&1
+  export PYTHONPATH=/tmp/site:.
+else
+  export PYTHONPATH=.
+fi
+
+left() { echo $(( BUDGET - ($(date +%s) - START) )); }
+
+# step NAME MAX_SECONDS COMMAND...: runs it under timeout (never past the
+# budget) with its output in $WORK/NAME.log; one line in steps.txt.
+step() {
+  local name=$1 max=$2; shift 2
+  local t=$(left)
+  if (( t < 20 )); then
+    echo "$name skipped: budget spent" | tee -a "$OUT/steps.txt"
+    return
+  fi
+  (( max > t - 10 )) && max=$(( t - 10 ))
+  local t0=$(date +%s)
+  timeout "$max" "$@" > "$WORK/$name.log" 2>&1
+  local rc=$?
+  echo "$name rc=$rc $(( $(date +%s) - t0 ))s (limit ${max}s)" \
+    | tee -a "$OUT/steps.txt"
+}
+
+step env 60 bash -c "nvidia-smi; $PY -c 'import jax, jaxlib; \
+print(jax.__version__, jaxlib.__version__, jax.devices())'; \
+$PY -m pip list 2>/dev/null | grep -i -E 'jax|flax|torch|gsplat|triton'"
+
+# gsplat compiles its CUDA code at first use (~80 s on 16 cores): build it
+# while the MPM steps use the GPU.
+( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
+  "from gsplat.cuda._backend import _C; print('gsplat built')" \
+  > "$WORK/gsplat_build.log" 2>&1 ) &
+GSPLAT=$!
+
+step substep 90 $PY -m experiments.benchmark_substep --scene=tabletop \
+  --out="$WORK/substep.json"
+step mpm 90 $PY -m experiments.benchmark_mpm --sizes=10000,100000,1000000 \
+  --naive=false --grad=false
+wait $GSPLAT 2>/dev/null
+step render 150 $PY -m experiments.benchmark_render \
+  --num=100000,1000000 --size=1024 --grad --backend=jax --pallas \
+  --repeats=5 --out="$WORK/render.json"
+step donut 90 $PY -m experiments.benchmark_render --scene=donut \
+  --width=1024 --height=1024 --grad --backend=jax --pallas --repeats=5 \
+  --out="$WORK/donut.json"
+step sorts 60 bash -c "XLA_FLAGS=--xla_dump_to=$WORK/hlo $PY -m \
+experiments.benchmark_render --num=100000 --size=1024 --repeats=1 \
+--nogsplat > /dev/null 2>&1; cd $WORK/hlo && \
+grep -l DeviceRadixSort *after_optimizations.txt; \
+grep -h -o 'custom_call_target=\"[^\"]*\"' *after_optimizations.txt \
+| sort | uniq -c | grep -i sort; \
+echo XLA sort ops: \$(cat *after_optimizations.txt | grep -c ' sort(')"
+rm -rf "$WORK/hlo"
+step pipeline 200 $PY -m experiments.benchmark_pipeline --preset=paper \
+  --scenes=tabletop --runs=cold,warm --out="$WORK/pipeline"
+step pipeline_serial 90 $PY -m experiments.benchmark_pipeline \
+  --preset=paper --scenes=tabletop --runs=serial --out="$WORK/serial"
+for opt in --pallas_block=16 --pallas_block=64 --num_warps=1 --num_warps=4; do
+  name=sweep_${opt#--}
+  name=${name//=/}
+  step "$name" 40 $PY -m experiments.benchmark_render --num=1000000 \
+    --size=1024 --grad "$opt" --repeats=5 --nogsplat \
+    --out="$WORK/$name.json"
+done
+step tests 150 $PY -m pytest -q -x -n 8 tests/render_pallas_test.py \
+  tests/sorting_test.py tests/pipeline_test.py tests/render_test.py
+
+cp "$OUT/steps.txt" "$WORK/" 2>/dev/null
+tar czf "$OUT/gpu_session.tar.gz" -C "$WORK" .
+echo "done in $(( $(date +%s) - START )) s; $OUT/gpu_session.tar.gz"
