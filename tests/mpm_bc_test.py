@@ -530,6 +530,17 @@ class ModelGroupsTest(absltest.TestCase):
       cfg.replace(model_counts=(27, 27))
 
 
+def _blow_up_case():
+  """A stiff block at random speeds with a far too large time step."""
+  x = _box(3, (0.4, 0.4, 0.4))
+  mat = mpm.make_materials('fixed_corotated', 1e7, 0.3, 100.0, num=len(x))
+  cfg = mpm.SimConfig(grid=_GRID, dt=2e-3, substeps_per_frame=10,
+                      gravity=(0, 0, 0))
+  s = mpm.init_state(x, np.random.default_rng(0).normal(size=x.shape),
+                     _SP ** 3, mat, cfg)
+  return s, mat, cfg
+
+
 class ErrorTest(absltest.TestCase):
 
   def test_unstable_dt_raises_with_fix(self):
@@ -541,12 +552,7 @@ class ErrorTest(absltest.TestCase):
     self.assertLess(mpm.check_dt(ok, mat), 0.5)
 
   def test_blow_up_is_reported_with_frame(self):
-    x = _box(3, (0.4, 0.4, 0.4))
-    mat = mpm.make_materials('fixed_corotated', 1e7, 0.3, 100.0, num=len(x))
-    cfg = mpm.SimConfig(grid=_GRID, dt=2e-3, substeps_per_frame=10,
-                        gravity=(0, 0, 0))
-    s = mpm.init_state(x, np.random.default_rng(0).normal(size=x.shape),
-                       _SP ** 3, mat, cfg)
+    s, mat, cfg = _blow_up_case()
     with self.assertRaises(mpm.SimulationError) as cm:
       mpm.run(s, mat, None, cfg, 20)
     self.assertIsNotNone(cm.exception.frame)
@@ -581,12 +587,7 @@ class ErrorTest(absltest.TestCase):
       self.assertGreater(loop.substeps_per_s, 0.0)
 
   def test_frame_loop_lookahead_stops_at_the_bad_frame(self):
-    x = _box(3, (0.4, 0.4, 0.4))
-    mat = mpm.make_materials('fixed_corotated', 1e7, 0.3, 100.0, num=len(x))
-    cfg = mpm.SimConfig(grid=_GRID, dt=2e-3, substeps_per_frame=10,
-                        gravity=(0, 0, 0))
-    s = mpm.init_state(x, np.random.default_rng(0).normal(size=x.shape),
-                       _SP ** 3, mat, cfg)
+    s, mat, cfg = _blow_up_case()
     with self.assertRaises(mpm.SimulationError) as serial:
       mpm.run(s, mat, None, cfg, 20)
     seen = []

@@ -10,6 +10,7 @@ for two same-shape scenes, and the host loop's outputs.
 
 import os
 import tempfile
+import threading
 from unittest import mock
 
 import jax
@@ -282,6 +283,7 @@ class RunTest(absltest.TestCase):
       self.assertIn(k, out.timings)
 
   def test_pipelined_run_equals_serial_and_overlaps_the_next_frame(self):
+    from physsplat_jax.pipeline import host
     scene = _scene()
     cfg = _config(render='fast', num_frames=3,
                   initial_velocity=(('cube', (0.2, 0.0, 0.0)),))
@@ -302,8 +304,19 @@ class RunTest(absltest.TestCase):
         _ev.append(f)
         _seen.append((f, means, image))
 
-      with mock.patch.object(mpm.FrameLoop, '_dispatch', dispatch):
+      threads = {}
+      real_maker = host._FrameMaker.dispatch  # pylint: disable=protected-access
+
+      def make(maker, f, t, state, _real=real_maker, _th=threads):
+        _th[f] = threading.current_thread() is threading.main_thread()
+        return _real(maker, f, t, state)
+
+      with mock.patch.object(mpm.FrameLoop, '_dispatch', dispatch), \
+          mock.patch.object(host._FrameMaker, 'dispatch', make):
         pl.run(params, prep, cfg, on_frame=on_frame, pipelined=pipelined)
+      # Pipelined, frame 0's programs compile on a second thread while the
+      # MPM frame compiles; every later frame is dispatched by the loop.
+      self.assertEqual(threads, {0: not pipelined, 1: True, 2: True, 3: True})
       frames_out = [e for e in events if e != 'sim']
       self.assertEqual(frames_out, [0, 1, 2, 3])
       sims_before = [events[:events.index(f)].count('sim') for f in range(4)]
