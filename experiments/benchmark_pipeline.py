@@ -8,10 +8,11 @@ empty compilation cache (cold) and once more with the cache it filled
 (warm), then writes ``pipeline.json``: per scene and run, the stage times
 from ``report.json`` (segmentation, perception, prepare and its stages,
 compile, simulate, deform, render, write, total), the process wall time,
-particle counts and substeps. ``--runs=cold,warm,serial`` adds a warm run
-with the host loop unpipelined (``--nopipelined``): its stage times are
-exact, and its total against the warm run's is what the pipelining saves. Presets: ``paper`` is the paper's setting
-(64^3 grid, 768 substeps per frame at 30 fps, 150 frames = a 5 s video,
+particle counts and substeps. ``--runs=cold,warm,serial`` adds a third
+run, warm (a scene's runs share its cache), with the host loop unpipelined
+(``--nopipelined``): its stage times are exact, and its total against the
+warm run's is what the pipelining saves. Presets: ``paper`` is the paper's
+setting (64^3 grid, 768 substeps per frame at 30 fps, 150 frames = a 5 s video,
 800x800, up to 200k particles) for a GPU; ``cpu`` is sized for a 2-core
 CPU (the ``make demo`` settings).
 """
@@ -40,8 +41,9 @@ _SCENES = flags.DEFINE_list('scenes', ['tabletop', 'ficus', 'donut'],
                             'scenes (built-in names or PLY paths)')
 _PRESET = flags.DEFINE_enum('preset', 'cpu', sorted(PRESETS), 'settings')
 _RUNS = flags.DEFINE_list(
-  'runs', ['cold', 'warm'], 'cold, warm and/or serial (a warm run with the '
-  'host loop\'s stages in turn, --nopipelined: exact per-stage times)')
+  'runs', ['cold', 'warm'], 'in order, sharing one compile cache per scene: '
+  'cold, warm and/or serial (--nopipelined: exact per-stage times; warm '
+  'when a run before it filled the cache)')
 
 
 def run_once(scene: str, preset: dict, out: str, cache: str,

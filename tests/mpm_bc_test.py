@@ -585,6 +585,8 @@ class ErrorTest(absltest.TestCase):
       np.testing.assert_array_equal(np.stack(seen), ref.positions)
       self.assertEqual(loop.frames, 4)
       self.assertGreater(loop.substeps_per_s, 0.0)
+      with self.assertRaisesRegex(RuntimeError, 'runs once'):
+        next(iter(loop))
 
   def test_frame_loop_lookahead_stops_at_the_bad_frame(self):
     s, mat, cfg = _blow_up_case()

@@ -614,8 +614,8 @@ class FrameLoop:
   dispatch does the rest. Device work the consumer dispatches for frame
   ``f`` then queues behind frame ``f + 1``; collect its results one
   iteration later to keep the device busy (``pipeline.run`` does). A frame
-  that fails its check raises before it is yielded; with ``lookahead`` the
-  frame after it has already been dispatched (its result is dropped).
+  that fails its check raises before it is yielded, and nothing after it
+  is dispatched. A loop runs once: iterate a new one for a second run.
 
   Attributes:
     compile_s: seconds compiling (0 when an earlier loop compiled it).
@@ -658,6 +658,7 @@ class FrameLoop:
     self.num_frames, self.check = num_frames, check
     self.lookahead, self.log_every = lookahead, log_every
     self.sim_s, self.frames = 0.0, 0
+    self._started = False
     logging.info('mpm.run: %d particles, grid %d^3, dt %.3g s x %d '
                  'substeps per frame, %d frames; compiled in %.2f s',
                  state.num, self.config.grid.res, self.config.dt,
@@ -677,6 +678,9 @@ class FrameLoop:
     return nxt, stats
 
   def __iter__(self) -> Iterator[tuple[int, base.MPMState]]:
+    if self._started:
+      raise RuntimeError('FrameLoop runs once; make a new one to run again.')
+    self._started = True
     config, n = self.config, self.num_frames
     state = self.state
     pending = self._dispatch(state) if self.lookahead and n > 0 else None

@@ -158,7 +158,9 @@ class _FrameMaker:
         p.gaussians, camera, background=self.prepared.background,
         covariances=p.covariances, view_rotations=p.rotations,
         config=self.rcfg)
-      # The counted capacity (first frame) serves the next frames too.
+      # The counted capacity (first frame) serves the next frames too. A
+      # capacity grown by frame f's re-run reaches frame f + 2 (frame f + 1
+      # is dispatched before f is collected): f + 1 may re-run as well.
       self._keep_larger(p.render.config, p.gaussians.num)
       self.timings['render'] += time.perf_counter() - t2
     return p
@@ -250,10 +252,14 @@ def run(
       coordinates; image None when nothing is rendered).
     fps: video frame rate; default the prepared scene's frame rate.
     pipelined: overlap the host's per-frame work with the device's. Then
-      ``timings`` are the time the host *waited* for each stage (what
-      overlapped is counted once, or not at all) and
+      ``timings`` are the time the host *waited* for each stage (frame
+      0's deform and render include compiling them, concurrently with
+      ``compile``) and
       ``particle_substeps_per_s`` is over the simulation's waits; False
       runs the stages one after the other, for exact per-stage times.
+      Frame 0 is dispatched from a worker thread: JAX settings made by a
+      context manager around ``run`` (thread-local, e.g. ``jax.
+      default_device``) do not reach it; set them globally, or pass False.
 
   Returns:
     :class:`RunOutput`.

@@ -2,7 +2,7 @@
 
 :func:`render_scene` picks a camera (one of the scene's, a given
 :class:`~physsplat_jax.types.Camera`, or one fitted to the scene), brings it to
-the requested size, renders with :func:`~physsplat_jax.render.raster.
+the requested size, renders with :func:`~physsplat_jax.render.images.
 render_image` (never dropping Gaussians) and returns the image as NumPy. It
 is what ``python -m experiments.render`` calls. Inside ``jit`` (simulation,
 training) call :func:`~physsplat_jax.render.raster.render` directly.
