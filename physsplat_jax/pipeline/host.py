@@ -315,6 +315,13 @@ def run(
                    ' (overlapping the next frame)' if pipelined else '')
 
   pending = first = None
+
+  def flush() -> None:  # writes the frame still in flight, if any
+    nonlocal pending
+    if pending is not None:
+      q, pending = pending, None
+      consume(q)
+
   try:
     with futures.ThreadPoolExecutor(1) as pool:
       if pipelined:
@@ -332,21 +339,15 @@ def run(
           p = first
         else:
           p = maker.dispatch(f, f * prepared.spec.frame_dt, st)
-        if pending is not None:
-          q, pending = pending, None
-          consume(q)
-        if pipelined:
-          pending = p
-        else:
-          consume(p)
-      if pending is not None:
-        q, pending = pending, None
-        consume(q)
+        flush()  # frame f - 1, while the device works on f + 1 and f
+        pending = p
+        if not pipelined:
+          flush()
+      flush()
     except mpm.SimulationError:
       # Every frame before the failing one is written, as without the
       # pipeline.
-      if pending is not None:
-        consume(pending)
+      flush()
       raise
   finally:
     t3 = time.perf_counter()
