@@ -44,15 +44,19 @@ _RUNS = flags.DEFINE_list(
   'runs', ['cold', 'warm'], 'in order, sharing one compile cache per scene: '
   'cold, warm and/or serial (--nopipelined: exact per-stage times; warm '
   'when a run before it filled the cache)')
+_SET = flags.DEFINE_list(
+  'set', [], 'extra config overrides for every run, KEY=VALUE as after '
+  '--config. (e.g. render_config.backend=jax); they win over the preset')
 
 
 def run_once(scene: str, preset: dict, out: str, cache: str,
-             pipelined: bool = True) -> dict:
+             pipelined: bool = True, overrides: dict | None = None) -> dict:
   """One ``experiments.simulate`` process; its report plus the wall time."""
   cmd = [sys.executable, '-m', 'experiments.simulate', f'--scene={scene}',
          f'--out={out}', f'--compile_cache={cache}',
          '--pipelined' if pipelined else '--nopipelined']
-  cmd += [f'--config.{k}={v}' for k, v in preset.items()]
+  settings = {**preset, **(overrides or {})}
+  cmd += [f'--config.{k}={v}' for k, v in settings.items()]
   t0 = time.perf_counter()
   proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
   wall = time.perf_counter() - t0
@@ -74,8 +78,16 @@ def main(argv):
   bad = sorted(set(_RUNS.value) - {'cold', 'warm', 'serial'})
   if bad:
     raise cli.usage_error(f'--runs: {bad} are not cold, warm or serial')
+  overrides = {}
+  for item in _SET.value:
+    key, sep, value = item.partition('=')
+    if not sep or not key:
+      raise cli.usage_error(f'--set: {item!r} is not KEY=VALUE (e.g. '
+                            'render_config.backend=jax)')
+    overrides[key] = value
   os.makedirs(_OUT.value, exist_ok=True)
-  results = dict(preset=_PRESET.value, settings=preset, scenes={})
+  results = dict(preset=_PRESET.value, settings=preset, overrides=overrides,
+                 scenes={})
   for scene in _SCENES.value:
     cache = tempfile.mkdtemp(prefix='physsplat_cache_')
     try:
@@ -83,7 +95,7 @@ def main(argv):
       for run in _RUNS.value:
         out = os.path.join(_OUT.value, os.path.basename(scene), run)
         runs[run] = run_once(scene, preset, out, cache,
-                             pipelined=run != 'serial')
+                             pipelined=run != 'serial', overrides=overrides)
         print(f'{scene} {run}: {runs[run].get("wall_s")} s', flush=True)
       results['scenes'][scene] = runs
     finally:

@@ -2,11 +2,17 @@
 # Every GPU figure the open issues ask for, in one call on a lent GPU.
 #
 #   make gpu-wheels                        # here: the wheels the GPU image lacks
-#   bash experiments/gpu_session.sh [BUDGET_S]   # there (device tool: carry .whl)
+#   bash experiments/gpu_session.sh [BUDGET_S [STEP...]]   # there (carry .whl)
 #
 # Runs each step under `timeout`, all within BUDGET_S seconds (default
 # 500, to fit one 10-minute device call with the install and the copy back;
-# a step that would not fit is skipped, so the last ones may be):
+# a step that would not fit is skipped, so the last ones may be). STEPs pick
+# some of the steps below (default all; `sweep` means all the sweeps), so
+# the work can be split over two calls on a warm machine, e.g.
+#   bash experiments/gpu_session.sh 330 env substep mpm render donut
+#   bash experiments/gpu_session.sh 400 pipeline sorts tests sweep
+# A failing step's last lines are also printed, so they reach the call's
+# output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
 #   substep   benchmark_substep on the tabletop: grouped / masked / bare
 #   mpm       benchmark_mpm block at 10k / 100k / 1M (no naive reference)
@@ -26,6 +32,8 @@
 # returns at most 8 files) and a one-line-per-step $OUT/steps.txt.
 set -u
 BUDGET=${1:-500}
+shift $(( $# > 0 ? 1 : 0 ))
+STEPS=" ${*:-all} "
 START=$(date +%s)
 OUT=${OUT:-out/gpu_session}
 WORK=$(mktemp -d /tmp/gpu_session.XXXX)
@@ -43,11 +51,17 @@ else
 fi
 
 left() { echo $(( BUDGET - ($(date +%s) - START) )); }
+# wanted NAME: whether NAME (sweep_* as `sweep`) is among the chosen steps.
+wanted() {
+  [[ $STEPS == *" all "* || $STEPS == *" $1 "* \
+     || ( $1 == sweep_* && $STEPS == *" sweep "* ) ]]
+}
 
 # step NAME MAX_SECONDS COMMAND...: runs it under timeout (never past the
 # budget) with its output in $WORK/NAME.log; one line in steps.txt.
 step() {
   local name=$1 max=$2; shift 2
+  wanted "$name" || return 0
   local t=$(left)
   if (( t < 20 )); then
     echo "$name skipped: budget spent" | tee -a "$OUT/steps.txt"
@@ -59,6 +73,7 @@ step() {
   local rc=$?
   echo "$name rc=$rc $(( $(date +%s) - t0 ))s (limit ${max}s)" \
     | tee -a "$OUT/steps.txt"
+  if (( rc != 0 )); then tail -n 25 "$WORK/$name.log"; fi
 }
 
 step env 60 bash -c "nvidia-smi; $PY -c 'import jax, jaxlib; \
@@ -67,19 +82,22 @@ $PY -m pip list 2>/dev/null | grep -i -E 'jax|flax|torch|gsplat|triton'"
 
 # gsplat compiles its CUDA code at first use (~80 s on 16 cores): build it
 # while the MPM steps use the GPU.
-( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
-  "from gsplat.cuda._backend import _C; print('gsplat built')" \
-  > "$WORK/gsplat_build.log" 2>&1 ) &
-GSPLAT=$!
+GSPLAT=
+if wanted render || wanted donut; then
+  ( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
+    "from gsplat.cuda._backend import _C; print('gsplat built')" \
+    > "$WORK/gsplat_build.log" 2>&1 ) &
+  GSPLAT=$!
+fi
 
 step substep 90 $PY -m experiments.benchmark_substep --scene=tabletop \
   --out="$WORK/substep.json"
 step mpm 90 $PY -m experiments.benchmark_mpm --sizes=10000,100000,1000000 \
   --naive=false --grad=false
-wait $GSPLAT 2>/dev/null
-step render 150 $PY -m experiments.benchmark_render \
+[[ -n $GSPLAT ]] && wait $GSPLAT 2>/dev/null
+step render 200 $PY -m experiments.benchmark_render \
   --num=100000,1000000 --size=1024 --grad --backend=jax --pallas \
-  --repeats=5 --out="$WORK/render.json"
+  --repeats=3 --out="$WORK/render.json"
 step donut 90 $PY -m experiments.benchmark_render --scene=donut \
   --width=1024 --height=1024 --grad --backend=jax --pallas --repeats=5 \
   --out="$WORK/donut.json"
@@ -94,8 +112,10 @@ rm -rf "$WORK/hlo"
 # One process per run, one compile cache for the three: the serial run is
 # warm too. The frames, videos and trajectories (hundreds of MB) are
 # deleted below; the reports stay.
+# PIPELINE_SET: extra --set overrides, e.g. render_config.backend=jax.
 step pipeline 290 $PY -m experiments.benchmark_pipeline --preset=paper \
-  --scenes=tabletop --runs=cold,warm,serial --out="$WORK/pipeline"
+  --scenes=tabletop --runs=cold,warm,serial --out="$WORK/pipeline" \
+  --set="${PIPELINE_SET:-}"
 for opt in --pallas_block=16 --pallas_block=64 --num_warps=1 --num_warps=4; do
   name=sweep_${opt#--}
   name=${name//=/}

@@ -53,8 +53,10 @@ def get_config():
   # Rasterizer settings (fields of physsplat_jax.render.RenderConfig):
   # 'antialiased' for scenes trained with gsplat's antialiased mode
   # (Mip-Splatting), --config.render_config.rasterize_mode=antialiased.
+  # backend: 'auto' (Pallas kernels on a GPU, JAX elsewhere), 'jax' or
+  # 'pallas'.
   c.render_config = ml_collections.ConfigDict(
-    dict(rasterize_mode='classic'))
+    dict(rasterize_mode='classic', backend='auto'))
   c.remat_frames = True
   c.seed = 0
   return c
