@@ -30,6 +30,18 @@ image w.r.t. means and SH, with the PSNR of our image against gsplat's::
 
   python -m experiments.benchmark_render --num=100000,1000000 --size=1024 \
       --grad --pallas --repeats=10
+
+``--video_frames=F`` also renders a video: F frames with the camera
+turning once about the scene's up axis through its centre, each through
+the host path of ``pipeline.run`` (``render_image_async`` with the fitted
+config, one frame in flight while the previous one is fetched, clipped and
+converted to uint8), after one warm-up frame; ``video_s`` is the wall time
+of the F frames. With gsplat, ``gsplat_video_s`` is the same loop through
+``rasterization`` (image clamped, converted to uint8 on the device and
+copied to the host)::
+
+  python -m experiments.benchmark_render --num=100000 --width=800 \
+      --height=800 --video_frames=150
 """
 
 from __future__ import annotations
@@ -46,6 +58,8 @@ from absl import flags
 
 from physsplat_jax import cameras
 from physsplat_jax import gaussians as gs
+from physsplat_jax.io import video as video_lib
+from physsplat_jax.pipeline import capture
 from physsplat_jax.render import images
 from physsplat_jax.render import raster
 from physsplat_jax.render import views
@@ -54,8 +68,10 @@ from physsplat_jax.types import make_camera
 
 _NUM = flags.DEFINE_list('num', ['100000'], 'Gaussian counts (sphere).')
 _SIZE = flags.DEFINE_integer('size', 512, 'Sphere image width and height.')
-_WIDTH = flags.DEFINE_integer('width', None, 'Scene image width [px].')
-_HEIGHT = flags.DEFINE_integer('height', None, 'Scene image height [px].')
+_WIDTH = flags.DEFINE_integer('width', None,
+                              'Image width [px] (sphere: instead of size).')
+_HEIGHT = flags.DEFINE_integer('height', None,
+                               'Image height [px] (sphere: instead of size).')
 _REPEATS = flags.DEFINE_integer('repeats', 3, 'Timed runs per setting.')
 _SCENE = flags.DEFINE_string('scene', None, 'Built-in scene or PLY instead.')
 _BASELINE = flags.DEFINE_bool('baseline', False,
@@ -77,6 +93,8 @@ _WARPS = flags.DEFINE_integer('num_warps', None,
                               'RenderConfig.pallas_num_warps.')
 _GSPLAT = flags.DEFINE_bool('gsplat', True,
                             'Also time gsplat when importable with CUDA.')
+_VIDEO = flags.DEFINE_integer(
+  'video_frames', 0, 'Also time a video of this many orbiting frames.')
 _OUT = flags.DEFINE_string('out', None, 'Optional JSON results file.')
 
 
@@ -97,10 +115,13 @@ def sphere_scene(num: int, seed: int = 0) -> Gaussians:
   )
 
 
-def sphere_camera(size: int):
+def sphere_camera(size: int, width: int | None = None,
+                  height: int | None = None):
+  """The sphere's camera, ``size`` square unless ``width``/``height``."""
+  w, h = width or size, height or size
   vm = cameras.look_at(np.array([0.0, -3.0, 0.5]), np.zeros(3))
-  f = cameras.focal_from_fov(45.0, size)
-  return make_camera(vm, f, f, size, size)
+  f = cameras.focal_from_fov(45.0, w)
+  return make_camera(vm, f, f, w, h)
 
 
 def _time(fn, *args, repeats):
@@ -136,22 +157,21 @@ def _psnr(a, b) -> float:
   return float('inf') if mse == 0 else -10.0 * np.log10(mse)
 
 
-def bench_gsplat(g: Gaussians, cam, repeats: int, grad: bool,
-                 image=None) -> dict:
-  """Times gsplat's ``rasterization`` on the same scene (empty if absent).
+def _gsplat(g: Gaussians, cam):
+  """gsplat's ``rasterization`` on our scene: ``(render, means, sh, torch,
+  version)``, ``render(means, sh, viewmat=None)`` giving the (H, W, 3)
+  image; None without gsplat or CUDA.
 
   gsplat takes wxyz quaternions, linear scales, opacities in [0, 1], SH
-  (K, B, 3) and an OpenCV world-to-camera viewmat, as we do. Returns
-  ``gsplat_s``, ``gsplat_grad_s`` (gradient of the mean image w.r.t. means
-  and SH) and ``gsplat_psnr_db`` (our ``image`` against gsplat's).
+  (K, B, 3) and an OpenCV world-to-camera viewmat, as we do.
   """
   try:
     import gsplat
     import torch
   except ImportError:
-    return {}
+    return None
   if not torch.cuda.is_available():
-    return {}
+    return None
   dev = torch.device('cuda')
   t = lambda x: torch.tensor(np.asarray(x, np.float32), device=dev)
   means, quats, sh = t(g.means), t(g.quats), t(g.sh)
@@ -159,11 +179,28 @@ def bench_gsplat(g: Gaussians, cam, repeats: int, grad: bool,
   viewmats, Ks = t(cam.viewmat)[None], t(cam.K)[None]
   degree = int(round(np.sqrt(g.sh.shape[1]))) - 1
 
-  def run(m, c):
-    img, _, _ = gsplat.rasterization(m, quats, scales, opac, c, viewmats,
-                                     Ks, cam.width, cam.height,
+  def render(m, c, viewmat=None):
+    vm = viewmats if viewmat is None else t(viewmat)[None]
+    img, _, _ = gsplat.rasterization(m, quats, scales, opac, c, vm, Ks,
+                                     cam.width, cam.height,
                                      sh_degree=degree)
-    return img
+    return img[0]
+
+  return render, means, sh, torch, gsplat.__version__
+
+
+def bench_gsplat(g: Gaussians, cam, repeats: int, grad: bool,
+                 image=None) -> dict:
+  """Times gsplat's ``rasterization`` on the same scene (empty if absent).
+
+  Returns ``gsplat_s``, ``gsplat_grad_s`` (gradient of the mean image
+  w.r.t. means and SH) and ``gsplat_psnr_db`` (our ``image`` against
+  gsplat's).
+  """
+  setup = _gsplat(g, cam)
+  if setup is None:
+    return {}
+  run, means, sh, torch, version = setup
 
   def timed(fn):
     fn()
@@ -176,10 +213,10 @@ def bench_gsplat(g: Gaussians, cam, repeats: int, grad: bool,
       best = min(best, time.perf_counter() - t0)
     return best
 
-  res = {'gsplat_version': gsplat.__version__}
+  res = {'gsplat_version': version}
   with torch.no_grad():
     res['gsplat_s'] = timed(lambda: run(means, sh))
-    img = run(means, sh)[0].cpu().numpy()
+    img = run(means, sh).cpu().numpy()
   if image is not None:
     res['gsplat_psnr_db'] = _psnr(image, img)
   if grad:
@@ -192,6 +229,64 @@ def bench_gsplat(g: Gaussians, cam, repeats: int, grad: bool,
 
     res['gsplat_grad_s'] = timed(step)
   return res
+
+
+def _orbit(g: Gaussians, up) -> capture.CameraOrbit:
+  m = np.asarray(g.means)
+  return capture.CameraOrbit(
+    center=jnp.asarray(0.5 * (m.min(0) + m.max(0)), jnp.float32),
+    axis=jnp.asarray(up, jnp.float32), degrees=jnp.asarray(360.0))
+
+
+def bench_video(g: Gaussians, cam, config: raster.RenderConfig, frames: int,
+                up, use_gsplat: bool = True) -> dict:
+  """A video of ``frames`` orbiting frames, as ``pipeline.run`` renders."""
+  orbit, base = _orbit(g, up), cam.unlabelled()
+  cam_fn = jax.jit(capture.frame_camera)
+  # Warm-up: compiles, and fits the capacity that the frames then reuse.
+  warm = images.render_image_async(g, cam_fn(base, orbit, 0, frames),
+                                   config=config)
+  warm.result()
+  config = warm.config
+  t0 = time.perf_counter()
+  pending = None
+  for f in range(frames + 1):
+    nxt = None
+    if f < frames:
+      nxt = images.render_image_async(g, cam_fn(base, orbit, f, frames),
+                                      config=config)
+    if pending is not None:
+      out = pending.result()
+      video_lib.to_uint8(np.clip(out.image, 0.0, 1.0))
+      config = pending.config
+    pending = nxt
+  res = {'video_frames': frames, 'video_s': time.perf_counter() - t0}
+  res['video_frame_ms'] = 1e3 * res['video_s'] / frames
+  if use_gsplat:
+    viewmats = [np.asarray(cam_fn(base, orbit, f, frames).viewmat)
+                for f in range(frames)]
+    res.update(_gsplat_video(g, cam, viewmats))
+  return res
+
+
+def _gsplat_video(g: Gaussians, cam, viewmats) -> dict:
+  """gsplat renders the same frames, each to uint8 on the host."""
+  setup = _gsplat(g, cam)
+  if setup is None:
+    return {}
+  run, means, sh, torch, _ = setup
+
+  def frame(vm):
+    with torch.no_grad():
+      img = run(means, sh, vm)
+      return (img.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+
+  frame(viewmats[0])
+  torch.cuda.synchronize()
+  t0 = time.perf_counter()
+  for vm in viewmats:
+    frame(vm)
+  return {'gsplat_video_s': time.perf_counter() - t0}
 
 
 def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
@@ -278,14 +373,18 @@ def main(argv):
     scene = load_scene(_SCENE.value)
     cam = views.scene_camera(scene, None, _WIDTH.value, _HEIGHT.value)
     runs.append((scene.gaussians, cam))
+    up = scene.up_vector
   else:
-    cam = sphere_camera(_SIZE.value)
+    cam = sphere_camera(_SIZE.value, _WIDTH.value, _HEIGHT.value)
+    up = (0.0, 0.0, 1.0)
     runs = [(sphere_scene(int(n)), cam) for n in _NUM.value]
   results = []
   for g, cam in runs:
     r = bench(g, cam, config, _REPEATS.value, _BASELINE.value,
               _COMPARE.value, _GRAD.value, _PALLAS.value, _INTERPRET.value,
               _GSPLAT.value)
+    if _VIDEO.value > 0:
+      r.update(bench_video(g, cam, config, _VIDEO.value, up, _GSPLAT.value))
     print(json.dumps(r))
     results.append(r)
   if _OUT.value:

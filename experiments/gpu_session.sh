@@ -9,23 +9,27 @@
 # a step that would not fit is skipped, so the last ones may be). STEPs pick
 # some of the steps below (default all; `sweep` means all the sweeps), so
 # the work can be split over two calls on a warm machine, e.g.
-#   bash experiments/gpu_session.sh 330 env substep mpm render donut
-#   bash experiments/gpu_session.sh 400 pipeline sorts tests sweep
+#   bash experiments/gpu_session.sh 400 env mpm render donut video substep
+#   bash experiments/gpu_session.sh 430 sorts pipeline tests sweep
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
-#   substep   benchmark_substep on the tabletop: grouped / masked / bare
 #   mpm       benchmark_mpm block at 10k / 100k / 1M (no naive reference)
 #   render    benchmark_render at 1024^2, 100k and 1M Gaussians on a sphere:
 #             the JAX compositor, the compiled Pallas kernels (image PSNR
 #             and gradient differences against JAX) and gsplat, forward and
 #             gradient (issue 15's table)
 #   donut     the same on the donut scene (issue 15)
+#   video     a 150-frame 800x800 video of 100k Gaussians, rendered as
+#             pipeline.run renders, and gsplat's same loop (issue 15)
+#   substep   benchmark_substep on the tabletop: grouped / masked / bare
 #   sorts     the optimised render program: are its sorts CUB radix sorts?
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
 #             substeps/frame), tabletop: cold, warm, and warm unpipelined
 #             (exact stage times) (issue 17)
-#   sweep_*   Pallas block and warps around the defaults, 1M at 1024^2
+#   pipeline_noautotune  the cold run with XLA's GPU autotuning off
+#   sweep_*   Pallas block and warps around the defaults (sweep_default),
+#             1M at 1024^2
 #   tests     the render, sorting and pipeline tests on the GPU
 # gsplat (carried as a wheel) builds in the background during the MPM
 # steps (~80 s on 16 cores). Everything lands in $OUT/gpu_session.tar.gz (the device tool
@@ -83,15 +87,13 @@ $PY -m pip list 2>/dev/null | grep -i -E 'jax|flax|torch|gsplat|triton'"
 # gsplat compiles its CUDA code at first use (~80 s on 16 cores): build it
 # while the MPM steps use the GPU.
 GSPLAT=
-if wanted render || wanted donut; then
+if wanted render || wanted donut || wanted video; then
   ( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
     "from gsplat.cuda._backend import _C; print('gsplat built')" \
     > "$WORK/gsplat_build.log" 2>&1 ) &
   GSPLAT=$!
 fi
 
-step substep 90 $PY -m experiments.benchmark_substep --scene=tabletop \
-  --out="$WORK/substep.json"
 step mpm 90 $PY -m experiments.benchmark_mpm --sizes=10000,100000,1000000 \
   --naive=false --grad=false
 [[ -n $GSPLAT ]] && wait $GSPLAT 2>/dev/null
@@ -101,6 +103,13 @@ step render 200 $PY -m experiments.benchmark_render \
 step donut 90 $PY -m experiments.benchmark_render --scene=donut \
   --width=1024 --height=1024 --grad --backend=jax --pallas --repeats=5 \
   --out="$WORK/donut.json"
+# Issue 15's video target: 150 orbiting frames of 100k Gaussians at
+# 800x800 through the pipeline's host path, and gsplat's same loop.
+step video 90 $PY -m experiments.benchmark_render --num=100000 --width=800 \
+  --height=800 --video_frames=150 --repeats=3 --out="$WORK/video.json"
+# After the gsplat build: preparing its scene took 31 s beside it.
+step substep 120 $PY -m experiments.benchmark_substep --scene=tabletop \
+  --out="$WORK/substep.json"
 step sorts 60 bash -c "XLA_FLAGS=--xla_dump_to=$WORK/hlo $PY -m \
 experiments.benchmark_render --num=100000 --size=1024 --repeats=1 \
 --nogsplat > /dev/null 2>&1; cd $WORK/hlo && \
@@ -116,14 +125,23 @@ rm -rf "$WORK/hlo"
 step pipeline 290 $PY -m experiments.benchmark_pipeline --preset=paper \
   --scenes=tabletop --runs=cold,warm,serial --out="$WORK/pipeline" \
   --set="${PIPELINE_SET:-}"
-for opt in --pallas_block=16 --pallas_block=64 --num_warps=1 --num_warps=4; do
+# The cold run again with XLA's GPU autotuning off: how much of the cold
+# compile it is.
+XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" \
+step pipeline_noautotune 120 $PY -m experiments.benchmark_pipeline \
+  --preset=paper --scenes=tabletop --runs=cold \
+  --out="$WORK/pipeline_noautotune" --set="${PIPELINE_SET:-}"
+# The defaults first, so every setting is compared within one call.
+for opt in --repeats=5 --pallas_block=16 --pallas_block=64 --num_warps=1 \
+    --num_warps=4; do
   name=sweep_${opt#--}
   name=${name//=/}
+  [[ $opt == --repeats=5 ]] && name=sweep_default
   step "$name" 40 $PY -m experiments.benchmark_render --num=1000000 \
     --size=1024 --grad "$opt" --repeats=5 --nogsplat \
     --out="$WORK/$name.json"
 done
-step tests 150 $PY -m pytest -q -x -n 8 tests/render_pallas_test.py \
+step tests 150 $PY -m pytest -q -n 8 tests/render_pallas_test.py \
   tests/sorting_test.py tests/pipeline_test.py tests/render_test.py
 
 cp "$OUT/steps.txt" "$WORK/" 2>/dev/null

@@ -189,6 +189,27 @@ class BackgroundWritersTest(absltest.TestCase):
       sink.close()
     self.assertTrue(bad.closed)
 
+  def test_writers_close_side_by_side_after_their_last_frame(self):
+    # Both closes must be running at once to pass the barrier.
+    barrier = threading.Barrier(2, timeout=10)
+
+    class Closing(_Recorder):
+      def close(self):
+        self.seen_at_close = list(self.indices)
+        self.close_thread = threading.get_ident()
+        barrier.wait()
+        return super().close()
+
+    a, b = Closing(delay=0.005), Closing()
+    sink = outputs.BackgroundWriters([a, b], max_pending=4)
+    for i in range(6):
+      sink.write(outputs.Frame(index=i, time=0.0))
+    sink.close()
+    self.assertEqual(a.seen_at_close, list(range(6)))
+    self.assertEqual(b.seen_at_close, list(range(6)))
+    self.assertNotEqual(a.close_thread, b.close_thread)
+    self.assertNotIn(threading.get_ident(), (a.close_thread, b.close_thread))
+
   def test_png_output_through_the_background_writer(self):
     d = tempfile.mkdtemp()
     self.addCleanup(shutil.rmtree, d, ignore_errors=True)

@@ -144,8 +144,10 @@ class _FrameMaker:
     t1 = time.perf_counter()
     means, covs, rots = _deform_jit(self.view, state.x, state.F,
                                     use_driver_F=self.config.use_driver_F)
+    # What finish() fetches is copied to the host as soon as it is ready.
     p = _Pending(index=f, time=t, x=state.x, means=means,
                  particles=_to_scene_jit(self.view.frame, state.x))
+    images.start_host_copies((p.x, p.means, p.particles))
     if self.need_all:
       p.gaussians, p.covariances, p.rotations = _assemble_jit(
         self.view, means, covs, rots)
