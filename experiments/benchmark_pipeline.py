@@ -69,6 +69,7 @@ def run_once(scene: str, preset: dict, out: str, cache: str,
               num_gaussians=report['num_gaussians'],
               substeps_per_frame=report['time_step']['substeps_per_frame'],
               particle_substeps_per_s=report['particle_substeps_per_s'],
+              render_stats=report.get('render_stats'),
               devices=report['devices'])
 
 

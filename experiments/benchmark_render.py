@@ -22,10 +22,11 @@ compositor (forward, and the gradient with ``--grad``) beside it and reports
 its max abs difference and PSNR to the main run's image, and the largest
 difference of its gradients (means, SH) relative to the main run's (with
 ``--backend=jax`` this checks the compiled kernels against the JAX path;
-off a GPU it needs ``--interpret``: slow, a correctness run only). If ``gsplat`` imports and CUDA is available,
-gsplat 1.5.3's ``rasterization`` is timed in the same process on the same
-Gaussians and camera (quaternions wxyz, OpenCV world-to-camera viewmat,
-black background), forward and (with ``--grad``) the gradient of the mean
+off a GPU it needs ``--interpret``: slow, a correctness run only). If
+``gsplat`` imports and CUDA is available, gsplat 1.5.3's
+``rasterization`` is timed in the same process on the same Gaussians
+and camera (quaternions wxyz, OpenCV world-to-camera viewmat, black
+background), forward and (with ``--grad``) the gradient of the mean
 image w.r.t. means and SH, with the PSNR of our image against gsplat's::
 
   python -m experiments.benchmark_render --num=100000,1000000 --size=1024 \

@@ -281,6 +281,11 @@ class RunTest(absltest.TestCase):
     self.assertGreater(out.gaussian_positions[-1, :, 2].min(), -0.01)
     for k in ('compile', 'simulate', 'deform', 'render', 'write', 'total'):
       self.assertIn(k, out.timings)
+    # Every frame was rendered with one of the listed capacities.
+    caps = out.render_stats['capacities']
+    self.assertNotEmpty(caps)
+    self.assertTrue(all(isinstance(c, int) and c >= 1024 for c in caps))
+    self.assertGreaterEqual(out.render_stats['reruns'], 0)
 
   def test_pipelined_run_equals_serial_and_overlaps_the_next_frame(self):
     from physsplat_jax.pipeline import host

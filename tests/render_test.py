@@ -135,6 +135,14 @@ class CapacityTest(parameterized.TestCase):
     rerun = images.render_image(g, cam, config=small)
     self.assertFalse(rerun.overflow)
     np.testing.assert_array_equal(rerun.image, big.image)
+    # The async form counts its re-runs; a fitting config needs none.
+    pending = images.render_image_async(g, cam, config=small)
+    np.testing.assert_array_equal(pending.result().image, big.image)
+    self.assertGreaterEqual(pending.reruns, 1)
+    self.assertGreaterEqual(pending.config.capacity, total)
+    again = images.render_image_async(g, cam, config=pending.config)
+    np.testing.assert_array_equal(again.result().image, big.image)
+    self.assertEqual(again.reruns, 0)
 
   def test_capacity_exact_boundary(self):
     g = _scene(seed=2, num=80)

@@ -52,6 +52,10 @@ class RunOutput:
     timings: seconds per stage ('compile', 'simulate', 'deform', 'render',
       'write', 'total').
     particle_substeps_per_s: MPM throughput over the run.
+    render_stats: ``capacities``, the intersection capacities the frames
+      were rendered with (one compiled render program each), and
+      ``reruns``, renders re-run larger after an overflow; empty without
+      rendering.
   """
 
   gaussian_positions: np.ndarray
@@ -61,6 +65,7 @@ class RunOutput:
   files: dict
   timings: dict
   particle_substeps_per_s: float
+  render_stats: dict = dataclasses.field(default_factory=dict)
 
 
 def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
@@ -139,6 +144,8 @@ class _FrameMaker:
     # none of these recompiles them.
     self.view = prepared.replace(spec=None, camera=None)
     self.camera = prepared.camera.unlabelled()
+    self.capacities: list[int] = []  # in order of first use
+    self.reruns = 0
 
   def dispatch(self, f: int, t: float, state) -> _Pending:
     t1 = time.perf_counter()
@@ -177,6 +184,10 @@ class _FrameMaker:
     self.timings['deform'] += t2 - t1
     if p.render is not None:
       out = p.render.result()
+      self.reruns += p.render.reruns
+      cap = p.render.config.resolved_capacity(p.gaussians.num)
+      if cap not in self.capacities:
+        self.capacities.append(cap)
       self._keep_larger(p.render.config, p.gaussians.num)
       frame.image = np.clip(out.image, 0.0, 1.0)
       self.timings['render'] += time.perf_counter() - t2
@@ -363,7 +374,9 @@ def run(
     sim_rows=np.asarray(prepared.sim_rows),
     particle_positions=np.stack(particles),
     times=np.arange(loop.frames + 1) * loop.config.frame_dt, files=files,
-    timings=timings, particle_substeps_per_s=loop.substeps_per_s)
+    timings=timings, particle_substeps_per_s=loop.substeps_per_s,
+    render_stats=(dict(capacities=maker.capacities, reruns=maker.reruns)
+                  if maker.render else {}))
 
 
 def save_trajectory(path: str, out: RunOutput) -> None:

@@ -159,6 +159,8 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
   stages.update(out.timings)
   stages.pop('total', None)
   report['particle_substeps_per_s'] = out.particle_substeps_per_s
+  if out.render_stats:
+    report['render_stats'] = out.render_stats
   return out
 
 

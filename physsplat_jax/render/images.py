@@ -17,7 +17,6 @@ import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from physsplat_jax.render import raster
 from physsplat_jax.render.config import RenderConfig
@@ -111,6 +110,8 @@ class PendingRender:
     config: the config it ran with; after :meth:`result`, the one that fit
       (capacity grown on overflow): pass it to the next similar render to
       skip the counting pass and the re-runs.
+    reruns: how many times :meth:`result` re-ran it larger (each new
+      capacity is a new compiled program).
   """
 
   def __init__(self, fn, args: tuple, kwargs: dict, config: RenderConfig,
@@ -119,6 +120,7 @@ class PendingRender:
     self._num, self._differentiable = num, differentiable
     self._max_retries = max_retries
     self.config = config
+    self.reruns = 0
     self._out = start_host_copies(fn(*args, config=config, **kwargs))
     self._result = None
 
@@ -133,6 +135,7 @@ class PendingRender:
     config, K = self.config, self._num
     for attempt in range(self._max_retries + 1):
       if attempt:
+        self.reruns += 1
         self._out = self._fn(*self._args, config=config, **self._kwargs)
       out = jax.device_get(self._out)
       if not bool(out.overflow):
