@@ -9,7 +9,7 @@
 # a step that would not fit is skipped, so the last ones may be). STEPs pick
 # some of the steps below (default all; `sweep` means all the sweeps), so
 # the work can be split over two calls on a warm machine, e.g.
-#   bash experiments/gpu_session.sh 400 env mpm render donut video substep
+#   bash experiments/gpu_session.sh 420 env mpm render donut video video_scene substep
 #   bash experiments/gpu_session.sh 430 sorts pipeline tests sweep
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
@@ -22,6 +22,7 @@
 #   donut     the same on the donut scene (issue 15)
 #   video     a 150-frame 800x800 video of 100k Gaussians, rendered as
 #             pipeline.run renders, and gsplat's same loop (issue 15)
+#   video_scene  the same on the tabletop scene
 #   substep   benchmark_substep on the tabletop: grouped / masked / bare
 #   sorts     the optimised render program: are its sorts CUB radix sorts?
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
@@ -87,7 +88,7 @@ $PY -m pip list 2>/dev/null | grep -i -E 'jax|flax|torch|gsplat|triton'"
 # gsplat compiles its CUDA code at first use (~80 s on 16 cores): build it
 # while the MPM steps use the GPU.
 GSPLAT=
-if wanted render || wanted donut || wanted video; then
+if wanted render || wanted donut || wanted video || wanted video_scene; then
   ( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
     "from gsplat.cuda._backend import _C; print('gsplat built')" \
     > "$WORK/gsplat_build.log" 2>&1 ) &
@@ -107,6 +108,11 @@ step donut 90 $PY -m experiments.benchmark_render --scene=donut \
 # 800x800 through the pipeline's host path, and gsplat's same loop.
 step video 90 $PY -m experiments.benchmark_render --num=100000 --width=800 \
   --height=800 --video_frames=150 --repeats=3 --out="$WORK/video.json"
+# The same on the tabletop (16.7k Gaussians): the pipeline's render stage
+# took 18 ms per frame there at this size.
+step video_scene 90 $PY -m experiments.benchmark_render --scene=tabletop \
+  --width=800 --height=800 --video_frames=150 --repeats=3 \
+  --out="$WORK/video_scene.json"
 # After the gsplat build: preparing its scene took 31 s beside it.
 step substep 120 $PY -m experiments.benchmark_substep --scene=tabletop \
   --out="$WORK/substep.json"

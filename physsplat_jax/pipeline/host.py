@@ -50,7 +50,9 @@ class RunOutput:
     times: (T+1,) [s].
     files: what was written ('video', 'frames', 'ply', ...) -> path.
     timings: seconds per stage ('compile', 'simulate', 'deform', 'render',
-      'write', 'total').
+      'write', 'total'; with rendering also 'render.wait', 'render.fetch'
+      and 'render.clip', the parts of 'render' collected after dispatch:
+      the device finishing, the fetch with any re-run, the clip).
     particle_substeps_per_s: MPM throughput over the run.
     render_stats: ``capacities``, the intersection capacities the frames
       were rendered with (one compiled render program each), and
@@ -183,14 +185,23 @@ class _FrameMaker:
     t2 = time.perf_counter()
     self.timings['deform'] += t2 - t1
     if p.render is not None:
+      # Sub-stages: the device finishing the render, the fetch (and any
+      # re-run), the clip on the host.
+      p.render.wait()
+      t3 = time.perf_counter()
+      self.timings['render.wait'] += t3 - t2
       out = p.render.result()
+      t4 = time.perf_counter()
+      self.timings['render.fetch'] += t4 - t3
       self.reruns += p.render.reruns
       cap = p.render.config.resolved_capacity(p.gaussians.num)
       if cap not in self.capacities:
         self.capacities.append(cap)
       self._keep_larger(p.render.config, p.gaussians.num)
       frame.image = np.clip(out.image, 0.0, 1.0)
-      self.timings['render'] += time.perf_counter() - t2
+      t5 = time.perf_counter()
+      self.timings['render.clip'] += t5 - t4
+      self.timings['render'] += t5 - t2
     return frame
 
   def _keep_larger(self, cfg, k: int) -> None:
@@ -286,6 +297,9 @@ def run(
   t_start = time.perf_counter()
   timings = dict(compile=0.0, simulate=0.0, deform=0.0, render=0.0,
                  write=0.0)
+  if config.render is not RenderMode.NONE:
+    timings.update({'render.wait': 0.0, 'render.fetch': 0.0,
+                    'render.clip': 0.0})
   fps = fps or 1.0 / prepared.spec.frame_dt
   writers = list(writers or ())
   if out_dir is not None:

@@ -124,6 +124,12 @@ class PendingRender:
     self._out = start_host_copies(fn(*args, config=config, **kwargs))
     self._result = None
 
+  def wait(self) -> 'PendingRender':
+    """Waits until the device has computed the render (no fetch)."""
+    if self._result is None:
+      jax.block_until_ready(self._out)
+    return self
+
   def result(self) -> RenderOutput:
     """The :class:`RenderOutput` as NumPy arrays, never overflowing.
 
