@@ -39,6 +39,14 @@ set -u
 BUDGET=${1:-500}
 shift $(( $# > 0 ? 1 : 0 ))
 STEPS=" ${*:-all} "
+KNOWN="all env mpm render donut video video_scene substep sorts pipeline \
+pipeline_noautotune sweep tests"
+for s in $STEPS; do
+  if [[ " $KNOWN " != *" $s "* ]]; then
+    echo "gpu_session.sh: unknown step '$s'; steps: $KNOWN" >&2
+    exit 2
+  fi
+done
 START=$(date +%s)
 OUT=${OUT:-out/gpu_session}
 WORK=$(mktemp -d /tmp/gpu_session.XXXX)
