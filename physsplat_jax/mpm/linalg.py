@@ -190,7 +190,7 @@ def _polar_newton(F: Mat, iters: int) -> Mat:
   X = F
   for _ in range(iters):
     c = cofactor(X)
-    d = det(X)
+    d = X[0][0] * c[0][0] + X[0][1] * c[0][1] + X[0][2] * c[0][2]
     # A singular F has no polar factor; keep the iteration finite (the
     # solver never lets det F reach 0, see constitutive.safe_J).
     tiny = jnp.asarray(1e-30 if d.dtype == jnp.float64 else 1e-20, d.dtype)
@@ -351,12 +351,17 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
 
   def sweep(_, carry):
     A, V = carry
-    A = [list(r) for r in A]
+    # Only the upper triangle of the symmetric A is carried (NR's update of
+    # the rotated entries, a third of the full J^T A J): the Jacobi chain
+    # is a large part of the substep's program, whose compile time grows
+    # with its size.
+    a = {(i, j): A[i][j] for i in range(3) for j in range(i, 3)}
     V = [list(r) for r in V]
     for p, q in ((0, 1), (0, 2), (1, 2)):
-      apq = A[p][q]
+      r = 3 - p - q
+      apq = a[p, q]
       off = apq == 0
-      theta = (A[q][q] - A[p][p]) / (2.0 * jnp.where(off, one, apq))
+      theta = (a[q, q] - a[p, p]) / (2.0 * jnp.where(off, one, apq))
       # Smaller root of t^2 + 2 theta t - 1 = 0; theta^2 may overflow to
       # inf, which gives t = 0 as it should.
       t = jnp.where(theta >= 0, one, -one) / (
@@ -364,20 +369,21 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
       t = jnp.where(off, zero, t)
       c = jax.lax.rsqrt(t * t + 1.0)
       sn = t * c
-      # A <- J^T A J, V <- V J with J the rotation in the (p, q) plane.
-      for k in range(3):
-        akp, akq = A[k][p], A[k][q]
-        A[k][p] = c * akp - sn * akq
-        A[k][q] = sn * akp + c * akq
-      for k in range(3):
-        apk, aqk = A[p][k], A[q][k]
-        A[p][k] = c * apk - sn * aqk
-        A[q][k] = sn * apk + c * aqk
+      # A <- J^T A J, V <- V J with J the rotation in the (p, q) plane:
+      # the (p, q) entry vanishes, the diagonal moves by t a_pq.
+      arp, arq = a[min(r, p), max(r, p)], a[min(r, q), max(r, q)]
+      a[p, p] = a[p, p] - t * apq
+      a[q, q] = a[q, q] + t * apq
+      a[p, q] = zero
+      a[min(r, p), max(r, p)] = c * arp - sn * arq
+      a[min(r, q), max(r, q)] = sn * arp + c * arq
       for k in range(3):
         vkp, vkq = V[k][p], V[k][q]
         V[k][p] = c * vkp - sn * vkq
         V[k][q] = sn * vkp + c * vkq
-    return (tuple(tuple(r) for r in A), tuple(tuple(r) for r in V))
+    A = tuple(tuple(a[min(i, j), max(i, j)] for j in range(3))
+              for i in range(3))
+    return (A, tuple(tuple(r) for r in V))
 
   V0 = tuple(tuple(one if i == j else zero for j in range(3))
              for i in range(3))
