@@ -8,6 +8,7 @@ from absl.testing import absltest
 from scipy.spatial.distance import pdist
 
 from physsplat_jax import mpm
+from physsplat_jax.mpm import linalg as la
 
 _GRID = mpm.GridSpec(res=16, size=1.0)
 _SP = _GRID.dx / 2
@@ -520,6 +521,55 @@ class ModelGroupsTest(absltest.TestCase):
     one_grouped = jax.jit(mpm.make_substep(grouped_cfg))(s, mat, None)
     np.testing.assert_allclose(one_grouped.x, one.x, atol=1e-6)
     np.testing.assert_allclose(one_grouped.F, one.F, atol=1e-5)
+
+  def test_spectral_models_share_one_slice_off_the_cpu(self):
+    """constitutive_slices: on a GPU the models with a spectral form share
+    one blended update (one SVD) when one of them needs an SVD; it gives
+    the per-model slices' results and gradient (float64)."""
+    models = ('fixed_corotated', 'neo_hookean', 'drucker_prager', 'rigid',
+              'stvk')
+    cfg = mpm.SimConfig(grid=_GRID, dt=1e-4, models=models,
+                        model_counts=(5, 4, 6, 3, 2))
+    single = mpm.solver.constitutive_slices(cfg, merge=False)
+    merged = mpm.solver.constitutive_slices(cfg, merge=True)
+    self.assertEqual([s[2:] for s in single],
+                     [(0, 5), (5, 9), (9, 15), (15, 18), (18, 20)])
+    self.assertEqual(merged, (
+      (('fixed_corotated', 'neo_hookean', 'drucker_prager'), 0, 0, 15),
+      (('rigid',), 3, 15, 18), (('stvk',), 4, 18, 20)))
+    # Elastic closed forms alone stay apart (cheaper than an SVD), and an
+    # empty model in between counts.
+    for counts, want in (((5, 4, 0, 3, 2), 4), ((5, 0, 6, 3, 2), 3)):
+      got = mpm.solver.constitutive_slices(
+        cfg.replace(model_counts=counts), merge=True)
+      self.assertLen(got, want)
+    self.assertEqual(mpm.solver.constitutive_slices(
+      cfg.replace(model_counts=None), merge=True), ())
+
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(2)
+      n = 20
+      names = [m for m, c in zip(models, cfg.model_counts) for _ in range(c)]
+      mat = mpm.make_materials(names, 2e4, 0.3, 1000.0, config_models=models)
+      F = np.eye(3)[:, :, None] + 0.15 * rng.normal(size=(3, 3, n))
+      F[:, :, :2] = np.eye(3)[:, :, None]  # F = I: repeated singular values
+      F = jnp.asarray(F)
+      C = la.zeros(F[0, 0])
+      Jp, ep = jnp.ones(n), jnp.zeros(n)
+      w = jnp.asarray(rng.normal(size=(2, 3, 3, n)))
+
+      def loss(slices, F):
+        Fe, _, _, tau = mpm.solver.constitute_slices(
+          slices, cfg.dt, la.to_mat(F), C, Jp, ep, mat)
+        return (jnp.sum(w[0] * la.from_mat(Fe))
+                + jnp.sum(w[1] * la.from_mat(tau)) / 2e4)
+
+      out = [mpm.solver.constitute_slices(s, cfg.dt, la.to_mat(F), C, Jp, ep,
+                                          mat) for s in (single, merged)]
+      for a, b in zip(jax.tree.leaves(out[0]), jax.tree.leaves(out[1])):
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-10)
+      g = [jax.grad(loss, argnums=1)(s, F) for s in (single, merged)]
+      np.testing.assert_allclose(g[1], g[0], rtol=1e-8, atol=1e-10)
 
   def test_wrong_counts_are_reported(self):
     x, mat, cfg, body = self._scene()

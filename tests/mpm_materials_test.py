@@ -91,6 +91,46 @@ class ElasticTest(parameterized.TestCase):
                                  rtol=1e-10)
 
 
+  @parameterized.parameters('fixed_corotated', 'neo_hookean')
+  def test_spectral_form_equals_closed_form(self, model):
+    """Blended with an SVD model, an elastic model takes its stress from
+    the shared SVD (constitutive.SPECTRAL_ELASTIC): the same F_e and stress
+    as its closed form, and the same gradient, also where singular values
+    repeat (F = I, rotations, a pair)."""
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(6)
+      F = np.concatenate([
+        np.eye(3)[None], _rotations(2, seed=7),
+        _rotations(3, seed=8) @ (np.eye(3) + 0.2 * rng.normal(size=(3, 3, 3))),
+        np.diag([1.1, 1.1, 0.9])[None], np.diag([0.8, 1.2, 1.2])[None]])
+      n = len(F)
+      both = (model, 'drucker_prager')
+      mat = mpm.make_materials([model] * n, _E, _NU, 1000.0,
+                               config_models=both)
+      weights = jnp.asarray(rng.normal(size=(2, 3, 3, n)))
+      zeros = la.zeros(jnp.zeros(n))
+      ones = jnp.ones(n)
+
+      def outputs(models, F):
+        Fe, _, _, tau = constitutive.constitutive_update(
+          models, mat.model_id, la.to_mat(F), zeros, ones, 0 * ones, mat,
+          1e-4)
+        return la.from_mat(Fe), la.from_mat(tau) / _E
+
+      def loss(models, F):
+        Fe, tau = outputs(models, F)
+        return jnp.sum(weights[0] * Fe) + jnp.sum(weights[1] * tau)
+
+      Fs = jnp.asarray(np.moveaxis(F, 0, -1))
+      closed, blended = (outputs(m, Fs) for m in ((model,), both))
+      np.testing.assert_array_equal(blended[0], closed[0])
+      np.testing.assert_allclose(blended[1], closed[1], atol=1e-12)
+      self.assertGreater(np.abs(closed[1]).max(), 1e-2)
+      g_closed, g_blended = (jax.grad(loss, argnums=1)(m, Fs)
+                             for m in ((model,), both))
+      np.testing.assert_allclose(g_blended, g_closed, atol=1e-9)
+
+
 class PlasticityTest(absltest.TestCase):
 
   def test_von_mises_caps_deviatoric_stress(self):

@@ -78,6 +78,10 @@ from physsplat_jax.mpm import linalg as la
 
 SVD_MODELS = ('stvk', 'von_mises', 'plasticine', 'drucker_prager', 'snow',
               'foam', 'bingham')
+# Elastic models with a closed form (polar decomposition, F F^T) that also
+# have a spectral form: next to an SVD model (one blended update) they use
+# its SVD instead of a second decomposition of their own.
+SPECTRAL_ELASTIC = ('fixed_corotated', 'neo_hookean')
 _SIG_FLOOR = 1e-2
 _J_FLOOR = 1e-3
 _TAIT_GAMMA = 7.0
@@ -118,6 +122,17 @@ def _fcr_k(s, mu, lam):
   """Principal Kirchhoff stress of fixed corotated, ``F = U diag(s) V^T``."""
   J = s[0] * s[1] * s[2]
   return tuple(2.0 * mu * (x - 1.0) * x + lam * J * (J - 1.0) for x in s)
+
+
+def _fixed_corotated(s, p):
+  return s, _fcr_k(s, p['mu'], p['lam']), {'Jp': p['Jp'], 'ep': p['ep']}
+
+
+def _neo_hookean(s, p):
+  # tau = mu (F F^T - I) + lam log(J) I = U diag(mu (s^2 - 1) + lam log J) U^T
+  log_j = jnp.log(safe_J(s[0] * s[1] * s[2]))
+  k = tuple(p['mu'] * (x * x - 1.0) + p['lam'] * log_j for x in s)
+  return s, k, {'Jp': p['Jp'], 'ep': p['ep']}
 
 
 def _exp3(e):
@@ -241,11 +256,13 @@ def _bingham(s, p):
 
 
 _SPECTRAL = {
+  'fixed_corotated': _fixed_corotated, 'neo_hookean': _neo_hookean,
   'stvk': _stvk, 'von_mises': _von_mises, 'plasticine': _plasticine,
   'drucker_prager': _drucker_prager, 'snow': _snow, 'foam': _foam,
   'bingham': _bingham,
 }
 _PARAMS = {
+  'fixed_corotated': (), 'neo_hookean': (),
   'stvk': (),
   'von_mises': ('yield_stress', 'hardening', 'xi'),
   'plasticine': ('yield_stress', 'hardening', 'xi', 'softening'),
@@ -312,6 +329,12 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
   results = []
   svd_models = tuple(m for m in models if m in SVD_MODELS)
   if svd_models:
+    # The elastic closed forms join the SVD models' blended update: one
+    # decomposition per particle, and a shorter program (its compile time
+    # grows faster than its length on a GPU).
+    svd_models = tuple(m for m in models
+                       if m in SVD_MODELS or m in SPECTRAL_ELASTIC)
+  if svd_models:
     p = {'mu': mu, 'lam': lam, 'Jp': Jp, 'ep': ep,
          'dt': jnp.full_like(mu, dt)}
     for m in svd_models:
@@ -322,9 +345,11 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
     Fe, tau, aux = _spectral_map(svd_models)(F, p)
     r = (Fe, aux['Jp'], aux['ep'], tau)
     for m in svd_models:
-      results.append((models.index(m), r))
+      # An elastic model keeps F itself, not its reconstruction U s V^T.
+      results.append((models.index(m), (F,) + r[1:] if m in SPECTRAL_ELASTIC
+                      else r))
   for k, m in enumerate(models):
-    if m in SVD_MODELS:
+    if m in svd_models:
       continue
     if m == 'fixed_corotated':
       R = la.polar_mat(F)
