@@ -138,6 +138,41 @@ class StepTest(absltest.TestCase):
       # The block did deform, so stress acted.
       self.assertGreater(float(jnp.abs(s1.F - jnp.eye(3)).max()), 1e-4)
 
+  def test_frame_equals_its_substeps_and_keeps_the_state_time(self):
+    """make_frame derives each substep's time from its step instead of
+    carrying it; it equals make_substep applied substep by substep, from a
+    state whose time is not step * dt (a plane switched on at that time),
+    and ends at step * dt."""
+    with jax.enable_x64(True):
+      grid = mpm.GridSpec(res=16, size=1.0)
+      dt = 1e-3
+      cfg = mpm.SimConfig(
+        grid=grid, dt=dt, substeps_per_frame=6, dtype='float64',
+        boundary_conditions=(mpm.SurfaceCollider(
+          point=(0, 0, 0.45), surface='sticky', start_time=0.4,
+          end_time=0.4025),))
+      x0 = _block(3, (0.4, 0.4, 0.44), grid.dx / 2)
+      mat = mpm.make_materials('fixed_corotated', 1e4, 0.3, 1000.,
+                               num=len(x0), dtype=jnp.float64)
+      s = mpm.init_state(x0, (0.2, 0.0, -0.5), (grid.dx / 2) ** 3, mat, cfg)
+      s = s.replace(t=jnp.asarray(0.4), step=jnp.asarray(3, jnp.int32))
+      forces = mpm.make_forces(cfg)
+      one = jax.jit(mpm.make_substep(cfg))
+      ref = s
+      for _ in range(cfg.substeps_per_frame):
+        ref = one(ref, mat, forces)
+      got = jax.jit(mpm.make_frame(cfg))(s, mat, forces)
+      for name in ('x', 'v', 'F', 'C', 't', 'step'):
+        np.testing.assert_allclose(getattr(got, name), getattr(ref, name),
+                                   rtol=1e-12, atol=1e-12, err_msg=name)
+      self.assertEqual(int(got.step), 9)
+      self.assertEqual(float(got.t), 9 * dt)
+      # The plane was on in the first substep only (t = 0.4; the next
+      # substeps run at 0.004-0.008 s): it stopped the block there.
+      free = jax.jit(mpm.make_frame(cfg))(s.replace(t=jnp.asarray(0.0)), mat,
+                                          forces)
+      self.assertGreater(float(jnp.abs(free.x - got.x).max()), 1e-6)
+
 
 if __name__ == '__main__':
   absltest.main()

@@ -508,11 +508,24 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
     forces = _check_inputs(state, materials, forces, config)
     state, materials, inv = _order(config, state, materials)
     carry, aux = _to_soa(state)
-    body = lambda c, _: (soa(c, aux, materials, forces), None)  # noqa: E731
+    # The time is not carried: each substep derives it from its step (as
+    # the substep itself does for its output), so that no kernel of its own
+    # updates it on a GPU; the first substep keeps the state's time.
+    t0, step0 = carry.pop('t'), carry['step']
+
+    def body(c, _):
+      step = c['step']
+      t = jnp.where(step == step0, t0,
+                    (step.astype(t0.dtype) * config.dt).astype(t0.dtype))
+      out = soa(dict(c, t=t), aux, materials, forces)
+      del out['t']
+      return out, None
+
     if config.remat_frames:
       body = jax.checkpoint(body)
     carry, _ = jax.lax.scan(body, carry, None, length=n_sub)
-    return _unorder(_from_soa(carry, aux), inv)
+    t = (carry['step'].astype(t0.dtype) * config.dt).astype(t0.dtype)
+    return _unorder(_from_soa(dict(carry, t=t), aux), inv)
 
   if config.remat_frames:
     return jax.checkpoint(frame_fn)
