@@ -8,6 +8,7 @@ from absl.testing import absltest
 from scipy.spatial.distance import pdist
 
 from physsplat_jax import mpm
+from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import linalg as la
 
 _GRID = mpm.GridSpec(res=16, size=1.0)
@@ -530,8 +531,8 @@ class ModelGroupsTest(absltest.TestCase):
               'stvk')
     cfg = mpm.SimConfig(grid=_GRID, dt=1e-4, models=models,
                         model_counts=(5, 4, 6, 3, 2))
-    single = mpm.solver.constitutive_slices(cfg, merge=False)
-    merged = mpm.solver.constitutive_slices(cfg, merge=True)
+    single = constitutive.constitutive_slices(cfg, merge=False)
+    merged = constitutive.constitutive_slices(cfg, merge=True)
     self.assertEqual([s[2:] for s in single],
                      [(0, 5), (5, 9), (9, 15), (15, 18), (18, 20)])
     self.assertEqual(merged, (
@@ -540,10 +541,10 @@ class ModelGroupsTest(absltest.TestCase):
     # Elastic closed forms alone stay apart (cheaper than an SVD), and an
     # empty model in between counts.
     for counts, want in (((5, 4, 0, 3, 2), 4), ((5, 0, 6, 3, 2), 3)):
-      got = mpm.solver.constitutive_slices(
+      got = constitutive.constitutive_slices(
         cfg.replace(model_counts=counts), merge=True)
       self.assertLen(got, want)
-    self.assertEqual(mpm.solver.constitutive_slices(
+    self.assertEqual(constitutive.constitutive_slices(
       cfg.replace(model_counts=None), merge=True), ())
 
     with jax.enable_x64(True):
@@ -559,12 +560,12 @@ class ModelGroupsTest(absltest.TestCase):
       w = jnp.asarray(rng.normal(size=(2, 3, 3, n)))
 
       def loss(slices, F):
-        Fe, _, _, tau = mpm.solver.constitute_slices(
+        Fe, _, _, tau = constitutive.constitute_slices(
           slices, cfg.dt, la.to_mat(F), C, Jp, ep, mat)
         return (jnp.sum(w[0] * la.from_mat(Fe))
                 + jnp.sum(w[1] * la.from_mat(tau)) / 2e4)
 
-      out = [mpm.solver.constitute_slices(s, cfg.dt, la.to_mat(F), C, Jp, ep,
+      out = [constitutive.constitute_slices(s, cfg.dt, la.to_mat(F), C, Jp, ep,
                                           mat) for s in (single, merged)]
       for a, b in zip(jax.tree.leaves(out[0]), jax.tree.leaves(out[1])):
         np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-10)

@@ -233,9 +233,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     walls.append((lo_p, e, 0.0, 'separate', True, 0.0))
     walls.append((hi_p, tuple(-a for a in e), 0.0, 'separate', True, 0.0))
 
-  groups = model_groups(config)
-  single_slices = constitutive_slices(config, merge=False)
-  merged_slices = constitutive_slices(config, merge=True)
+  groups = constitutive.model_groups(config)
+  single_slices = constitutive.constitutive_slices(config, merge=False)
+  merged_slices = constitutive.constitutive_slices(config, merge=True)
   rigid_group = ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
 
   def constitute(F, C, Jp0, ep0, aux, mat):
@@ -247,19 +247,23 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
 
     With ``config.model_counts`` the particles are sorted by model and each
     model runs on its own slice only (on a GPU, the models with a spectral
-    form share one: ``constitutive_slices``).
+    form share one: ``constitutive.constitutive_slices``).
     """
     if groups:
       args = (F, C, Jp0, ep0, mat)
       if merged_slices == single_slices:
-        Fe, Jp, ep, tau = constitute_slices(single_slices, dt, *args)
+        Fe, Jp, ep, tau = constitutive.constitute_slices(single_slices, dt,
+                                                          *args)
       else:
         # A slice per model on the CPU (an elastic model's closed form is
         # cheaper than an SVD); elsewhere one blended slice, whose program
-        # compiles faster (constitutive_slices).
+        # compiles faster (constitutive.constitutive_slices).
         Fe, Jp, ep, tau = jax.lax.platform_dependent(
-          *args, cpu=functools.partial(constitute_slices, single_slices, dt),
-          default=functools.partial(constitute_slices, merged_slices, dt))
+          *args,
+          cpu=functools.partial(constitutive.constitute_slices,
+                                single_slices, dt),
+          default=functools.partial(constitutive.constitute_slices,
+                                    merged_slices, dt))
     else:
       rigid = aux['body_id'] >= 0 if has_bodies else None
       Fe, Jp, ep, tau = constitutive.constitutive_update(
@@ -379,68 +383,6 @@ def make_substep(config: base.SimConfig) -> Callable:
     return _unorder(_from_soa(soa(carry, aux, materials, forces), aux), inv)
 
   return substep_fn
-
-
-def model_groups(config: base.SimConfig) -> tuple[tuple[str, int, int], ...]:
-  """``(model, start, end)`` particle slices after the frame's model sort
-  (empty without ``config.model_counts``; models without particles left
-  out)."""
-  if config.model_counts is None:
-    return ()
-  out, a = [], 0
-  for m, c in zip(config.models, config.model_counts):
-    if c:
-      out.append((m, a, a + c))
-    a += c
-  return tuple(out)
-
-
-def constitutive_slices(config: base.SimConfig, merge: bool):
-  """``(models, first_model_index, start, end)`` per constitutive update of
-  a substep with ``config.model_counts`` (empty without).
-
-  ``merge=False``: one slice per model with particles. ``merge=True``:
-  consecutive slices whose models have a spectral form (the SVD models and
-  ``constitutive.SPECTRAL_ELASTIC``), with at least one SVD model among
-  them, become one slice with one blended update (one SVD for them all;
-  their ``model_id`` minus ``first_model_index`` indexes ``models``). On a
-  GPU that program is shorter: the tabletop's MPM frame compiled for an
-  H100 in 13 s instead of 17 s with the same kernels per substep
-  (docs/benchmarks.md).
-  """
-  spectral = constitutive.SVD_MODELS + constitutive.SPECTRAL_ELASTIC
-  groups = model_groups(config)
-  runs = []  # [first model index, last model index, start, end]
-  for m, a, b in groups:
-    k = config.models.index(m)
-    if (merge and runs and runs[-1][3] == a
-        and all(q in spectral for q in config.models[runs[-1][0]:k + 1])):
-      runs[-1][1], runs[-1][3] = k, b
-    else:
-      runs.append([k, k, a, b])
-  out = []
-  for k0, k1, a, b in runs:
-    ms = tuple(config.models[k0:k1 + 1])
-    if k1 > k0 and not any(q in constitutive.SVD_MODELS for q in ms):
-      # Elastic closed forms only: cheaper apart than through an SVD.
-      out.extend(((m,), config.models.index(m), a1, b1)
-                 for m, a1, b1 in groups if a <= a1 < b)
-    else:
-      out.append((ms, k0, a, b))
-  return tuple(out)
-
-
-def constitute_slices(slices, dt, F, C, Jp, ep, mat):
-  """``constitutive.constitutive_update`` on each slice of
-  ``constitutive_slices`` (nested-tuple ``F``, ``C``; the particles sorted
-  by model), concatenated: ``(F_e, Jp, ep, tau)``."""
-  parts = []
-  for models, k0, a, b in slices:
-    rows = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
-    ids = None if len(models) == 1 else mat.model_id[a:b] - k0
-    parts.append(constitutive.constitutive_update(
-      models, ids, rows(F), rows(C), Jp[a:b], ep[a:b], rows(mat), dt))
-  return jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
 
 
 def _cell_key(grid: base.GridSpec, x):
