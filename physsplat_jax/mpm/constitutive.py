@@ -407,11 +407,11 @@ def constitutive_slices(config, merge: bool):
 
   ``merge=False``: one slice per model with particles. ``merge=True``:
   consecutive slices whose models have a spectral form (the SVD models and
-  ``SPECTRAL_ELASTIC``), with at least one SVD model among
-  them, become one slice with one blended update (one SVD for them all;
-  their ``model_id`` minus ``first_model_index`` indexes ``models``). On a
-  GPU that program is shorter: the tabletop's MPM frame compiled for an
-  H100 in 13 s instead of 17 s with the same kernels per substep
+  ``SPECTRAL_ELASTIC``), with at least one SVD model among them, become
+  one slice with one blended update (one SVD for them all; their
+  ``model_id`` minus ``first_model_index`` indexes ``models``). On a GPU
+  that program is shorter: the tabletop's MPM frame compiled for an H100
+  in ~12 s instead of ~17 s, with one kernel per substep fewer
   (docs/benchmarks.md).
   """
   spectral = SVD_MODELS + SPECTRAL_ELASTIC
