@@ -131,11 +131,16 @@ def _cross(a, b):
           det2(a[0], b[1], a[1], b[0]))
 
 
-def _solve_sym(A, b):
-  """``la.solve_sym`` for a right-hand side with Python zeros."""
+def _inverse(A):
+  """``A^{-1}`` of a symmetric invertible field (cofactors / det)."""
   c = la.cofactor(A)
   d = la.det(A)
-  return tuple(_sum_products(zip(c[i], b)) / d for i in range(3))
+  return tuple(tuple(c[i][j] / d for j in range(3)) for i in range(3))
+
+
+def _apply(Ainv, b):
+  """``Ainv b`` for a right-hand side with Python zeros."""
+  return tuple(_sum_products(zip(Ainv[i], b)) for i in range(3))
 
 
 def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
@@ -281,19 +286,20 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
   # stays finite. Dividing by ``tiny`` gave cotangents of ~1/tiny = inf,
   # and 0 * inf = NaN in the per-body sums' backward pass.
   Ms = jnp.where(M > 0, M, 1.0)
+  Iinv = _inverse(I)  # once, for every solve below
 
   def impulse(V, w, rc, dirn, j):
     # dirn: arrays, or a plane's normal as Python floats.
     V = [V[d] if _zero(dirn[d]) else V[d] + free * j * dirn[d] / Ms
          for d in range(3)]
-    dw = _solve_sym(I, _cross(rc, tuple(
+    dw = _apply(Iinv, _cross(rc, tuple(
       0.0 if _zero(dirn[d]) else j * dirn[d] for d in range(3))))
     w = [w[d] if _zero(dw[d]) else w[d] + free * dw[d] for d in range(3)]
     return V, w
 
   def k_eff(rc, dirn):
     a = _cross(rc, dirn)
-    return 1.0 / Ms + _dot(a, _solve_sym(I, a))
+    return 1.0 / Ms + _dot(a, _apply(Iinv, a))
 
   measured = _measure_contacts(planes, rigid, ssum, at, mass, r, x_new, free,
                                form)
