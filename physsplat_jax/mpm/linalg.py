@@ -356,6 +356,7 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
     # is a large part of the substep's program, whose compile time grows
     # with its size.
     a = {(i, j): A[i][j] for i in range(3) for j in range(i, 3)}
+    up = lambda i, j: (min(i, j), max(i, j))  # noqa: E731
     V = [list(r) for r in V]
     for p, q in ((0, 1), (0, 2), (1, 2)):
       r = 3 - p - q
@@ -371,18 +372,17 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
       sn = t * c
       # A <- J^T A J, V <- V J with J the rotation in the (p, q) plane:
       # the (p, q) entry vanishes, the diagonal moves by t a_pq.
-      arp, arq = a[min(r, p), max(r, p)], a[min(r, q), max(r, q)]
+      arp, arq = a[up(r, p)], a[up(r, q)]
       a[p, p] = a[p, p] - t * apq
       a[q, q] = a[q, q] + t * apq
       a[p, q] = zero
-      a[min(r, p), max(r, p)] = c * arp - sn * arq
-      a[min(r, q), max(r, q)] = sn * arp + c * arq
+      a[up(r, p)] = c * arp - sn * arq
+      a[up(r, q)] = sn * arp + c * arq
       for k in range(3):
         vkp, vkq = V[k][p], V[k][q]
         V[k][p] = c * vkp - sn * vkq
         V[k][q] = sn * vkp + c * vkq
-    A = tuple(tuple(a[min(i, j), max(i, j)] for j in range(3))
-              for i in range(3))
+    A = tuple(tuple(a[up(i, j)] for j in range(3)) for i in range(3))
     return (A, tuple(tuple(r) for r in V))
 
   V0 = tuple(tuple(one if i == j else zero for j in range(3))

@@ -197,6 +197,11 @@ def _from_soa(carry, aux) -> base.MPMState:
   )
 
 
+def _step_time(step, dt: float, dtype):
+  """The time [s] after ``step`` substeps of ``dt``, in ``dtype``."""
+  return (step.astype(dtype) * dt).astype(dtype)
+
+
 def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   """``substep(carry, aux, materials, forces) -> carry`` on SoA fields.
 
@@ -343,7 +348,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     out = dict(
       xv=jnp.stack(tuple(x_new) + tuple(v_new)), F=la.from_mat(F_new),
       C=la.from_mat(C_new), Jpep=jnp.stack([Jp, ep]),
-      t=(step.astype(t.dtype) * dt).astype(t.dtype), step=step,
+      t=_step_time(step, dt, t.dtype), step=step,
     )
     return out
 
@@ -457,8 +462,7 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
 
     def body(c, _):
       step = c['step']
-      t = jnp.where(step == step0, t0,
-                    (step.astype(t0.dtype) * config.dt).astype(t0.dtype))
+      t = jnp.where(step == step0, t0, _step_time(step, config.dt, t0.dtype))
       out = soa(dict(c, t=t), aux, materials, forces)
       del out['t']
       return out, None
@@ -466,7 +470,7 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
     if config.remat_frames:
       body = jax.checkpoint(body)
     carry, _ = jax.lax.scan(body, carry, None, length=n_sub)
-    t = (carry['step'].astype(t0.dtype) * config.dt).astype(t0.dtype)
+    t = _step_time(carry['step'], config.dt, t0.dtype)
     return _unorder(_from_soa(dict(carry, t=t), aux), inv)
 
   if config.remat_frames:
