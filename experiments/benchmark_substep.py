@@ -13,10 +13,15 @@ with no body and no plane), all compiled first and timed in turns (best of
 
 The differences say what the materials, the rigid bodies and the plane
 contact cost per substep. ``--clock=cpu`` reports process CPU time instead
-of wall time (steadier on a shared machine). Figures: docs/benchmarks.md.
+of wall time (steadier on a shared machine). ``--profile`` then runs each
+variant once more under JAX's profiler and reports the device's busy time
+per substep (the rest of the wall time is launch overhead and the host),
+the kernels it launched, and the most expensive ones with the name scopes
+they came from (experiments/lib/profile.py). Figures: docs/benchmarks.md.
 """
 
 import dataclasses
+import tempfile
 import time
 
 import jax
@@ -24,6 +29,8 @@ import jax.numpy as jnp
 from absl import flags
 
 from experiments.lib import cli
+from experiments.lib import hlo
+from experiments.lib import profile
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
 
@@ -37,6 +44,25 @@ _OUT = flags.DEFINE_string('out', None, 'JSON file for the results')
 _START_FRAME = flags.DEFINE_integer(
   'start_frame', 0, 'time from the state after this many frames of the '
   'scene (objects resting on the support) instead of its initial state')
+_PROFILE = flags.DEFINE_boolean(
+  'profile', False, 'also trace each variant once: device-busy time per '
+  'substep and the most expensive kernels')
+_TOP = flags.DEFINE_integer('top', 12, '--profile: kernels listed per variant')
+
+
+def _profile(name, fn, args, substeps):
+  """One traced call of a variant's frame, per substep."""
+  labels = hlo.kernel_labels(fn.lower(*args).compile().as_text())
+  with tempfile.TemporaryDirectory() as logdir:
+    _, path = profile.trace(lambda: fn(*args), logdir)
+    got = profile.per_call(profile.kernel_times(path), substeps, labels,
+                           _TOP.value)
+  print(f'{name}: device {got["device"]}, busy {got["busy_us"]:.1f} us and '
+        f'{got["launches"]:.1f} launches per substep')
+  for k in got['top']:
+    print(f'  {k["us"]:8.2f} us  x{k["launches"]:<5.2f} {k["kernel"]:40s} '
+          f'{k["label"]}')
+  return got
 
 
 def main(argv):
@@ -72,6 +98,13 @@ def main(argv):
     print(f'{name:18s} {1e3 * sec:7.3f} ms/substep  '
           f'{n / sec / 1e6:5.2f} M particle-substeps/s ({_CLOCK.value})'
           + ('' if finite else '  (went non-finite: timing not meaningful)'))
+  if _PROFILE.value:
+    for row in rows:
+      fn, s, m, f = runs[row['variant']]
+      row['profile'] = _profile(row['variant'], fn, (s, m, f),
+                                _SUBSTEPS.value)
+      row['profile']['busy_fraction'] = (
+        row['profile']['busy_us'] / 1e3 / row['ms_per_substep'])
   result = dict(scene=_SCENE.value, start_frame=_START_FRAME.value,
                 particles=n, models=sim_config.models,
                 num_bodies=sim_config.num_bodies, clock=_CLOCK.value,

@@ -10,7 +10,7 @@
 # some of the steps below (default all; `sweep` means all the sweeps), so
 # the work can be split over two calls on a warm machine, e.g.
 #   bash experiments/gpu_session.sh 420 env mpm render donut video video_scene substep
-#   bash experiments/gpu_session.sh 430 sorts pipeline tests sweep
+#   bash experiments/gpu_session.sh 430 substep_graphs sorts pipeline tests sweep
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
@@ -23,7 +23,12 @@
 #   video     a 150-frame 800x800 video of 100k Gaussians, rendered as
 #             pipeline.run renders, and gsplat's same loop (issue 15)
 #   video_scene  the same on the tabletop scene
-#   substep   benchmark_substep on the tabletop: grouped / masked / bare
+#   substep   benchmark_substep on the tabletop: grouped / masked / bare,
+#             with a profile (device-busy time and the costliest kernels
+#             per substep)
+#   substep_graphs  the grouped and bare substeps again with XLA's command
+#             buffers (CUDA graphs) off, and with loops as graphs too
+#             (WHILE, CONDITIONAL), one process each
 #   sorts     the optimised render program: are its sorts CUB radix sorts?
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
 #             substeps/frame), tabletop: cold, warm, and warm unpipelined
@@ -39,8 +44,8 @@ set -u
 BUDGET=${1:-500}
 shift $(( $# > 0 ? 1 : 0 ))
 STEPS=" ${*:-all} "
-KNOWN="all env mpm render donut video video_scene substep sorts pipeline \
-pipeline_noautotune sweep tests"
+KNOWN="all env mpm render donut video video_scene substep substep_graphs \
+sorts pipeline pipeline_noautotune sweep tests"
 for s in $STEPS; do
   if [[ " $KNOWN " != *" $s "* ]]; then
     echo "gpu_session.sh: unknown step '$s'; steps: $KNOWN" >&2
@@ -67,7 +72,8 @@ left() { echo $(( BUDGET - ($(date +%s) - START) )); }
 # wanted NAME: whether NAME (sweep_* as `sweep`) is among the chosen steps.
 wanted() {
   [[ $STEPS == *" all "* || $STEPS == *" $1 "* \
-     || ( $1 == sweep_* && $STEPS == *" sweep "* ) ]]
+     || ( $1 == sweep_* && $STEPS == *" sweep "* ) \
+     || ( $1 == substep_graphs_* && $STEPS == *" substep_graphs "* ) ]]
 }
 
 # step NAME MAX_SECONDS COMMAND...: runs it under timeout (never past the
@@ -123,7 +129,17 @@ step video_scene 90 $PY -m experiments.benchmark_render --scene=tabletop \
   --out="$WORK/video_scene.json"
 # After the gsplat build: preparing its scene took 31 s beside it.
 step substep 120 $PY -m experiments.benchmark_substep --scene=tabletop \
-  --out="$WORK/substep.json"
+  --profile --out="$WORK/substep.json"
+# Each substep is one CUDA graph by default (XLA's command buffers); the
+# scan over substeps stays a host loop unless WHILE is enabled too.
+XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=" \
+step substep_graphs_off 80 $PY -m experiments.benchmark_substep \
+  --scene=tabletop --variants=scene,bare --profile \
+  --out="$WORK/substep_graphs_off.json"
+XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL" \
+step substep_graphs_while 80 $PY -m experiments.benchmark_substep \
+  --scene=tabletop --variants=scene,bare --profile \
+  --out="$WORK/substep_graphs_while.json"
 step sorts 60 bash -c "XLA_FLAGS=--xla_dump_to=$WORK/hlo $PY -m \
 experiments.benchmark_render --num=100000 --size=1024 --repeats=1 \
 --nogsplat > /dev/null 2>&1; cd $WORK/hlo && \

@@ -61,6 +61,26 @@ class FormsAgreeTest(absltest.TestCase):
     with self.assertRaisesRegex(ValueError, "'auto', 'dot' or 'sum'"):
       transfer.g2p(_GRID, st, gv, form='einsum')
 
+  def test_g2p_window_rows_equal_block(self):
+    """G2P's window read as nine rows (CPU) and as one block (GPU), with
+    particles at the grid's first and last base nodes."""
+    rng = np.random.default_rng(3)
+    G = _GRID.res
+    g4 = jnp.asarray(rng.normal(size=(G, G, G, 3)))
+    base = rng.integers(0, G - 2, size=(60, 3))
+    base[:4] = [[0, 0, 0], [G - 3] * 3, [0, G - 3, 5], [G - 3, 0, G - 3]]
+    lin = (base[:, 0] * G + base[:, 1]) * G + base[:, 2]
+    base, lin = jnp.asarray(base, jnp.int32), jnp.asarray(lin, jnp.int32)
+    rows = transfer._window_rows(g4, base, lin)
+    block = transfer._window_block(g4, base, lin)
+    np.testing.assert_array_equal(rows, block)
+    # And the block is the window (offsets in OFFSETS order).
+    b = np.asarray(base)
+    for n in (0, 1, 7):
+      for k, (i, j, l) in enumerate(transfer.OFFSETS):
+        np.testing.assert_array_equal(
+          block[n, k], g4[b[n, 0] + i, b[n, 1] + j, b[n, 2] + l])
+
   def test_sub_tile_ranges_unrolled_equals_loop(self):
     """The renderer's sub-tile ranges: both binary searches give numpy's
     ranges on sorted ids with empty sub-tiles and unused slots (id

@@ -81,3 +81,27 @@ def substep_kernels(text: str, substeps: int) -> dict:
         return dict(kernels=sum(k.values()), by_kind=dict(sorted(k.items())))
       stack.append(body)
   raise ValueError(f'no loop with trip count {substeps} in the program')
+
+
+# Name-scope components of a substep that say nothing of its steps.
+_PLUMBING = frozenset(('checkpoint', 'while', 'body', 'cond', 'closed_call',
+                       'remat', 'scan'))
+
+
+def kernel_labels(text: str) -> dict[str, str]:
+  """``{kernel name: name scope}`` of an optimised program's instructions.
+
+  Kernel names are instruction names with ``.`` written ``_`` (as the
+  profiler and XLA's thunk dumps show them); the label is the JAX name
+  scope of the instruction's ``op_name`` metadata (``p2g/scatter-add``),
+  without the jit and loop plumbing.
+  """
+  out = {}
+  for m in re.finditer(r'^\s+(?:ROOT )?%?([\w.\-]+) = (.*)$', text,
+                       re.MULTILINE):
+    op = re.search(r'metadata=\{op_name="([^"]*)"', m.group(2))
+    parts = op.group(1).split('/')[1:] if op else []
+    label = '/'.join(p for p in parts if p not in _PLUMBING)
+    out[m.group(1).replace('.', '_')] = label
+    out.setdefault(m.group(1), label)
+  return out

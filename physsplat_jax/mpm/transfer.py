@@ -208,6 +208,36 @@ def _window_moments_sum(w, o4, g):
   return jnp.sum(wo[:, :, :, None] * g[:, :, None, :], axis=1)
 
 
+def _window_block(g4, base, lin):
+  """(N, 27, 3) node velocities of each particle's 3 x 3 x 3 window: one
+  windowed gather of a (3, 3, 3, 3) block at ``base`` (clamped per axis)."""
+  del lin
+  dn = jax.lax.GatherDimensionNumbers(
+    offset_dims=(1, 2, 3, 4), collapsed_slice_dims=(),
+    start_index_map=(0, 1, 2))
+  return jax.lax.gather(g4, base, dn, slice_sizes=(3, 3, 3, 3),
+                        mode=jax.lax.GatherScatterMode.CLIP).reshape(-1, 27, 3)
+
+
+def _window_rows(g4, base, lin):
+  """The same window as nine gathers of 9 contiguous values: the three z
+  nodes' three components of each (x, y) column of the window, from the
+  flat grid at ``lin`` (the base node's flat index). XLA:CPU computes a
+  gather's source index per element; rows of 9 take 1/9 of that index work
+  (G2P's gather 2-3x faster at 6,000 particles, docs/benchmarks.md). Equal
+  to :func:`_window_block` for particles inside the grid (the solver clamps
+  them there); a start past the grid is clamped on the flat array."""
+  del base
+  G = g4.shape[0]
+  xy = np.arange(3)[:, None] * (G * G) + np.arange(3)[None, :] * G
+  start = (lin[:, None] + jnp.asarray(xy.reshape(-1), lin.dtype)) * 3
+  dn = jax.lax.GatherDimensionNumbers(
+    offset_dims=(2,), collapsed_slice_dims=(), start_index_map=(0,))
+  return jax.lax.gather(g4.reshape(-1), start[..., None], dn,
+                        slice_sizes=(9,),
+                        mode=jax.lax.GatherScatterMode.CLIP).reshape(-1, 27, 3)
+
+
 def window_moments(w, o4, g, form: str = 'auto'):
   """``R = O^T (w * g)`` per particle: (N, 27) weights, (27, 4) rows
   ``(1, o_k)``, (N, 27, 3) node velocities -> (N, 4, 3).
@@ -233,8 +263,9 @@ def window_moments(w, o4, g, form: str = 'auto'):
 def g2p(grid: GridSpec, st: Stencil, gv, form: str = 'auto'):
   """Gathers particle velocities and affine matrices from the grid.
 
-  One windowed ``gather`` takes the 3 x 3 x 3 x 3 block of node velocities
-  of each particle from the (G, G, G, 3) grid; with ``O`` the (27, 4) rows
+  One ``gather`` takes the 3 x 3 x 3 x 3 block of node velocities of each
+  particle from the (G, G, G, 3) grid (on the CPU as nine rows of 9
+  contiguous values, :func:`_window_rows`); with ``O`` the (27, 4) rows
   ``(1, o_k)``, ``R = O^T (w * g)`` gives ``v_d = sum_k w_k g_kd`` and
   ``B_ed = sum_k w_k o_ke g_kd`` (:func:`window_moments`: one small
   product per particle on the CPU, a fused sum on GPUs). The grid velocity
@@ -257,11 +288,8 @@ def g2p(grid: GridSpec, st: Stencil, gv, form: str = 'auto'):
   g4 = jnp.stack([a.reshape(G, G, G) for a in gv], axis=-1)      # (G,G,G,3)
   g4 = materialize(g4)
   base = jnp.stack(st.base, axis=-1)                              # (N, 3)
-  dn = jax.lax.GatherDimensionNumbers(
-    offset_dims=(1, 2, 3, 4), collapsed_slice_dims=(),
-    start_index_map=(0, 1, 2))
-  g = jax.lax.gather(g4, base, dn, slice_sizes=(3, 3, 3, 3),
-                     mode=jax.lax.GatherScatterMode.CLIP).reshape(-1, 27, 3)
+  g = jax.lax.platform_dependent(g4, base, st.lin, cpu=_window_rows,
+                                 default=_window_block)           # (N,27,3)
   R = window_moments(st.weights(), _o4(g.dtype), g, form)         # (N, 4, 3)
   v = tuple(R[:, 0, d] for d in range(3))
   s = 4.0 * grid.inv_dx
