@@ -556,16 +556,16 @@ class ModelGroupsTest(absltest.TestCase):
       F[:, :, :2] = np.eye(3)[:, :, None]  # F = I: repeated singular values
       F = jnp.asarray(F)
       C = la.zeros(F[0, 0])
-      Jp, ep = jnp.ones(n), jnp.zeros(n)
+      Jpep = jnp.stack([jnp.ones(n), jnp.zeros(n)])
       w = jnp.asarray(rng.normal(size=(2, 3, 3, n)))
 
       def loss(slices, F):
-        Fe, _, _, tau = constitutive.constitute_slices(
-          slices, cfg.dt, la.to_mat(F), C, Jp, ep, mat)
+        Fe, _, tau = constitutive.constitute_slices(
+          slices, cfg.dt, la.to_mat(F), C, Jpep, mat)
         return (jnp.sum(w[0] * la.from_mat(Fe))
                 + jnp.sum(w[1] * la.from_mat(tau)) / 2e4)
 
-      out = [constitutive.constitute_slices(s, cfg.dt, la.to_mat(F), C, Jp, ep,
+      out = [constitutive.constitute_slices(s, cfg.dt, la.to_mat(F), C, Jpep,
                                           mat) for s in (single, merged)]
       for a, b in zip(jax.tree.leaves(out[0]), jax.tree.leaves(out[1])):
         np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-10)

@@ -131,6 +131,32 @@ class ElasticTest(parameterized.TestCase):
       np.testing.assert_allclose(g_blended, g_closed, atol=1e-9)
 
 
+  @parameterized.parameters(*constitutive.NO_PLASTIC_STATE)
+  def test_models_without_plastic_state_pass_it_through(self, model):
+    """``constitute_slices`` writes no (Jp, ep) for these models: their
+    update must return the state bitwise as it came, alone and blended
+    with a plastic model, at large strains and rates."""
+    rng = np.random.default_rng(9)
+    n = 6
+    F = _rotations(n, seed=3) @ (np.eye(3) + 0.6 * rng.normal(size=(n, 3, 3)))
+    C = 50.0 * rng.normal(size=(n, 3, 3))
+    Jp = rng.uniform(0.5, 1.5, n).astype(np.float32)
+    ep = rng.uniform(0.0, 0.3, n).astype(np.float32)
+    _, Jp1, ep1, _ = _update(model, F.astype(np.float32),
+                             C.astype(np.float32), Jp, ep)
+    np.testing.assert_array_equal(Jp1, Jp)
+    np.testing.assert_array_equal(ep1, ep)
+    both = (model, 'snow')
+    mat = mpm.make_materials([model] * n, _E, _NU, 1000.0,
+                             config_models=both)
+    soa = lambda a: la.to_mat(jnp.asarray(np.moveaxis(a, 0, -1), jnp.float32))  # noqa: E731
+    _, Jp2, ep2, _ = constitutive.constitutive_update(
+      both, mat.model_id, soa(F), soa(C), jnp.asarray(Jp), jnp.asarray(ep),
+      mat, 1e-4)
+    np.testing.assert_array_equal(Jp2, Jp)
+    np.testing.assert_array_equal(ep2, ep)
+
+
 class PlasticityTest(absltest.TestCase):
 
   def test_von_mises_caps_deviatoric_stress(self):

@@ -82,6 +82,9 @@ SVD_MODELS = ('stvk', 'von_mises', 'plasticine', 'drucker_prager', 'snow',
 # have a spectral form: next to an SVD model (one blended update) they use
 # its SVD instead of a second decomposition of their own.
 SPECTRAL_ELASTIC = ('fixed_corotated', 'neo_hookean')
+# Models whose update returns the plastic state (Jp, ep) as it came.
+NO_PLASTIC_STATE = ('fixed_corotated', 'neo_hookean', 'stvk', 'newtonian',
+                    'rigid')
 _SIG_FLOOR = 1e-2
 _J_FLOOR = 1e-3
 _TAIT_GAMMA = 7.0
@@ -436,14 +439,27 @@ def constitutive_slices(config, merge: bool):
   return tuple(out)
 
 
-def constitute_slices(slices, dt, F, C, Jp, ep, mat):
+def constitute_slices(slices, dt, F, C, Jpep, mat):
   """``constitutive.constitutive_update`` on each slice of
   ``constitutive_slices`` (nested-tuple ``F``, ``C``; the particles sorted
-  by model), concatenated: ``(F_e, Jp, ep, tau)``."""
+  by model): ``(F_e, Jpep, tau)``, ``F_e`` and ``tau`` concatenated.
+
+  ``Jpep`` is the (2, N) plastic state ``(Jp, ep)``; only the slices of
+  models that change it (not :data:`NO_PLASTIC_STATE`) are written into it
+  (``lax.dynamic_update_slice``). In a loop XLA updates the carried array
+  in place then, where a concatenation of all slices becomes a new array
+  and a copy into the carry (one kernel per substep fewer on a GPU).
+  """
   parts = []
+  out = Jpep
   for models, k0, a, b in slices:
     rows = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
     ids = None if len(models) == 1 else mat.model_id[a:b] - k0
-    parts.append(constitutive_update(
-      models, ids, rows(F), rows(C), Jp[a:b], ep[a:b], rows(mat), dt))
-  return jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
+    Fe, Jp, ep, tau = constitutive_update(
+      models, ids, rows(F), rows(C), Jpep[0, a:b], Jpep[1, a:b], rows(mat),
+      dt)
+    parts.append((Fe, tau))
+    if not all(m in NO_PLASTIC_STATE for m in models):
+      out = jax.lax.dynamic_update_slice(out, jnp.stack([Jp, ep]), (0, a))
+  Fe, tau = jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
+  return Fe, out, tau

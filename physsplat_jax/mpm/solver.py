@@ -243,9 +243,11 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   merged_slices = constitutive.constitutive_slices(config, merge=True)
   rigid_group = ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
 
-  def constitute(F, C, Jp0, ep0, aux, mat):
-    """The return-mapped ``(F_e, Jp, ep, tau)`` of ``F`` (nested-tuple
-    matrices), computed once into memory (``transfer.materialize``):
+  def constitute(F, C, Jpep, aux, mat):
+    """The return-mapped ``(F_e, Jpep, tau)`` of ``F`` (nested-tuple
+    matrices; ``Jpep`` the (2, N) plastic state ``(Jp, ep)``, passed
+    through where no model changes it), computed once into memory
+    (``transfer.materialize``):
     XLA:CPU otherwise fuses the whole stress computation into the
     scatter's per-contribution loop and recomputes it for each of the 108
     contributions of a particle.
@@ -255,15 +257,15 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     form share one: ``constitutive.constitutive_slices``).
     """
     if groups:
-      args = (F, C, Jp0, ep0, mat)
+      args = (F, C, Jpep, mat)
       if merged_slices == single_slices:
-        Fe, Jp, ep, tau = constitutive.constitute_slices(single_slices, dt,
-                                                          *args)
+        Fe, Jpep, tau = constitutive.constitute_slices(single_slices, dt,
+                                                       *args)
       else:
         # A slice per model on the CPU (an elastic model's closed form is
         # cheaper than an SVD); elsewhere one blended slice, whose program
         # compiles faster (constitutive.constitutive_slices).
-        Fe, Jp, ep, tau = jax.lax.platform_dependent(
+        Fe, Jpep, tau = jax.lax.platform_dependent(
           *args,
           cpu=functools.partial(constitutive.constitute_slices,
                                 single_slices, dt),
@@ -272,9 +274,11 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     else:
       rigid = aux['body_id'] >= 0 if has_bodies else None
       Fe, Jp, ep, tau = constitutive.constitutive_update(
-        models, mat.model_id, F, C, Jp0, ep0, mat, dt,
+        models, mat.model_id, F, C, Jpep[0], Jpep[1], mat, dt,
         zero_stress=rigid)
-    return transfer.materialize((Fe, Jp, ep, tau))
+      if not all(m in constitutive.NO_PLASTIC_STATE for m in models):
+        Jpep = jnp.stack([Jp, ep])
+    return transfer.materialize((Fe, Jpep, tau))
 
   def substep(c, aux, mat, forces):
     x = tuple(c['xv'][d] for d in range(3))
@@ -283,8 +287,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     t = c['t']
     mass, vol0 = aux['mass'], aux['vol0']
     with jax.named_scope('constitutive'):
-      Fe, Jp, ep, tau = constitute(la.to_mat(c['F']), C, c['Jpep'][0],
-                                   c['Jpep'][1], aux, mat)
+      Fe, Jpep, tau = constitute(la.to_mat(c['F']), C, c['Jpep'], aux, mat)
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
@@ -347,7 +350,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     step = c['step'] + 1
     out = dict(
       xv=jnp.stack(tuple(x_new) + tuple(v_new)), F=la.from_mat(F_new),
-      C=la.from_mat(C_new), Jpep=jnp.stack([Jp, ep]),
+      C=la.from_mat(C_new), Jpep=Jpep,
       t=_step_time(step, dt, t.dtype), step=step,
     )
     return out
