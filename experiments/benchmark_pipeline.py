@@ -11,7 +11,10 @@ compile, simulate, deform, render, write, total), the process wall time,
 particle counts and substeps. ``--runs=cold,warm,serial`` adds a third
 run, warm (a scene's runs share its cache), with the host loop unpipelined
 (``--nopipelined``): its stage times are exact, and its total against the
-warm run's is what the pipelining saves. Presets: ``paper`` is the paper's
+warm run's is what the pipelining saves; ``profile`` adds a warm,
+pipelined run traced over ``--profile_frames`` (``experiments.simulate
+--profile_frames``): per frame, the host's wall time, the device's busy
+time and the costliest kernels, apart from the timed runs. Presets: ``paper`` is the paper's
 setting (64^3 grid, 768 substeps per frame at 30 fps, 150 frames = a 5 s video,
 800x800, up to 200k particles) for a GPU; ``cpu`` is sized for a 2-core
 CPU (the ``make demo`` settings).
@@ -42,19 +45,26 @@ _SCENES = flags.DEFINE_list('scenes', ['tabletop', 'ficus', 'donut'],
 _PRESET = flags.DEFINE_enum('preset', 'cpu', sorted(PRESETS), 'settings')
 _RUNS = flags.DEFINE_list(
   'runs', ['cold', 'warm'], 'in order, sharing one compile cache per scene: '
-  'cold, warm and/or serial (--nopipelined: exact per-stage times; warm '
-  'when a run before it filled the cache)')
+  'cold, warm, serial (--nopipelined: exact per-stage times; warm when a '
+  'run before it filled the cache) and/or profile (traced frames)')
+_PROFILE_FRAMES = flags.DEFINE_list(
+  'profile_frames', None, 'START,STOP: the frames the profile run traces '
+  '(default the middle third of the run)')
 _SET = flags.DEFINE_list(
   'set', [], 'extra config overrides for every run, KEY=VALUE as after '
   '--config. (e.g. render_config.backend=jax); they win over the preset')
 
 
 def run_once(scene: str, preset: dict, out: str, cache: str,
-             pipelined: bool = True, overrides: dict | None = None) -> dict:
-  """One ``experiments.simulate`` process; its report plus the wall time."""
+             pipelined: bool = True, overrides: dict | None = None,
+             profile_frames: str | None = None) -> dict:
+  """One ``experiments.simulate`` process; its report plus the wall time
+  (and its ``profile.json`` with ``profile_frames``)."""
   cmd = [sys.executable, '-m', 'experiments.simulate', f'--scene={scene}',
          f'--out={out}', f'--compile_cache={cache}',
          '--pipelined' if pipelined else '--nopipelined']
+  if profile_frames:
+    cmd.append(f'--profile_frames={profile_frames}')
   settings = {**preset, **(overrides or {})}
   cmd += [f'--config.{k}={v}' for k, v in settings.items()]
   t0 = time.perf_counter()
@@ -64,21 +74,26 @@ def run_once(scene: str, preset: dict, out: str, cache: str,
     return dict(error=proc.stderr.strip().splitlines()[-1:], wall_s=wall)
   with open(os.path.join(out, 'report.json')) as f:
     report = json.load(f)
+  extra = {}
+  if profile_frames:
+    with open(os.path.join(out, 'profile.json')) as f:
+      extra['profile'] = json.load(f)
   return dict(wall_s=round(wall, 2), stage_seconds=report['stage_seconds'],
               num_particles=report['num_particles'],
               num_gaussians=report['num_gaussians'],
               substeps_per_frame=report['time_step']['substeps_per_frame'],
               particle_substeps_per_s=report['particle_substeps_per_s'],
               render_stats=report.get('render_stats'),
-              devices=report['devices'])
+              devices=report['devices'], **extra)
 
 
 def main(argv):
   del argv
   preset = PRESETS[_PRESET.value]
-  bad = sorted(set(_RUNS.value) - {'cold', 'warm', 'serial'})
+  bad = sorted(set(_RUNS.value) - {'cold', 'warm', 'serial', 'profile'})
   if bad:
-    raise cli.usage_error(f'--runs: {bad} are not cold, warm or serial')
+    raise cli.usage_error(
+      f'--runs: {bad} are not cold, warm, serial or profile')
   overrides = {}
   for item in _SET.value:
     key, sep, value = item.partition('=')
@@ -86,6 +101,9 @@ def main(argv):
       raise cli.usage_error(f'--set: {item!r} is not KEY=VALUE (e.g. '
                             'render_config.backend=jax)')
     overrides[key] = value
+  frames = int(overrides.get('num_frames', preset['num_frames']))
+  window = ','.join(_PROFILE_FRAMES.value or
+                    [str(frames // 3), str(max(2 * frames // 3, 1))])
   os.makedirs(_OUT.value, exist_ok=True)
   results = dict(preset=_PRESET.value, settings=preset, overrides=overrides,
                  scenes={})
@@ -95,8 +113,10 @@ def main(argv):
       runs = {}
       for run in _RUNS.value:
         out = os.path.join(_OUT.value, os.path.basename(scene), run)
-        runs[run] = run_once(scene, preset, out, cache,
-                             pipelined=run != 'serial', overrides=overrides)
+        runs[run] = run_once(
+          scene, preset, out, cache, pipelined=run != 'serial',
+          overrides=overrides,
+          profile_frames=window if run == 'profile' else None)
         print(f'{scene} {run}: {runs[run].get("wall_s")} s', flush=True)
       results['scenes'][scene] = runs
     finally:

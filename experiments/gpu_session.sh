@@ -31,8 +31,10 @@
 #             (WHILE, CONDITIONAL), one process each
 #   sorts     the optimised render program: are its sorts CUB radix sorts?
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
-#             substeps/frame), tabletop: cold, warm, and warm unpipelined
-#             (exact stage times) (issue 17)
+#             substeps/frame), tabletop: cold, warm, warm unpipelined
+#             (exact stage times), and a warm run traced over frames 50-100
+#             (host wall and device-busy time per frame, costliest kernels)
+#             (issue 17)
 #   pipeline_noautotune  the cold run with XLA's GPU autotuning off
 #   sweep_*   Pallas block and warps around the defaults (sweep_default),
 #             1M at 1024^2
@@ -153,7 +155,7 @@ rm -rf "$WORK/hlo"
 # deleted below; the reports stay.
 # PIPELINE_SET: extra --set overrides, e.g. render_config.backend=jax.
 step pipeline 290 $PY -m experiments.benchmark_pipeline --preset=paper \
-  --scenes=tabletop --runs=cold,warm,serial --out="$WORK/pipeline" \
+  --scenes=tabletop --runs=cold,warm,serial,profile --out="$WORK/pipeline" \
   --set="${PIPELINE_SET:-}"
 # The cold run again with XLA's GPU autotuning off: how much of the cold
 # compile it is.

@@ -16,6 +16,7 @@ PhysGaussian does. Any error ends in one line ``error: ...`` (exit 1;
 ``--debug`` shows the traceback).
 """
 
+import os
 import sys
 
 from absl import flags
@@ -23,6 +24,7 @@ from absl import logging
 from ml_collections import config_flags
 
 from experiments.lib import cli
+from experiments.lib import profile
 from experiments.lib import simulate as lib
 from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
@@ -63,6 +65,11 @@ _PIPELINED = flags.DEFINE_bool(
   'pipelined', True, 'overlap the host\'s per-frame work (checks, '
   'rendering, writing) with the device simulating the next frame; '
   '--nopipelined runs the stages in turn, for exact per-stage times')
+_PROFILE = flags.DEFINE_list(
+  'profile_frames', None, 'START,STOP: trace frames START to STOP with '
+  'JAX\'s profiler (OUT/profile/) and write the device\'s busy time per '
+  'frame, the host\'s wall time per frame and the costliest kernels to '
+  'OUT/profile.json (experiments/lib/profile.py)')
 flags.mark_flag_as_required('out')
 perception.define_flags()
 
@@ -79,14 +86,44 @@ def main(argv):
                          config, ply=_PLY.value, auto_substeps=_AUTO.value)
     print(f'wrote {_OUT.value}')
     return
-  report = lib.run_scene(
-    _SCENE.value, config, _OUT.value, objects=_OBJECTS.value or (),
-    ply=_PLY.value, segment=_SEGMENT.value,
-    perception_options=lib.perception_options_from_flags(),
-    scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
-    mpdp_checkpoint=_MPDP.value, pipelined=_PIPELINED.value,
-    extra_report=dict(command=' '.join(sys.argv), git=sha))
+  window = _profile_window(config)
+  try:
+    report = lib.run_scene(
+      _SCENE.value, config, _OUT.value, objects=_OBJECTS.value or (),
+      ply=_PLY.value, segment=_SEGMENT.value,
+      perception_options=lib.perception_options_from_flags(),
+      scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
+      mpdp_checkpoint=_MPDP.value, pipelined=_PIPELINED.value,
+      extra_report=dict(command=' '.join(sys.argv), git=sha),
+      on_frame=window)
+  finally:
+    if window is not None:
+      window.close()
   print(pl.summary(report))
+  if window is not None:
+    got = window.summary()
+    cli.write_json(os.path.join(_OUT.value, 'profile.json'), got)
+    if got:
+      print(f'profile, frames {got["frames"][0]}-{got["frames"][1]} '
+            f'({got["device"]}): {got["wall_ms"]:.1f} ms wall and '
+            f'{got["busy_ms"]:.1f} ms device-busy per frame, '
+            f'{got["launches"]:.0f} kernels per frame')
+
+
+def _profile_window(config):
+  """The ``--profile_frames`` hook, or None."""
+  if not _PROFILE.value:
+    return None
+  try:
+    start, stop = (int(v) for v in _PROFILE.value)
+  except ValueError:
+    start = stop = -1
+  if not 0 <= start < stop < config.num_frames + 1:
+    raise cli.usage_error(
+      f'--profile_frames: {",".join(_PROFILE.value)} is not START,STOP with '
+      f'0 <= START < STOP <= {config.num_frames} (the run\'s frames)')
+  return profile.FrameWindow(start, stop,
+                             os.path.join(_OUT.value, 'profile'))
 
 
 def _motions() -> dict:

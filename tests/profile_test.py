@@ -6,10 +6,15 @@ import tempfile
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from absl.testing import absltest
 
 from experiments.lib import hlo
 from experiments.lib import profile
+from physsplat_jax import pipeline as pl
+from physsplat_jax.types import Gaussians
+from physsplat_jax.types import ObjectInfo
+from physsplat_jax.types import Scene
 
 _Event = collections.namedtuple('_Event', 'name start_ns duration_ns')
 
@@ -41,6 +46,11 @@ class LeavesTest(absltest.TestCase):
                           'b_fusion_1': dict(count=2, ns=3000.0)})
     got = profile.per_call(times, 2, {'b_fusion_1': 'p2g/scatter-add'},
                            top=1)
+    # Kernels keyed by their program find their labels too.
+    times['kernels']['jit_frame:b_fusion_1'] = times['kernels'].pop(
+      'b_fusion_1')
+    labelled = profile.per_call(times, 2, {'b_fusion_1': 'p2g/scatter-add'})
+    self.assertEqual(labelled['top'][1]['label'], 'p2g/scatter-add')
     self.assertEqual(got['device'], '/device:GPU:0')
     self.assertAlmostEqual(got['busy_us'], 4.5)
     self.assertAlmostEqual(got['launches'], 3.0)
@@ -74,12 +84,15 @@ class TraceTest(absltest.TestCase):
     self.assertEqual(times['device'], '/host:CPU')
     self.assertGreater(times['busy_ns'], 0.0)
     self.assertLessEqual(times['busy_ns'], 2 * times['span_ns'])
-    # Every kernel is one of the program's instructions; the product in
-    # the body runs once per trip (XLA:CPU may split it into tasks).
+    # Every kernel is one of the program's instructions, named after it;
+    # the product in the body runs once per trip (XLA:CPU may split it
+    # into tasks).
     for name in times['kernels']:
-      self.assertIn(name, labels)
+      module, _, kernel = name.rpartition(':')
+      self.assertIn(module, ('', 'jit_f'))
+      self.assertIn(kernel, labels)
     steps = [k for name, k in times['kernels'].items()
-             if 'stepper' in labels[name]]
+             if 'stepper' in labels[name.rpartition(':')[2]]]
     self.assertNotEmpty(steps)
     self.assertTrue(all(k['count'] >= trips for k in steps))
     got = profile.per_call(times, trips, labels, top=3)
@@ -90,6 +103,55 @@ class TraceTest(absltest.TestCase):
     with (tempfile.TemporaryDirectory() as logdir,
           self.assertRaisesRegex(FileNotFoundError, 'no trace under')):
       profile.newest_trace(logdir)
+
+
+class FrameWindowTest(absltest.TestCase):
+
+  def test_traces_frames_of_a_pipeline_run(self):
+    """``simulate_scene(on_frame=FrameWindow(1, 3))`` on a small block:
+    two frames of the loop traced, the MPM's thunks among the kernels."""
+    n, spread = 5, 0.05
+    g = np.stack(np.meshgrid(*[np.linspace(0, spread, n)] * 3,
+                             indexing='ij'), -1).reshape(-1, 3)
+    k = len(g)
+    gs = Gaussians(
+      means=jnp.asarray(g, jnp.float32),
+      log_scales=jnp.full((k, 3), np.log(spread / n)),
+      quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (k, 1)),
+      opacity_logits=jnp.full((k,), 2.0), sh=jnp.full((k, 1, 3), 0.5))
+    scene = Scene(gaussians=gs, object_ids=jnp.zeros(k, jnp.int32),
+                  objects=(ObjectInfo('block'),), name='block')
+    cfg = pl.PipelineConfig(num_frames=4, grid_res=16, max_particles=200,
+                            use_mpdp=False, fill=False, render='none')
+    rubber = pl.ObjectMaterial('fixed_corotated', 3e4, 0.3, 1000.0)
+    with tempfile.TemporaryDirectory() as logdir:
+      window = profile.FrameWindow(1, 3, logdir)
+      frames = []
+      pl.simulate_scene(scene, cfg, None, materials=[rubber],
+                        on_frame=lambda f, *a: (frames.append(f),
+                                                window(f, *a)))
+      self.assertFalse(window.tracing)
+      got = window.summary(top=5)
+    self.assertEqual(frames, [0, 1, 2, 3, 4])
+    self.assertEqual(got['frames'], [1, 3])
+    self.assertEqual(got['device'], '/host:CPU')
+    self.assertGreater(got['wall_ms'], 0.0)
+    self.assertGreater(got['busy_ms'], 0.0)
+    self.assertGreater(got['launches'], 1.0)
+    self.assertLen(got['top'], 5)
+
+  def test_window_checks_and_closes(self):
+    with self.assertRaisesRegex(ValueError, 'start < stop'):
+      profile.FrameWindow(3, 3, '/tmp')
+    with tempfile.TemporaryDirectory() as logdir:
+      window = profile.FrameWindow(0, 5, logdir)
+      self.assertIsNone(window.summary())
+      window(0)
+      self.assertTrue(window.tracing)
+      jax.block_until_ready(jnp.sin(jnp.ones(1000)) * 2)
+      window.close()  # the run ended before frame 5
+      self.assertFalse(window.tracing)
+      self.assertIsNotNone(window.summary())
 
 
 class KernelLabelsTest(absltest.TestCase):

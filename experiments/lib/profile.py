@@ -7,10 +7,12 @@ client's threads. :func:`kernel_times` reads such a trace back
 (``jax.profiler.ProfileData``) and sums the time of each kernel by name, so
 a benchmark can say where a substep's device time goes and how much of its
 wall time the device was busy at all (the rest is launch overhead or the
-host). Kernel names are XLA's instruction names with ``.`` written ``_``
+host). Kernel names (after the program's name where the trace records it) are
+XLA's instruction names with ``.`` written ``_``
 (``input_reduce_fusion.1`` runs as ``input_reduce_fusion_1``);
 ``experiments/lib/hlo.py``'s ``kernel_labels`` maps them to the JAX name
-scopes they came from. Used by ``benchmark_substep --profile``.
+scopes they came from. Used by ``benchmark_substep --profile`` and, with
+:class:`FrameWindow`, ``experiments.simulate --profile_frames``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import collections
 import glob
 import os
+import time
 
 import jax
 
@@ -64,6 +67,15 @@ def _leaves(events, host: bool):
   return out
 
 
+def _name(event) -> str:
+  """A kernel's name, prefixed ``module:`` where the trace says which XLA
+  program launched it (GPU kernels annotated with ``hlo_module``), since
+  different programs reuse names such as ``loop_add_fusion``."""
+  stats = dict(event.stats)
+  module = stats.get('hlo_module')
+  return f'{module}:{event.name}' if module else event.name
+
+
 def _lines(data):
   """``(plane name, [lines])`` whose events are the device's work: the
   streams of the first GPU/TPU plane, else the CPU client's threads."""
@@ -94,7 +106,7 @@ def kernel_times(path: str) -> dict:
   first, last = float('inf'), float('-inf')
   for line in lines:
     for e in _leaves(line.events, device == '/host:CPU'):
-      k = kernels[e.name]
+      k = kernels[_name(e)]
       k['count'] += 1
       k['ns'] += e.duration_ns
       first = min(first, e.start_ns)
@@ -115,6 +127,61 @@ def per_call(times: dict, calls: int, labels: dict[str, str] | None = None,
     device=times['device'],
     busy_us=times['busy_ns'] / calls / 1e3,
     launches=sum(k['count'] for k in times['kernels'].values()) / calls,
-    top=[dict(kernel=name, label=labels.get(name, ''),
+    top=[dict(kernel=name,
+              label=labels.get(name) or labels.get(name.split(':', 1)[-1], ''),
               us=k['ns'] / calls / 1e3, launches=k['count'] / calls)
          for name, k in rows[:top]])
+
+
+class FrameWindow:
+  """A ``pipeline.run`` ``on_frame`` hook that traces frames ``start`` to
+  ``stop``: the trace starts when frame ``start`` has been handed to the
+  writers and stops when frame ``stop`` has, so it holds ``stop - start``
+  frames of the steady-state loop (with the pipelined loop, the device
+  works a frame or two ahead of the host). :meth:`summary` gives the
+  device's busy time and the host's wall time per frame, and the costliest
+  kernels of all the programs the frames ran (MPM, deformation, render).
+  """
+
+  def __init__(self, start: int, stop: int, logdir: str):
+    if not 0 <= start < stop:
+      raise ValueError(f'profile frames: need 0 <= start < stop, got '
+                       f'{start}, {stop}')
+    self.start, self.stop, self.logdir = start, stop, logdir
+    self._t0 = self._t1 = None
+
+  @property
+  def tracing(self) -> bool:
+    return self._t0 is not None and self._t1 is None
+
+  def __call__(self, frame: int, means=None, image=None) -> None:
+    del means, image
+    if frame == self.start:
+      jax.profiler.start_trace(self.logdir)
+      self._t0 = time.perf_counter()
+    elif frame == self.stop and self.tracing:
+      self._t1 = time.perf_counter()
+      jax.profiler.stop_trace()
+
+  def close(self) -> None:
+    """Stops a trace the run left open (it ended or failed before
+    ``stop``)."""
+    if self.tracing:
+      self._t1 = time.perf_counter()
+      jax.profiler.stop_trace()
+
+  def summary(self, top: int = 15) -> dict | None:
+    """Per traced frame: ``wall_ms`` (host), ``busy_ms`` (device), their
+    ratio, kernel launches, and the ``top`` kernels; None if nothing was
+    traced."""
+    if self._t0 is None:
+      return None
+    self.close()
+    frames = self.stop - self.start
+    times = kernel_times(newest_trace(self.logdir))
+    got = per_call(times, frames, top=top)
+    wall_ms = (self._t1 - self._t0) * 1e3 / frames
+    return dict(frames=[self.start, self.stop], device=got['device'],
+                wall_ms=wall_ms, busy_ms=got['busy_us'] / 1e3,
+                busy_fraction=got['busy_us'] / 1e3 / wall_ms,
+                launches=got['launches'], top=got['top'])

@@ -180,12 +180,13 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
               extra_report: dict | None = None,
               scene_options: dict | None = None,
               mpdp_checkpoint: str | None = None,
-              pipelined: bool = True) -> dict:
+              pipelined: bool = True, on_frame=None) -> dict:
   """The pipeline on a built-in scene or a scene file; the report.
 
   ``scene_options`` go to :func:`physsplat_jax.load_scene` for a scene file
   (``up_axis``, ``meters_per_unit``, ...); ``mpdp_checkpoint`` is a folder of
-  MPDP weights to use instead of the shipped ones.
+  MPDP weights to use instead of the shipped ones; ``on_frame`` is called
+  after each frame (``pipeline.run``).
   """
   outputs.check_output_dir(out)
   mpdp_params = load_mpdp(mpdp_checkpoint)
@@ -213,7 +214,8 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
     raise pl.PipelineError(f'--config.camera_index: {e}') from None
   _, report = pl.simulate_scene(
     scene, config, out, perception_options=perception_options, ply=ply,
-    extra_report=extra_report, mpdp_params=mpdp_params, pipelined=pipelined)
+    extra_report=extra_report, mpdp_params=mpdp_params, pipelined=pipelined,
+    on_frame=on_frame)
   return report
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 from absl import logging
@@ -72,6 +72,7 @@ def simulate_scene(
   extra_report: dict | None = None,
   mpdp_params: Any = None,
   pipelined: bool = True,
+  on_frame: Callable | None = None,
 ) -> tuple[RunOutput, dict]:
   """The whole job on one scene.
 
@@ -93,6 +94,8 @@ def simulate_scene(
     pipelined: overlap host and device work frame by frame (see
       :func:`~physsplat_jax.pipeline.run`); False for exact per-stage
       times.
+    on_frame: optional ``callback(frame, means, image)`` after each frame
+      is handed to the writers (:func:`~physsplat_jax.pipeline.run`).
 
   Returns:
     (:class:`RunOutput`, the report dict).
@@ -111,7 +114,8 @@ def simulate_scene(
   t0 = time.perf_counter()
   try:
     out = _run_stages(scene, config, out_dir, materials, perception_options,
-                      segment, ply, stages, report, mpdp_params, pipelined)
+                      segment, ply, stages, report, mpdp_params, pipelined,
+                      on_frame)
   except Exception as e:
     report['error'] = f'{type(e).__name__}: {e}'
     stages['total'] = time.perf_counter() - t0
@@ -130,7 +134,7 @@ def simulate_scene(
 
 def _run_stages(scene, config, out_dir, materials, perception_options,
                 segment, ply, stages, report, mpdp_params,
-                pipelined) -> RunOutput:
+                pipelined, on_frame=None) -> RunOutput:
   t = time.perf_counter()
   scene = segment_stage(scene, segment)
   stages['segmentation'], t = time.perf_counter() - t, time.perf_counter()
@@ -155,7 +159,7 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
   field = prepared.field if config.use_mpdp else None
   report['pipelined'] = pipelined
   out = run(params, prepared, config, out_dir=out_dir, ply=ply, field=field,
-            pipelined=pipelined)
+            pipelined=pipelined, on_frame=on_frame)
   stages.update(out.timings)
   stages.pop('total', None)
   report['particle_substeps_per_s'] = out.particle_substeps_per_s
