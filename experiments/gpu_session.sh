@@ -23,7 +23,8 @@
 #   video     a 150-frame 800x800 video of 100k Gaussians, rendered as
 #             pipeline.run renders, and gsplat's same loop (issue 15)
 #   video_scene  the same on the tabletop scene
-#   substep   benchmark_substep on the tabletop: grouped / masked / bare,
+#   substep   benchmark_substep on the tabletop: grouped (merged or split
+#             constitutive slices) / masked / without body and plane / bare,
 #             with a profile (device-busy time and the costliest kernels
 #             per substep)
 #   substep_graphs  the grouped and bare substeps again with XLA's command
@@ -130,8 +131,9 @@ step video_scene 90 $PY -m experiments.benchmark_render --scene=tabletop \
   --width=800 --height=800 --video_frames=150 --repeats=3 \
   --out="$WORK/video_scene.json"
 # After the gsplat build: preparing its scene took 31 s beside it.
-step substep 120 $PY -m experiments.benchmark_substep --scene=tabletop \
-  --profile --out="$WORK/substep.json"
+step substep 150 $PY -m experiments.benchmark_substep --scene=tabletop \
+  --variants=scene,split,masked,no_plane_no_body,bare --profile \
+  --out="$WORK/substep.json"
 # Each substep is one CUDA graph by default (XLA's command buffers); the
 # scan over substeps stays a host loop unless WHILE is enabled too.
 XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=" \

@@ -3,6 +3,10 @@
 
 - ``scene``: the pipeline's config (materials grouped by model,
   ``SimConfig.model_counts``);
+- ``split``: the same with one constitutive slice per model on every
+  platform (on a GPU the scene's models with a spectral form otherwise
+  share one blended slice, ``constitutive.constitutive_slices``: one
+  kernel fewer, but one longer chain per particle);
 - ``masked``: the same without ``model_counts`` (every model evaluated on
   every particle and selected, the rigid sums masked over all particles);
 - ``no_plane``: the scene's config without the support plane;
@@ -12,6 +16,7 @@
 """
 
 import dataclasses
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
@@ -23,9 +28,11 @@ from physsplat_jax import mpm
 from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
 from physsplat_jax import scenes
+from physsplat_jax.mpm import constitutive
 from physsplat_jax.pipeline import simulation
 
-VARIANTS = ('scene', 'masked', 'no_plane', 'no_plane_no_body', 'bare')
+VARIANTS = ('scene', 'split', 'masked', 'no_plane', 'no_plane_no_body',
+            'bare')
 
 
 def demo_scene_state(scene_name: str):
@@ -77,3 +84,14 @@ def variant(name, state, materials, forces, config):
     materials = materials.replace(
       model_id=jnp.zeros_like(materials.model_id))
   return state, materials, forces, config
+
+
+def make_frame(name, config):
+  """``mpm.make_frame(config)`` for variant ``name`` (``split``: built
+  with every platform's constitutive slices one per model)."""
+  if name != 'split':
+    return mpm.make_frame(config)
+  per_model = constitutive.constitutive_slices
+  with mock.patch.object(constitutive, 'constitutive_slices',
+                         lambda c, merge: per_model(c, merge=False)):
+    return mpm.make_frame(config)
