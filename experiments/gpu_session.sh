@@ -7,10 +7,13 @@
 # Runs each step under `timeout`, all within BUDGET_S seconds (default
 # 500, to fit one 10-minute device call with the install and the copy back;
 # a step that would not fit is skipped, so the last ones may be). STEPs pick
-# some of the steps below (default all; `sweep` means all the sweeps), so
-# the work can be split over two calls on a warm machine, e.g.
-#   bash experiments/gpu_session.sh 420 env mpm render donut video video_scene substep
-#   bash experiments/gpu_session.sh 430 substep_graphs sorts pipeline tests sweep
+# some of the steps below and run in the order given, most important first
+# (default all, in the order below; `sweep` means all the sweeps,
+# `substep_graphs` both of its runs), so the work can be split over two
+# calls on a warm machine, e.g.
+#   bash experiments/gpu_session.sh 430 env pipeline substep
+#   bash experiments/gpu_session.sh 430 video video_scene substep_graphs \
+#     render donut mpm sweep
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
@@ -40,20 +43,32 @@
 #   sweep_*   Pallas block and warps around the defaults (sweep_default),
 #             1M at 1024^2
 #   tests     the render, sorting and pipeline tests on the GPU
-# gsplat (carried as a wheel) builds in the background during the MPM
-# steps (~80 s on 16 cores). Everything lands in $OUT/gpu_session.tar.gz (the device tool
+# gsplat (carried as a wheel) builds in the background (~80 s on 16 cores)
+# when a step needs it; the steps that time the MLS-MPM or the pipeline
+# (but `mpm`) wait for the build, so that it does not load the host
+# under them. Everything lands in $OUT/gpu_session.tar.gz (the device tool
 # returns at most 8 files) and a one-line-per-step $OUT/steps.txt.
 set -u
 BUDGET=${1:-500}
 shift $(( $# > 0 ? 1 : 0 ))
-STEPS=" ${*:-all} "
-KNOWN="all env mpm render donut video video_scene substep substep_graphs \
-sorts pipeline pipeline_noautotune sweep tests"
-for s in $STEPS; do
-  if [[ " $KNOWN " != *" $s "* ]]; then
-    echo "gpu_session.sh: unknown step '$s'; steps: $KNOWN" >&2
-    exit 2
-  fi
+SWEEPS="sweep_default sweep_pallas_block16 sweep_pallas_block64 \
+sweep_num_warps1 sweep_num_warps4"
+ORDER="env mpm render donut video video_scene substep substep_graphs_off \
+substep_graphs_while sorts pipeline pipeline_noautotune $SWEEPS tests"
+STEPS=
+for s in ${*:-all}; do
+  case $s in
+    all) STEPS="$STEPS $ORDER" ;;
+    sweep) STEPS="$STEPS $SWEEPS" ;;
+    substep_graphs) STEPS="$STEPS substep_graphs_off substep_graphs_while" ;;
+    *)
+      if [[ " $ORDER " != *" $s "* ]]; then
+        echo "gpu_session.sh: unknown step '$s'; steps: all $ORDER sweep" \
+          "substep_graphs" >&2
+        exit 2
+      fi
+      STEPS="$STEPS $s" ;;
+  esac
 done
 START=$(date +%s)
 OUT=${OUT:-out/gpu_session}
@@ -72,18 +87,11 @@ else
 fi
 
 left() { echo $(( BUDGET - ($(date +%s) - START) )); }
-# wanted NAME: whether NAME (sweep_* as `sweep`) is among the chosen steps.
-wanted() {
-  [[ $STEPS == *" all "* || $STEPS == *" $1 "* \
-     || ( $1 == sweep_* && $STEPS == *" sweep "* ) \
-     || ( $1 == substep_graphs_* && $STEPS == *" substep_graphs "* ) ]]
-}
 
 # step NAME MAX_SECONDS COMMAND...: runs it under timeout (never past the
 # budget) with its output in $WORK/NAME.log; one line in steps.txt.
 step() {
   local name=$1 max=$2; shift 2
-  wanted "$name" || return 0
   local t=$(left)
   if (( t < 20 )); then
     echo "$name skipped: budget spent" | tee -a "$OUT/steps.txt"
@@ -98,85 +106,130 @@ step() {
   if (( rc != 0 )); then tail -n 25 "$WORK/$name.log"; fi
 }
 
-step env 60 bash -c "nvidia-smi; $PY -c 'import jax, jaxlib; \
+# gsplat compiles its CUDA code at first use: built in the background from
+# the start when a step needs it (see the header).
+GSPLAT=
+for s in $STEPS; do
+  case $s in render|donut|video|video_scene)
+    ( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
+      "from gsplat.cuda._backend import _C; print('gsplat built')" \
+      > "$WORK/gsplat_build.log" 2>&1 ) &
+    GSPLAT=$!
+    break ;;
+  esac
+done
+gsplat_wait() {
+  if [[ -n $GSPLAT ]]; then wait "$GSPLAT" 2>/dev/null; GSPLAT=; fi
+}
+
+run_env() {
+  step env 60 bash -c "nvidia-smi; $PY -c 'import jax, jaxlib; \
 print(jax.__version__, jaxlib.__version__, jax.devices())'; \
 $PY -m pip list 2>/dev/null | grep -i -E 'jax|flax|torch|gsplat|triton'"
-
-# gsplat compiles its CUDA code at first use (~80 s on 16 cores): build it
-# while the MPM steps use the GPU.
-GSPLAT=
-if wanted render || wanted donut || wanted video || wanted video_scene; then
-  ( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
-    "from gsplat.cuda._backend import _C; print('gsplat built')" \
-    > "$WORK/gsplat_build.log" 2>&1 ) &
-  GSPLAT=$!
-fi
-
-step mpm 90 $PY -m experiments.benchmark_mpm --sizes=10000,100000,1000000 \
-  --naive=false --grad=false
-[[ -n $GSPLAT ]] && wait $GSPLAT 2>/dev/null
-step render 200 $PY -m experiments.benchmark_render \
-  --num=100000,1000000 --size=1024 --grad --backend=jax --pallas \
-  --repeats=3 --out="$WORK/render.json"
-step donut 90 $PY -m experiments.benchmark_render --scene=donut \
-  --width=1024 --height=1024 --grad --backend=jax --pallas --repeats=5 \
-  --out="$WORK/donut.json"
+}
+run_mpm() {
+  step mpm 90 $PY -m experiments.benchmark_mpm \
+    --sizes=10000,100000,1000000 --naive=false --grad=false
+}
+run_render() {
+  gsplat_wait
+  step render 200 $PY -m experiments.benchmark_render \
+    --num=100000,1000000 --size=1024 --grad --backend=jax --pallas \
+    --repeats=3 --out="$WORK/render.json"
+}
+run_donut() {
+  gsplat_wait
+  step donut 90 $PY -m experiments.benchmark_render --scene=donut \
+    --width=1024 --height=1024 --grad --backend=jax --pallas --repeats=5 \
+    --out="$WORK/donut.json"
+}
 # Issue 15's video target: 150 orbiting frames of 100k Gaussians at
 # 800x800 through the pipeline's host path, and gsplat's same loop.
-step video 90 $PY -m experiments.benchmark_render --num=100000 --width=800 \
-  --height=800 --video_frames=150 --repeats=3 --out="$WORK/video.json"
+run_video() {
+  gsplat_wait
+  step video 90 $PY -m experiments.benchmark_render --num=100000 \
+    --width=800 --height=800 --video_frames=150 --repeats=3 \
+    --out="$WORK/video.json"
+}
 # The same on the tabletop (16.7k Gaussians): the pipeline's render stage
 # took 18 ms per frame there at this size.
-step video_scene 90 $PY -m experiments.benchmark_render --scene=tabletop \
-  --width=800 --height=800 --video_frames=150 --repeats=3 \
-  --out="$WORK/video_scene.json"
-# After the gsplat build: preparing its scene took 31 s beside it.
-step substep 150 $PY -m experiments.benchmark_substep --scene=tabletop \
-  --variants=scene,split,masked,no_plane_no_body,bare --profile \
-  --out="$WORK/substep.json"
+run_video_scene() {
+  gsplat_wait
+  step video_scene 90 $PY -m experiments.benchmark_render \
+    --scene=tabletop --width=800 --height=800 --video_frames=150 \
+    --repeats=3 --out="$WORK/video_scene.json"
+}
+run_substep() {
+  gsplat_wait
+  step substep 150 $PY -m experiments.benchmark_substep --scene=tabletop \
+    --variants=scene,split,masked,no_plane_no_body,bare --profile \
+    --out="$WORK/substep.json"
+}
 # Each substep is one CUDA graph by default (XLA's command buffers); the
 # scan over substeps stays a host loop unless WHILE is enabled too.
-XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=" \
-step substep_graphs_off 80 $PY -m experiments.benchmark_substep \
-  --scene=tabletop --variants=scene,bare --profile \
-  --out="$WORK/substep_graphs_off.json"
-XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL" \
-step substep_graphs_while 80 $PY -m experiments.benchmark_substep \
-  --scene=tabletop --variants=scene,bare --profile \
-  --out="$WORK/substep_graphs_while.json"
-step sorts 60 bash -c "XLA_FLAGS=--xla_dump_to=$WORK/hlo $PY -m \
+run_substep_graphs_off() {
+  gsplat_wait
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=" \
+  step substep_graphs_off 80 $PY -m experiments.benchmark_substep \
+    --scene=tabletop --variants=scene,bare --profile \
+    --out="$WORK/substep_graphs_off.json"
+}
+run_substep_graphs_while() {
+  gsplat_wait
+  XLA_FLAGS="${XLA_FLAGS:-} \
+--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL" \
+  step substep_graphs_while 80 $PY -m experiments.benchmark_substep \
+    --scene=tabletop --variants=scene,bare --profile \
+    --out="$WORK/substep_graphs_while.json"
+}
+run_sorts() {
+  step sorts 60 bash -c "XLA_FLAGS=--xla_dump_to=$WORK/hlo $PY -m \
 experiments.benchmark_render --num=100000 --size=1024 --repeats=1 \
 --nogsplat > /dev/null 2>&1; cd $WORK/hlo && \
 grep -l DeviceRadixSort *after_optimizations.txt; \
 grep -h -o 'custom_call_target=\"[^\"]*\"' *after_optimizations.txt \
 | sort | uniq -c | grep -i sort; \
 echo XLA sort ops: \$(cat *after_optimizations.txt | grep -c ' sort(')"
-rm -rf "$WORK/hlo"
-# One process per run, one compile cache for the three: the serial run is
-# warm too. The frames, videos and trajectories (hundreds of MB) are
-# deleted below; the reports stay.
+  rm -rf "$WORK/hlo"
+}
+# One process per run, one compile cache for the four: the later runs are
+# warm. The frames, videos and trajectories (hundreds of MB) stay out of
+# the tarball; the reports go in.
 # PIPELINE_SET: extra --set overrides, e.g. render_config.backend=jax.
-step pipeline 290 $PY -m experiments.benchmark_pipeline --preset=paper \
-  --scenes=tabletop --runs=cold,warm,serial,profile --out="$WORK/pipeline" \
-  --set="${PIPELINE_SET:-}"
+run_pipeline() {
+  gsplat_wait
+  step pipeline 290 $PY -m experiments.benchmark_pipeline --preset=paper \
+    --scenes=tabletop --runs=cold,warm,serial,profile \
+    --out="$WORK/pipeline" --set="${PIPELINE_SET:-}"
+}
 # The cold run again with XLA's GPU autotuning off: how much of the cold
 # compile it is.
-XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" \
-step pipeline_noautotune 120 $PY -m experiments.benchmark_pipeline \
-  --preset=paper --scenes=tabletop --runs=cold \
-  --out="$WORK/pipeline_noautotune" --set="${PIPELINE_SET:-}"
-# The defaults first, so every setting is compared within one call.
-for opt in --repeats=5 --pallas_block=16 --pallas_block=64 --num_warps=1 \
-    --num_warps=4; do
-  name=sweep_${opt#--}
-  name=${name//=/}
-  [[ $opt == --repeats=5 ]] && name=sweep_default
-  step "$name" 40 $PY -m experiments.benchmark_render --num=1000000 \
-    --size=1024 --grad "$opt" --repeats=5 --nogsplat \
-    --out="$WORK/$name.json"
+run_pipeline_noautotune() {
+  gsplat_wait
+  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_autotune_level=0" \
+  step pipeline_noautotune 120 $PY -m experiments.benchmark_pipeline \
+    --preset=paper --scenes=tabletop --runs=cold \
+    --out="$WORK/pipeline_noautotune" --set="${PIPELINE_SET:-}"
+}
+# Pallas launch settings at 1M, 1024^2, one process each; run
+# sweep_default in the same call as the others to compare them.
+run_sweep() {  # run_sweep NAME OPTION
+  step "$1" 40 $PY -m experiments.benchmark_render --num=1000000 \
+    --size=1024 --grad "$2" --repeats=5 --nogsplat --out="$WORK/$1.json"
+}
+run_sweep_default() { run_sweep sweep_default --repeats=5; }
+run_sweep_pallas_block16() { run_sweep sweep_pallas_block16 --pallas_block=16; }
+run_sweep_pallas_block64() { run_sweep sweep_pallas_block64 --pallas_block=64; }
+run_sweep_num_warps1() { run_sweep sweep_num_warps1 --num_warps=1; }
+run_sweep_num_warps4() { run_sweep sweep_num_warps4 --num_warps=4; }
+run_tests() {
+  step tests 150 $PY -m pytest -q -n 8 tests/render_pallas_test.py \
+    tests/sorting_test.py tests/pipeline_test.py tests/render_test.py
+}
+
+for s in $STEPS; do
+  "run_$s"
 done
-step tests 150 $PY -m pytest -q -n 8 tests/render_pallas_test.py \
-  tests/sorting_test.py tests/pipeline_test.py tests/render_test.py
 
 cp "$OUT/steps.txt" "$WORK/" 2>/dev/null
 # Reports and logs only (the device tool returns files of 16 MiB at most).
