@@ -128,6 +128,30 @@ class KnnTest(parameterized.TestCase):
       np.testing.assert_array_equal(np.asarray(res.index)[mask[b]],
                                     ref[mask[b]])
 
+  def test_brute_in_blocks_is_the_sorted_distances(self):
+    """Over several row blocks (the last one partial), with masked points
+    and exact ties: every row is numpy's stable sort of its valid
+    distances, ties by lower index; a row with fewer valid points than k
+    points to itself there."""
+    n = 2 * knn.BRUTE_BLOCK + 37
+    rng = np.random.default_rng(7)
+    a = np.linspace(-1.0, 1.0, 9)
+    lattice = np.stack(np.meshgrid(a, a, a, indexing='ij'), -1).reshape(-1, 3)
+    x = np.concatenate([lattice, rng.uniform(-1, 1, (n - len(lattice), 3))])
+    x = x.astype(np.float32)
+    mask = rng.uniform(size=n) > 0.3
+    got = np.asarray(_brute(jnp.asarray(x), jnp.asarray(mask), 6))
+    d2 = np.sum((x[:, None, :] - x[None, :, :]) ** 2, axis=-1)
+    d2[:, ~mask] = np.inf
+    want = np.argsort(d2, axis=1, kind='stable')[:, :6]
+    want = np.where(np.isfinite(np.take_along_axis(d2, want, 1)), want,
+                    np.arange(n)[:, None])
+    np.testing.assert_array_equal(got, want)
+    few = np.zeros(n, bool)
+    few[[3, 900]] = True
+    got = np.asarray(_brute(jnp.asarray(x), jnp.asarray(few), 4))
+    np.testing.assert_array_equal(got[3], [3, 900, 3, 3])
+
   def test_auto_uses_grid_above_threshold(self):
     n = knn.BRUTE_MAX_POINTS + 500
     rng = np.random.default_rng(4)
