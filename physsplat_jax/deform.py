@@ -72,6 +72,7 @@ from scipy import spatial
 
 from physsplat_jax.types import Array
 from physsplat_jax.types import Gaussians
+from physsplat_jax.types import device_array
 
 # Relative threshold on the eigenvalues of the rest moment matrix M: below it
 # (drivers spread along that direction by less than 1% of their largest
@@ -190,16 +191,16 @@ def make_binding(
   ok = ev > _MOMENT_REL_FLOOR * np.maximum(ev[:, :1], 1e-300)
   inv = np.where(ok, 1.0 / np.where(ok, ev, 1.0), 0.0)
   Minv = np.einsum('kab,kb,kcb->kac', evec, inv, evec)
-  f = lambda a: jnp.asarray(a, dtype)
+  f = lambda a: device_array(a, dtype)
   return Binding(
-    index=jnp.asarray(idx, jnp.int32),
+    index=device_array(idx, jnp.int32),
     weights=f(w),
     rest_means=f(gm64),
     rest_x=f(rest_x),
     rest_centroid=f(xc),
     moment_inv=f(Minv),
     rest_basis=f(evec),
-    rank=jnp.asarray(ok.sum(1), jnp.int32),
+    rank=device_array(ok.sum(1), jnp.int32),
   )
 
 

@@ -29,6 +29,23 @@ Array = jax.Array
 ArrayLike = Any
 
 
+def device_array(x, dtype=None) -> Array:
+  """``jnp.asarray(x, dtype)``, without compiling anything for host data.
+
+  ``jnp.asarray`` of a NumPy array runs a small compiled program per shape
+  and dtype (jax 0.10: ``jit(stage)``, or ``convert_element_type`` for a
+  cast), ~14 ms each on a 2-core CPU and a persistent-cache look-up in
+  every later process; preparing a scene made ~140 of them. Host data
+  (NumPy arrays, lists, scalars) is converted in NumPy and transferred with
+  ``jax.device_put`` (same dtype rules: float64 becomes float32 unless x64
+  is on); JAX arrays and tracers go through ``jnp.asarray``.
+  """
+  if isinstance(x, (jax.Array, jax.core.Tracer)):
+    return jnp.asarray(x, dtype)
+  return jax.device_put(np.asarray(x, None if dtype is None
+                                   else jnp.dtype(dtype)))
+
+
 def sh_degree_from_bases(num_bases: int) -> int:
   """SH degree ``d`` from the number of basis functions ``(d + 1)**2``."""
   d = int(round(np.sqrt(num_bases))) - 1
@@ -96,14 +113,14 @@ class Gaussians(struct.PyTreeNode):
     """(K, 3, 3) rotation matrices (columns are the local axes)."""
     from physsplat_jax import gaussians as _g
 
-    return _g.quat_to_rotmat(self.quats)
+    return _g.quat_to_rotmat_jit(self.quats)
 
   @property
   def covariances(self) -> Array:
     """(K, 3, 3) covariances ``R S S^T R^T``."""
     from physsplat_jax import gaussians as _g
 
-    return _g.covariance(self.log_scales, self.quats)
+    return _g.covariance_jit(self.log_scales, self.quats)
 
   @property
   def rgb_dc(self) -> Array:
@@ -131,7 +148,7 @@ class Gaussians(struct.PyTreeNode):
         return None if a is None else a[idx]
       # Concrete arrays are indexed in NumPy: an eager JAX gather compiles
       # once per shape (~30 ms each, 2 s of a scene's preparation).
-      return jnp.asarray(np.asarray(a)[idx])
+      return device_array(np.asarray(a)[idx])
 
     return self.replace(
       means=take(self.means),
@@ -170,7 +187,12 @@ def concatenate_gaussians(parts: list[Gaussians]) -> Gaussians:
     raise ValueError('concatenate_gaussians needs at least one set')
   deg = max(p.sh_degree for p in parts)
   parts = [p.with_sh_degree(deg) for p in parts]
-  cat = lambda xs: jnp.concatenate(xs, axis=0)
+  def cat(xs):
+    if any(isinstance(x, jax.core.Tracer) for x in xs):
+      return jnp.concatenate(xs, axis=0)
+    # Concrete sets are joined in NumPy (no eager program to compile).
+    return device_array(np.concatenate([np.asarray(x) for x in xs]))
+
   have_normals = all(p.normals is not None for p in parts)
   keys = set(parts[0].extras)
   for p in parts[1:]:
@@ -294,7 +316,7 @@ def make_camera(
   """Builds a :class:`Camera`; the principal point defaults to the centre."""
   cx = width / 2.0 if cx is None else cx
   cy = height / 2.0 if cy is None else cy
-  f = lambda v: jnp.asarray(v, dtype)
+  f = lambda v: device_array(v, dtype)
   return Camera(
     viewmat=f(viewmat),
     fx=f(fx),

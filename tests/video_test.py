@@ -180,6 +180,19 @@ class BackgroundWritersTest(absltest.TestCase):
     self.assertEqual(bad.indices, [0, 1])
     self.assertEqual(good.indices[:3], [0, 1, 2])
 
+  def test_a_failed_writer_gets_no_queued_frames(self):
+    """Frames queued behind the failing one are skipped for that writer
+    (they were written when the error was found late), not for others."""
+    bad, good = _Recorder(delay=0.02, fail_at=1), _Recorder()
+    sink = outputs.BackgroundWriters([bad, good], max_pending=8)
+    for i in range(5):  # all queued before frame 1 fails
+      sink.write(outputs.Frame(index=i, time=0.0))
+    with self.assertRaisesRegex(OSError, 'disk full at frame 1'):
+      sink.close()
+    self.assertEqual(bad.indices, [0])
+    self.assertEqual(good.indices, [0, 1, 2, 3, 4])
+    self.assertTrue(bad.closed and good.closed)
+
   def test_an_error_still_queued_is_raised_by_close(self):
     bad = _Recorder(delay=0.01, fail_at=1)
     sink = outputs.BackgroundWriters([bad], max_pending=8)

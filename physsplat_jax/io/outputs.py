@@ -245,7 +245,8 @@ class BackgroundWriters:
   most ``max_pending`` frames wait per writer (their images are the memory
   cost); :meth:`write` then waits for the oldest. A writer's error is
   raised by the next :meth:`write` or by :meth:`close`, after every writer
-  has been closed: output is never dropped silently.
+  has been closed: output is never dropped silently. A writer that failed
+  gets no further frames (those already queued for it are skipped).
   """
 
   def __init__(self, writers: Sequence[FrameWriter], max_pending: int = 4):
@@ -255,13 +256,24 @@ class BackgroundWriters:
       1, thread_name_prefix=f'writer-{type(w).__name__}')
       for w in self.writers]
     self._pending = [collections.deque() for _ in self.writers]
+    self._failed = [False] * len(self.writers)
+
+  def _write_one(self, i: int, frame: Frame) -> None:
+    """Writer ``i``'s frame, on its own thread (so in order)."""
+    if self._failed[i]:
+      return
+    try:
+      self.writers[i].write(frame)
+    except BaseException:
+      self._failed[i] = True
+      raise
 
   def write(self, frame: Frame) -> None:
     """Queues ``frame`` for every writer (raises a writer's earlier error)."""
-    for pool, queue, w in zip(self._pools, self._pending, self.writers):
+    for i, (pool, queue) in enumerate(zip(self._pools, self._pending)):
       while queue and (queue[0].done() or len(queue) >= self.max_pending):
         queue.popleft().result()
-      queue.append(pool.submit(w.write, frame))
+      queue.append(pool.submit(self._write_one, i, frame))
 
   def close(self) -> dict[str, str]:
     """Waits for the queued frames, closes every writer; their files.

@@ -52,6 +52,7 @@ import numpy as np
 
 from physsplat_jax.mpdp import knn as knn_lib
 from physsplat_jax.mpm.models import CANONICAL_MODELS
+from physsplat_jax.types import device_array
 from physsplat_jax.mpdp.knn import knn_indices as knn_indices  # noqa: F401
 
 # Canonical constitutive-model names: the solver's (their order fixes the
@@ -166,7 +167,7 @@ def encode_means(E, nu, rho, model='fixed_corotated', rigid=None):
     ((np.log10(rho) - 3.0) / 0.5)[..., None] * np.ones(shape + (1,)),
     onehot, rigid[..., None],
   ], axis=-1)
-  return jnp.asarray(out, jnp.float32)
+  return device_array(out, jnp.float32)
 
 
 def normalize_points(points, mask):

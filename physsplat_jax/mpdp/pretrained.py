@@ -15,10 +15,10 @@ import functools
 import json
 import os
 
-import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.mpdp import model as model_lib
+from physsplat_jax.types import device_array
 
 PRETRAINED_DIR = os.path.join(os.path.dirname(os.path.dirname(
   os.path.abspath(__file__))), 'data', 'mpdp')
@@ -80,7 +80,7 @@ def load_params(directory: str, name: str = PRETRAINED_NAME):
       *parents, leaf = key.split('/')
       for p in parents:
         node = node.setdefault(p, {})
-      node[leaf] = jnp.asarray(data[key])
+      node[leaf] = device_array(data[key])
   cfg = model_lib.ModelConfig.from_dict(meta['model_config'])
   return params, cfg, meta.get('metadata', {})
 

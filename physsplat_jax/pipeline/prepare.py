@@ -48,6 +48,7 @@ from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import Scene
+from physsplat_jax.types import device_array
 
 
 class Params(struct.PyTreeNode):
@@ -354,9 +355,9 @@ def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
                          else round(float(ground + shift[2]), 7)),
     anchors=tuple((_quantise(np.add(a, shift)), _quantise(np.add(b, shift)))
                   for a, b in colliders.anchors))
-  frame = SimFrame(rotation=jnp.asarray(R, jnp.float32),
-                   scale=jnp.asarray(s, jnp.float32),
-                   shift=jnp.asarray(shift, jnp.float32))
+  frame = SimFrame(rotation=device_array(R, jnp.float32),
+                   scale=device_array(s, jnp.float32),
+                   shift=device_array(shift, jnp.float32))
   rows = np.nonzero(mov_mask)[0]
   local = {o: i for i, o in enumerate(movable)}
   local_ids = np.array([local[o] for o in ids[rows]], np.int32)
@@ -422,8 +423,9 @@ def mpdp_stage(x0, dobj, counts, mats, use_mpdp: bool, mpdp_params):
   field = np.ones((len(x0), 3), np.float32)
   if use_mpdp:
     params = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
-    per_obj = np.asarray(_predict_jit(params, jnp.asarray(x0[index]),
-                                      jnp.asarray(means), jnp.asarray(mask)))
+    per_obj = np.asarray(_predict_jit(params, device_array(x0[index]),
+                                      device_array(means),
+                                      device_array(mask)))
     field = per_obj[mask]  # objects are contiguous in driver order
   return index, mask, means, field
 
@@ -601,14 +603,15 @@ def prepare_scene(
     colliders=fr.colliders, force_objects=f_obj, force_points=f_pts)
   bodies = np.cumsum(rigid) - 1
   body_id = np.where(np.asarray(rigid)[dobj], bodies[dobj], -1)
-  f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+  f32 = lambda a: device_array(a, jnp.float32)  # noqa: E731
   prepared = PreparedScene(
-    gaussians=scene.gaussians, sim_rows=jnp.asarray(fr.rows, jnp.int32),
+    gaussians=scene.gaussians, sim_rows=device_array(fr.rows, jnp.int32),
     rest_means=f32(fr.g_sim.means),
     rest_covs=f32(np.asarray(fr.g_sim.covariances)), binding=binding,
-    x0=f32(x0), volume=f32(vol), driver_object=jnp.asarray(dobj),
-    body_id=jnp.asarray(body_id, jnp.int32), mpdp_index=jnp.asarray(index),
-    mpdp_mask=jnp.asarray(mask), mpdp_means=f32(cond), field=f32(field),
+    x0=f32(x0), volume=f32(vol), driver_object=device_array(dobj),
+    body_id=device_array(body_id, jnp.int32),
+    mpdp_index=device_array(index), mpdp_mask=device_array(mask),
+    mpdp_means=f32(cond), field=f32(field),
     means=f32([[m.E, m.nu, m.rho] for m in mats]), frame=fr.frame,
     camera=frames_lib.render_camera(scene, cfg),
     orbit=capture_lib.camera_orbit(scene, fr.rows, cfg),

@@ -35,6 +35,7 @@ from physsplat_jax.sampling import clustering
 from physsplat_jax.sampling import filling
 from physsplat_jax.sampling import pgas
 from physsplat_jax.sampling import poisson
+from physsplat_jax.types import device_array
 
 
 class Candidates(struct.PyTreeNode):
@@ -300,7 +301,7 @@ def select_drivers(
                    volume=np.array(cand.volume, np.float64),
                    candidate_index=np.arange(m, dtype=np.int32),
                    radius=np.zeros(m))
-  x32 = jnp.asarray(cand.x, jnp.float32)
+  x32 = device_array(cand.x, jnp.float32)
   if method == 'kmeans':
     if budget is None:
       raise ValueError("select_drivers: method='kmeans' needs budget=")

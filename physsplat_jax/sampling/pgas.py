@@ -40,6 +40,7 @@ import numpy as np
 
 from physsplat_jax.sampling import curvature as curv
 from physsplat_jax.sampling import poisson
+from physsplat_jax.types import device_array
 
 
 @dataclasses.dataclass(frozen=True)
@@ -236,7 +237,7 @@ def scale_for_budget(
   m = float(np.clip(x0, lo, hi))
   prev = None  # (log m, log count) of the previous evaluation
   for _ in range(iters):
-    res = sample_fn(jnp.asarray(radius_fn(m), jnp.float32))
+    res = sample_fn(device_array(radius_fn(m), jnp.float32))
     cnt = int(res.count)
     if int(res.overflow_code) & 6:
       # Radius too large for the jittable path's capacities: shrink it.

@@ -5,13 +5,13 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
-import jax.numpy as jnp
 import numpy as np
 import trimesh
 
 from physsplat_jax import cameras as _cameras
 from physsplat_jax.types import Camera, Gaussians, ObjectInfo, Scene
 from physsplat_jax.types import concatenate_gaussians
+from physsplat_jax.types import device_array
 
 # Default image size and field of view of the built-in scenes' cameras.
 DEFAULT_WIDTH = 384
@@ -101,7 +101,7 @@ def assemble_scene(
   )
   return Scene(
     gaussians=concatenate_gaussians([g for _, g in parts]),
-    object_ids=jnp.asarray(ids),
+    object_ids=device_array(ids),
     objects=tuple(o for o, _ in parts),
     cameras=tuple(cameras),
     up_axis=up_axis,

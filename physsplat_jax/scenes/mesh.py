@@ -49,7 +49,6 @@ import math
 from typing import Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.spatial
 import scipy.spatial.transform
@@ -58,6 +57,7 @@ import trimesh
 from physsplat_jax import gaussians as _g
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Gaussians
+from physsplat_jax.types import device_array
 
 ColorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -494,7 +494,7 @@ def gaussians_from_mesh(
   op_i = opacity if interior_opacity is None else interior_opacity
   logits = np.concatenate([np.full(n_s, _logit(opacity)),
                            np.full(n_i, _logit(op_i))])
-  f32 = lambda a: jnp.asarray(np.asarray(a, np.float32))
+  f32 = lambda a: device_array(a, np.float32)
   g = Gaussians(
     means=f32(means),
     log_scales=f32(np.log(sig)),
