@@ -85,7 +85,9 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Array:
   """
   if not isinstance(eye, (jax.Array, jax.core.Tracer)):
     eye = np.asarray(eye)
-  dtype = jnp.result_type(eye.dtype, jnp.float32)
+  # float64 stays float64 only with x64 on (canonicalised, as jnp.asarray).
+  dtype = jnp.result_type(jax.dtypes.canonicalize_dtype(eye.dtype),
+                          jnp.float32)
   eye = device_array(eye, dtype)
   target = device_array(target, dtype)
   up = device_array(up, dtype)
