@@ -16,7 +16,8 @@ The differences say what the materials, the rigid bodies and the plane
 contact cost per substep. ``--clock=cpu`` reports process CPU time instead
 of wall time (steadier on a shared machine). ``--profile`` then runs each
 variant once more under JAX's profiler and reports the device's busy time
-per substep (the rest of the wall time is launch overhead and the host),
+per substep (summed kernel time; of the untraced wall time above, the rest
+is launch gaps and the host),
 the kernels it launched, and the most expensive ones with the name scopes
 they came from (experiments/lib/profile.py). Figures: docs/benchmarks.md.
 """

@@ -141,6 +141,8 @@ class FrameWindow:
   works a frame or two ahead of the host). :meth:`summary` gives the
   device's busy time and the host's wall time per frame, and the costliest
   kernels of all the programs the frames ran (MPM, deformation, render).
+  The wall time is the traced run's (the tracer's overhead included);
+  ``benchmark_pipeline`` times untraced runs beside it.
   """
 
   def __init__(self, start: int, stop: int, logdir: str):
