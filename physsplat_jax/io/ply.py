@@ -78,6 +78,7 @@ from physsplat_jax.io.ply_format import read_ply as read_ply
 from physsplat_jax.io.ply_format import read_ply_header as read_ply_header
 from physsplat_jax.io.ply_format import write_ply as write_ply
 from physsplat_jax.types import Gaussians
+from physsplat_jax.types import device_array
 
 
 # Number of f_rest_* properties for SH degree 0..3.
@@ -162,7 +163,7 @@ def _vertex_to_gaussians(
   else:
     sh = dc
   # One correctly rounded cast (float64 -> float32 directly is exact-nearest).
-  f = lambda a: jnp.asarray(np.asarray(a, np.dtype(dtype)))
+  f = lambda a: device_array(np.asarray(a, np.dtype(dtype)))
   extras = {}
   for n in names:
     if n in used or (has_normals and n in NORMALS):
@@ -171,9 +172,9 @@ def _vertex_to_gaussians(
     if a.dtype.kind == 'f':
       extras[n] = f(a)
     elif a.dtype.itemsize > 4:
-      extras[n] = jnp.asarray(a.astype(np.int32))
+      extras[n] = device_array(a.astype(np.int32))
     else:
-      extras[n] = jnp.asarray(a)
+      extras[n] = device_array(a)
   return Gaussians(
     means=f(col(['x', 'y', 'z'])),
     log_scales=f(col([f'scale_{i}' for i in range(3)])),
@@ -505,7 +506,7 @@ def decode_compressed(
     fr = _SH_BYTE_TABLE[b.astype(np.uint8)].reshape(k, 3, len(rest) // 3)
     sh = np.concatenate([sh, fr.transpose(0, 2, 1)], axis=1)
   # Decoded in float64 then rounded to float32, as the reference decoder does.
-  f = lambda a: jnp.asarray(a.astype(np.float32).astype(np.dtype(dtype)))
+  f = lambda a: device_array(a.astype(np.float32).astype(np.dtype(dtype)))
   return Gaussians(
     means=f(means),
     log_scales=f(log_scales),

@@ -39,6 +39,7 @@ from physsplat_jax.segmentation import boxes
 from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import Scene
+from physsplat_jax.types import device_array
 
 FLOATER_K = 8
 
@@ -148,9 +149,9 @@ def camera_orbit(scene: Scene, rows: np.ndarray, cfg: PrepareConfig
   m = np.asarray(scene.gaussians.means, np.float64)[rows]
   center = 0.5 * (m.min(0) + m.max(0))
   deg = cfg.orbit_degrees if cfg.camera_path is CameraPath.ORBIT else 0.0
-  return CameraOrbit(center=jnp.asarray(center, jnp.float32),
-                     axis=jnp.asarray(scene.up_vector, jnp.float32),
-                     degrees=jnp.asarray(deg, jnp.float32))
+  return CameraOrbit(center=device_array(center, jnp.float32),
+                     axis=device_array(scene.up_vector, jnp.float32),
+                     degrees=device_array(deg, jnp.float32))
 
 
 def frame_camera(camera: Camera, orbit: CameraOrbit, frame, num_frames

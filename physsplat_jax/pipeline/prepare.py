@@ -683,5 +683,6 @@ def init_params(prepared: PreparedScene,
       vel[:] = v
   forces = np.array([f.vector for f in config.forces], np.float32).reshape(
     len(config.forces), 3)
-  return Params(mpdp=mp, log_scale=jnp.zeros((len(names), 3), jnp.float32),
-                velocity=jnp.asarray(vel), forces=jnp.asarray(forces))
+  return Params(mpdp=mp,
+                log_scale=device_array(np.zeros((len(names), 3), np.float32)),
+                velocity=device_array(vel), forces=device_array(forces))
