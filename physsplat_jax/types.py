@@ -46,6 +46,16 @@ def device_array(x, dtype=None) -> Array:
                                    else jnp.dtype(dtype)))
 
 
+def _in_host_memory(x) -> bool:
+  """Whether ``x`` is concrete and in host memory (NumPy data, or a JAX
+  array on CPU devices), so that NumPy reads it without a transfer."""
+  if isinstance(x, jax.core.Tracer):
+    return False
+  if isinstance(x, jax.Array):
+    return all(d.platform == 'cpu' for d in x.devices())
+  return True
+
+
 def sh_degree_from_bases(num_bases: int) -> int:
   """SH degree ``d`` from the number of basis functions ``(d + 1)**2``."""
   d = int(round(np.sqrt(num_bases))) - 1
@@ -188,10 +198,10 @@ def concatenate_gaussians(parts: list[Gaussians]) -> Gaussians:
   deg = max(p.sh_degree for p in parts)
   parts = [p.with_sh_degree(deg) for p in parts]
   def cat(xs):
-    if any(isinstance(x, jax.core.Tracer) for x in xs):
-      return jnp.concatenate(xs, axis=0)
-    # Concrete sets are joined in NumPy (no eager program to compile).
-    return device_array(np.concatenate([np.asarray(x) for x in xs]))
+    if all(_in_host_memory(x) for x in xs):
+      # Joined in NumPy: no eager program to compile.
+      return device_array(np.concatenate([np.asarray(x) for x in xs]))
+    return jnp.concatenate(xs, axis=0)  # traced, or on an accelerator
 
   have_normals = all(p.normals is not None for p in parts)
   keys = set(parts[0].extras)

@@ -163,7 +163,7 @@ def _vertex_to_gaussians(
   else:
     sh = dc
   # One correctly rounded cast (float64 -> float32 directly is exact-nearest).
-  f = lambda a: device_array(np.asarray(a, np.dtype(dtype)))
+  f = lambda a: device_array(a, dtype)
   extras = {}
   for n in names:
     if n in used or (has_normals and n in NORMALS):
