@@ -489,7 +489,7 @@ def knn_grid(
 # Up to this many points (static N) 'auto' uses the brute force: its
 # program compiles in ~0.2 s against ~3 s for the grid's (CPU), which at
 # these sizes outweighs its O(N^2) time (6,000 points: 0.8 s against 0.6 s
-# on the 2-core CPU; milliseconds on a GPU). docs/mpdp.md.
+# on the 2-core CPU; not yet measured on a GPU). docs/mpdp.md.
 BRUTE_MAX_POINTS = 8192
 METHODS = ('auto', 'grid', 'brute')
 
