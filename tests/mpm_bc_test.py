@@ -1,5 +1,7 @@
 """Tests for rigid bodies, boundary conditions and errors of physsplat_jax.mpm."""
 
+from unittest import mock
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -254,6 +256,51 @@ class BoundaryTest(absltest.TestCase):
       inner = (slice(None), slice(3, 13), slice(3, 13))
       np.testing.assert_allclose(np.asarray(jvp)[inner],
                                  np.asarray(fd)[inner], atol=1e-6)
+
+  def test_plane_slab_gives_the_whole_grid_velocities(self):
+    """A plane normal to a grid axis is applied to the slab of node layers
+    it can change (``plane_slab``): the same velocities as applying it to
+    the whole grid, bit for bit, for every surface, both orientations, a
+    plane between node planes, on one, past the grid, and one tilted (the
+    whole grid)."""
+    from physsplat_jax.mpm import boundary
+    G, dx = _GRID.res, _GRID.dx
+    shape = (G, G, G)
+    rng = np.random.default_rng(3)
+    m = rng.uniform(0.0, 2.0, shape) * (rng.uniform(size=shape) < 0.7)
+    touch = jnp.asarray(np.where(rng.uniform(size=shape) < 0.5, m, 0.0))
+    m = jnp.asarray(m)
+    v0 = tuple(jnp.asarray(rng.normal(size=shape)) for _ in range(3))
+    planes = [  # (point, normal, expected slab or None)
+      ((0, 0, 4 * dx), (0, 0, 1), (2, 0, 6)),  # on node plane 4
+      ((0, 0, 3.37 * dx), (0, 0, 1), (2, 0, 5)),  # between 3 and 4
+      ((0, 12.6 * dx, 0), (0, -1, 0), (1, 12, 16)),  # facing -y
+      ((-3 * dx, 0, 0), (1, 0, 0), (0, 0, 0)),  # behind every node
+      ((0, 0, 11 * dx), (0, 0, 1), None),  # most of the grid behind it
+      ((0.5, 0.5, 0.2), (0.0, 0.6, 0.8), None),  # tilted
+    ]
+    for point, normal, slab in planes:
+      for surface in ('sticky', 'slip', 'separate'):
+        cfg = mpm.SimConfig(grid=_GRID, dt=1e-3, boundary_conditions=(
+          mpm.SurfaceCollider(point=point, normal=normal, surface=surface,
+                              friction=0.4),))
+        bc = cfg.boundary_conditions[0]
+        self.assertEqual(boundary.plane_slab(_GRID, bc), slab)
+        f = mpm.make_forces(cfg)
+        got = boundary.apply_grid_bcs(cfg, f, 0.0, v0, m, touch)
+        with mock.patch.object(boundary, 'plane_slab', lambda *a: None):
+          want = boundary.apply_grid_bcs(cfg, f, 0.0, v0, m, touch)
+        changed = False
+        for c in range(3):
+          np.testing.assert_array_equal(np.asarray(got[c]),
+                                        np.asarray(want[c]))
+          changed |= not np.array_equal(
+            np.asarray(got[c]), np.asarray(boundary.apply_grid_bcs(
+              mpm.SimConfig(grid=_GRID, dt=1e-3), f, 0.0, v0)[c]))
+        # The check has teeth: the plane changed some velocities (but for
+        # the one behind the grid).
+        self.assertEqual(changed, slab != (0, 0, 0),
+                         msg=f'{normal} {surface}')
 
   def test_separating_wall_lets_go_but_slip_holds(self):
     # Same configs as above (compiled once): a block leaving the wall.
