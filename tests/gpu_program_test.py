@@ -37,7 +37,7 @@ def _ops(fn, args, platform):
   text = jax.jit(fn).trace(*args).lower(
     lowering_platforms=(platform,)).as_text()
   return {op: len(re.findall(rf'stablehlo\.{op}\b', text))
-          for op in ('while', 'dot_general', 'scatter', 'reduce')}
+          for op in ('while', 'dot_general', 'scatter', 'reduce', 'gather')}
 
 
 class FormsAgreeTest(absltest.TestCase):
@@ -80,6 +80,24 @@ class FormsAgreeTest(absltest.TestCase):
       for k, (i, j, l) in enumerate(transfer.OFFSETS):
         np.testing.assert_array_equal(
           block[n, k], g4[b[n, 0] + i, b[n, 1] + j, b[n, 2] + l])
+
+  def test_rigid_per_particle_product_equals_gather(self):
+    """The per-body values reach the particles by a one-hot product (CPU)
+    or gathers (GPU): the same values, bit for bit (float32 and 64), with
+    empty segments and negative, tiny and huge values."""
+    rng = np.random.default_rng(4)
+    seg = jnp.asarray(rng.choice([0, 2, 3], 57), jnp.int32)  # 1 empty
+    for dtype in (jnp.float32, jnp.float64):
+      with jax.enable_x64(dtype == jnp.float64):
+        cols = [jnp.asarray(rng.normal(size=4) * s, dtype)
+                for s in (1.0, 1e-30, 1e30, -3.0)]
+        got = {f: jax.jit(rigid._per_particle(seg, 4, dtype, f))(cols)
+               for f in ('product', 'gather', 'auto')}
+        for p, q, r, col in zip(got['product'], got['gather'], got['auto'],
+                                cols):
+          np.testing.assert_array_equal(p, q)
+          np.testing.assert_array_equal(r, q)
+          np.testing.assert_array_equal(q, np.asarray(col)[np.asarray(seg)])
 
   def test_sub_tile_ranges_unrolled_equals_loop(self):
     """The renderer's sub-tile ranges: both binary searches give numpy's
@@ -165,8 +183,10 @@ class PlatformFormsTest(absltest.TestCase):
 
   def test_rigid_contacts_are_one_sum_on_cuda(self):
     """Three planes: on CUDA the contact sets are one per-body sum (3 in
-    all, with the body's mass and momenta and its inertia); on the CPU one
-    product per plane (5)."""
+    all, with the body's mass and momenta and its inertia) and the
+    per-body values reach the particles by gathers; on the CPU one product
+    per plane (5 sums) and 4 one-hot products for the per-body values
+    (``rigid._per_particle``)."""
     x, v, body, mass, planes = _bodies_in_a_corner()
     F = tuple(tuple(jnp.ones(len(x)) for _ in range(3)) for _ in range(3))
 
@@ -177,9 +197,10 @@ class PlatformFormsTest(absltest.TestCase):
                            planes=planes)[1]
 
     cpu, cuda = (_ops(project, (x, v), p) for p in ('cpu', 'cuda'))
-    self.assertEqual(cpu['dot_general'], 5)
+    self.assertEqual(cpu['dot_general'], 9)
     self.assertEqual(cuda['dot_general'], 0)
     self.assertEqual(cuda['reduce'], 3)
+    self.assertGreaterEqual(cuda['gather'], 1)
 
   def test_g2p_is_a_product_on_cpu_a_sum_on_cuda(self):
     x = jnp.full((3, 8), 0.3)

@@ -80,6 +80,37 @@ def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto'):
   return ssum
 
 
+def _per_particle(seg, num_segments, dtype, form='auto'):
+  """``at_all(list of (S,) per-segment arrays) -> list of (N,) arrays``,
+  each particle's segment's value.
+
+  ``form``: 'gather' (``a[seg]``), 'product' (few segments only: one
+  product of the one-hot segment matrix with the stacked columns, exact:
+  a sum of one value and zeros) or 'auto' (the product on the CPU, the
+  gathers elsewhere, chosen at lowering). On the CPU, XLA fuses a per-body
+  chain (the contact impulses, the rotation) into each gather and so
+  recomputes it for every particle, once per column: twelve such gathers
+  were ~4 % of the tabletop's substep. The product reads the columns
+  once, computed.
+  """
+  def gather(*cols):
+    return [a[seg] for a in cols]
+
+  def product(*cols):
+    onehot = (seg[:, None] == jnp.arange(num_segments)).astype(dtype)
+    return list(jnp.dot(onehot, jnp.stack(cols, axis=1),
+                        precision=jax.lax.Precision.HIGHEST).T)
+
+  def at_all(cols):
+    if form == 'gather' or num_segments > _DENSE_SEGMENTS:
+      return gather(*cols)
+    if form == 'product':
+      return product(*cols)
+    return jax.lax.platform_dependent(*cols, cpu=product, default=gather)
+
+  return at_all
+
+
 def _rodrigues(w):
   """Rotation matrices exp([w]_x) for a 3-tuple of (B,) rotation vectors."""
   th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -174,9 +205,10 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   dtype = mass.dtype
 
   ssum = _segment_sums(seg, B + 1, dtype, reduce_fn)
+  at_all = _per_particle(seg, B + 1, dtype)
 
   def at(a):  # per-body (B+1,) -> per-particle
-    return a[seg]
+    return at_all([a])[0]
 
   M, *mxv = ssum([mass] + [mass * x[d] for d in range(3)]
                  + [mass * v[d] for d in range(3)])
@@ -185,7 +217,7 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   Ms = jnp.where(M > 0, M, 1.0)
   c = [mxv[d] / Ms for d in range(3)]
   V = [mxv[3 + d] / Ms for d in range(3)]
-  r = [x[d] - at(c[d]) for d in range(3)]
+  r = [x[d] - cp for d, cp in enumerate(at_all(c))]
   mr = [mass * r[d] for d in range(3)]
   r2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
   pairs = [(a, b) for a in range(3) for b in range(a, 3)]
@@ -211,11 +243,14 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   w = [w[d] * free for d in range(3)]
 
   def move(V, w):
+    # Every per-body value the particles need, in one ``at_all``.
     Rb = _rodrigues(tuple(dt * w[d] for d in range(3)))
-    Vp = [at(V[d]) for d in range(3)]
-    wp = [at(w[d]) for d in range(3)]
-    Rp = tuple(tuple(at(Rb[a][b]) for b in range(3)) for a in range(3))
-    x_new = [at(c[d]) + dt * Vp[d]
+    cols = list(c) + list(V) + list(w) + [Rb[a][b] for a in range(3)
+                                          for b in range(3)]
+    got = at_all(cols)
+    cp, Vp, wp = got[0:3], got[3:6], got[6:9]
+    Rp = tuple(tuple(got[9 + 3 * a + b] for b in range(3)) for a in range(3))
+    x_new = [cp[d] + dt * Vp[d]
              + Rp[d][0] * r[0] + Rp[d][1] * r[1] + Rp[d][2] * r[2]
              for d in range(3)]
     return x_new, Vp, wp, Rp
@@ -225,7 +260,8 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
     V, w, shift = _plane_contacts(planes, rigid, ssum, at, mass, r, x_new,
                                   V, w, I, M, free, contact_form)
     x_new, Vp, wp, Rp = move(V, w)
-    x_new = [x_new[d] + at(shift[d]) for d in range(3)]
+    shifted = at_all(shift)
+    x_new = [x_new[d] + shifted[d] for d in range(3)]
   else:
     x_new, Vp, wp, Rp = move(V, w)
   x_new = tuple(x_new)
