@@ -28,6 +28,7 @@ from experiments.lib import profile
 from experiments.lib import simulate as lib
 from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
+from physsplat_jax import segmentation
 
 _CONFIG = config_flags.DEFINE_config_file(
   'config', lib.DEFAULT_CONFIG, 'pipeline config (get_config() of a .py)')
@@ -44,8 +45,8 @@ _IMPULSE = flags.DEFINE_multi_string(
 _POKE = flags.DEFINE_multi_string(
   'poke', None, 'NAME:ax,ay,az@x,y,z/r[@t0-t1] acceleration [m/s^2] of the '
   "object's particles within r [m] of a point (scene coordinates)")
-_SEGMENT = flags.DEFINE_string(
-  'segment', None, 'segment the scene first: auto, geometric, ... (default: '
+_SEGMENT = flags.DEFINE_enum(
+  'segment', None, segmentation.METHODS, 'segment the scene first (default: '
   'keep its objects)')
 _UP = flags.DEFINE_string(
   'up_axis', None, "scene file: its up axis: x, y, z, -x, -y, -z, a "

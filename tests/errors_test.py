@@ -85,7 +85,10 @@ class ErrorPathTest(absltest.TestCase):
 
     for cls in (ps.PlyError, ps.SceneFileError, ps.PipelineError,
                 ps.SimulationError, ps.physgaussian.ConfigError,
-                mllm.MLLMError, video.VideoError, outputs.OutputError):
+                mllm.MLLMError, video.VideoError, outputs.OutputError,
+                ps.perception.MaterialChoiceError,
+                ps.perception.PerceptionError,
+                ps.segmentation.SegmentationError):
       self.assertTrue(issubclass(cls, PhysSplatError), cls)
 
 
@@ -142,6 +145,40 @@ class ValidationTest(absltest.TestCase):
     with self.assertRaisesRegex(pl.PipelineError, 'material_override'):
       lib.check_overrides(scene, {'cube': 'jelly'})
     lib.check_overrides(scene, {'block': 'jelly', '*': 'wood'})
+
+  def test_bad_material_overrides_fail_before_any_question(self):
+    """A bad override value is a one-line package error, raised before
+    perception asks about any object (the MLLM client is never called)."""
+    from physsplat_jax import perception
+
+    class Client:
+      def complete(self, *args, **kwargs):
+        raise AssertionError('asked the MLLM before checking the overrides')
+
+    # Object 0 ('ball') would be asked first; the bad override is object 1's.
+    block = _block_scene()
+    half = block.gaussians.num // 2
+    scene = block.replace(
+      object_ids=jnp.asarray(np.arange(block.gaussians.num) >= half,
+                             jnp.int32),
+      objects=(ObjectInfo('ball'), ObjectInfo('block')))
+    for spec, want in (('unobtainium', 'not in the library'),
+                       ({'material': 'jelly', 'E': 'x'}, "E='x' is not a "),
+                       ({'E': -5}, 'invalid E=-5'),
+                       ({'material': 'jelly', 'colour': 1}, 'unknown field')):
+      opts = perception.PerceptionOptions(overrides={'block': spec})
+      with self.assertRaisesRegex(perception.MaterialChoiceError, want):
+        perception.perceive_scene(scene, opts, client=Client())
+      code, text = _run_guarded(perception.MaterialChoiceError(want))
+      self.assertEqual(code, 1)
+    with self.assertRaisesRegex(PhysSplatError, 'expected name=key'):
+      perception.parse_overrides('noequals')
+
+  def test_unknown_segmentation_method(self):
+    from physsplat_jax import segmentation
+
+    with self.assertRaisesRegex(segmentation.SegmentationError, 'bogus'):
+      segmentation.segment(_block_scene().gaussians, 'bogus')
 
   def test_impossible_time_step_is_refused_with_the_numbers(self):
     steel_like = pl.ObjectMaterial('fixed_corotated', 1e15, 0.3, 1000.0)

@@ -5,6 +5,9 @@ and docs/materials.md.
 """
 
 from physsplat_jax.perception.choice import MaterialChoice as MaterialChoice
+from physsplat_jax.perception.choice import (
+  MaterialChoiceError as MaterialChoiceError,
+)
 from physsplat_jax.perception.choice import ObjectMaterial as ObjectMaterial
 from physsplat_jax.perception.choice import apply_spec as apply_spec
 from physsplat_jax.perception.choice import (
@@ -28,6 +31,7 @@ from physsplat_jax.perception.library import (
 from physsplat_jax.perception.library import default_library as default_library
 from physsplat_jax.perception.library import load_library as load_library
 from physsplat_jax.perception.library import parse_library as parse_library
+from physsplat_jax.perception.p3 import PerceptionError as PerceptionError
 from physsplat_jax.perception.p3 import PerceptionOptions as PerceptionOptions
 from physsplat_jax.perception.p3 import perceive_object as perceive_object
 from physsplat_jax.perception.p3 import perceive_scene as perceive_scene

@@ -25,6 +25,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.mpm.models import canonical_model
 from physsplat_jax.perception.library import MODEL_PARAMS
@@ -99,12 +100,18 @@ class ObjectMaterial:
             f'Pa nu={self.nu:.3g} rho={self.rho:.4g} kg/m^3')
 
 
+class MaterialChoiceError(PhysSplatError, ValueError):
+  """A material override or config value is malformed, unknown or
+  unphysical; the message names the object and the field."""
+
+
 # The name perception has always used for the same record.
 MaterialChoice = ObjectMaterial
 
 
 def check_choice(c: MaterialChoice) -> MaterialChoice:
-  """Returns ``c`` or raises ValueError if any value is unphysical."""
+  """Returns ``c`` or raises :class:`MaterialChoiceError` if any value is
+  unphysical."""
   bad = []
   if c.model not in CANONICAL_MODELS:
     bad.append(f'model {c.model!r} not in {list(CANONICAL_MODELS)}')
@@ -120,8 +127,9 @@ def check_choice(c: MaterialChoice) -> MaterialChoice:
     if not math.isfinite(v):
       bad.append(f'param {k}={v}')
   if bad:
-    raise ValueError(f'material of object {c.object_name!r}: invalid '
-                     + ', '.join(bad))
+    raise MaterialChoiceError(
+      f'material of object {c.object_name!r}: invalid '
+      + ', '.join(bad))
   return c
 
 
@@ -211,32 +219,36 @@ def apply_spec(
     A validated :class:`MaterialChoice`.
 
   Raises:
-    ValueError: unknown material, unknown field, or unphysical value; the
-      message names the object and the field.
+    MaterialChoiceError: unknown material, unknown field, or unphysical
+      value; the message names the object and the field.
   """
   where = f'{source} for object {object_name!r}'
   if isinstance(spec, str):
     spec = {'material': spec}
   if not isinstance(spec, Mapping):
-    raise ValueError(f'{where}: expected a material key or a mapping, got '
-                     f'{spec!r}')
+    raise MaterialChoiceError(
+      f'{where}: expected a material key or a mapping, got '
+      f'{spec!r}')
   unknown = sorted(set(spec) - _SPEC_FIELDS - set(_ALL_PARAMS))
   if unknown:
-    raise ValueError(f'{where}: unknown field(s) {unknown}; allowed: '
-                     f'{sorted(_SPEC_FIELDS)} and parameters {_ALL_PARAMS}')
+    raise MaterialChoiceError(
+      f'{where}: unknown field(s) {unknown}; allowed: '
+      f'{sorted(_SPEC_FIELDS)} and parameters {_ALL_PARAMS}')
   name = spec.get('material', spec.get('key'))
   if name is not None:
     m = library.match(str(name))
     if m is None:
-      raise ValueError(f'{where}: material {name!r} is not in the library; '
-                       f'close keys: {library.suggest(str(name))}')
+      raise MaterialChoiceError(
+        f'{where}: material {name!r} is not in the library; '
+        f'close keys: {library.suggest(str(name))}')
     entry = library[m.key]
     how = f'{name!r}' if m.key == name else f'{name!r} -> {m.key}'
   elif base is not None:
     entry, how = base, f'values over {base.key}'
   else:
-    raise ValueError(f'{where}: no "material" given and the object name '
-                     'matches no library material')
+    raise MaterialChoiceError(
+      f'{where}: no "material" given and the object name '
+      'matches no library material')
   fields = {'E': entry.E_sim, 'nu': entry.nu_sim, 'rho': entry.rho_sim}
   for k_spec, k in (('E', 'E'), ('nu', 'nu'), ('rho', 'rho'),
                     ('density', 'rho')):
@@ -244,18 +256,21 @@ def apply_spec(
       try:
         fields[k] = float(spec[k_spec])
       except (TypeError, ValueError):
-        raise ValueError(f'{where}: {k_spec}={spec[k_spec]!r} is not a '
-                         'number') from None
+        raise MaterialChoiceError(
+          f'{where}: {k_spec}={spec[k_spec]!r} is not a '
+          'number') from None
   model = spec.get('model', entry.model)
   if model not in CANONICAL_MODELS:
     resolved = canonical_model(model)
     if resolved is None:
-      raise ValueError(f'{where}: model {model!r} is not one of '
-                       f'{list(CANONICAL_MODELS)}')
+      raise MaterialChoiceError(
+        f'{where}: model {model!r} is not one of '
+        f'{list(CANONICAL_MODELS)}')
     model = resolved
   rigid = spec.get('rigid', entry.rigid)
   if not isinstance(rigid, bool):
-    raise ValueError(f'{where}: rigid={rigid!r} must be true or false')
+    raise MaterialChoiceError(
+      f'{where}: rigid={rigid!r} must be true or false')
   params = dict(entry.params) if model == entry.model else {}
   if model in STRAIN_YIELD_MODELS and entry.yield_strain is not None and (
       model == entry.model):
@@ -265,12 +280,14 @@ def apply_spec(
       try:
         params[p] = float(spec[p])
       except (TypeError, ValueError):
-        raise ValueError(f'{where}: {p}={spec[p]!r} is not a number'
-                         ) from None
+        raise MaterialChoiceError(
+          f'{where}: {p}={spec[p]!r} is not a number'
+          ) from None
   missing = [p for p in MODEL_PARAMS[model] if p not in params]
   if missing:
-    raise ValueError(f'{where}: model {model!r} needs parameter(s) '
-                     f'{missing}')
+    raise MaterialChoiceError(
+      f'{where}: model {model!r} needs parameter(s) '
+      f'{missing}')
   given = sorted(k for k in spec if k not in ('material', 'key'))
   reason = f'{source} {how}' + (f' with {given}' if given else '')
   try:
@@ -280,8 +297,9 @@ def apply_spec(
       params=tuple(sorted(params.items())), source=source, reason=reason,
       E_real=None if given else entry.E_mid,
     ))
-  except ValueError as e:
-    raise ValueError(f'{where}: {e}') from None
+  except MaterialChoiceError as e:
+    raise MaterialChoiceError(
+      f'{where}: {e}') from None
 
 
 # A representative library key per constitutive model (for labelling a

@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from physsplat_jax.io import mllm
+from physsplat_jax.perception.choice import MaterialChoiceError
 from physsplat_jax.perception.p3 import SELECTION_METHODS
 from physsplat_jax.perception.p3 import PerceptionOptions
 
@@ -36,8 +37,8 @@ def parse_overrides(items: Sequence[str] | str | None) -> dict[str, Any]:
     name -> library key/name or dict of values.
 
   Raises:
-    ValueError: a malformed item (the message quotes it and shows the
-      form).
+    MaterialChoiceError: a malformed item (the message quotes it and shows
+      the form).
   """
   if items is None:
     return {}
@@ -51,18 +52,20 @@ def parse_overrides(items: Sequence[str] | str | None) -> dict[str, Any]:
       if not part.strip():
         continue
       if '=' not in part:
-        raise ValueError(f'material override {part!r}: expected name=key or '
-                         'name={"material": ..., "E": ...}')
+        raise MaterialChoiceError(
+          f'material override {part!r}: expected name=key or '
+          'name={"material": ..., "E": ...}')
       name, value = part.split('=', 1)
       name, value = name.strip(), value.strip()
       if not name or not value:
-        raise ValueError(f'material override {part!r}: empty name or value')
+        raise MaterialChoiceError(
+          f'material override {part!r}: empty name or value')
       if value.startswith('{'):
         try:
           value = json.loads(value)
         except json.JSONDecodeError as e:
-          raise ValueError(f'material override {part!r}: invalid JSON ({e})'
-                           ) from None
+          raise MaterialChoiceError(
+            f'material override {part!r}: invalid JSON ({e})') from None
       out[name] = value
   return out
 

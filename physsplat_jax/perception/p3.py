@@ -68,6 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl import logging
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io.mllm import MLLMConfig
 from physsplat_jax.io.mllm import MLLMError
 from physsplat_jax.io.mllm import encode_png
@@ -98,6 +99,11 @@ class ChatClient(Protocol):
                deadline: float | None = None) -> Any:
     """Returns an object with a ``text`` attribute (``images`` may be a
     callable that renders them, called only when a request is made)."""
+
+
+class PerceptionError(PhysSplatError, ValueError):
+  """Bad perception options, or an object that cannot be perceived; the
+  message names the field or the object."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,21 +158,23 @@ class PerceptionOptions:
   scene_material_first: bool = False
 
   def validate(self) -> PerceptionOptions:
+    """Returns ``self``; raises :class:`PerceptionError` on a bad field."""
     if self.selection not in SELECTION_METHODS:
-      raise ValueError(f'PerceptionOptions.selection={self.selection!r} is '
-                       f'not one of {SELECTION_METHODS}')
+      raise PerceptionError(
+        f'PerceptionOptions.selection={self.selection!r} is not one of '
+        f'{SELECTION_METHODS}')
     if self.num_candidates < 1:
-      raise ValueError('PerceptionOptions.num_candidates must be >= 1, got '
-                       f'{self.num_candidates}')
+      raise PerceptionError('PerceptionOptions.num_candidates must be >= 1, '
+                            f'got {self.num_candidates}')
     if not 1 <= self.num_views <= 8:
-      raise ValueError('PerceptionOptions.num_views must be in 1..8, got '
-                       f'{self.num_views}')
+      raise PerceptionError('PerceptionOptions.num_views must be in 1..8, '
+                            f'got {self.num_views}')
     if self.image_size < 8:
-      raise ValueError('PerceptionOptions.image_size must be >= 8, got '
-                       f'{self.image_size}')
+      raise PerceptionError('PerceptionOptions.image_size must be >= 8, got '
+                            f'{self.image_size}')
     if self.max_E_ratio < 1:
-      raise ValueError('PerceptionOptions.max_E_ratio must be >= 1, got '
-                       f'{self.max_E_ratio}')
+      raise PerceptionError('PerceptionOptions.max_E_ratio must be >= 1, '
+                            f'got {self.max_E_ratio}')
     return self
 
 
@@ -219,15 +227,15 @@ def render_object_view(
     (size, size, 3) float32 image in [0, 1].
 
   Raises:
-    ValueError: the object has no Gaussians.
+    PerceptionError: the object has no Gaussians.
   """
   from physsplat_jax.cameras import fit_camera
   from physsplat_jax.render import render_image
 
   mask = np.asarray(scene.object_ids) == index
   if not mask.any():
-    raise ValueError(f'object {index} ({scene.objects[index].name!r}) has no '
-                     'Gaussians to render')
+    raise PerceptionError(f'object {index} ({scene.objects[index].name!r}) '
+                          'has no Gaussians to render')
   g = scene.gaussians.subset(mask)
   means = np.asarray(g.means, np.float64)
   lo = np.percentile(means, 0.5, axis=0)
@@ -479,6 +487,21 @@ def _mllm_choice(info: ObjectInfo, views: Callable[[], list[bytes]],
   ))
 
 
+def _given_choice(info: ObjectInfo, index: int, options: PerceptionOptions,
+                  library: MaterialLibrary) -> MaterialChoice | None:
+  """The object's material from an override or config value, or None when
+  neither names it (raises MaterialChoiceError on a bad one)."""
+  spec = _lookup_spec(options.overrides, info, index)
+  source = 'override'
+  if spec is None:
+    spec, source = _lookup_spec(options.config_materials, info, index), \
+      'config'
+  if spec is None:
+    return None
+  base, _, _ = _entry_offline(info, library, None)
+  return choice_lib.apply_spec(info.name, spec, library, base, source)
+
+
 def perceive_object(
   scene: Scene,
   index: int,
@@ -505,18 +528,14 @@ def perceive_object(
     A validated :class:`MaterialChoice`.
 
   Raises:
-    ValueError: a bad override/config value (names the object and field).
+    MaterialChoiceError: a bad override/config value (names the object and
+      field).
     MaterialNotFoundError: offline, no match and no default material.
   """
   info = scene.objects[index]
-  spec = _lookup_spec(options.overrides, info, index)
-  source = 'override'
-  if spec is None:
-    spec, source = _lookup_spec(options.config_materials, info, index), \
-      'config'
-  if spec is not None:
-    base, _, _ = _entry_offline(info, library, None)
-    return choice_lib.apply_spec(info.name, spec, library, base, source)
+  given = _given_choice(info, index, options, library)
+  if given is not None:
+    return given
   if client is None or (options.scene_material_first and info.material):
     return _offline_choice(info, library, options)
   if deadline is not None and time.monotonic() >= deadline:
@@ -584,6 +603,10 @@ def perceive_scene(
   library = library or default_library()
   if options.default_material is not None:
     library[options.default_material]  # fail early on a bad default
+  # Every override and config value is checked before any question is
+  # asked: a bad one fails at once, not after the MLLM answered others.
+  for i, info in enumerate(scene.objects):
+    _given_choice(info, i, options, library)
   if client is None and options.mllm.enabled:
     from physsplat_jax.io.mllm import MLLMClient
 

@@ -11,6 +11,9 @@ from physsplat_jax.segmentation.auto import METHODS as METHODS
 from physsplat_jax.segmentation.auto import segment as segment
 from physsplat_jax.segmentation.base import BACKGROUND as BACKGROUND
 from physsplat_jax.segmentation.base import Segmentation as Segmentation
+from physsplat_jax.segmentation.base import (
+  SegmentationError as SegmentationError,
+)
 from physsplat_jax.segmentation.boxes import (
   segment_by_boxes as segment_by_boxes,
 )

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from physsplat_jax.segmentation.attributes import find_attribute
 from physsplat_jax.segmentation.attributes import segment_by_attribute
 from physsplat_jax.segmentation.base import Segmentation
+from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.segmentation.boxes import segment_by_boxes
 from physsplat_jax.segmentation.geometric import segment_geometric
 from physsplat_jax.segmentation.masks import lift_masks
@@ -44,8 +45,8 @@ def segment(
     A :class:`Segmentation`.
   """
   if method not in METHODS:
-    raise ValueError(f'segmentation method {method!r} is not one of '
-                     f'{METHODS}')
+    raise SegmentationError(f'segmentation method {method!r} is not one of '
+                            f'{METHODS}')
   if method == 'auto':
     if find_attribute(gaussians) is not None:
       method = 'attribute'
@@ -59,17 +60,18 @@ def segment(
     return segment_by_attribute(gaussians, names=names, **kwargs)
   if method == 'boxes':
     if boxes is None:
-      raise ValueError("segmentation method 'boxes' needs boxes=")
+      raise SegmentationError("segmentation method 'boxes' needs boxes=")
     return segment_by_boxes(gaussians, boxes, names=names, **kwargs)
   if method == 'masks':
     if masks is None or cameras is None:
-      raise ValueError("segmentation method 'masks' needs cameras= and "
-                       'masks=')
+      raise SegmentationError(
+        "segmentation method 'masks' needs cameras= and masks=")
     return lift_masks(gaussians, cameras, masks, names=names, **kwargs)
   seg = segment_geometric(gaussians, up=up, **kwargs)
   if names is not None:
     if len(names) != seg.num_objects:
-      raise ValueError(f'{len(names)} names for {seg.num_objects} objects '
-                       f'found ({seg.names})')
+      raise SegmentationError(
+        f'{len(names)} names for {seg.num_objects} objects found '
+        f'({seg.names})')
     seg = Segmentation(seg.object_ids, tuple(names), seg.fixed, seg.method)
   return seg

@@ -13,11 +13,18 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
 from physsplat_jax.types import Scene
 
 BACKGROUND = -1
+
+
+class SegmentationError(PhysSplatError, ValueError):
+  """A segmentation that cannot be made or does not fit its scene (unknown
+  method, missing inputs, ids or names that do not match); the message
+  says which."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -40,14 +47,16 @@ class Segmentation:
   def __post_init__(self):
     ids = np.asarray(self.object_ids)
     if ids.ndim != 1:
-      raise ValueError(f'object_ids must be (K,), got shape {ids.shape}')
+      raise SegmentationError(
+        f'object_ids must be (K,), got shape {ids.shape}')
     n = len(self.names)
     if ids.size and (ids.min() < BACKGROUND or ids.max() >= n):
-      raise ValueError(
+      raise SegmentationError(
         f'object_ids span [{ids.min()}, {ids.max()}] but there are {n} '
         'names; ids must be -1 (background) or in [0, len(names))')
     if self.fixed and len(self.fixed) != n:
-      raise ValueError(f'fixed has {len(self.fixed)} entries for {n} objects')
+      raise SegmentationError(
+        f'fixed has {len(self.fixed)} entries for {n} objects')
     object.__setattr__(self, 'object_ids', ids.astype(np.int32))
     object.__setattr__(self, 'names', tuple(str(x) for x in self.names))
     object.__setattr__(self, 'fixed', tuple(bool(x) for x in self.fixed))
@@ -75,7 +84,7 @@ class Segmentation:
                materials: Sequence[str | None] | None = None) -> Scene:
     """A :class:`Scene` with these ids and ObjectInfo entries."""
     if gaussians.num != self.object_ids.shape[0]:
-      raise ValueError(
+      raise SegmentationError(
         f'segmentation has {self.object_ids.shape[0]} ids for '
         f'{gaussians.num} Gaussians')
     return Scene(
@@ -104,7 +113,8 @@ def compact_labels(labels: np.ndarray, order: str = 'size'
   elif order == 'value':
     rank = np.arange(uniq.size)
   else:
-    raise ValueError(f"order must be 'size' or 'value', got {order!r}")
+    raise SegmentationError(
+      f"order must be 'size' or 'value', got {order!r}")
   new_of_old = np.empty(uniq.size, np.int64)
   new_of_old[rank] = np.arange(uniq.size)
   out = np.full(labels.shape, BACKGROUND, np.int32)
