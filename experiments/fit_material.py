@@ -17,11 +17,11 @@ import subprocess
 
 import jax
 import numpy as np
-from absl import app
 from absl import flags
 from absl import logging
 from ml_collections import config_flags
 
+from experiments.lib import cli
 from physsplat_jax.training import simtrain
 
 _SEEDS = flags.DEFINE_list('seeds', ['10', '11'], 'beam seeds')
@@ -79,4 +79,4 @@ def main(argv):
 
 
 if __name__ == '__main__':
-  app.run(main)
+  cli.run(main)

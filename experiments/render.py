@@ -15,10 +15,10 @@ scenes trained with it (Mip-Splatting's 2D filter).
 import time
 
 import jax
-from absl import app
 from absl import flags
 from absl import logging
 
+from experiments.lib import cli
 from physsplat_jax.io import cameras as camera_io
 from physsplat_jax.io import video
 from physsplat_jax.scenes import load_scene
@@ -64,4 +64,4 @@ def main(argv):
 
 if __name__ == '__main__':
   flags.mark_flags_as_required(['scene', 'out'])
-  app.run(main)
+  cli.run(main)

@@ -41,6 +41,7 @@ from absl import app
 from absl import flags
 from absl import logging
 
+from experiments.lib import cli
 from physsplat_jax.distributed import runtime
 
 MODES = ('batch', 'particles')
@@ -254,4 +255,4 @@ def main(argv):
 
 if __name__ == '__main__':
   define_flags()
-  app.run(main)
+  cli.run(main)

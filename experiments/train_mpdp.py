@@ -17,11 +17,11 @@ import json
 import subprocess
 
 import jax
-from absl import app
 from absl import flags
 from absl import logging
 from ml_collections import config_flags
 
+from experiments.lib import cli
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import pretrained
 from physsplat_jax.training import simtrain
@@ -63,4 +63,4 @@ def main(argv):
 
 
 if __name__ == '__main__':
-  app.run(main)
+  cli.run(main)

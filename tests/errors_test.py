@@ -88,7 +88,9 @@ class ErrorPathTest(absltest.TestCase):
                 mllm.MLLMError, video.VideoError, outputs.OutputError,
                 ps.perception.MaterialChoiceError,
                 ps.perception.PerceptionError,
-                ps.segmentation.SegmentationError):
+                ps.segmentation.SegmentationError,
+                ps.distributed.DistributedError,
+                ps.distributed.DistributedStartError):
       self.assertTrue(issubclass(cls, PhysSplatError), cls)
 
 

@@ -20,6 +20,10 @@ from physsplat_jax.distributed.particles import (
   simulate_sharded as simulate_sharded)
 from physsplat_jax.distributed.particles import (
   simulate_sharded_jit as simulate_sharded_jit)
+from physsplat_jax.distributed.runtime import (
+  DistributedError as DistributedError)
+from physsplat_jax.distributed.runtime import (
+  DistributedStartError as DistributedStartError)
 from physsplat_jax.distributed.runtime import RuntimeInfo as RuntimeInfo
 from physsplat_jax.distributed.runtime import (
   cluster_environment as cluster_environment)

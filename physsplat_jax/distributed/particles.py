@@ -50,6 +50,7 @@ from jax.sharding import PartitionSpec as P
 from physsplat_jax import mpm
 from physsplat_jax import pipeline as pl
 from physsplat_jax.distributed import sharding as sh
+from physsplat_jax.distributed.runtime import DistributedError
 
 GHOST_FRACTION = 1e-20
 
@@ -135,8 +136,9 @@ def rollout_sharded(state: mpm.MPMState, materials: mpm.Materials,
   config = dataclasses.replace(config, model_counts=None)
   num_frames = config.num_frames if num_frames is None else num_frames
   if num_frames is None or num_frames < 0:
-    raise ValueError('rollout_sharded: pass num_frames (or set '
-                     'config.num_frames).')
+    raise DistributedError(
+      'rollout_sharded: pass num_frames (or set '
+      'config.num_frames).')
   if forces is None:
     forces = mpm.make_forces(config, state.x.dtype)
   n = state.x.shape[0]

@@ -32,6 +32,20 @@ import jax
 from absl import flags
 from absl import logging
 
+from physsplat_jax.errors import PhysSplatError
+
+
+class DistributedError(PhysSplatError, ValueError):
+  """A bad multi-device or multi-host setting or batch (devices, mesh axes,
+  process ids, items that do not stack); the message names it and the
+  fix."""
+
+
+class DistributedStartError(PhysSplatError, RuntimeError):
+  """``jax.distributed.initialize`` failed; the message lists what to
+  check."""
+
+
 MODES = ('auto', 'on', 'off')
 CPU_COLLECTIVES = ('gloo', 'mpi', 'none')
 
@@ -115,30 +129,34 @@ def initialize(
     :class:`RuntimeInfo`.
 
   Raises:
-    ValueError: a bad argument (named, with the fix).
-    RuntimeError: JAX was already used before this call, or the processes
-      could not reach each other within the timeout.
+    DistributedError: a bad argument (named, with the fix).
+    DistributedStartError: JAX was already used before this call, or the
+      processes could not reach each other within the timeout.
   """
   if mode not in MODES:
-    raise ValueError(f'initialize: mode = {mode!r}; use one of {MODES}.')
+    raise DistributedError(f'initialize: mode = {mode!r}; use one of {MODES}.')
   if cpu_collectives not in CPU_COLLECTIVES:
-    raise ValueError(f'initialize: cpu_collectives = {cpu_collectives!r}; '
-                     f'use one of {CPU_COLLECTIVES}.')
+    raise DistributedError(
+      f'initialize: cpu_collectives = {cpu_collectives!r}; '
+      f'use one of {CPU_COLLECTIVES}.')
   if num_processes is not None and num_processes < 1:
-    raise ValueError(f'initialize: num_processes = {num_processes} must be '
-                     '>= 1.')
+    raise DistributedError(
+      f'initialize: num_processes = {num_processes} must be '
+      '>= 1.')
   if process_id is not None and num_processes is not None and not (
       0 <= process_id < num_processes):
-    raise ValueError(f'initialize: process_id = {process_id} must be in '
-                     f'[0, num_processes = {num_processes}).')
+    raise DistributedError(
+      f'initialize: process_id = {process_id} must be in '
+      f'[0, num_processes = {num_processes}).')
   if cpu_devices is not None:
     if cpu_devices < 1:
-      raise ValueError(f'initialize: cpu_devices = {cpu_devices} must be '
-                       '>= 1.')
+      raise DistributedError(
+        f'initialize: cpu_devices = {cpu_devices} must be '
+        '>= 1.')
     try:
       jax.config.update('jax_num_cpu_devices', int(cpu_devices))
     except RuntimeError as e:
-      raise RuntimeError(
+      raise DistributedStartError(
         'initialize(cpu_devices=...) came after JAX was already used in this '
         'process; call physsplat_jax.distributed.initialize first thing in '
         'main (or set XLA_FLAGS=--xla_force_host_platform_device_count=N '
@@ -153,7 +171,7 @@ def initialize(
       jax.config.update('jax_cpu_collectives_implementation', cpu_collectives)
     if (explicit and coordinator_address is None and detected is None
         and 'JAX_COORDINATOR_ADDRESS' not in os.environ):
-      raise ValueError(
+      raise DistributedError(
         'initialize: num_processes/process_id given without '
         'coordinator_address and no cluster launcher detected; pass '
         '--coordinator_address=HOST:PORT (process 0\'s host, a free port).')
@@ -165,7 +183,7 @@ def initialize(
                           else list(local_device_ids)),
         initialization_timeout=initialization_timeout)
     except (RuntimeError, ValueError) as e:
-      raise RuntimeError(
+      raise DistributedStartError(
         f'jax.distributed.initialize failed ({e}). It must run before any '
         'JAX computation, once per process, and every process needs the '
         'same coordinator address and process count (check '
@@ -225,8 +243,9 @@ def initialize_from_flags(
   try:
     ids = None if ids is None else [int(i) for i in ids]
   except ValueError:
-    raise ValueError(f'--local_device_ids={",".join(ids)}: give integers, '
-                     'e.g. --local_device_ids=0,1.') from None
+    raise DistributedError(
+      f'--local_device_ids={",".join(ids)}: give integers, '
+      'e.g. --local_device_ids=0,1.') from None
   return initialize(
     coordinator_address=f.coordinator_address,
     num_processes=f.num_processes, process_id=f.process_id,

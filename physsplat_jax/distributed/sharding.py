@@ -35,6 +35,8 @@ from jax.sharding import Mesh
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from physsplat_jax.distributed.runtime import DistributedError
+
 BATCH_AXIS = 'batch'
 PARTICLE_AXIS = 'particles'
 
@@ -59,7 +61,7 @@ def make_mesh(num_devices: int | None = None, axis_name: str = BATCH_AXIS,
   devices = list(jax.devices() if devices is None else devices)
   if num_devices is not None:
     if not 1 <= num_devices <= len(devices):
-      raise ValueError(
+      raise DistributedError(
         f'make_mesh: num_devices = {num_devices} but {len(devices)} devices '
         'are available (on one CPU, set XLA_FLAGS=--xla_force_host_platform_'
         'device_count=N before importing jax, or '
@@ -72,12 +74,14 @@ def make_mesh(num_devices: int | None = None, axis_name: str = BATCH_AXIS,
 def _axis(mesh: Mesh, axis_name: str | None) -> str:
   if axis_name is None:
     if len(mesh.axis_names) != 1:
-      raise ValueError(f'mesh has axes {mesh.axis_names}; name the one to '
-                       'shard over (axis_name=...).')
+      raise DistributedError(
+        f'mesh has axes {mesh.axis_names}; name the one to '
+        'shard over (axis_name=...).')
     return mesh.axis_names[0]
   if axis_name not in mesh.axis_names:
-    raise ValueError(f'axis_name = {axis_name!r} is not an axis of the mesh '
-                     f'{mesh.axis_names}.')
+    raise DistributedError(
+      f'axis_name = {axis_name!r} is not an axis of the mesh '
+      f'{mesh.axis_names}.')
   return axis_name
 
 
@@ -151,15 +155,15 @@ def stack_trees(items: Sequence[Any]):
   only items that would share one compilation can share a batch.
 
   Raises:
-    ValueError: naming the first item and field that differ.
+    DistributedError: naming the first item and field that differ.
   """
   if not items:
-    raise ValueError('stack_trees: no items.')
+    raise DistributedError('stack_trees: no items.')
   leaves0, tdef0 = jax.tree_util.tree_flatten_with_path(items[0])
   for i, it in enumerate(items[1:], 1):
     leaves, tdef = jax.tree_util.tree_flatten_with_path(it)
     if tdef != tdef0:
-      raise ValueError(
+      raise DistributedError(
         f'stack_trees: item {i} differs from item 0 in its structure or '
         f'static fields{_static_diff(items[0], it)}; items of one batch '
         'must compile to one program (same SimSpec: grid, substeps, '
@@ -167,7 +171,7 @@ def stack_trees(items: Sequence[Any]):
     for (path, a), (_, b) in zip(leaves0, leaves):
       if np.shape(a) != np.shape(b) or jnp.result_type(a) != jnp.result_type(
           b):
-        raise ValueError(
+        raise DistributedError(
           f'stack_trees: item {i} has {jax.tree_util.keystr(path)} of shape '
           f'{np.shape(b)} {jnp.result_type(b)}, item 0 '
           f'{np.shape(a)} {jnp.result_type(a)}; pad to equal sizes (e.g. '
@@ -202,16 +206,18 @@ def _flat_axes(in_axes, args):
   if not isinstance(in_axes, (tuple, list)):
     in_axes = (in_axes,) * len(args)
   if len(in_axes) != len(args):
-    raise ValueError(f'in_axes has {len(in_axes)} entries for {len(args)} '
-                     'arguments.')
+    raise DistributedError(
+      f'in_axes has {len(in_axes)} entries for {len(args)} '
+      'arguments.')
   out = []
   for spec, arg in zip(in_axes, args):
     axes, tdef = jax.tree_util.tree_flatten(spec, is_leaf=lambda x: x is None)
     subs = tdef.flatten_up_to(arg)
     for ax in axes:
       if ax not in (0, None):
-        raise ValueError(f'in_axes entries must be 0 or None, got {ax!r} '
-                         '(move the batch axis to the front).')
+        raise DistributedError(
+          f'in_axes entries must be 0 or None, got {ax!r} '
+          '(move the batch axis to the front).')
     out.append((axes, tdef, subs))
   return out
 
@@ -223,9 +229,10 @@ def _batch_size(flat) -> int:
       if ax == 0:
         sizes |= {np.shape(a)[0] for a in jax.tree.leaves(sub)}
   if len(sizes) != 1:
-    raise ValueError(f'batched arguments have batch sizes {sorted(sizes)}; '
-                     'give every batched leaf the same leading size (and at '
-                     'least one batched argument).')
+    raise DistributedError(
+      f'batched arguments have batch sizes {sorted(sizes)}; '
+      'give every batched leaf the same leading size (and at '
+      'least one batched argument).')
   return sizes.pop()
 
 

@@ -21,6 +21,7 @@ from jax.sharding import Mesh
 
 from physsplat_jax import pipeline as pl
 from physsplat_jax.distributed import sharding as sh
+from physsplat_jax.distributed.runtime import DistributedError
 
 # vmap axes of a batch of Params: the MPDP weights are shared.
 PARAMS_AXES = pl.Params(mpdp=None, log_scale=0, velocity=0, forces=0)
@@ -49,20 +50,22 @@ def sweep_params(
     ``PARAMS_AXES``), and one dict per item with its settings.
 
   Raises:
-    ValueError: a non-positive multiplier or a velocity that is not 3
+    DistributedError: a non-positive multiplier or a velocity that is not 3
       numbers.
   """
   for name, vals in (('E_scale', E_scale), ('nu_scale', nu_scale),
                      ('rho_scale', rho_scale)):
     if not len(vals) or any(not float(v) > 0 for v in vals):
-      raise ValueError(f'sweep_params: {name} = {list(vals)}; give one or '
-                       'more multipliers > 0.')
+      raise DistributedError(
+        f'sweep_params: {name} = {list(vals)}; give one or '
+        'more multipliers > 0.')
   vels = [None] if velocity is None else [tuple(float(c) for c in v)
                                           for v in velocity]
   for v in vels:
     if v is not None and len(v) != 3:
-      raise ValueError(f'sweep_params: velocity {v} must have 3 components '
-                       '[m/s].')
+      raise DistributedError(
+        f'sweep_params: velocity {v} must have 3 components '
+        '[m/s].')
   base_ls = np.asarray(params.log_scale)
   base_v = np.asarray(params.velocity)
   ls, vs, table = [], [], []
