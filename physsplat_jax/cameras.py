@@ -32,7 +32,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array, Camera, device_array, make_camera
+
+
+class CameraError(PhysSplatError, ValueError):
+  """A camera that cannot be built or used (sizes, focal lengths, poses);
+  the message names the value."""
+
 
 # Below this norm the forward and up directions are treated as parallel.
 _PARALLEL_EPS = 1e-6
@@ -93,16 +100,16 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Array:
   up = device_array(up, dtype)
   for name, v in (('eye', eye), ('target', target), ('up', up)):
     if v.shape != (3,):
-      raise ValueError(f'look_at: {name} has shape {v.shape}; expected (3,)')
+      raise CameraError(f'look_at: {name} has shape {v.shape}; expected (3,)')
   if _is_concrete(eye, target, up):
     # Checked in NumPy (exact zeros): no eager JAX operation to compile.
     if not np.any(np.asarray(target) - np.asarray(eye)):
-      raise ValueError(
+      raise CameraError(
         f'look_at: eye and target are the same point {np.asarray(eye)}; '
         'place the camera away from what it looks at'
       )
     if not np.any(np.asarray(up)):
-      raise ValueError('look_at: up is the zero vector; pass e.g. (0, 0, 1)')
+      raise CameraError('look_at: up is the zero vector; pass e.g. (0, 0, 1)')
   return _look_at(eye, target, up)
 
 
@@ -161,7 +168,7 @@ def _orbit_basis(up) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Unit up and two horizontal axes (e1, e2 = up x e1) for azimuths."""
   up = np.asarray(up, np.float64)
   if up.shape != (3,) or not np.all(np.isfinite(up)) or not up.any():
-    raise ValueError(f'up must be a finite nonzero (3,) vector, got {up}')
+    raise CameraError(f'up must be a finite nonzero (3,) vector, got {up}')
   u = up / np.linalg.norm(up)
   # Azimuth 0 looks from the world axis most perpendicular to up (+x for a
   # z-up or y-up world), so azimuths agree across those worlds.
@@ -251,9 +258,9 @@ def orbit_cameras(
   """
   _check_image(width, height, fov_deg)
   if not radius > 0:
-    raise ValueError(f'orbit_cameras: radius must be > 0, got {radius}')
+    raise CameraError(f'orbit_cameras: radius must be > 0, got {radius}')
   if int(num) < 1:
-    raise ValueError(f'orbit_cameras: num must be >= 1, got {num}')
+    raise CameraError(f'orbit_cameras: num must be >= 1, got {num}')
   f = float(focal_from_fov(fov_deg, height))
   cams = []
   for i in range(int(num)):
@@ -269,9 +276,9 @@ def orbit_cameras(
 
 def _check_image(width, height, fov_deg):
   if int(width) < 1 or int(height) < 1:
-    raise ValueError(f'image size must be positive, got {width}x{height}')
+    raise CameraError(f'image size must be positive, got {width}x{height}')
   if not 0.0 < float(fov_deg) < 180.0:
-    raise ValueError(f'fov_deg must be in (0, 180), got {fov_deg}')
+    raise CameraError(f'fov_deg must be in (0, 180), got {fov_deg}')
 
 
 def fit_camera(
@@ -310,18 +317,18 @@ def fit_camera(
   lo = np.asarray(bounds_min, np.float64)
   hi = np.asarray(bounds_max, np.float64)
   if lo.shape != (3,) or hi.shape != (3,):
-    raise ValueError(
+    raise CameraError(
       f'fit_camera: bounds must be (3,) vectors, got {lo.shape} and '
       f'{hi.shape}'
     )
   if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-    raise ValueError(f'fit_camera: non-finite bounds {lo} .. {hi}')
+    raise CameraError(f'fit_camera: non-finite bounds {lo} .. {hi}')
   if np.any(hi < lo):
-    raise ValueError(
+    raise CameraError(
       f'fit_camera: bounds_max {hi} is below bounds_min {lo} on some axis'
     )
   if not padding >= 1.0:
-    raise ValueError(f'fit_camera: padding must be >= 1, got {padding}')
+    raise CameraError(f'fit_camera: padding must be >= 1, got {padding}')
   center = 0.5 * (lo + hi)
   r = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-9) * padding
   f = float(focal_from_fov(fov_deg, height))
@@ -350,7 +357,7 @@ def scene_camera(scene, width: int, height: int, index: int = 0) -> Camera:
   w, h = int(width), int(height)
   if index >= 0 and scene.cameras:
     if index >= len(scene.cameras):
-      raise ValueError(
+      raise CameraError(
         f'camera_index={index} but scene {scene.name!r} has '
         f'{len(scene.cameras)} cameras; use 0..{len(scene.cameras) - 1} or -1 '
         'for a fitted camera.')

@@ -70,9 +70,16 @@ import numpy as np
 from flax import struct
 from scipy import spatial
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import device_array
+
+
+class DeformError(PhysSplatError, ValueError):
+  """Bad input to the binding of Gaussians to their driving particles; the
+  message names the array and the fix."""
+
 
 # Relative threshold on the eigenvalues of the rest moment matrix M: below it
 # (drivers spread along that direction by less than 1% of their largest
@@ -140,39 +147,39 @@ def make_binding(
   dtype = dtype or (gm.dtype if np.issubdtype(gm.dtype, np.floating)
                     else np.float32)
   if gm.ndim != 2 or gm.shape[1] != 3:
-    raise ValueError(f'gauss_means has shape {gm.shape}; expected (K, 3)')
+    raise DeformError(f'gauss_means has shape {gm.shape}; expected (K, 3)')
   if dx.ndim != 2 or dx.shape[1] != 3:
-    raise ValueError(f'driver_rest_x has shape {dx.shape}; expected (N, 3)')
+    raise DeformError(f'driver_rest_x has shape {dx.shape}; expected (N, 3)')
   if dx.shape[0] < 4:
-    raise ValueError(
+    raise DeformError(
       f'make_binding needs at least 4 driving particles, got {dx.shape[0]}; '
       'sample more drivers (smaller radius / larger budget).'
     )
   if not (np.all(np.isfinite(gm)) and np.all(np.isfinite(dx))):
-    raise ValueError('make_binding: gauss_means or driver_rest_x has NaN/inf')
+    raise DeformError('make_binding: gauss_means or driver_rest_x has NaN/inf')
   if k < 4:
-    raise ValueError(f'make_binding: k={k}; use k >= 4 for the affine fit')
+    raise DeformError(f'make_binding: k={k}; use k >= 4 for the affine fit')
   k = int(min(k, dx.shape[0]))
   gm64 = gm.astype(np.float64)
   dx64 = dx.astype(np.float64)
   if (gauss_object_ids is None) != (driver_object_ids is None):
-    raise ValueError('make_binding: pass both gauss_object_ids and '
-                     'driver_object_ids, or neither')
+    raise DeformError('make_binding: pass both gauss_object_ids and '
+                      'driver_object_ids, or neither')
   if gauss_object_ids is None:
     dist, idx = spatial.cKDTree(dx64).query(gm64, k=k)
   else:
     go = np.asarray(gauss_object_ids)
     do = np.asarray(driver_object_ids)
     if go.shape != (len(gm64),) or do.shape != (len(dx64),):
-      raise ValueError(f'make_binding: object ids have shapes {go.shape}, '
-                       f'{do.shape}; expected ({len(gm64)},), ({len(dx64)},)')
+      raise DeformError(f'make_binding: object ids have shapes {go.shape}, '
+                        f'{do.shape}; expected ({len(gm64)},), ({len(dx64)},)')
     dist = np.zeros((len(gm64), k))
     idx = np.zeros((len(gm64), k), np.int64)
     for o in np.unique(go):
       gsel = np.nonzero(go == o)[0]
       dsel = np.nonzero(do == o)[0]
       if len(dsel) < k:
-        raise ValueError(
+        raise DeformError(
           f'make_binding: object {o} has {len(dsel)} driving particles, '
           f'fewer than k={k}; sample more drivers for it or lower k')
       d_o, i_o = spatial.cKDTree(dx64[dsel]).query(gm64[gsel], k=k)
@@ -344,7 +351,7 @@ def deform(
   else:
     means0, covs0 = gaussians_or_means_covs
   if means0.shape != bind.rest_means.shape:
-    raise ValueError(
+    raise DeformError(
       f'deform: {means0.shape[0]} Gaussians but the binding was made for '
       f'{bind.rest_means.shape[0]}; call make_binding with these Gaussians.'
     )

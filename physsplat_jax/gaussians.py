@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.types import Array
+from physsplat_jax.types import DataError
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -194,7 +195,7 @@ def sh_basis(degree: int, dirs: Array) -> Array:
     that ``colour = sum_b basis[b] * sh[b]`` matches ``eval_sh``.
   """
   if not 0 <= degree <= 3:
-    raise ValueError(f'SH degree must be 0..3, got {degree}')
+    raise DataError(f'SH degree must be 0..3, got {degree}')
   x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
   out = [jnp.full_like(x, SH_C0)]
   if degree >= 1:

@@ -25,6 +25,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from physsplat_jax.errors import PhysSplatError
+
+
+class DataError(PhysSplatError, ValueError):
+  """Gaussians, cameras or scene arrays of the wrong shape or value; the
+  message names the field."""
+
+
 Array = jax.Array
 ArrayLike = Any
 
@@ -60,7 +68,7 @@ def sh_degree_from_bases(num_bases: int) -> int:
   """SH degree ``d`` from the number of basis functions ``(d + 1)**2``."""
   d = int(round(np.sqrt(num_bases))) - 1
   if (d + 1) ** 2 != num_bases or not 0 <= d <= 3:
-    raise ValueError(
+    raise DataError(
       f'SH coefficient count {num_bases} is not (d+1)^2 for a degree d in '
       '0..3 (expected 1, 4, 9 or 16 per channel).'
     )
@@ -149,7 +157,7 @@ class Gaussians(struct.PyTreeNode):
     idx = np.asarray(index)
     if idx.dtype == bool:
       if idx.shape != (self.num,):
-        raise ValueError(
+        raise DataError(
           f'subset mask has shape {idx.shape}, expected ({self.num},)'
         )
       idx = np.nonzero(idx)[0]
@@ -194,7 +202,7 @@ class Gaussians(struct.PyTreeNode):
 def concatenate_gaussians(parts: list[Gaussians]) -> Gaussians:
   """Concatenates Gaussian sets (same SH degree) along the first axis."""
   if not parts:
-    raise ValueError('concatenate_gaussians needs at least one set')
+    raise DataError('concatenate_gaussians needs at least one set')
   deg = max(p.sh_degree for p in parts)
   parts = [p.with_sh_degree(deg) for p in parts]
   def cat(xs):
@@ -420,14 +428,14 @@ def up_vector(axis: str) -> np.ndarray:
     except ValueError:
       v = np.zeros(0)
     if v.shape != (3,) or not np.all(np.isfinite(v)) or not v.any():
-      raise ValueError(
+      raise DataError(
         f"up axis {axis!r} is not a direction: write three finite numbers "
         "'x,y,z', not all zero, or one of 'x', 'y', 'z', '-x', '-y', '-z'")
     return v / np.linalg.norm(v)
   sign = -1.0 if a.startswith('-') else 1.0
   a = a.lstrip('+-')
   if a not in table:
-    raise ValueError(
+    raise DataError(
       f"up axis {axis!r} is not one of 'x', 'y', 'z', '-x', '-y', '-z' "
       "(or a direction 'x,y,z')"
     )

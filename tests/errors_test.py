@@ -90,7 +90,10 @@ class ErrorPathTest(absltest.TestCase):
                 ps.perception.PerceptionError,
                 ps.segmentation.SegmentationError,
                 ps.distributed.DistributedError,
-                ps.distributed.DistributedStartError):
+                ps.distributed.DistributedStartError, ps.mpm.MPMInputError,
+                ps.mpdp.MPDPError, ps.training.TrainingError,
+                ps.sampling.SamplingError, ps.cameras.CameraError,
+                ps.deform.DeformError, ps.types.DataError):
       self.assertTrue(issubclass(cls, PhysSplatError), cls)
 
 
@@ -175,6 +178,17 @@ class ValidationTest(absltest.TestCase):
       self.assertEqual(code, 1)
     with self.assertRaisesRegex(PhysSplatError, 'expected name=key'):
       perception.parse_overrides('noequals')
+
+  def test_library_checks_are_package_errors(self):
+    """The solver's, cameras' and samplers' own argument checks raise
+    PhysSplatErrors too (library callers catch one base class)."""
+    import physsplat_jax as ps
+
+    with self.assertRaisesRegex(ps.mpm.MPMInputError, 'frame_dt'):
+      ps.mpm.choose_substeps(0.01, 0.0, ps.mpm.make_materials(
+        'fixed_corotated', 1e4, 0.3, 1000.0, num=2))
+    with self.assertRaises(PhysSplatError):
+      ps.gaussians.sh_basis(5, jnp.zeros((2, 3)))
 
   def test_unknown_segmentation_method(self):
     from physsplat_jax import segmentation

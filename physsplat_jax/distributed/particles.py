@@ -136,9 +136,8 @@ def rollout_sharded(state: mpm.MPMState, materials: mpm.Materials,
   config = dataclasses.replace(config, model_counts=None)
   num_frames = config.num_frames if num_frames is None else num_frames
   if num_frames is None or num_frames < 0:
-    raise DistributedError(
-      'rollout_sharded: pass num_frames (or set '
-      'config.num_frames).')
+    raise DistributedError('rollout_sharded: pass num_frames (or set '
+                           'config.num_frames).')
   if forces is None:
     forces = mpm.make_forces(config, state.x.dtype)
   n = state.x.shape[0]

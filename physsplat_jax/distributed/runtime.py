@@ -145,14 +145,12 @@ def initialize(
       '>= 1.')
   if process_id is not None and num_processes is not None and not (
       0 <= process_id < num_processes):
-    raise DistributedError(
-      f'initialize: process_id = {process_id} must be in '
-      f'[0, num_processes = {num_processes}).')
+    raise DistributedError(f'initialize: process_id = {process_id} must be in '
+                           f'[0, num_processes = {num_processes}).')
   if cpu_devices is not None:
     if cpu_devices < 1:
-      raise DistributedError(
-        f'initialize: cpu_devices = {cpu_devices} must be '
-        '>= 1.')
+      raise DistributedError(f'initialize: cpu_devices = {cpu_devices} must be '
+                             '>= 1.')
     try:
       jax.config.update('jax_num_cpu_devices', int(cpu_devices))
     except RuntimeError as e:

@@ -215,9 +215,8 @@ def _flat_axes(in_axes, args):
     subs = tdef.flatten_up_to(arg)
     for ax in axes:
       if ax not in (0, None):
-        raise DistributedError(
-          f'in_axes entries must be 0 or None, got {ax!r} '
-          '(move the batch axis to the front).')
+        raise DistributedError(f'in_axes entries must be 0 or None, got {ax!r} '
+                               '(move the batch axis to the front).')
     out.append((axes, tdef, subs))
   return out
 

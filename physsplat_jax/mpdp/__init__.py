@@ -8,6 +8,7 @@ See docs/mpdp.md.
 from physsplat_jax.mpdp.model import MEANS_DIM as MEANS_DIM
 from physsplat_jax.mpdp.model import MODEL_NAMES as MODEL_NAMES
 from physsplat_jax.mpdp.model import NU_MAX as NU_MAX
+from physsplat_jax.mpdp.model import MPDPError as MPDPError
 from physsplat_jax.mpdp.model import ModelConfig as ModelConfig
 from physsplat_jax.mpdp.model import PointNet as PointNet
 from physsplat_jax.mpdp.model import encode_means as encode_means

@@ -50,10 +50,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpdp import knn as knn_lib
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.types import device_array
 from physsplat_jax.mpdp.knn import knn_indices as knn_indices  # noqa: F401
+
+
+class MPDPError(PhysSplatError, ValueError):
+  """Bad input to the MPDP network or its weights (configs, shapes, model
+  names, files); the message names it and the fix."""
+
 
 # Canonical constitutive-model names: the solver's (their order fixes the
 # one-hot encoding of the shipped weights).
@@ -95,7 +102,7 @@ class ModelConfig:
     d = dict(d)
     unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
     if unknown:
-      raise ValueError(
+      raise MPDPError(
         f'Unknown MPDP model config fields {sorted(unknown)}; valid fields '
         f'are {[f.name for f in dataclasses.fields(cls)]}.'
       )
@@ -132,12 +139,12 @@ def encode_means(E, nu, rho, model='fixed_corotated', rigid=None):
   nu = np.asarray(nu, np.float64)
   rho = np.asarray(rho, np.float64)
   if not np.all(np.isfinite(E)) or np.any(E <= 0):
-    raise ValueError(f'MPDP means: E must be finite and > 0 Pa, got {E}.')
+    raise MPDPError(f'MPDP means: E must be finite and > 0 Pa, got {E}.')
   if not np.all(np.isfinite(rho)) or np.any(rho <= 0):
-    raise ValueError(
+    raise MPDPError(
       f'MPDP means: rho must be finite and > 0 kg/m^3, got {rho}.')
   if not np.all(np.isfinite(nu)) or np.any(nu < 0) or np.any(nu >= 0.5):
-    raise ValueError(
+    raise MPDPError(
       f'MPDP means: nu must be in [0, 0.5), got {nu}; clamp it (e.g. 0.49) '
       'for nearly incompressible materials.')
   shape = np.broadcast_shapes(E.shape, nu.shape, rho.shape)
@@ -146,13 +153,13 @@ def encode_means(E, nu, rho, model='fixed_corotated', rigid=None):
   for m in models:
     if isinstance(m, (int, np.integer)):
       if not 0 <= int(m) < NUM_MODELS:
-        raise ValueError(
+        raise MPDPError(
           f'MPDP means: model index {m} not in 0..{NUM_MODELS - 1}.')
       ids.append(int(m))
     elif m in MODEL_NAMES:
       ids.append(MODEL_NAMES.index(m))
     else:
-      raise ValueError(
+      raise MPDPError(
         f'MPDP means: unknown constitutive model {m!r}; use one of '
         f'{MODEL_NAMES}.')
   ids = np.broadcast_to(np.asarray(ids).reshape(
@@ -313,16 +320,16 @@ def normalize_field(logits, mask):
 
 def _check_inputs(points, means, mask):
   if points.ndim not in (2, 3) or points.shape[-1] != 3:
-    raise ValueError(
+    raise MPDPError(
       f'MPDP predict: points must have shape (N, 3) or (B, N, 3), got '
       f'{points.shape}.')
   if means.shape[-1] != MEANS_DIM or means.ndim != points.ndim - 1:
-    raise ValueError(
+    raise MPDPError(
       f'MPDP predict: means must have shape ({MEANS_DIM},) (or (B, '
       f'{MEANS_DIM}) for batched points); got {means.shape}. Build it with '
       'physsplat_jax.mpdp.encode_means(E, nu, rho, model).')
   if mask is not None and mask.shape != points.shape[:-1]:
-    raise ValueError(
+    raise MPDPError(
       f'MPDP predict: mask shape {mask.shape} must equal points.shape[:-1] '
       f'= {points.shape[:-1]}.')
 
@@ -343,8 +350,8 @@ def make_predict(config: ModelConfig = ModelConfig(),
       'brute'; the same weights give the same field with any of them.
   """
   if knn_method not in knn_lib.METHODS:
-    raise ValueError(f'make_predict: knn_method={knn_method!r}; use one of '
-                     f'{knn_lib.METHODS}')
+    raise MPDPError(f'make_predict: knn_method={knn_method!r}; use one of '
+                    f'{knn_lib.METHODS}')
   net = PointNet(config, knn_method=knn_method)
 
   def single(params, points, means, mask):

@@ -18,6 +18,7 @@ import os
 import numpy as np
 
 from physsplat_jax.mpdp import model as model_lib
+from physsplat_jax.mpdp.model import MPDPError
 from physsplat_jax.types import device_array
 
 PRETRAINED_DIR = os.path.join(os.path.dirname(os.path.dirname(
@@ -68,7 +69,7 @@ def load_params(directory: str, name: str = PRETRAINED_NAME):
   npz = os.path.join(directory, name + '.npz')
   js = os.path.join(directory, name + '.json')
   if not (os.path.exists(npz) and os.path.exists(js)):
-    raise ValueError(
+    raise MPDPError(
       f'MPDP params not found: expected {npz} and {js}; train them with '
       'experiments/train_mpdp.py --export=<dir>.')
   with open(js) as f:
@@ -98,7 +99,7 @@ def load_pretrained():
   """
   params, cfg, _ = _load_default()
   if cfg != model_lib.ModelConfig():
-    raise ValueError(
+    raise MPDPError(
       f'Shipped MPDP params were trained for {cfg}, not the default '
       'ModelConfig(); use make_predict(cfg) with load_params().')
   return params

@@ -41,6 +41,7 @@ import dataclasses
 import numpy as np
 
 from physsplat_jax.mpdp import model as model_lib
+from physsplat_jax.mpdp.model import MPDPError
 
 KINDS = ('beam', 'plant', 'stack', 'blob')
 A_D, A_T, B_D, C_T = 1.2, 0.8, 0.15, 0.3
@@ -246,9 +247,9 @@ def make_object(seed: int, num_points: int = 256, kind: str | None = None,
     A :class:`SyntheticObject`.
   """
   if kind is not None and kind not in KINDS:
-    raise ValueError(f'Unknown synthetic object kind {kind!r}; use {KINDS}.')
+    raise MPDPError(f'Unknown synthetic object kind {kind!r}; use {KINDS}.')
   if not 0.0 < min_fill <= 1.0 or num_points < 8:
-    raise ValueError(
+    raise MPDPError(
       f'make_object: need num_points >= 8 and 0 < min_fill <= 1, got '
       f'{num_points}, {min_fill}.')
   rng = np.random.default_rng(seed)
@@ -346,8 +347,8 @@ def field_at(obj: SyntheticObject, query: np.ndarray) -> np.ndarray:
 
   query = np.asarray(query, np.float64)
   if query.ndim != 2 or query.shape[1] != 3 or len(query) == 0:
-    raise ValueError(f'field_at: query must be (M, 3) with M >= 1, got '
-                     f'{query.shape}.')
+    raise MPDPError(f'field_at: query must be (M, 3) with M >= 1, got '
+                    f'{query.shape}.')
   valid = np.asarray(obj.mask)
   tree = scipy.spatial.cKDTree(np.asarray(obj.points, np.float64)[valid])
   _, nn = tree.query(query)

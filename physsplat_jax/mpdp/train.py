@@ -33,6 +33,7 @@ from absl import logging
 
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import synthetic
+from physsplat_jax.mpdp.model import MPDPError
 
 
 def masked_log_errors(pred, target, mask):
@@ -141,7 +142,7 @@ def make_datasets(config):
   """(train, eval) datasets from ``config.data`` (disjoint seeds)."""
   d = config.data
   if d.seed == d.eval_seed:
-    raise ValueError(
+    raise MPDPError(
       f'config.data.seed ({d.seed}) must differ from config.data.eval_seed '
       'so the held-out objects are not training objects.')
   train = synthetic.make_dataset(d.seed, d.num_train, d.num_points,
@@ -192,9 +193,8 @@ def train_and_evaluate(config, workdir: str) -> dict:
   """
   tc = config.train
   if tc.batch_size > config.data.num_train:
-    raise ValueError(
-      f'config.train.batch_size ({tc.batch_size}) exceeds '
-      f'config.data.num_train ({config.data.num_train}).')
+    raise MPDPError(f'config.train.batch_size ({tc.batch_size}) exceeds '
+                    f'config.data.num_train ({config.data.num_train}).')
   workdir = os.path.abspath(workdir)
   os.makedirs(workdir, exist_ok=True)
   logging.info('MPDP training on %s; workdir %s', jax.devices(), workdir)

@@ -23,6 +23,7 @@ from physsplat_jax.mpm.base import EnforceTranslation as EnforceTranslation
 from physsplat_jax.mpm.base import Forces as Forces
 from physsplat_jax.mpm.base import GridSpec as GridSpec
 from physsplat_jax.mpm.base import MODEL_DEFAULTS as MODEL_DEFAULTS
+from physsplat_jax.mpm.base import MPMInputError as MPMInputError
 from physsplat_jax.mpm.base import MPMState as MPMState
 from physsplat_jax.mpm.base import Materials as Materials
 from physsplat_jax.mpm.base import ParticleImpulse as ParticleImpulse

@@ -24,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.mpm.errors import MPMInputError as MPMInputError
+from physsplat_jax.mpm.errors import SimulationError as SimulationError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.types import Array
 
@@ -36,22 +37,6 @@ ELASTIC_MODELS = (
   'snow', 'foam', 'plasticine', 'newtonian', 'bingham',
 )
 FLUID_MODELS = ('newtonian',)
-
-
-class SimulationError(PhysSplatError, RuntimeError):
-  """A simulation blew up or was set up unstably.
-
-  Attributes:
-    frame: index of the frame at which it was detected (None: before the
-      run).
-    reason: short machine-readable cause ('nan', 'wall', 'F', 'J', 'dt').
-  """
-
-  def __init__(self, message: str, frame: int | None = None,
-               reason: str = ''):
-    super().__init__(message)
-    self.frame = frame
-    self.reason = reason
 
 
 # --------------------------------------------------------------------- grid
@@ -77,15 +62,15 @@ class GridSpec:
 
   def __post_init__(self):
     if not isinstance(self.res, int) or self.res < 8:
-      raise ValueError(
+      raise MPMInputError(
         f'GridSpec.res = {self.res!r}: need an int >= 8 (the quadratic '
         'B-spline stencil and the 3-cell domain border need room).'
       )
     if not self.size > 0:
-      raise ValueError(f'GridSpec.size = {self.size!r} must be > 0 [m].')
+      raise MPMInputError(f'GridSpec.size = {self.size!r} must be > 0 [m].')
     object.__setattr__(self, 'lower', tuple(float(v) for v in self.lower))
     if len(self.lower) != 3:
-      raise ValueError(f'GridSpec.lower = {self.lower!r}: need 3 numbers.')
+      raise MPMInputError(f'GridSpec.lower = {self.lower!r}: need 3 numbers.')
 
   @property
   def dx(self) -> float:
@@ -122,7 +107,7 @@ class GridSpec:
 def _vec3(v, name):
   v = tuple(float(a) for a in v)
   if len(v) != 3:
-    raise ValueError(f'{name} = {v!r}: need 3 numbers.')
+    raise MPMInputError(f'{name} = {v!r}: need 3 numbers.')
   return v
 
 
@@ -130,7 +115,7 @@ def _unit(v, name):
   v = _vec3(v, name)
   n = math.sqrt(sum(a * a for a in v))
   if not n > 0:
-    raise ValueError(f'{name} = {v!r} must be a non-zero vector.')
+    raise MPMInputError(f'{name} = {v!r} must be a non-zero vector.')
   return tuple(a / n for a in v)
 
 
@@ -160,7 +145,7 @@ class SurfaceCollider:
     object.__setattr__(self, 'point', _vec3(self.point, 'point'))
     object.__setattr__(self, 'normal', _unit(self.normal, 'normal'))
     if self.surface not in ('sticky', 'slip', 'separate'):
-      raise ValueError(
+      raise MPMInputError(
         f'SurfaceCollider.surface = {self.surface!r}; use sticky, slip or '
         'separate.'
       )
@@ -255,7 +240,7 @@ class PointForce:
     object.__setattr__(self, 'point', _vec3(self.point, 'point'))
     object.__setattr__(self, 'force', _vec3(self.force, 'force'))
     if not self.radius > 0:
-      raise ValueError(f'PointForce.radius = {self.radius!r} must be > 0.')
+      raise MPMInputError(f'PointForce.radius = {self.radius!r} must be > 0.')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -419,34 +404,34 @@ class SimConfig:
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
-      raise ValueError(f'SimConfig.grid must be a GridSpec, got '
-                       f'{type(self.grid).__name__}.')
+      raise MPMInputError(f'SimConfig.grid must be a GridSpec, got '
+                          f'{type(self.grid).__name__}.')
     if not self.dt > 0:
-      raise ValueError(f'SimConfig.dt = {self.dt!r} must be > 0 [s].')
+      raise MPMInputError(f'SimConfig.dt = {self.dt!r} must be > 0 [s].')
     if int(self.substeps_per_frame) < 1:
-      raise ValueError(f'SimConfig.substeps_per_frame = '
-                       f'{self.substeps_per_frame!r} must be >= 1.')
+      raise MPMInputError(f'SimConfig.substeps_per_frame = '
+                          f'{self.substeps_per_frame!r} must be >= 1.')
     object.__setattr__(self, 'substeps_per_frame',
                        int(self.substeps_per_frame))
     object.__setattr__(self, 'gravity', _vec3(self.gravity, 'gravity'))
     models = tuple(self.models)
     if not models:
-      raise ValueError('SimConfig.models is empty; name at least one model '
-                       f'from {list(CANONICAL_MODELS)}.')
+      raise MPMInputError('SimConfig.models is empty; name at least one model '
+                          f'from {list(CANONICAL_MODELS)}.')
     for m in models:
       if m not in CANONICAL_MODELS:
-        raise ValueError(
+        raise MPMInputError(
           f'SimConfig.models: unknown model {m!r}; use names from '
           f'{list(CANONICAL_MODELS)} (physsplat_jax.mpm.models.'
           'canonical_model maps names such as "jelly").'
         )
     if len(set(models)) != len(models):
-      raise ValueError(f'SimConfig.models = {models} has duplicates.')
+      raise MPMInputError(f'SimConfig.models = {models} has duplicates.')
     object.__setattr__(self, 'models', models)
     bcs = tuple(self.boundary_conditions)
     for i, bc in enumerate(bcs):
       if not isinstance(bc, BOUNDARY_CLASSES):
-        raise ValueError(
+        raise MPMInputError(
           f'SimConfig.boundary_conditions[{i}] is a {type(bc).__name__}; '
           'use the dataclasses of physsplat_jax.mpm (SurfaceCollider, '
           'Cuboid, ParticleImpulse, PointForce, EnforceTranslation, '
@@ -454,15 +439,15 @@ class SimConfig:
         )
     object.__setattr__(self, 'boundary_conditions', bcs)
     if not 0.0 <= self.rpic_damping <= 1.0:
-      raise ValueError(f'SimConfig.rpic_damping = {self.rpic_damping} must '
-                       'be in [0, 1].')
+      raise MPMInputError(f'SimConfig.rpic_damping = {self.rpic_damping} must '
+                          'be in [0, 1].')
     fixed = tuple(bool(b) for b in self.body_fixed)
     if self.num_bodies < 0:
-      raise ValueError('SimConfig.num_bodies must be >= 0.')
+      raise MPMInputError('SimConfig.num_bodies must be >= 0.')
     if not fixed:
       fixed = (False,) * self.num_bodies
     if len(fixed) != self.num_bodies:
-      raise ValueError(
+      raise MPMInputError(
         f'SimConfig.body_fixed has {len(fixed)} entries for num_bodies = '
         f'{self.num_bodies}; give one flag per body.'
       )
@@ -471,13 +456,13 @@ class SimConfig:
       mc = tuple(int(c) for c in self.model_counts)
       if len(mc) != len(models) or min(mc) < 0 or (
           self.num_bodies and 'rigid' not in models):
-        raise ValueError(
+        raise MPMInputError(
           f'SimConfig.model_counts = {mc}: give one count >= 0 per model of '
           f'{models} (with rigid bodies, one of them "rigid"), or None.')
       object.__setattr__(self, 'model_counts', mc)
     if self.dtype not in ('float32', 'float64'):
-      raise ValueError(f"SimConfig.dtype = {self.dtype!r}; use 'float32' or "
-                       "'float64'.")
+      raise MPMInputError(f"SimConfig.dtype = {self.dtype!r}; use 'float32' or "
+                          "'float64'.")
 
   @property
   def frame_dt(self) -> float:
@@ -612,10 +597,10 @@ def model_default(model: str, field: str) -> float:
     ValueError: unknown model or field.
   """
   if model not in MODEL_DEFAULTS:
-    raise ValueError(f'model_default: unknown model {model!r}.')
+    raise MPMInputError(f'model_default: unknown model {model!r}.')
   if field not in _GENERIC:
-    raise ValueError(f'model_default: {field!r} has no default; fields with '
-                     f'defaults are {list(_GENERIC)}.')
+    raise MPMInputError(f'model_default: {field!r} has no default; fields with '
+                        f'defaults are {list(_GENERIC)}.')
   return MODEL_DEFAULTS[model].get(field, _GENERIC[field])
 
 
@@ -657,8 +642,8 @@ def make_materials(
   """
   for k in overrides:
     if k not in FLOAT_FIELDS:
-      raise ValueError(f'make_materials: unknown field {k!r}; fields are '
-                       f'{list(FLOAT_FIELDS)}.')
+      raise MPMInputError(f'make_materials: unknown field {k!r}; fields are '
+                          f'{list(FLOAT_FIELDS)}.')
   if isinstance(models, str):
     names = None
     single = models
@@ -678,10 +663,11 @@ def make_materials(
   if num is not None:
     sizes.append(num)
   if not sizes:
-    raise ValueError('make_materials: cannot tell the particle count; pass '
-                     'num=N or an (N,) array.')
+    raise MPMInputError('make_materials: cannot tell the particle count; pass '
+                        'num=N or an (N,) array.')
   if len(set(sizes)) != 1:
-    raise ValueError(f'make_materials: inconsistent particle counts {sizes}.')
+    raise MPMInputError(
+      f'make_materials: inconsistent particle counts {sizes}.')
   n = sizes[0]
   if dtype is None:
     dtype = (E.dtype if isinstance(E, jax.Array) and jnp.issubdtype(
@@ -691,26 +677,27 @@ def make_materials(
   if names is not None:
     for m in set(names):
       if m not in CANONICAL_MODELS:
-        raise ValueError(f'make_materials: unknown model {m!r}; use one of '
-                         f'{list(CANONICAL_MODELS)}.')
+        raise MPMInputError(f'make_materials: unknown model {m!r}; use one of '
+                            f'{list(CANONICAL_MODELS)}.')
     if config_models is None:
       config_models = tuple(dict.fromkeys(names))
     idx = {m: i for i, m in enumerate(config_models)}
     for m in set(names):
       if m not in idx:
-        raise ValueError(f'make_materials: model {m!r} is not in '
-                         f'config_models {tuple(config_models)}.')
+        raise MPMInputError(f'make_materials: model {m!r} is not in '
+                            f'config_models {tuple(config_models)}.')
     model_id = np.asarray([idx[m] for m in names], np.int32)
     per_particle = names
   else:
     if config_models is None:
-      raise ValueError('make_materials: pass config_models when models is an '
-                       'array of indices.')
+      raise MPMInputError(
+        'make_materials: pass config_models when models is an '
+        'array of indices.')
     model_id = np.asarray(models, np.int32)
     if model_id.size and (model_id.min() < 0
                           or model_id.max() >= len(config_models)):
-      raise ValueError(f'make_materials: model ids out of range '
-                       f'[0, {len(config_models)}).')
+      raise MPMInputError(f'make_materials: model ids out of range '
+                          f'[0, {len(config_models)}).')
     per_particle = [config_models[i] for i in model_id]
   fields = {}
   for f in FLOAT_FIELDS[3:]:

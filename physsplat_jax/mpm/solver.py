@@ -46,6 +46,7 @@ from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import rigid as rigid_lib
 from physsplat_jax.mpm import transfer
+from physsplat_jax.mpm.base import MPMInputError
 from physsplat_jax.types import Array
 
 
@@ -91,37 +92,37 @@ def init_state(x, v, volume, materials: base.Materials,
   dtype = config.jnp_dtype
   x = jnp.asarray(x, dtype)
   if x.ndim != 2 or x.shape[1] != 3:
-    raise ValueError(f'init_state: x has shape {x.shape}; expected (N, 3) '
-                     'positions.')
+    raise MPMInputError(f'init_state: x has shape {x.shape}; expected (N, 3) '
+                        'positions.')
   n = x.shape[0]
   v = jnp.broadcast_to(jnp.asarray(v, dtype), (n, 3)) if np.ndim(v) <= 1 \
       else jnp.asarray(v, dtype)
   if v.shape != (n, 3):
-    raise ValueError(f'init_state: v has shape {v.shape}; expected ({n}, 3) '
-                     'or (3,).')
+    raise MPMInputError(f'init_state: v has shape {v.shape}; expected ({n}, 3) '
+                        'or (3,).')
   volume = jnp.broadcast_to(jnp.asarray(volume, dtype), (n,))
   for f in base.FLOAT_FIELDS + ('model_id',):
     a = getattr(materials, f)
     if np.shape(a) != (n,):
-      raise ValueError(
+      raise MPMInputError(
         f'init_state: materials.{f} has shape {np.shape(a)}; expected '
         f'({n},) (one value per particle; use make_materials).')
   if body_id is None:
     body_id = jnp.full((n,), -1, jnp.int32)
   body_id = jnp.asarray(body_id, jnp.int32)
   if body_id.shape != (n,):
-    raise ValueError(f'init_state: body_id has shape {body_id.shape}; '
-                     f'expected ({n},).')
+    raise MPMInputError(f'init_state: body_id has shape {body_id.shape}; '
+                        f'expected ({n},).')
   xh, bh, mh = _host(x), _host(body_id), _host(materials.model_id)
   if xh is not None and n:
     lo, hi = config.grid.particle_bounds
     rel = xh - np.asarray(config.grid.lower)
     bad = np.any((rel < lo) | (rel > hi), axis=1)
     if np.any(~np.isfinite(xh)):
-      raise ValueError('init_state: x contains NaN/inf.')
+      raise MPMInputError('init_state: x contains NaN/inf.')
     if np.any(bad):
       i = int(np.argmax(bad))
-      raise ValueError(
+      raise MPMInputError(
         f'init_state: {int(bad.sum())} particles lie outside the simulation '
         f'grid (e.g. particle {i} at {xh[i].tolist()}; the usable domain is '
         f'[{np.add(config.grid.lower, lo).tolist()}, '
@@ -129,33 +130,33 @@ def init_state(x, v, volume, materials: base.Materials,
         'GridSpec.size, move GridSpec.lower, or rescale the scene.')
   if bh is not None and n:
     if bh.max() >= config.num_bodies or bh.min() < -1:
-      raise ValueError(
+      raise MPMInputError(
         f'init_state: body_id values in [{bh.min()}, {bh.max()}] but '
         f'config.num_bodies = {config.num_bodies}; use -1 (not rigid) or '
         '0..num_bodies-1.')
   if mh is not None and n:
     if mh.min() < 0 or mh.max() >= len(config.models):
-      raise ValueError(
+      raise MPMInputError(
         f'init_state: materials.model_id in [{mh.min()}, {mh.max()}] but '
         f'config.models has {len(config.models)} entries {config.models}.')
     if 'rigid' in config.models and bh is not None:
       rid = config.models.index('rigid')
       orphan = (mh == rid) & (bh < 0)
       if np.any(orphan):
-        raise ValueError(
+        raise MPMInputError(
           f'init_state: {int(orphan.sum())} particles have model "rigid" but '
           'no body (body_id = -1); give each rigid object a body id and set '
           'SimConfig.num_bodies.')
     if config.model_counts is not None:
       counts = tuple(np.bincount(mh, minlength=len(config.models)).tolist())
       if counts != config.model_counts:
-        raise ValueError(
+        raise MPMInputError(
           f'init_state: materials.model_id gives {counts} particles per '
           f'model of {config.models} but SimConfig.model_counts = '
           f'{config.model_counts}; set model_counts to those counts or None.')
       if bh is not None and np.any((bh >= 0) != (mh == config.models.index(
           'rigid') if 'rigid' in config.models else False)):
-        raise ValueError(
+        raise MPMInputError(
           'init_state: with SimConfig.model_counts, the rigid particles '
           '(body_id >= 0) must be exactly those of model "rigid"; fix '
           'body_id/model_id or set model_counts=None.')
@@ -366,7 +367,7 @@ def _check_inputs(state, materials, forces, config):
   if forces is None:
     forces = base.make_forces(config, state.x.dtype)
   if len(forces.values) != len(config.boundary_conditions):
-    raise ValueError(
+    raise MPMInputError(
       f'forces has {len(forces.values)} entries but the config has '
       f'{len(config.boundary_conditions)} boundary conditions; build it with '
       'mpm.make_forces(config).')
@@ -414,7 +415,7 @@ def _order(config: base.SimConfig, state, materials):
   n = state.x.shape[0]
   grouped = config.model_counts is not None
   if grouped and sum(config.model_counts) != n:
-    raise ValueError(
+    raise MPMInputError(
       f'SimConfig.model_counts = {config.model_counts} sums to '
       f'{sum(config.model_counts)} but there are {n} particles.')
   if not (config.sort_particles or grouped) or n <= 1:
@@ -500,7 +501,7 @@ def rollout(state: base.MPMState, materials: base.Materials,
   """
   num_frames = config.num_frames if num_frames is None else num_frames
   if num_frames is None or num_frames < 0:
-    raise ValueError('rollout: pass num_frames (or set config.num_frames).')
+    raise MPMInputError('rollout: pass num_frames (or set config.num_frames).')
   forces = _check_inputs(state, materials, forces, config)
   frame_fn = make_frame(config, reduce_fn)
 
@@ -649,7 +650,7 @@ class FrameLoop:
                lookahead: bool = False, log_every: int = 1):
     num_frames = config.num_frames if num_frames is None else num_frames
     if num_frames is None:
-      raise ValueError('run: pass num_frames (or set config.num_frames).')
+      raise MPMInputError('run: pass num_frames (or set config.num_frames).')
     self.forces = _check_inputs(state, materials, forces, config)
     # The frame program depends on neither the frame count nor
     # rematerialisation (nothing is differentiated here): keyed without

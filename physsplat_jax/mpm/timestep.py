@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from physsplat_jax.mpm import base
+from physsplat_jax.mpm.base import MPMInputError
 
 DEFAULT_CFL = 0.35
 UNSTABLE_CFL = 1.0
@@ -132,7 +133,7 @@ def choose_substeps(config: base.SimConfig | float, frame_dt: float,
     dx, models = float(config), None
   dt, _ = stable_dt(materials, dx, models, body_id, max_speed, cfl)
   if not frame_dt > 0:
-    raise ValueError(f'choose_substeps: frame_dt = {frame_dt} must be > 0.')
+    raise MPMInputError(f'choose_substeps: frame_dt = {frame_dt} must be > 0.')
   return max(1, int(math.ceil(frame_dt / dt * (1.0 - 1e-9))))
 
 

@@ -127,9 +127,8 @@ def check_choice(c: MaterialChoice) -> MaterialChoice:
     if not math.isfinite(v):
       bad.append(f'param {k}={v}')
   if bad:
-    raise MaterialChoiceError(
-      f'material of object {c.object_name!r}: invalid '
-      + ', '.join(bad))
+    raise MaterialChoiceError(f'material of object {c.object_name!r}: invalid '
+                              + ', '.join(bad))
   return c
 
 
@@ -263,14 +262,12 @@ def apply_spec(
   if model not in CANONICAL_MODELS:
     resolved = canonical_model(model)
     if resolved is None:
-      raise MaterialChoiceError(
-        f'{where}: model {model!r} is not one of '
-        f'{list(CANONICAL_MODELS)}')
+      raise MaterialChoiceError(f'{where}: model {model!r} is not one of '
+                                f'{list(CANONICAL_MODELS)}')
     model = resolved
   rigid = spec.get('rigid', entry.rigid)
   if not isinstance(rigid, bool):
-    raise MaterialChoiceError(
-      f'{where}: rigid={rigid!r} must be true or false')
+    raise MaterialChoiceError(f'{where}: rigid={rigid!r} must be true or false')
   params = dict(entry.params) if model == entry.model else {}
   if model in STRAIN_YIELD_MODELS and entry.yield_strain is not None and (
       model == entry.model):
@@ -280,14 +277,12 @@ def apply_spec(
       try:
         params[p] = float(spec[p])
       except (TypeError, ValueError):
-        raise MaterialChoiceError(
-          f'{where}: {p}={spec[p]!r} is not a number'
-          ) from None
+        raise MaterialChoiceError(f'{where}: {p}={spec[p]!r} is not a number'
+                                  ) from None
   missing = [p for p in MODEL_PARAMS[model] if p not in params]
   if missing:
-    raise MaterialChoiceError(
-      f'{where}: model {model!r} needs parameter(s) '
-      f'{missing}')
+    raise MaterialChoiceError(f'{where}: model {model!r} needs parameter(s) '
+                              f'{missing}')
   given = sorted(k for k in spec if k not in ('material', 'key'))
   reason = f'{source} {how}' + (f' with {given}' if given else '')
   try:
@@ -298,8 +293,7 @@ def apply_spec(
       E_real=None if given else entry.E_mid,
     ))
   except MaterialChoiceError as e:
-    raise MaterialChoiceError(
-      f'{where}: {e}') from None
+    raise MaterialChoiceError(f'{where}: {e}') from None
 
 
 # A representative library key per constitutive model (for labelling a

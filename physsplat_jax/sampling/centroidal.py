@@ -76,18 +76,14 @@ import numpy as np
 from scipy import ndimage
 from scipy import spatial
 
-from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.sampling import pgas
 from physsplat_jax.sampling import poisson
+from physsplat_jax.sampling.poisson import SamplingError
 
 # Drivers per unit volume at the base radius r: a Poisson disk of radius r
 # keeps ~1.24 / r^3 points per unit volume (the pipeline's
 # particles_per_cell = 1.24 (dx / r)^3).
 BASE_DENSITY = 1.24
-
-
-class SamplingError(PhysSplatError, ValueError):
-  """Bad input to driver selection; the message names the field and fix."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from physsplat_jax.sampling.poisson import SamplingError
 from physsplat_jax.types import Array
 
 
@@ -103,7 +104,7 @@ def kmeans(
   """
   n = points.shape[0]
   if num_clusters < 1:
-    raise ValueError(f'kmeans: num_clusters={num_clusters} must be >= 1')
+    raise SamplingError(f'kmeans: num_clusters={num_clusters} must be >= 1')
   valid = jnp.ones((n,), bool) if valid is None else valid
   if init == 'kmeans++':
     centers = kmeans_pp_init(key, points, num_clusters, valid)
@@ -112,7 +113,7 @@ def kmeans(
     _, idx = jax.lax.top_k(jnp.where(valid, g, -jnp.inf), num_clusters)
     centers = points[idx]
   else:
-    raise ValueError(f"kmeans: init={init!r}; use 'kmeans++' or 'random'")
+    raise SamplingError(f"kmeans: init={init!r}; use 'kmeans++' or 'random'")
   w = valid.astype(points.dtype)
 
   def step(centers, _):

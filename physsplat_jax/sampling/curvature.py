@@ -21,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import spatial
 
+from physsplat_jax.sampling.poisson import SamplingError
+
 
 def eigen_ratio(cov) -> np.ndarray:
   """``l_min / trace`` of symmetric PSD matrices.
@@ -42,8 +44,8 @@ def gaussian_curvature(covariances) -> np.ndarray:
   """Per-Gaussian ``K = l3 / (l1 + l2 + l3)`` from (K, 3, 3) covariances."""
   covs = np.asarray(covariances)
   if covs.ndim != 3 or covs.shape[1:] != (3, 3):
-    raise ValueError(f'covariances have shape {covs.shape}; '
-                     'expected (K, 3, 3)')
+    raise SamplingError(f'covariances have shape {covs.shape}; '
+                        'expected (K, 3, 3)')
   return eigen_ratio(covs)
 
 
@@ -60,7 +62,7 @@ def local_curvature(points, k: int = 16, query=None) -> np.ndarray:
   """
   pts = np.asarray(points, np.float64)
   if pts.ndim != 2 or pts.shape[1] != 3:
-    raise ValueError(f'points have shape {pts.shape}; expected (N, 3)')
+    raise SamplingError(f'points have shape {pts.shape}; expected (N, 3)')
   q = pts if query is None else np.asarray(query, np.float64)
   k = int(min(max(k, 4), len(pts)))
   _, idx = spatial.cKDTree(pts).query(q, k=k, workers=-1)

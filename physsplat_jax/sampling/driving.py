@@ -35,6 +35,7 @@ from physsplat_jax.sampling import clustering
 from physsplat_jax.sampling import filling
 from physsplat_jax.sampling import pgas
 from physsplat_jax.sampling import poisson
+from physsplat_jax.sampling.poisson import SamplingError
 from physsplat_jax.types import device_array
 
 
@@ -108,7 +109,7 @@ def make_candidates(
   oid = np.asarray(object_ids).astype(np.int32)
   sel = np.nonzero(oid >= 0)[0]
   if len(sel) == 0:
-    raise ValueError('make_candidates: no Gaussian has object_id >= 0')
+    raise SamplingError('make_candidates: no Gaussian has object_id >= 0')
   g = gaussians.subset(sel)
   # R S^2 R^T in NumPy (op-by-op JAX would compile per object size).
   R = filling.quat_to_rotmat_host(g.quats)
@@ -166,7 +167,7 @@ def make_candidates(
         v = filling.sheet_volume_host(x[m], log_scales[oid[sel] == o])
       vol[m] = v / m.sum()
     if not np.sum(vol[m]) > 0.0:
-      raise ValueError(
+      raise SamplingError(
         f'make_candidates: object {int(o)} has zero volume ({int(m.sum())} '
         'candidates, coplanar or collinear with round Gaussians); give it '
         'thickness (scales), turn fill on, or leave it out of the '
@@ -189,8 +190,8 @@ def _voronoi_volume(cand: Candidates, drivers_x, driver_obj,
     dm = np.nonzero(driver_obj == o)[0]
     cm = np.nonzero(cand.object_ids == o)[0]
     if len(dm) == 0:
-      raise ValueError(f'object {o} got no driving particle; raise the '
-                       'budget or lower the radius')
+      raise SamplingError(f'object {o} got no driving particle; raise the '
+                          'budget or lower the radius')
     _, nn = spatial.cKDTree(drivers_x[dm]).query(cand.x[cm], workers=-1)
     w = cand.volume[cm]
     vol[dm] = np.bincount(nn, w, minlength=len(dm))
@@ -304,7 +305,7 @@ def select_drivers(
   x32 = device_array(cand.x, jnp.float32)
   if method == 'kmeans':
     if budget is None:
-      raise ValueError("select_drivers: method='kmeans' needs budget=")
+      raise SamplingError("select_drivers: method='kmeans' needs budget=")
     xs, obs = [], []
     objs = np.unique(cand.object_ids)
     for i, o in enumerate(objs):
@@ -322,18 +323,18 @@ def select_drivers(
                    candidate_index=np.full(len(x), -1, np.int32),
                    radius=np.zeros(len(x)))
   if config is None:
-    raise ValueError(f"select_drivers: method={method!r} needs config=")
+    raise SamplingError(f"select_drivers: method={method!r} needs config=")
   if backend not in ('host', 'jax'):
-    raise ValueError(f"select_drivers: backend={backend!r}; use 'host' or "
-                     "'jax'")
+    raise SamplingError(f"select_drivers: backend={backend!r}; use 'host' or "
+                        "'jax'")
   if method in ('pgas', 'pgas-cvt'):
     if E is None:
-      raise ValueError(f"select_drivers: method={method!r} needs E=")
+      raise SamplingError(f"select_drivers: method={method!r} needs E=")
     if isinstance(E, dict):
       missing = set(np.unique(cand.object_ids).tolist()) - set(E)
       if missing:
-        raise ValueError(f'select_drivers: E has no entry for objects '
-                         f'{sorted(missing)}')
+        raise SamplingError(f'select_drivers: E has no entry for objects '
+                            f'{sorted(missing)}')
       E = np.array([E[int(o)] for o in cand.object_ids], np.float64)
   if method == 'pgas-cvt':
     x, ob, idx, spacing, _ = centroidal.select_cvt(
@@ -348,8 +349,8 @@ def select_drivers(
   elif method == 'uniform':
     radius = np.full(m, config.base_radius)
   else:
-    raise ValueError(f"select_drivers: method={method!r}; use 'pgas-cvt', "
-                     "'pgas', 'uniform' or 'kmeans'")
+    raise SamplingError(f"select_drivers: method={method!r}; use 'pgas-cvt', "
+                        "'pgas', 'uniform' or 'kmeans'")
   cap = m if budget is None else min(m, budget)
   if backend == 'host':
     sample_fn = poisson.make_poisson_host(key, cand.x)

@@ -40,6 +40,7 @@ import numpy as np
 
 from physsplat_jax.sampling import curvature as curv
 from physsplat_jax.sampling import poisson
+from physsplat_jax.sampling.poisson import SamplingError
 from physsplat_jax.types import device_array
 
 
@@ -70,16 +71,16 @@ class PGASConfig:
 
   def __post_init__(self):
     if not self.base_radius > 0:
-      raise ValueError(
+      raise SamplingError(
         f'PGASConfig.base_radius={self.base_radius}: must be > 0')
     if not 1.0 <= self.v_min < self.v_max:
-      raise ValueError(f'PGASConfig: need 1 <= v_min < v_max, got '
-                       f'{self.v_min}, {self.v_max}')
+      raise SamplingError(f'PGASConfig: need 1 <= v_min < v_max, got '
+                          f'{self.v_min}, {self.v_max}')
     if not self.e_ref > 0:
-      raise ValueError(f'PGASConfig.e_ref={self.e_ref}: must be > 0 [Pa]')
+      raise SamplingError(f'PGASConfig.e_ref={self.e_ref}: must be > 0 [Pa]')
     if not 0 < self.min_radius_frac <= 1:
-      raise ValueError(f'PGASConfig.min_radius_frac={self.min_radius_frac}: '
-                       'must be in (0, 1]')
+      raise SamplingError(f'PGASConfig.min_radius_frac={self.min_radius_frac}: '
+                          'must be in (0, 1]')
 
 
 def adaptive_radius(E, K_hat, config: PGASConfig):
@@ -124,11 +125,11 @@ def pgas_curvature(
   oid = np.asarray(object_ids)
   n = len(pts)
   if surf.shape != (n,) or oid.shape != (n,):
-    raise ValueError(f'is_surface {surf.shape} and object_ids {oid.shape} '
-                     f'must both have shape ({n},)')
+    raise SamplingError(f'is_surface {surf.shape} and object_ids {oid.shape} '
+                        f'must both have shape ({n},)')
   if not surf.any():
-    raise ValueError('pgas_curvature: no surface points (is_surface is all '
-                     'False); pass the Gaussian centres as candidates')
+    raise SamplingError('pgas_curvature: no surface points (is_surface is all '
+                        'False); pass the Gaussian centres as candidates')
   kg = np.zeros(n)
   kg[surf] = curv.gaussian_curvature(np.asarray(covariances)[surf])
   sp = pts[surf] if surface_points is None else np.asarray(surface_points)
@@ -273,7 +274,7 @@ def scale_for_budget(
       break
     m = nxt
   if best is None:
-    raise ValueError(
+    raise SamplingError(
       f'scale_for_budget: no radius multiplier in [{lo_:.3g}, {hi_:.3g}] '
       f'keeps <= {budget} samples within the capacities; raise hi, or the '
       'max_per_cell / max_neighbors of sample_fn')

@@ -57,7 +57,14 @@ import numpy as np
 from flax import struct
 from scipy import spatial
 
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
+
+
+class SamplingError(PhysSplatError, ValueError):
+  """Bad input to driver sampling and selection; the message names the
+  field and the fix."""
+
 
 _HASH_PRIMES = (73856093, 19349663, 83492791)
 _SQRT3 = np.float32(math.sqrt(3.0))
@@ -374,7 +381,8 @@ def _ranked_priority(key, priority, n):
   """Distinct float priorities ``-rank`` (stable: ties to the lower index)."""
   if priority is None:
     if key is None:
-      raise ValueError('poisson_disk: pass a PRNG key or explicit priorities')
+      raise SamplingError(
+        'poisson_disk: pass a PRNG key or explicit priorities')
     priority = jax.random.uniform(key, (n,), jnp.float32)
   rank = jnp.argsort(jnp.argsort(-priority)).astype(jnp.float32)
   return -rank  # exact in f32 up to 2^24 points
@@ -594,12 +602,12 @@ def make_poisson_host(key=None, points=None, valid=None, priority=None,
   n = len(x)
   valid0 = np.ones(n, bool) if valid is None else np.asarray(valid, bool)
   if valid0.shape != (n,):
-    raise ValueError(f'poisson_disk_host: valid has shape {valid0.shape}; '
-                     f'expected ({n},)')
+    raise SamplingError(f'poisson_disk_host: valid has shape {valid0.shape}; '
+                        f'expected ({n},)')
   if priority is None:
     if key is None:
-      raise ValueError('poisson_disk_host: pass a PRNG key or explicit '
-                       'priorities')
+      raise SamplingError('poisson_disk_host: pass a PRNG key or explicit '
+                          'priorities')
     priority = jax.random.uniform(key, (n,), jnp.float32)
   priority = np.asarray(priority, np.float32)
   order = np.argsort(-priority, kind='stable')  # rank -> point
@@ -695,4 +703,4 @@ def check_overflow(result: PoissonResult, where: str = 'poisson_disk'):
     msgs.append('the radii span too many octaves or the points too large an '
                 'extent for int32 voxels (raise num_levels, or clip the '
                 'smallest radii)')
-  raise ValueError(f'{where} overflowed: ' + '; '.join(msgs))
+  raise SamplingError(f'{where} overflowed: ' + '; '.join(msgs))

@@ -47,8 +47,7 @@ class Segmentation:
   def __post_init__(self):
     ids = np.asarray(self.object_ids)
     if ids.ndim != 1:
-      raise SegmentationError(
-        f'object_ids must be (K,), got shape {ids.shape}')
+      raise SegmentationError(f'object_ids must be (K,), got shape {ids.shape}')
     n = len(self.names)
     if ids.size and (ids.min() < BACKGROUND or ids.max() >= n):
       raise SegmentationError(
@@ -113,8 +112,7 @@ def compact_labels(labels: np.ndarray, order: str = 'size'
   elif order == 'value':
     rank = np.arange(uniq.size)
   else:
-    raise SegmentationError(
-      f"order must be 'size' or 'value', got {order!r}")
+    raise SegmentationError(f"order must be 'size' or 'value', got {order!r}")
   new_of_old = np.empty(uniq.size, np.int64)
   new_of_old[rank] = np.arange(uniq.size)
   out = np.full(labels.shape, BACKGROUND, np.int32)

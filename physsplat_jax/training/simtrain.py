@@ -48,6 +48,7 @@ import optax
 from physsplat_jax import cameras as cam_lib
 from physsplat_jax import gaussians as gs
 from physsplat_jax import pipeline as pl
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import synthetic
 from physsplat_jax.mpdp import train as train_lib
@@ -58,6 +59,12 @@ from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
 from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera
+
+
+class TrainingError(PhysSplatError, ValueError):
+  """A training or fitting setup that cannot run (configs, data, shapes);
+  the message names it and the fix."""
+
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,8 +133,8 @@ class TaskConfig:
     names = {f.name for f in dataclasses.fields(cls)}
     bad = sorted(set(d) - names)
     if bad:
-      raise ValueError(f'unknown TaskConfig fields {bad}; valid: '
-                       f'{sorted(names)}')
+      raise TrainingError(f'unknown TaskConfig fields {bad}; valid: '
+                          f'{sorted(names)}')
     return cls(**d)
 
 
@@ -239,8 +246,8 @@ def driver_field(obj: synthetic.SyntheticObject,
   point (:func:`synthetic.field_at`; mean exactly 1 over the drivers).
   """
   if prepared.num_objects != 1:
-    raise ValueError('driver_field: scenes with one movable object only; '
-                     f'this one has {prepared.num_objects}.')
+    raise TrainingError('driver_field: scenes with one movable object only; '
+                        f'this one has {prepared.num_objects}.')
   x = np.asarray(prepared.frame.to_scene(prepared.x0), np.float64)
   return synthetic.field_at(obj, x).astype(np.float32)
 
@@ -276,9 +283,9 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
                                   margin=render_margin)
   config = tc.pipeline_config(render, rc)
   if tc.dtype == 'float64' and not jax.config.jax_enable_x64:
-    raise ValueError("TaskConfig.dtype='float64' needs x64: call "
-                     "jax.config.update('jax_enable_x64', True) first, or "
-                     "use dtype='float32'.")
+    raise TrainingError("TaskConfig.dtype='float64' needs x64: call "
+                        "jax.config.update('jax_enable_x64', True) first, or "
+                        "use dtype='float32'.")
   dtype = jnp.dtype(tc.dtype)
   cast = lambda t: jax.tree.map(  # noqa: E731
     lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating)
@@ -296,8 +303,8 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
       f'TaskConfig.substeps_per_frame (now {tc.substeps_per_frame}).')
   images = traj.images
   if images is not None and bool(jnp.any(traj.render_overflow)):
-    raise ValueError(f'cantilever {seed}: the rasterizer overflowed; raise '
-                     'render_margin.')
+    raise TrainingError(f'cantilever {seed}: the rasterizer overflowed; raise '
+                        'render_margin.')
   return Task(seed=seed, scene=scene, obj=obj, config=config,
               prepared=prepared, params=params, field=field, target=target,
               images=images)
@@ -344,14 +351,14 @@ def make_loss(config: pl.PipelineConfig) -> Callable:
 
 def _check_same_spec(tasks: Sequence[Task]) -> pl.PipelineConfig:
   if not tasks:
-    raise ValueError('no tasks given')
+    raise TrainingError('no tasks given')
   config = dataclasses.replace(tasks[0].config, render='none',
                                render_config=raster.RenderConfig())
   for t in tasks[1:]:
     if dataclasses.replace(t.config, render='none',
                            render_config=raster.RenderConfig()) != config:
-      raise ValueError(f'task {t.seed} has a different pipeline config; '
-                       'build all tasks from one TaskConfig.')
+      raise TrainingError(f'task {t.seed} has a different pipeline config; '
+                          'build all tasks from one TaskConfig.')
   return config
 
 
@@ -486,8 +493,8 @@ def trajectory_errors(tasks: Sequence[Task], models: dict[str, Any]
     for t in tasks:
       if isinstance(m, str):
         if m not in ('baseline', 'truth'):
-          raise ValueError(f"model {name!r}: unknown {m!r}; use params, "
-                           "'baseline' or 'truth'.")
+          raise TrainingError(f"model {name!r}: unknown {m!r}; use params, "
+                              "'baseline' or 'truth'.")
         f = jnp.ones_like(t.field) if m == 'baseline' else t.field
         errs.append(float(field_fn(f, t.params, t.prepared, t.target)))
       else:
@@ -548,8 +555,8 @@ def train_and_evaluate(config, workdir: str) -> dict:
   elif config.init == 'pretrained':
     params = pretrained.load_pretrained()
   else:
-    raise ValueError(f"sim.init={config.init!r}: use 'zero' or "
-                     "'pretrained'.")
+    raise TrainingError(f"sim.init={config.init!r}: use 'zero' or "
+                        "'pretrained'.")
   pipe_config = _check_same_spec(train + held)
   tx = make_optimizer(config.learning_rate, config.grad_clip,
                       config.num_steps)
@@ -653,10 +660,10 @@ def fit_material(task: Task, observe: str = 'trajectory',
     (losses), 'final_loss', 'seconds'.
   """
   if observe not in ('trajectory', 'video'):
-    raise ValueError(f"observe={observe!r}: use 'trajectory' or 'video'.")
+    raise TrainingError(f"observe={observe!r}: use 'trajectory' or 'video'.")
   if observe == 'video' and task.images is None:
-    raise ValueError("observe='video' needs a task made with "
-                     "render='differentiable' (make_task(..., render=...)).")
+    raise TrainingError("observe='video' needs a task made with "
+                        "render='differentiable' (make_task(..., render=...)).")
   if observe == 'video':
     config = task.config
   else:
