@@ -10,6 +10,7 @@ import trimesh
 
 from physsplat_jax import cameras as _cameras
 from physsplat_jax.types import Camera, Gaussians, ObjectInfo, Scene
+from physsplat_jax.types import DataError
 from physsplat_jax.types import concatenate_gaussians
 from physsplat_jax.types import device_array
 
@@ -37,13 +38,13 @@ def tube_mesh(points, radii, sections: int = 12) -> trimesh.Trimesh:
   """
   pts = np.asarray(points, np.float64)
   if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2:
-    raise ValueError(f'tube_mesh: points must be (P>=2, 3), got {pts.shape}')
+    raise DataError(f'tube_mesh: points must be (P>=2, 3), got {pts.shape}')
   r = np.broadcast_to(np.asarray(radii, np.float64), (len(pts),))
   if not np.all(r > 0):
-    raise ValueError('tube_mesh: radii must be > 0')
+    raise DataError('tube_mesh: radii must be > 0')
   seg = np.diff(pts, axis=0)
   if np.any(np.linalg.norm(seg, axis=-1) == 0):
-    raise ValueError('tube_mesh: consecutive points must differ')
+    raise DataError('tube_mesh: consecutive points must differ')
   tang = np.concatenate([seg[:1], seg[:-1] + seg[1:], seg[-1:]])
   tang /= np.linalg.norm(tang, axis=-1, keepdims=True)
   helper = np.eye(3)[np.argmin(np.abs(tang[0]))]
@@ -95,7 +96,7 @@ def assemble_scene(
     The scene, ``object_ids`` (K,) int32.
   """
   if not parts:
-    raise ValueError('assemble_scene: no objects')
+    raise DataError('assemble_scene: no objects')
   ids = np.concatenate(
     [np.full(g.num, i, np.int32) for i, (_, g) in enumerate(parts)]
   )
@@ -128,7 +129,7 @@ def orbit_rig(
   clipped.
   """
   if int(num_cameras) < 0:
-    raise ValueError(f'num_cameras must be >= 0, got {num_cameras}')
+    raise DataError(f'num_cameras must be >= 0, got {num_cameras}')
   if int(num_cameras) == 0:
     return ()
   return tuple(
@@ -145,7 +146,7 @@ def check_detail(detail: float) -> float:
   """Validates the ``detail`` knob (spacings scale as ``1 / detail``)."""
   d = float(detail)
   if not 0.05 <= d <= 8.0:
-    raise ValueError(
+    raise DataError(
       f'detail={detail} is out of range [0.05, 8]; 1 is the default, 2 '
       'gives about 4-8x more Gaussians'
     )

@@ -35,7 +35,7 @@ def scene_options(name: str) -> tuple[str, ...]:
 
 def _builder(name: str) -> Callable[..., Scene]:
   if not isinstance(name, str) or name not in _BUILDERS:
-    raise ValueError(
+    raise scene_io.SceneFileError(
       f'unknown built-in scene {name!r}; built-in scenes: '
       f'{", ".join(list_scenes())}'
     )

@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from physsplat_jax.segmentation.base import Segmentation
+from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.segmentation.base import compact_labels
 from physsplat_jax.types import Gaussians
 from physsplat_jax.io.scene import ID_PROPERTIES
@@ -58,25 +59,27 @@ def segment_by_attribute(
   if key is None:
     key = find_attribute(gaussians)
     if key is None:
-      raise ValueError(
+      raise SegmentationError(
         'no object-id property in the Gaussians (PLY extras are '
         f'{sorted(gaussians.extras)}); expected one of {list(ATTRIBUTE_KEYS)}'
         ' or pass key=')
   if key not in gaussians.extras:
-    raise ValueError(f'property {key!r} not in the Gaussians; extras are '
-                     f'{sorted(gaussians.extras)}')
+    raise SegmentationError(
+      f'property {key!r} not in the Gaussians; extras are '
+      f'{sorted(gaussians.extras)}')
   raw = np.asarray(gaussians.extras[key])
   if raw.shape != (gaussians.num,):
-    raise ValueError(f'property {key!r} has shape {raw.shape}, expected '
-                     f'({gaussians.num},)')
+    raise SegmentationError(f'property {key!r} has shape {raw.shape}, expected '
+                            f'({gaussians.num},)')
   if np.issubdtype(raw.dtype, np.floating):
     if not np.all(np.isfinite(raw)):
-      raise ValueError(f'property {key!r} has non-finite values')
+      raise SegmentationError(f'property {key!r} has non-finite values')
     bad = np.abs(raw - np.round(raw)) > 1e-3
     if bad.any():
       i = int(np.argmax(bad))
-      raise ValueError(f'property {key!r} is not an integer label (row {i}: '
-                       f'{raw[i]}); pass key= naming an id property')
+      raise SegmentationError(
+        f'property {key!r} is not an integer label (row {i}: '
+        f'{raw[i]}); pass key= naming an id property')
     raw = np.round(raw)
   labels = raw.astype(np.int64)
   for b in background_values:
@@ -89,7 +92,7 @@ def segment_by_attribute(
   else:
     names = list(names)
     if len(names) != len(values):
-      raise ValueError(f'{len(names)} names for {len(values)} distinct '
-                       f'labels {list(values)}')
+      raise SegmentationError(f'{len(names)} names for {len(values)} distinct '
+                              f'labels {list(values)}')
     out_names = names
   return Segmentation(ids, tuple(out_names), method='attribute')

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from physsplat_jax.segmentation.base import Segmentation
+from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.types import Gaussians
 
 
@@ -22,15 +23,16 @@ def _as_boxes(boxes) -> np.ndarray:
   if b.ndim == 1:
     b = b[None]
   if b.ndim != 2 or b.shape[1] != 6:
-    raise ValueError(f'boxes must be (n, 6) as (xmin, xmax, ymin, ymax, '
-                     f'zmin, zmax), got shape {b.shape}')
+    raise SegmentationError(f'boxes must be (n, 6) as (xmin, xmax, ymin, ymax, '
+                            f'zmin, zmax), got shape {b.shape}')
   if not np.all(np.isfinite(b)):
-    raise ValueError('boxes contain non-finite values')
+    raise SegmentationError('boxes contain non-finite values')
   bad = np.nonzero(np.any(b[:, 1::2] < b[:, 0::2], axis=1))[0]
   if bad.size:
-    raise ValueError(f'box {int(bad[0])} = {b[bad[0]].tolist()} has a max '
-                     'below its min; order is (xmin, xmax, ymin, ymax, zmin, '
-                     'zmax)')
+    raise SegmentationError(
+      f'box {int(bad[0])} = {b[bad[0]].tolist()} has a max '
+      'below its min; order is (xmin, xmax, ymin, ymax, zmin, '
+      'zmax)')
   return b
 
 
@@ -91,6 +93,6 @@ def segment_by_boxes(
   names = tuple(names) if names is not None else tuple(
     f'box_{i}' for i in range(n))
   if len(names) != n:
-    raise ValueError(f'{len(names)} names for {n} boxes')
+    raise SegmentationError(f'{len(names)} names for {n} boxes')
   ids = box_labels(gaussians.means, b, rotation)
   return Segmentation(ids, names, tuple(fixed or ()), method='boxes')

@@ -29,6 +29,7 @@ import scipy.sparse.csgraph
 
 from physsplat_jax.segmentation.base import BACKGROUND
 from physsplat_jax.segmentation.base import Segmentation
+from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.segmentation.base import compact_labels
 from physsplat_jax.types import Gaussians
 
@@ -70,8 +71,8 @@ def fit_plane_ransac(
   """
   x = np.asarray(points, np.float64)
   if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
-    raise ValueError(f'fit_plane_ransac: need (K >= 3, 3) points, got '
-                     f'{x.shape}')
+    raise SegmentationError(f'fit_plane_ransac: need (K >= 3, 3) points, got '
+                            f'{x.shape}')
   if threshold is None:
     threshold = 0.01 * _diag(x)
   rng = np.random.default_rng(seed)
@@ -92,9 +93,9 @@ def fit_plane_ransac(
   if cos_tilt is not None:
     ok &= np.abs(n @ u) >= cos_tilt
   if not ok.any():
-    raise ValueError('fit_plane_ransac: no acceptable plane hypothesis '
-                     f'(max_tilt_deg={max_tilt_deg}); the points may be '
-                     'degenerate or the up axis wrong')
+    raise SegmentationError('fit_plane_ransac: no acceptable plane hypothesis '
+                            f'(max_tilt_deg={max_tilt_deg}); the points may be '
+                            'degenerate or the up axis wrong')
   n, a = n[ok], a[ok]
   d = -np.sum(n * a, axis=1)
   # Score in chunks to bound memory (iterations x samples).
@@ -152,12 +153,12 @@ def cluster_points(
   if K == 0:
     return np.zeros(0, np.int32)
   if not eps > 0:
-    raise ValueError(f'cluster_points: eps must be > 0, got {eps}')
+    raise SegmentationError(f'cluster_points: eps must be > 0, got {eps}')
   cell = np.floor((x - x.min(0)) / eps).astype(np.int64)
   dims = cell.max(0) + 3  # +1 margin on each side for neighbour offsets
   if float(np.prod(dims.astype(np.float64))) > 2.0 ** 62:
-    raise ValueError(f'cluster_points: eps={eps} is too small for the '
-                     f'extent {x.max(0) - x.min(0)} (grid {dims})')
+    raise SegmentationError(f'cluster_points: eps={eps} is too small for the '
+                            f'extent {x.max(0) - x.min(0)} (grid {dims})')
   cell += 1
   keys = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
   vkeys, inv, counts = np.unique(keys, return_inverse=True,

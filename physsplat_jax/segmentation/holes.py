@@ -32,6 +32,7 @@ import numpy as np
 import scipy.ndimage
 import scipy.spatial
 
+from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.types import Scene
 from physsplat_jax.types import concatenate_gaussians
 
@@ -76,17 +77,18 @@ def fill_support_hole(
       or too many Gaussians to add.
   """
   if not 0 <= object_index < scene.num_objects:
-    raise ValueError(f'object_index {object_index} out of range (scene has '
-                     f'{scene.num_objects} objects)')
+    raise SegmentationError(
+      f'object_index {object_index} out of range (scene has '
+      f'{scene.num_objects} objects)')
   g = scene.gaussians
   ids = np.asarray(scene.object_ids)
   x = np.asarray(g.means, np.float64)
   up = scene.up_vector
   obj = ids == object_index
   if not obj.any():
-    raise ValueError(f'object {object_index} '
-                     f'({scene.objects[object_index].name!r}) has no '
-                     'Gaussians')
+    raise SegmentationError(f'object {object_index} '
+                            f'({scene.objects[object_index].name!r}) has no '
+                            'Gaussians')
   e1, e2 = _plane_basis(up)
   xo = x[obj]
   uv_o = np.stack([xo @ e1, xo @ e2], 1)
@@ -105,14 +107,14 @@ def fill_support_hole(
     labels, counts = labels[labels != object_index], counts[
       labels != object_index]
     if labels.size == 0:
-      raise ValueError(
+      raise SegmentationError(
         f'no Gaussians around the footprint of object {object_index} '
         f'({scene.objects[object_index].name!r}) within ring_width='
         f'{ring_width:.3g}; pass support_index and a larger ring_width')
     support_index = int(labels[np.argmax(counts)])
   ring = cand & (ids == support_index)
   if ring.sum() < 3:
-    raise ValueError(
+    raise SegmentationError(
       f'only {int(ring.sum())} Gaussians of support {support_index} around '
       f'object {object_index}; pass a larger ring_width')
   xr = x[ring]
@@ -129,15 +131,17 @@ def fill_support_hole(
   dnn, _ = tree_r.query(uv_r, k=2)
   cell = float(np.median(dnn[:, 1]))
   if not cell > 0:
-    raise ValueError('support Gaussians around the object coincide; cannot '
-                     'estimate their spacing')
+    raise SegmentationError(
+      'support Gaussians around the object coincide; cannot '
+      'estimate their spacing')
   uv_o = to_uv(xo)
   lo = uv_o.min(0) - (dilate + 1) * cell
   hi = uv_o.max(0) + (dilate + 1) * cell
   shape = np.ceil((hi - lo) / cell).astype(int) + 1
   if np.prod(shape) > 4 * max_new:
-    raise ValueError(f'hole grid {shape} too fine (cell {cell:.3g}); the '
-                     'support spacing is tiny compared to the object')
+    raise SegmentationError(
+      f'hole grid {shape} too fine (cell {cell:.3g}); the '
+      'support spacing is tiny compared to the object')
   foot = np.zeros(shape, bool)
   ij = np.floor((uv_o - lo) / cell).astype(int)
   foot[ij[:, 0], ij[:, 1]] = True
@@ -157,8 +161,9 @@ def fill_support_hole(
   if cells.shape[0] == 0:
     return scene
   if cells.shape[0] > max_new:
-    raise ValueError(f'{cells.shape[0]} Gaussians to add exceeds max_new='
-                     f'{max_new}')
+    raise SegmentationError(
+      f'{cells.shape[0]} Gaussians to add exceeds max_new='
+      f'{max_new}')
   rng = np.random.default_rng(seed)
   uv_new = lo + (cells + 0.5 + rng.uniform(-0.25, 0.25, cells.shape)) * cell
   k = min(num_donors, uv_r.shape[0])

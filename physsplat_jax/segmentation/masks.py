@@ -42,6 +42,7 @@ from physsplat_jax.render import fit_render_config
 from physsplat_jax.render import render_differentiable
 from physsplat_jax.segmentation.base import BACKGROUND
 from physsplat_jax.segmentation.base import Segmentation
+from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.types import Camera
 from physsplat_jax.types import Gaussians
 
@@ -97,8 +98,9 @@ def contribution_weights(
   lab = np.asarray(labels)
   H, W = camera.height, camera.width
   if lab.shape != (H, W):
-    raise ValueError(f'mask shape {lab.shape} != camera size ({H}, {W}); '
-                     'resize the camera with Camera.resized(W, H)')
+    raise SegmentationError(
+      f'mask shape {lab.shape} != camera size ({H}, {W}); '
+      'resize the camera with Camera.resized(W, H)')
   L = int(num_labels)
   cols = np.where((lab >= 0) & (lab < L), lab, L)
   G = -(-(L + 1) // 3)
@@ -151,16 +153,19 @@ def lift_masks(
     A :class:`Segmentation` (method 'masks').
   """
   if len(cameras) != len(masks) or not masks:
-    raise ValueError(f'lift_masks: {len(cameras)} cameras for {len(masks)} '
-                     'masks; give one mask per camera (at least one)')
+    raise SegmentationError(
+      f'lift_masks: {len(cameras)} cameras for {len(masks)} '
+      'masks; give one mask per camera (at least one)')
   if fill_unseen not in ('nearest', 'background'):
-    raise ValueError(f"fill_unseen must be 'nearest' or 'background', got "
-                     f'{fill_unseen!r}')
+    raise SegmentationError(
+      f"fill_unseen must be 'nearest' or 'background', got "
+      f'{fill_unseen!r}')
   masks = [np.asarray(m) for m in masks]
   for i, m in enumerate(masks):
     if m.ndim != 2 or not np.issubdtype(m.dtype, np.integer):
-      raise ValueError(f'mask {i} must be an (H, W) integer label image, got '
-                       f'{m.dtype} {m.shape}')
+      raise SegmentationError(
+        f'mask {i} must be an (H, W) integer label image, got '
+        f'{m.dtype} {m.shape}')
   if num_labels is None:
     num_labels = max(int(m.max()) for m in masks) + 1
   L = max(int(num_labels), 1)
@@ -184,7 +189,7 @@ def lift_masks(
     names = [f'object_{l}' for l in range(L)]
   names = tuple(names)
   if len(names) != L:
-    raise ValueError(f'{len(names)} names for {L} labels')
+    raise SegmentationError(f'{len(names)} names for {L} labels')
   return Segmentation(ids, names, method='masks')
 
 
