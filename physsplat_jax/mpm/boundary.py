@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.mpm import base
+from physsplat_jax.mpm import linalg as la
 
 # Width of the domain-box border in cells (PhysGaussian's bounding_box
 # padding).
@@ -201,23 +202,6 @@ def node_coords(grid: base.GridSpec, dtype):
           grid.lower[2] + i[None, None, :])
 
 
-def _along(a, n):
-  """``a . n`` for a static normal ``n`` (Python floats): its zero
-  components add no terms (a plane normal to a grid axis costs one product
-  per node or particle, not three)."""
-  terms = [a[d] * n[d] for d in range(3) if n[d] != 0.0]
-  out = terms[0]
-  for term in terms[1:]:
-    out = out + term
-  return out
-
-
-def _add_along(a, s, n):
-  """``a + s n`` per component for a static ``n``; where ``n`` is 0 the
-  component is ``a``'s own."""
-  return [a[d] + s * n[d] if n[d] != 0.0 else a[d] for d in range(3)]
-
-
 def _friction(v, vn, n, mu):
   """Coulomb friction on the tangential part after a contact.
 
@@ -289,8 +273,8 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
   v = list(v)
   x_new = [x[d] + dt * v[d] for d in range(3)]
   for p, n, mu, surface, on in contact_planes(config, t):
-    d0 = _along([x[k] - p[k] for k in range(3)], n) - radius
-    vn = _along(v, n)
+    d0 = la.vdot([x[k] - p[k] for k in range(3)], n) - radius
+    vn = la.vdot(v, n)
     target = -jnp.maximum(d0, 0.0) / dt
     hit = d0 + dt * vn < 0
     if surface == 'sticky':
@@ -298,17 +282,17 @@ def particle_contact(config: base.SimConfig, t, x, v, radius=0.0):
       hit = hit | (d0 <= _TOUCH * config.grid.dx)
     hit = on & hit
     dvn = jnp.where(hit, target - vn, 0.0)  # > 0 where hit
-    w = _add_along(v, -vn, n)
+    w = la.add_scaled(v, -vn, n)
     if surface == 'sticky':
       w = [jnp.where(hit, 0.0, w[k]) for k in range(3)]
     else:
       w = _friction(w, -dvn, n, mu)
-    w = _add_along(w, vn + dvn, n)
+    w = la.add_scaled(w, vn + dvn, n)
     v = [jnp.where(hit, w[k], v[k]) for k in range(3)]
     x_new = [x[k] + dt * v[k] for k in range(3)]
-    dn = _along([x_new[k] - p[k] for k in range(3)], n) - radius
+    dn = la.vdot([x_new[k] - p[k] for k in range(3)], n) - radius
     push = jnp.where(on, jnp.maximum(-dn, 0.0), 0.0)
-    x_new = _add_along(x_new, push, n)
+    x_new = la.add_scaled(x_new, push, n)
   return tuple(x_new), tuple(v)
 
 
@@ -401,7 +385,7 @@ def sticky_touch(config: base.SimConfig, t, x, radius):
   out = jnp.zeros_like(x[0])
   for p, n, _, surface, on in contact_planes(config, t):
     if surface in _PAIRED:
-      d0 = _along([x[k] - p[k] for k in range(3)], n) - radius
+      d0 = la.vdot([x[k] - p[k] for k in range(3)], n) - radius
       out = jnp.where(on & (d0 <= _TOUCH * config.grid.dx), 1.0, out)
   return out
 
@@ -486,11 +470,11 @@ def _plane_pairs(grid: base.GridSpec, bc, on, dist, mass, touch, gv):
       out.append(gv[c] - r * cb - _shift(r * cf, k, -s))
     return out
   n = bc.normal
-  vn = _along(gv, n)
+  vn = la.vdot(gv, n)
   r = jnp.minimum(b * vn + a * _shift(vn, k, s), 0.0)
   dv = r * cb + _shift(r * cf, k, -s)  # <= 0: minus the normal change
-  w = _friction(_add_along(gv, -vn, n), dv, n, bc.friction)
-  return _add_along(w, vn - dv, n)
+  w = _friction(la.add_scaled(gv, -vn, n), dv, n, bc.friction)
+  return la.add_scaled(w, vn - dv, n)
 
 
 def _surface_constraint(grid: base.GridSpec, bc, on, dist, gv, mass, touch):
@@ -510,12 +494,12 @@ def _surface_constraint(grid: base.GridSpec, bc, on, dist, gv, mass, touch):
   if bc.surface == 'sticky':
     gv = [jnp.where(hit, 0.0, gv[d]) for d in range(3)]
   else:
-    vn = _along(gv, n)
+    vn = la.vdot(gv, n)
     if bc.surface == 'slip':
       rem = vn
     else:  # separate: only the approaching part
       rem = jnp.minimum(vn, 0.0)
-    w = _add_along(gv, -rem, n)
+    w = la.add_scaled(gv, -rem, n)
     w = _friction(w, vn, n, bc.friction)
     gv = [jnp.where(hit, w[d], gv[d]) for d in range(3)]
   if pairs:

@@ -178,6 +178,42 @@ def axial(a: Mat):
   return (a[2][1] - a[1][2], a[0][2] - a[2][0], a[1][0] - a[0][1])
 
 
+# Vectors with static components: a plane's normal is Python floats (the
+# domain walls and a ground are axis-aligned), and a term with a Python zero
+# is left out at trace time. The values are the same; the programs carry
+# only the terms that are there (a GPU's fusion passes grow faster than a
+# chain's length, and a plane normal to an axis costs one product per node
+# or particle, not three).
+
+
+def static_zero(q) -> bool:
+  """Whether ``q`` is a Python number equal to 0 (known at trace time)."""
+  return isinstance(q, (int, float)) and q == 0
+
+
+def sum_products(terms):
+  """``sum(a * b)`` over ``terms`` without the terms with a Python zero
+  (0.0 if none is left)."""
+  out = None
+  for a, b in terms:
+    if static_zero(a) or static_zero(b):
+      continue
+    t = a * b
+    out = t if out is None else out + t
+  return 0.0 if out is None else out
+
+
+def vdot(a, b):
+  """``a . b`` of 3-vectors whose components may be Python numbers."""
+  return sum_products(zip(a, b))
+
+
+def add_scaled(a, s, n):
+  """``a + s n`` per component; where ``n`` has a Python zero the
+  component is ``a``'s own."""
+  return [a[d] if static_zero(n[d]) else a[d] + s * n[d] for d in range(3)]
+
+
 def solve_sym(a: Mat, b):
   """``a^{-1} b`` for a symmetric positive definite field (cofactors)."""
   c = cofactor(a)

@@ -124,38 +124,17 @@ def _rodrigues(w):
   return la.add(la.eye(w[0]), la.add(la.scale(K, a), la.scale(K2, b)))
 
 
-# Vectors below may mix arrays and Python floats (a plane's normal, static:
-# the domain walls and a ground are axis-aligned): a term with a Python
-# zero is left out at trace time, so the contact stage's program, one long
-# per-body chain on a GPU whose compile time grows faster than its length,
-# carries only the terms that are there. The values are the same.
-
-
-def _zero(q):
-  return isinstance(q, (int, float)) and q == 0
-
-
-def _sum_products(terms):
-  """``sum(a * b)`` over ``terms`` without the terms with a Python zero
-  (0.0 if none is left)."""
-  out = None
-  for a, b in terms:
-    if _zero(a) or _zero(b):
-      continue
-    t = a * b
-    out = t if out is None else out + t
-  return 0.0 if out is None else out
-
-
-def _dot(a, b):
-  return _sum_products(zip(a, b))
+# Vectors below may mix arrays and Python floats (a plane's normal, static):
+# terms with a Python zero are left out at trace time (``la.sum_products``),
+# so the contact stage's program, one long per-body chain on a GPU, carries
+# only the terms that are there.
 
 
 def _cross(a, b):
   def det2(p, q, r, s):  # p q - r s
-    if _zero(r) or _zero(s):
-      return _sum_products([(p, q)])
-    if _zero(p) or _zero(q):
+    if la.static_zero(r) or la.static_zero(s):
+      return la.sum_products([(p, q)])
+    if la.static_zero(p) or la.static_zero(q):
       return -(r * s)
     return p * q - r * s
   return (det2(a[1], b[2], a[2], b[1]), det2(a[2], b[0], a[0], b[2]),
@@ -171,7 +150,7 @@ def _inverse(A):
 
 def _apply(Ainv, b):
   """``Ainv b`` for a right-hand side with Python zeros."""
-  return tuple(_sum_products(zip(Ainv[i], b)) for i in range(3))
+  return tuple(la.sum_products(zip(Ainv[i], b)) for i in range(3))
 
 
 def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
@@ -326,16 +305,16 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
 
   def impulse(V, w, rc, dirn, j):
     # dirn: arrays, or a plane's normal as Python floats.
-    V = [V[d] if _zero(dirn[d]) else V[d] + free * j * dirn[d] / Ms
+    V = [V[d] if la.static_zero(dirn[d]) else V[d] + free * j * dirn[d] / Ms
          for d in range(3)]
     dw = _apply(Iinv, _cross(rc, tuple(
-      0.0 if _zero(dirn[d]) else j * dirn[d] for d in range(3))))
-    w = [w[d] if _zero(dw[d]) else w[d] + free * dw[d] for d in range(3)]
+      0.0 if la.static_zero(dirn[d]) else j * dirn[d] for d in range(3))))
+    w = la.add_scaled(w, free, dw)
     return V, w
 
   def k_eff(rc, dirn):
     a = _cross(rc, dirn)
-    return 1.0 / Ms + _dot(a, _apply(Iinv, a))
+    return 1.0 / Ms + la.vdot(a, _apply(Iinv, a))
 
   measured = _measure_contacts(planes, rigid, ssum, at, mass, r, x_new, free,
                                form)
@@ -347,18 +326,17 @@ def _plane_contacts(planes, rigid, ssum, at, mass, r, x_new, V, w, I, M,
     mcs = jnp.where(has, mc, 1.0)
     rc = tuple(mrc[d] / mcs for d in range(3))
     u = [V[d] + c for d, c in enumerate(_cross(w, rc))]
-    un = _dot(u, n_b)
+    un = la.vdot(u, n_b)
     jn = jnp.where(has, jnp.maximum(-un, 0.0) / k_eff(rc, n_b), 0.0)
     V, w = impulse(V, w, rc, n_b, jn)
-    shift = [shift[d] if _zero(n[d]) else shift[d] + dmax * n[d]
-             for d in range(3)]
+    shift = la.add_scaled(shift, dmax, n)
     if mu == 0.0:  # frictionless (the domain walls): no tangential impulse
       continue
     # Friction at the same point.
     u = [V[d] + c for d, c in enumerate(_cross(w, rc))]
-    un = _dot(u, n_b)
-    ut = [u[d] if _zero(n[d]) else u[d] - un * n[d] for d in range(3)]
-    ut2 = _dot(ut, ut)
+    un = la.vdot(u, n_b)
+    ut = [u[d] if la.static_zero(n[d]) else u[d] - un * n[d] for d in range(3)]
+    ut2 = la.vdot(ut, ut)
     slides = ut2 > tiny  # else no tangent direction (and no friction)
     st = jnp.sqrt(jnp.where(slides, ut2, 1.0))
     t = tuple(jnp.where(slides, ut[d] / st, 0.0) for d in range(3))
@@ -388,7 +366,7 @@ def _measure_contacts(planes, rigid, ssum, at, mass, r, x_new, free,
     arrays.
   """
   def columns(x, p, n, on, radius):
-    dist = _sum_products((x[d] - p[d], n[d]) for d in range(3)) - radius
+    dist = la.sum_products((x[d] - p[d], n[d]) for d in range(3)) - radius
     mh = jnp.where(rigid & on & (dist < 0), mass, 0.0)
     return ([mh] + [mh * r[d] for d in range(3)]
             + [mh * jnp.maximum(-dist, 0.0)])
@@ -401,8 +379,7 @@ def _measure_contacts(planes, rigid, ssum, at, mass, r, x_new, free,
     for p, n, _, _, on, radius in planes:
       mc, *mrc, mpen = ssum(columns(x, p, n, on, radius))
       dmax = depth(mc, mpen)
-      x = [x[d] if _zero(n[d]) else x[d] + at(dmax) * n[d]
-           for d in range(3)]
+      x = la.add_scaled(x, at(dmax), n)
       out.append(jnp.stack([mc, *mrc, dmax]))
     return jnp.stack(out)
 
@@ -412,10 +389,9 @@ def _measure_contacts(planes, rigid, ssum, at, mass, r, x_new, free,
     shift, out = [0.0] * 3, []
     for k, (_, n, _, _, _, _) in enumerate(planes):
       mc, *mrc, mpen = sums[5 * k:5 * k + 5]
-      done = _sum_products(zip(shift, n))
+      done = la.sum_products(zip(shift, n))
       dmax = jnp.maximum(depth(mc, mpen) - done, 0.0)
-      shift = [shift[d] if _zero(n[d]) else shift[d] + dmax * n[d]
-               for d in range(3)]
+      shift = la.add_scaled(shift, dmax, n)
       out.append(jnp.stack([mc, *mrc, dmax]))
     return jnp.stack(out)
 
