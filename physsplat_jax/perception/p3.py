@@ -605,8 +605,8 @@ def perceive_scene(
     library[options.default_material]  # fail early on a bad default
   # Every override and config value is checked before any question is
   # asked: a bad one fails at once, not after the MLLM answered others.
-  for i, info in enumerate(scene.objects):
-    _given_choice(info, i, options, library)
+  given = [_given_choice(info, i, options, library)
+           for i, info in enumerate(scene.objects)]
   if client is None and options.mllm.enabled:
     from physsplat_jax.io.mllm import MLLMClient
 
@@ -618,8 +618,9 @@ def perceive_scene(
               if client is not None else None)
   out = []
   for i, info in enumerate(scene.objects):
-    c = perceive_object(scene, i, options, library, client,
-                        None if images is None else images.get(i), deadline)
+    c = given[i] or perceive_object(
+      scene, i, options, library, client,
+      None if images is None else images.get(i), deadline)
     level = logging.WARNING if c.warnings else logging.INFO
     logging.log(level, 'perception: object %d %r -> %s via %s: %s%s', i,
                 info.name, c.summary(), c.source, c.reason,
