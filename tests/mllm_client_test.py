@@ -263,6 +263,17 @@ class ClientTest(absltest.TestCase):
                                       request_deadline_s=0))
     with self.assertRaisesRegex(mllm.MLLMError, 'must start with http'):
       mllm.MLLMClient(mllm.MLLMConfig(base_url='localhost:1234'))
+    # The numbers are checked offline too (a bad --mllm_* flag is reported
+    # even when no endpoint is set); an offline default config is fine.
+    self.assertIs(mllm.MLLMConfig().validate().enabled, False)
+    for field, value, flag in (('timeout_s', -1.0, 'mllm_timeout'),
+                               ('max_tokens', 0, 'mllm_max_tokens'),
+                               ('backoff_s', -2.0, 'mllm_backoff'),
+                               ('scene_deadline_s', float('nan'),
+                                'mllm_scene_deadline')):
+      with self.subTest(field), self.assertRaisesRegex(
+          mllm.MLLMError, f'{field} must .* 0, got .*--{flag}'):
+        mllm.MLLMConfig(**{field: value}).validate()
     self.assertEqual(mllm.MLLMConfig(base_url='http://h/v1/').url,
                      'http://h/v1/chat/completions')
     self.assertEqual(

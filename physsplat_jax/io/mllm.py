@@ -142,7 +142,26 @@ class MLLMConfig:
     return base + '/chat/completions'
 
   def validate(self) -> MLLMConfig:
-    """Returns self, or raises MLLMError(kind='config') naming the field."""
+    """Returns self, or raises MLLMError(kind='config') naming the field.
+
+    The numbers are checked offline too, so that a bad ``--mllm_*`` flag is
+    reported even when no endpoint is set; the endpoint's own fields only
+    when one is.
+    """
+    # (field, its flag, strictly positive?)
+    numbers = (('timeout_s', 'mllm_timeout', True),
+               ('request_deadline_s', 'mllm_deadline', True),
+               ('scene_deadline_s', 'mllm_scene_deadline', True),
+               ('max_tokens', 'mllm_max_tokens', True),
+               ('max_retries', 'mllm_retries', False),
+               ('backoff_s', 'mllm_backoff', False),
+               ('backoff_max_s', None, False))
+    for f, flag, strict in numbers:
+      v = getattr(self, f)
+      if not (v > 0 if strict else v >= 0):   # NaN fails both
+        raise MLLMError(
+          f'mllm {f} must be {">" if strict else ">="} 0, got {v}'
+          + (f' (--{flag})' if flag else ''), 'config')
     if not self.enabled:
       return self
     if not self.base_url.startswith(('http://', 'https://')):
@@ -151,16 +170,6 @@ class MLLMConfig:
         'https:// (e.g. http://127.0.0.1:11434/v1 for Ollama)', 'config')
     if not self.model:
       raise MLLMError('mllm model is empty; pass --mllm_model', 'config')
-    if not self.timeout_s > 0:
-      raise MLLMError(f'mllm timeout_s must be > 0, got {self.timeout_s}',
-                      'config')
-    for f in ('request_deadline_s', 'scene_deadline_s'):
-      if not getattr(self, f) > 0:
-        raise MLLMError(f'mllm {f} must be > 0, got {getattr(self, f)}',
-                        'config')
-    if self.max_retries < 0:
-      raise MLLMError(f'mllm max_retries must be >= 0, got '
-                      f'{self.max_retries}', 'config')
     return self
 
 
