@@ -341,7 +341,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
           take(aux['body_id']), take(mass), jax.tree.map(take, x),
           jax.tree.map(take, v_grid), jax.tree.map(take, Fe), reduce_fn,
           planes=[q + (rad,) for q in boundary.contact_planes(config, t)]
-          + walls)
+          + walls, C=jax.tree.map(take, C_new))
         x_new = tuple(merge(p, q) for p, q in zip(x_new, xr))
         v_new = tuple(merge(p, q) for p, q in zip(v_new, vr))
         C_new = jax.tree.map(merge, C_new, Cr)
