@@ -84,6 +84,35 @@ class GaussiansTest(absltest.TestCase):
       gram = 4 * np.pi * np.asarray(B.T @ B) / d.shape[0]
       np.testing.assert_allclose(gram, np.eye(16), atol=0.02)
 
+  def test_sh_basis_is_inria_real_sh(self):
+    """Against an independent construction: real SH from SciPy's complex
+    ones (which carry the Condon-Shortley phase), sqrt(2) Im Y_l^|m| for
+    m < 0 and sqrt(2) Re Y_l^m for m > 0, ordered m = -l..l. That is the
+    3DGS (INRIA ``eval_sh``) convention: e.g. basis 1 is -C1 y. Orthonor-
+    mality alone would pass any sign flip or order swap within a band."""
+    from scipy import special
+
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(64, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    theta, phi = np.arccos(d[:, 2]), np.arctan2(d[:, 1], d[:, 0])
+
+    def complex_sh(l, m):  # noqa: E741
+      if hasattr(special, 'sph_harm_y'):  # SciPy >= 1.15
+        return special.sph_harm_y(l, m, theta, phi)
+      return special.sph_harm(m, l, phi, theta)
+
+    want = []
+    for l in range(4):  # noqa: E741
+      for m in range(-l, l + 1):
+        Y = complex_sh(l, abs(m))
+        want.append(np.sqrt(2) * Y.imag if m < 0 else
+                    np.sqrt(2) * Y.real if m > 0 else Y.real)
+    with jax.enable_x64(True):
+      got = np.asarray(G.sh_basis(3, jnp.asarray(d)))
+    np.testing.assert_allclose(got, np.stack(want, -1), atol=1e-12)
+    np.testing.assert_allclose(got[:, 1], -G.SH_C1 * d[:, 1], atol=1e-12)
+
   def test_subset_and_concatenate(self):
     g = test_util.random_gaussians(jax.random.PRNGKey(0), 10, sh_degree=1)
     mask = np.arange(10) % 3 == 0

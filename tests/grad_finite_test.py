@@ -106,7 +106,7 @@ def _from_rest(models, ground):
     sampling='kmeans', max_particles=30 * len(models),
     particles_per_cell=2.0, use_mpdp=False, render='none', margin=1.0,
     fill=False, ground=ground)
-  prep, _ = pl.prepare_scene(_scene(models), mats, cfg)
+  prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), _scene(models), mats, cfg)
   prep = _f64(prep)
   params = _f64(pl.init_params(prep, cfg))
   rng = np.random.default_rng(1)
@@ -313,7 +313,8 @@ class ReadmeExampleTest(absltest.TestCase):
       num_frames=1, fps=600.0, grid_res=16, max_particles=150,
       render='none',
       initial_velocity=(('rubber ball', (0.5, 0.0, 1.0)),))
-    prepared, _ = ps.prepare_scene(scene, materials, config)
+    prepared, _ = ps.prepare_scene(jax.random.PRNGKey(0), scene, materials,
+                                    config)
     params = ps.init_params(prepared, config)
 
     def loss(p):

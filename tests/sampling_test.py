@@ -385,8 +385,10 @@ class DrivingTest(parameterized.TestCase):
     c = sampling.make_candidates(jax.random.PRNGKey(0), flat,
                                  np.full(200, 2, np.int32), fill=False)
     self.assertTrue(np.all(c.volume > 0))
+    # Area 4 times thickness 2 sqrt(3) sigma; the k-NN area estimate of 200
+    # random centres runs ~20 % high (the square's edge), hence 0.25.
     np.testing.assert_allclose(c.volume.sum(), 4.0 * 2 * np.sqrt(3) * 0.005,
-                               rtol=0.5)
+                               rtol=0.25)
     with self.assertRaisesRegex(ValueError, 'object 2 has zero volume'):
       sampling.make_candidates(
         jax.random.PRNGKey(0), gaussians(sheet, np.full((200, 3), -3.0)),
