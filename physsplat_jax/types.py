@@ -75,6 +75,80 @@ def sh_degree_from_bases(num_bases: int) -> int:
   return d
 
 
+def _nonfinite_rows(a) -> np.ndarray:
+  """Indices of the rows of a concrete (K, ...) array holding a non-finite
+  value (the test runs where the array lives; K booleans come back)."""
+  if _in_host_memory(a):
+    x = np.asarray(a)
+    return np.flatnonzero(~np.isfinite(x.reshape(len(x), -1)).all(axis=1))
+  ok = jnp.isfinite(a).reshape(a.shape[0], -1).all(axis=1)
+  return np.flatnonzero(~np.asarray(ok))
+
+
+def _rows_text(rows: np.ndarray) -> str:
+  shown = ', '.join(str(int(r)) for r in rows[:5])
+  return shown + (', ...' if len(rows) > 5 else '')
+
+
+def check_gaussians(g: Gaussians, where: str = 'gaussians', *,
+                    finite: bool = True, sh: bool = True) -> int:
+  """Checks a :class:`Gaussians` set and returns its size K.
+
+  Shapes (static, so safe under ``jit``): ``means`` (K, 3), ``log_scales``
+  (K, 3), ``quats`` (K, 4), ``opacity_logits`` (K,), ``sh`` (K, B, 3) with
+  B = 1, 4, 9 or 16 (unless ``sh=False``), ``normals`` (K, 3) or None, all
+  floating point. With ``finite``, concrete arrays (not tracers) must also
+  be finite: a NaN scale or opacity would otherwise drop the Gaussian from
+  every image without a word, a NaN colour turn pixels NaN.
+
+  Raises:
+    DataError: naming ``where``, the field, the shape or the bad rows.
+  """
+  if not isinstance(g, Gaussians):
+    raise DataError(f'{where}: expected a physsplat_jax.types.Gaussians, got '
+                    f'{type(g).__name__}')
+  means = g.means
+  if np.ndim(means) != 2 or np.shape(means)[1] != 3:
+    raise DataError(f'{where}: Gaussians.means has shape {np.shape(means)}, '
+                    'expected (K, 3)')
+  K = np.shape(means)[0]
+  fields = [('means', (K, 3)), ('log_scales', (K, 3)), ('quats', (K, 4)),
+            ('opacity_logits', (K,))]
+  if sh:
+    fields.append(('sh', (K, None, 3)))
+  if g.normals is not None:
+    fields.append(('normals', (K, 3)))
+  for name, shape in fields:
+    a = getattr(g, name)
+    got = np.shape(a)
+    if len(got) != len(shape) or any(e is not None and e != d
+                                     for e, d in zip(shape, got)):
+      want = '(' + ', '.join('B' if e is None else str(e) for e in shape) + \
+        (',)' if len(shape) == 1 else ')')
+      raise DataError(f'{where}: Gaussians.{name} has shape {got}, expected '
+                      f'{want} for its {K} Gaussians')
+    if not jnp.issubdtype(jnp.result_type(a), jnp.floating):
+      raise DataError(f'{where}: Gaussians.{name} has dtype '
+                      f'{jnp.result_type(a)}; use float32 (or float64)')
+  if sh:
+    try:
+      sh_degree_from_bases(np.shape(g.sh)[1])
+    except DataError as e:
+      raise DataError(f'{where}: Gaussians.sh: {e}') from None
+  if finite:
+    for name, _ in fields:
+      a = getattr(g, name)
+      if name == 'normals' or isinstance(a, jax.core.Tracer):
+        continue
+      rows = _nonfinite_rows(a)
+      if rows.size:
+        raise DataError(
+          f'{where}: {rows.size} of {K} Gaussians have non-finite {name} '
+          f'(rows {_rows_text(rows)}); drop them (Gaussians.subset) or fix '
+          'the scene file')
+  return K
+
+
 class Gaussians(struct.PyTreeNode):
   """A set of 3D Gaussians with their pre-activation parameters.
 
@@ -306,6 +380,9 @@ class Camera(struct.PyTreeNode):
 
   def resized(self, width: int, height: int) -> Camera:
     """The same camera at another resolution (intrinsics scaled)."""
+    if int(width) < 1 or int(height) < 1:
+      raise DataError(f'Camera.resized: image size {width}x{height}; width '
+                      'and height must be >= 1')
     sx = width / self.width
     sy = height / self.height
     return self.replace(
@@ -316,6 +393,40 @@ class Camera(struct.PyTreeNode):
       width=int(width),
       height=int(height),
     )
+
+
+def _check_camera_values(viewmat, fx, fy, width, height, near, far,
+                         name='') -> None:
+  """:func:`make_camera`'s checks, on the values that are concrete."""
+  what = f'camera {name!r}' if name else 'camera'
+  if int(width) < 1 or int(height) < 1 or int(width) != width or \
+      int(height) != height:
+    raise DataError(f'{what}: image size {width}x{height}; width and height '
+                    'must be whole numbers >= 1')
+  if np.shape(viewmat) != (4, 4):
+    raise DataError(f'{what}: viewmat has shape {np.shape(viewmat)}, expected '
+                    '(4, 4) (world-to-camera, OpenCV axes)')
+  concrete = lambda v: not isinstance(v, jax.core.Tracer)  # noqa: E731
+  for label, v in (('fx', fx), ('fy', fy)):
+    if concrete(v) and not (np.isfinite(v) and float(v) > 0):
+      raise DataError(f'{what}: focal length {label}={float(v)!r} must be a '
+                      'positive number of pixels')
+  if concrete(near) and concrete(far) and not (
+      np.isfinite(near) and 0 < float(near) < float(far)):
+    raise DataError(f'{what}: near={float(near)!r}, far={float(far)!r}; '
+                    'need 0 < near < far')
+  if concrete(viewmat):
+    vm = np.asarray(viewmat, np.float64)
+    R = vm[:3, :3]
+    if not np.all(np.isfinite(vm)):
+      raise DataError(f'{what}: viewmat has non-finite entries')
+    err = float(np.max(np.abs(R @ R.T - np.eye(3))))
+    if err > 1e-3 or np.linalg.det(R) < 0 or np.any(vm[3] != (0, 0, 0, 1)):
+      raise DataError(
+        f'{what}: viewmat is not a rigid transform (its 3x3 block must be a '
+        f'rotation: |R R^T - I| = {err:.3g}, det {np.linalg.det(R):.3g}; '
+        f'last row {vm[3].tolist()}, expected [0, 0, 0, 1]); build it with '
+        'cameras.look_at or from a camera-to-world pose')
 
 
 def make_camera(
@@ -331,9 +442,16 @@ def make_camera(
   name: str = '',
   dtype=jnp.float32,
 ) -> Camera:
-  """Builds a :class:`Camera`; the principal point defaults to the centre."""
+  """Builds a :class:`Camera`; the principal point defaults to the centre.
+
+  Raises:
+    DataError: a size below 1 pixel, a focal length that is not positive, a
+      ``viewmat`` that is not a finite 4x4 rigid transform, or
+      ``0 < near < far`` broken (values given as tracers are not checked).
+  """
   cx = width / 2.0 if cx is None else cx
   cy = height / 2.0 if cy is None else cy
+  _check_camera_values(viewmat, fx, fy, width, height, near, far, name)
   f = lambda v: device_array(v, dtype)
   return Camera(
     viewmat=f(viewmat),

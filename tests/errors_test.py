@@ -23,9 +23,11 @@ from physsplat_jax import pipeline as pl
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm import SimulationError
 from physsplat_jax.io import outputs
+from physsplat_jax.types import DataError
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
 from physsplat_jax.types import Scene
+from physsplat_jax.types import make_camera
 
 _RUBBER = pl.ObjectMaterial('fixed_corotated', 3e4, 0.3, 1000.0)
 _KEY = jax.random.PRNGKey(0)
@@ -137,10 +139,86 @@ class ValidationTest(absltest.TestCase):
       pl.prepare_scene(_KEY, point, [_RUBBER], pl.PipelineConfig())
     nan = scene.replace(gaussians=scene.gaussians.replace(
       means=scene.gaussians.means.at[3, 1].set(jnp.nan)))
-    with self.assertRaisesRegex(pl.PipelineError, '1 Gaussians have non-'):
+    with self.assertRaisesRegex(DataError, r'1 of 216 Gaussians have non-'
+                                r'finite means \(rows 3\)'):
       pl.prepare_scene(_KEY, nan, [_RUBBER], pl.PipelineConfig())
     with self.assertRaisesRegex(pl.PipelineError, 'one material per object'):
       pl.prepare_scene(_KEY, scene, [], pl.PipelineConfig())
+
+  def test_every_gaussian_field_ids_and_units_are_checked(self):
+    """Not only the means: a NaN scale or opacity dropped its Gaussian from
+    every frame without a word; ids and units gave IndexErrors."""
+    scene = _block_scene()
+    g = scene.gaussians
+    nan = jnp.nan
+    cases = (
+      (dict(gaussians=g.replace(log_scales=g.log_scales.at[:9, 0].set(nan))),
+       r'9 of 216 Gaussians have non-finite log_scales \(rows 0, 1, 2, 3, '
+       r'4, \.\.\.\)'),
+      (dict(gaussians=g.replace(opacity_logits=g.opacity_logits.at[5].set(
+        jnp.inf))), r'non-finite opacity_logits \(rows 5\)'),
+      (dict(gaussians=g.replace(sh=g.sh.at[7, 0, 2].set(nan))),
+       r'non-finite sh \(rows 7\)'),
+      (dict(gaussians=g.replace(quats=g.quats[:, :3])),
+       r'quats has shape \(216, 3\), expected \(216, 4\)'),
+      (dict(gaussians=g.replace(sh=jnp.zeros((216, 2, 3)))),
+       'SH coefficient count 2'),
+      (dict(object_ids=jnp.zeros(10, jnp.int32)),
+       r'object_ids has shape \(10,\)'),
+      (dict(object_ids=jnp.zeros(216)), 'dtype float32; expected'),
+      (dict(object_ids=jnp.full(216, 7)), r'outside -1\.\.0 \(e\.g\. 7\)'),
+      (dict(meters_per_unit=0.0), 'meters_per_unit=0.0 must be'),
+    )
+    for change, want in cases:
+      with self.subTest(want), self.assertRaisesRegex(DataError, want):
+        pl.prepare_scene(_KEY, scene.replace(**change), [_RUBBER],
+                         pl.PipelineConfig())
+    with self.assertRaisesRegex(pl.PipelineError, 'not a PRNG key'):
+      pl.prepare_scene('seed', scene, [_RUBBER], pl.PipelineConfig())
+
+  def test_run_inputs_are_checked_before_the_first_frame(self):
+    """A NaN velocity, nu = 0.5 or E <= 0 used to surface a frame later as
+    "the time step is too large"; now mpm.run names the field first."""
+    from physsplat_jax import mpm
+
+    grid = mpm.GridSpec(res=12, size=1.0)
+    x = 0.5 + 0.02 * np.random.default_rng(0).uniform(-1, 1, (20, 3))
+    cfg = mpm.SimConfig(grid=grid, dt=1e-3, substeps_per_frame=2)
+    mat = mpm.make_materials('fixed_corotated', 1e4, 0.3, 1000.0, num=20)
+
+    def run(v=np.zeros((20, 3)), m=mat):
+      s = mpm.init_state(x, v, 1e-4, m, cfg)
+      return mpm.run(s, m, None, cfg, 1)
+
+    run()
+    v = np.zeros((20, 3))
+    v[4, 1] = np.nan
+    for kw, want in ((dict(v=v), r'non-finite v for 1 of 20 particles \(4\)'),
+                     (dict(m=mat.replace(nu=mat.nu.at[2:].set(0.5))),
+                      r'nu outside \(-1, 0\.5\) for 18 of 20'),
+                     (dict(m=mat.replace(E=-mat.E)), 'E <= 0 for 20 of 20'),
+                     (dict(m=mat.replace(rho=mat.rho.at[0].set(0.0))),
+                      r'rho <= 0 for 1 of 20 particles \(0\)')):
+      with self.subTest(want), self.assertRaisesRegex(mpm.MPMInputError,
+                                                      want):
+        run(**kw)
+    with self.assertRaisesRegex(mpm.MPMInputError, 'gravity.*3 finite'):
+      mpm.SimConfig(grid=grid, dt=1e-3, gravity=(0.0, 0.0, np.nan))
+
+  def test_cameras_are_checked(self):
+    good = dict(viewmat=np.eye(4), fx=40.0, fy=40.0, width=32, height=24)
+    make_camera(**good)
+    scaled = np.diag([2.0, 2.0, 2.0, 1.0])
+    for change, want in ((dict(fx=0.0), 'fx=0.0 must be a positive'),
+                         (dict(fy=np.nan), 'fy=nan'),
+                         (dict(width=0), 'image size 0x24'),
+                         (dict(viewmat=np.eye(3)), r'shape \(3, 3\)'),
+                         (dict(viewmat=scaled), 'not a rigid transform'),
+                         (dict(near=5.0, far=1.0), 'need 0 < near < far')):
+      with self.subTest(want), self.assertRaisesRegex(DataError, want):
+        make_camera(**{**good, **change})
+    with self.assertRaisesRegex(DataError, 'image size 0x0'):
+      make_camera(**good).resized(0, 0)
 
   def test_unknown_object_names(self):
     scene = _block_scene()

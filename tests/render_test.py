@@ -4,6 +4,7 @@ gradients against central finite differences (x64) and gsplat's antialiased
 rasterize mode."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -225,6 +226,27 @@ class CapacityTest(parameterized.TestCase):
       raster.render(g.subset(np.zeros(5, bool)), cam)
     with self.assertRaisesRegex(RenderConfigError, 'prefix'):
       raster.render(g, cam, config=raster.RenderConfig(prefix='scan'))
+    with self.assertRaisesRegex(RenderInputError, r'opacity_logits has shape '
+                                r'\(5, 1\), expected \(5,\)'):
+      raster.render(g.replace(opacity_logits=g.opacity_logits[:, None]), cam)
+    # The host wrapper also checks values, and takes colour names.
+    bad = g.replace(log_scales=g.log_scales.at[2, 1].set(jnp.nan))
+    with self.assertRaisesRegex(RenderInputError,
+                                r'non-finite log_scales \(rows 2\)'):
+      images.render_image(bad, cam)
+    with self.assertRaisesRegex(RenderInputError, 'colors has non-finite'):
+      images.render_image(g, cam, colors=jnp.full((5, 3), jnp.nan))
+    np.testing.assert_array_equal(
+      images.render_image(g, cam, background='white').image,
+      images.render_image(g, cam, background=(1.0, 1.0, 1.0)).image)
+    # The render-only path has no reverse pass: the error says what to use
+    # (JAX's own named only its while loop); the differentiable path works.
+    loss = lambda fn, m: fn(g.replace(means=m), cam).image.mean()  # noqa
+    with self.assertRaisesRegex(RenderInputError, 'render_differentiable'):
+      jax.grad(functools.partial(loss, raster.render))(g.means)
+    grad = jax.grad(functools.partial(loss, raster.render_differentiable))(
+      g.means)
+    self.assertTrue(np.all(np.isfinite(grad)))
     for cls in (RenderInputError, RenderConfigError):
       self.assertTrue(issubclass(cls, PhysSplatError))
       self.assertTrue(issubclass(cls, ValueError))

@@ -43,11 +43,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
-from physsplat_jax.types import Camera, make_camera
+from physsplat_jax.types import Camera, DataError
+from physsplat_jax.types import make_camera
 
 
 class CameraFileError(PhysSplatError, ValueError):
   """A camera file that cannot be read."""
+
+
+def _file_camera(path, what, *args, **kwargs) -> Camera:
+  """``types.make_camera``, its errors naming the file and the camera."""
+  try:
+    return make_camera(*args, **kwargs)
+  except DataError as e:
+    raise CameraFileError(f'{path}: {what}: {e}') from None
 
 
 def _read_json(path):
@@ -147,8 +156,8 @@ def inria_cameras_from_json(
     rot = _matrix(d['rotation'], [(3, 3)], path, f'{what} rotation')
     vm = _exact_viewmat(rot.T, -rot.T @ pos)
     cams.append(
-      make_camera(
-        vm,
+      _file_camera(
+        path, what, vm,
         _number(d, 'fx', path, what),
         _number(d, 'fy', path, what),
         w,
@@ -351,8 +360,8 @@ def transforms_cameras_from_json(
     R = c2w[:3, :3] * np.array([1.0, -1.0, -1.0])  # OpenGL -> OpenCV axes
     vm = _exact_viewmat(R.T, -R.T @ c2w[:3, 3])
     cams.append(
-      make_camera(vm, fx, fy, w, h, cx, cy, near=near, far=far, name=name,
-                  dtype=dtype)
+      _file_camera(path, what, vm, fx, fy, w, h, cx, cy, near=near,
+                   far=far, name=name, dtype=dtype)
     )  # fmt: skip
   if not cams:
     raise CameraFileError(f'{path}: "frames" is empty')

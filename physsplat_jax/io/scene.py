@@ -58,7 +58,8 @@ from physsplat_jax.io.cameras import load_cameras
 from physsplat_jax.io.ply import PlyError, load_ply, save_ply
 from physsplat_jax.io.splat import load_splat
 from physsplat_jax.io import up_axis as up_lib
-from physsplat_jax.types import Camera, Gaussians, ObjectInfo, Scene
+from physsplat_jax.types import Camera, DataError, Gaussians, ObjectInfo
+from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera, up_vector
 
 PathLike = str | os.PathLike
@@ -455,12 +456,15 @@ def _cameras_from_json(items, path) -> tuple[Camera, ...]:
     vm = np.asarray(c['viewmat'], np.float64)
     if vm.shape != (4, 4) or not np.all(np.isfinite(vm)):
       raise SceneFileError(f'{sp}: camera {i} viewmat must be a finite 4x4')
-    out.append(make_camera(
-      vm, c['fx'], c['fy'], int(c['width']), int(c['height']),
-      cx=c['cx'], cy=c['cy'], near=float(c.get('near', 0.01)),
-      far=float(c.get('far', 1e10)), name=str(c.get('name', '')),
-      dtype=np.dtype(c.get('dtype', 'float32')),
-    ))
+    try:
+      out.append(make_camera(
+        vm, c['fx'], c['fy'], int(c['width']), int(c['height']),
+        cx=c['cx'], cy=c['cy'], near=float(c.get('near', 0.01)),
+        far=float(c.get('far', 1e10)), name=str(c.get('name', '')),
+        dtype=np.dtype(c.get('dtype', 'float32')),
+      ))
+    except DataError as e:
+      raise SceneFileError(f'{sp}: camera {i}: {e}') from None
   return tuple(out)
 
 

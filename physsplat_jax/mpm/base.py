@@ -106,8 +106,8 @@ class GridSpec:
 
 def _vec3(v, name):
   v = tuple(float(a) for a in v)
-  if len(v) != 3:
-    raise MPMInputError(f'{name} = {v!r}: need 3 numbers.')
+  if len(v) != 3 or not all(math.isfinite(a) for a in v):
+    raise MPMInputError(f'{name} = {v!r}: need 3 finite numbers.')
   return v
 
 

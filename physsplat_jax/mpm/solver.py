@@ -44,6 +44,7 @@ from physsplat_jax.mpm import base
 from physsplat_jax.mpm import boundary
 from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import linalg as la
+from physsplat_jax.mpm import inputs
 from physsplat_jax.mpm import rigid as rigid_lib
 from physsplat_jax.mpm import transfer
 from physsplat_jax.mpm.base import MPMInputError
@@ -652,6 +653,8 @@ class FrameLoop:
     if num_frames is None:
       raise MPMInputError('run: pass num_frames (or set config.num_frames).')
     self.forces = _check_inputs(state, materials, forces, config)
+    if check:
+      inputs.check_run_inputs(state, materials, self.forces, config)
     # The frame program depends on neither the frame count nor
     # rematerialisation (nothing is differentiated here): keyed without
     # them, a run of another length reuses the compiled frame.

@@ -46,8 +46,10 @@ from physsplat_jax.pipeline.config import as_prepare_config
 from physsplat_jax.pipeline.frames import SimFrame
 from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
+from physsplat_jax.types import DataError
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import Scene
+from physsplat_jax.types import check_gaussians
 from physsplat_jax.types import device_array
 
 
@@ -193,6 +195,21 @@ class PrepareReport:
 # ------------------------------------------------------------------ stages
 
 
+def _as_key(key):
+  """A PRNG key from a key or an integer seed; else a PipelineError."""
+  if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+    return jax.random.PRNGKey(int(key))
+  ok = isinstance(key, jax.core.Tracer) or (
+    hasattr(key, 'dtype') and (jax.dtypes.issubdtype(
+      key.dtype, jax.dtypes.prng_key) or (
+        np.shape(key) == (2,) and key.dtype == np.uint32)))
+  if not ok:
+    raise PipelineError(
+      f'prepare_scene: key {key!r} is not a PRNG key; pass '
+      'jax.random.PRNGKey(seed) (or an integer seed)')
+  return key
+
+
 def check_inputs(scene: Scene, materials: Sequence[Any]
                  ) -> tuple[list[int], list[int]]:
   """(movable, fixed) object indices; raises on anything unusable."""
@@ -205,7 +222,28 @@ def check_inputs(scene: Scene, materials: Sequence[Any]
   if scene.gaussians.num == 0:
     raise PipelineError(f'scene {scene.name!r} has no Gaussians; load a '
                         'scene with at least one.')
+  K = check_gaussians(scene.gaussians, f'scene {scene.name!r}')
   ids = np.asarray(scene.object_ids)
+  if ids.shape != (K,) or not np.issubdtype(ids.dtype, np.integer):
+    raise DataError(
+      f'scene {scene.name!r}: object_ids has shape {ids.shape} and dtype '
+      f'{ids.dtype}; expected ({K},) integers, one object index per Gaussian '
+      '(-1 for background)')
+  out = (ids < -1) | (ids >= len(scene.objects))
+  if out.any():
+    raise DataError(
+      f'scene {scene.name!r}: {int(out.sum())} object_ids are outside -1..'
+      f'{len(scene.objects) - 1} (e.g. {int(ids[out][0])}), but the scene has '
+      f'{len(scene.objects)} objects; give each Gaussian the index of its '
+      'object in scene.objects, or -1')
+  try:
+    mpu = float(scene.meters_per_unit)
+  except (TypeError, ValueError):
+    mpu = math.nan
+  if not (np.isfinite(mpu) and mpu > 0):
+    raise DataError(
+      f'scene {scene.name!r}: meters_per_unit={scene.meters_per_unit!r} must '
+      'be a positive number (metres per scene unit)')
   movable, fixed = [], []
   for o, info in enumerate(scene.objects):
     if np.any(ids == o):
@@ -215,11 +253,6 @@ def check_inputs(scene: Scene, materials: Sequence[Any]
       f'scene {scene.name!r} has no movable object (all are fixed or '
       'empty); clear ObjectInfo.fixed on the objects that should move.')
   means = np.asarray(scene.gaussians.means)
-  bad = ~np.all(np.isfinite(means), axis=1)
-  if bad.any():
-    raise PipelineError(
-      f'scene {scene.name!r}: {int(bad.sum())} Gaussians have non-finite '
-      'positions; remove them from the scene file first.')
   for o in movable:
     _check_material(names[o], materials[o])
     ext = np.ptp(means[ids == o], axis=0)
@@ -299,6 +332,24 @@ def _given_ground(z: float, lowest: float, dx: float) -> float:
   return z
 
 
+def _warn_unresolved(x_rs, ids, movable, names, L, dx, extent, cfg) -> None:
+  """Warns about movable objects less than two cells across: the grid
+  cannot resolve them (a launch speed that grows the grid to hold the
+  flight is the usual cause), and their motion is mostly numerical."""
+  for o in movable:
+    size = float(np.max(np.ptp(x_rs[ids == o], axis=0)))
+    if size >= 2 * dx:
+      continue
+    grown = L > 1.01 * extent * (1 + 2 * cfg.margin)
+    why = (f'the grid grew to {L:.3g} m to hold the launched motion '
+           '(initial_velocity, impulses): lower those speeds or raise '
+           'grid_res' if grown else 'raise grid_res or lower margin')
+    logging.warning(
+      'object %r is %.3g m across, %.2g cells of %.3g m: too small for the '
+      'grid to resolve, so its motion will be mostly numerical; %s.',
+      names[o], size, size / dx, dx, why)
+
+
 def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
                     gravity: float = 9.8) -> _Frame:
   """Simulation frame, grid (side, corner) and colliders.
@@ -358,6 +409,7 @@ def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
   frame = SimFrame(rotation=device_array(R, jnp.float32),
                    scale=device_array(s, jnp.float32),
                    shift=device_array(shift, jnp.float32))
+  _warn_unresolved(x_rs, ids, movable, names, L, dx, float(np.max(ext)), cfg)
   rows = np.nonzero(mov_mask)[0]
   local = {o: i for i, o in enumerate(movable)}
   local_ids = np.array([local[o] for o in ids[rows]], np.int32)
@@ -534,7 +586,7 @@ def prepare_scene(
   """Host-side, non-differentiable preparation of a scene for simulation.
 
   Args:
-    key: PRNG key for filling and sampling.
+    key: PRNG key for filling and sampling (or an integer seed).
     scene: the segmented scene; objects with ``ObjectInfo.fixed`` become
       colliders, the others are simulated.
     materials: one material record (``physsplat_jax.ObjectMaterial``) per
@@ -549,9 +601,11 @@ def prepare_scene(
     (prepared scene, report).
 
   Raises:
-    PipelineError: nothing to simulate, a bad material or scene, an object
+    PipelineError: nothing to simulate, a bad material or key, an object
       too small for the grid, too few driving particles, or a run that would
       need more than ``max_substeps_per_frame`` substeps per frame.
+    DataError: Gaussians, object ids or ``meters_per_unit`` of the wrong
+      shape or value (non-finite included), naming the field.
   """
   if isinstance(key, Scene):  # the old order: (scene, materials, config)
     old_mpdp = mpdp_params if isinstance(
@@ -559,6 +613,7 @@ def prepare_scene(
     return _prepare_old_order(
       key, scene, PipelineConfig() if materials is None else materials,
       old_mpdp)
+  key = _as_key(key)
   if gravity is None:
     gravity = getattr(config, 'gravity', 9.8)
   if use_mpdp is None:

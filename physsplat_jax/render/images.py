@@ -17,13 +17,17 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from physsplat_jax.render import raster
 from physsplat_jax.render.config import RenderConfig
+from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.render.config import RenderOutput
 from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
+from physsplat_jax.types import DataError
 from physsplat_jax.types import Gaussians
+from physsplat_jax.types import check_gaussians
 
 # pylint: disable=protected-access
 
@@ -232,8 +236,22 @@ def render_image(
     :class:`RenderOutput` of NumPy arrays (``overflow`` is False).
 
   Raises:
+    RenderInputError: non-finite values in the Gaussians, ``colors`` or
+      ``background`` (which may also be a name: 'white', 'black', 'grey');
+      wrong shapes.
     RuntimeError: still overflowing after ``max_retries`` re-runs.
   """
+  from physsplat_jax.render import views  # (views imports this module)
+
+  if isinstance(background, str):
+    background = views.parse_background(background)
+  try:
+    check_gaussians(gaussians, 'render_image', sh=colors is None)
+  except DataError as e:
+    raise RenderInputError(str(e)) from None
+  for name, a in (('colors', colors), ('background', background)):
+    if a is not None and not np.all(np.isfinite(np.asarray(a))):
+      raise RenderInputError(f'render_image: {name} has non-finite values')
   return render_image_async(
     gaussians, camera, background=background, covariances=covariances,
     view_rotations=view_rotations, colors=colors, config=config,

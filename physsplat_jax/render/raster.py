@@ -88,7 +88,9 @@ from physsplat_jax.render.project import Projected
 from physsplat_jax.render.project import project
 from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
+from physsplat_jax.types import DataError
 from physsplat_jax.types import Gaussians
+from physsplat_jax.types import check_gaussians
 
 # Exponent given to masked-out (Gaussian, pixel) pairs: exp(-1e10) == 0 with a
 # zero (not NaN) derivative.
@@ -112,12 +114,11 @@ def _check_inputs(gaussians, camera, background, covariances, view_rotations,
       f'render: camera must be a physsplat_jax.types.Camera, got '
       f'{type(camera).__name__} (build one with types.make_camera)'
     )
-  K = gaussians.means.shape[0]
-  if gaussians.means.ndim != 2 or gaussians.means.shape[1] != 3:
-    raise RenderInputError(
-      f'render: gaussians.means has shape {gaussians.means.shape}; expected '
-      '(K, 3)'
-    )
+  try:   # shapes and dtypes only: the values may be traced
+    K = check_gaussians(gaussians, 'render', finite=False,
+                        sh=colors is None)
+  except DataError as e:
+    raise RenderInputError(str(e)) from None
   if K == 0:
     raise RenderInputError(
       'render: the scene has no Gaussians (K = 0); nothing to draw'
@@ -135,14 +136,6 @@ def _check_inputs(gaussians, camera, background, covariances, view_rotations,
   if colors is not None and colors.shape != (K, 3):
     raise RenderInputError(
       f'render: colors has shape {colors.shape}; expected ({K}, 3) RGB'
-    )
-  if colors is None and (
-    gaussians.sh.ndim != 3 or gaussians.sh.shape[0] != K
-    or gaussians.sh.shape[2] != 3
-  ):
-    raise RenderInputError(
-      f'render: gaussians.sh has shape {gaussians.sh.shape}; expected '
-      f'({K}, B, 3)'
     )
   if np.shape(background) != (3,):
     raise RenderInputError(
@@ -478,6 +471,30 @@ def _rasterize(feat, binned, tiles_x, tiles_y, config, differentiable,
   return lax.map(tile_fn, tiles, batch_size=batch)
 
 
+@jax.custom_vjp
+def _no_reverse_pass(log_t, acc):
+  """Identity whose reverse pass names the fix: the render-only
+  compositor's early-stopping while loop has no reverse-mode derivative,
+  and JAX's own error there says nothing about the renderer."""
+  return log_t, acc
+
+
+def _no_reverse_pass_fwd(log_t, acc):
+  return (log_t, acc), None
+
+
+def _no_reverse_pass_bwd(_, cts):
+  raise RenderInputError(
+    'render: gradient of an image from the render-only path '
+    '(raster.render / render_image on the CPU path; in the pipeline '
+    "render='fast'), which has no reverse pass: use "
+    "raster.render_differentiable (pipeline: render='differentiable'), or "
+    "put the loss on the Gaussians or particles (render='none')")
+
+
+_no_reverse_pass.defvjp(_no_reverse_pass_fwd, _no_reverse_pass_bwd)
+
+
 def _untile(x, tiles_x, tiles_y, tile, st, H, W):
   """(T, S, P, ...) per-sub-tile pixels -> (H, W, ...) image."""
   sub = tile // st
@@ -521,6 +538,8 @@ def _render(gaussians, camera, background, covariances, view_rotations,
     else:
       log_t, acc = _rasterize(feat, binned, tiles_x, tiles_y, config,
                               differentiable, max_chunks)
+      if not differentiable:
+        log_t, acc = _no_reverse_pass(log_t, acc)
   st = config.resolved_subtile
   T = jnp.exp(_untile(log_t, tiles_x, tiles_y, tile, st, H, W))
   acc = _untile(acc, tiles_x, tiles_y, tile, st, H, W)

@@ -1,0 +1,88 @@
+"""Host-side checks of a run's inputs, before the first frame (``mpm.run``).
+
+A non-finite or impossible value in the initial state, the materials or the
+forces used to surface one frame later as "the simulation blew up, most
+likely because the time step is too large", which sent users after the
+wrong fix. These checks read the concrete arrays once (NumPy; on a GPU one
+transfer of the state) and name the field, how many particles and which.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from physsplat_jax.mpm.errors import MPMInputError
+
+
+def _rows(bad: np.ndarray) -> str:
+  idx = np.flatnonzero(bad)
+  shown = ', '.join(str(int(i)) for i in idx[:5])
+  return shown + (', ...' if len(idx) > 5 else '')
+
+
+def _per_particle(a, n: int) -> np.ndarray:
+  a = np.asarray(a)
+  return a.reshape(n, -1) if a.ndim and a.shape[0] == n else a.reshape(1, -1)
+
+
+def check_run_inputs(state, materials, forces, config) -> None:
+  """Raises :class:`MPMInputError` for an initial state, materials or
+  forces that no time step can simulate (names field, count, particles).
+
+  Checked: at least one particle; finite material fields, density > 0,
+  and for particles with a stress (every model but 'rigid') E > 0 and
+  -1 < nu < 0.5; finite positions, velocities, F, C, masses and volumes,
+  masses and volumes > 0; finite force values.
+  """
+  n = int(np.shape(state.x)[0])
+  if n == 0:
+    raise MPMInputError('mpm.run: the state has no particles; build it with '
+                        'mpm.init_state from at least one position.')
+  models = np.asarray(config.models)[np.asarray(materials.model_id)]
+  stressed = models != 'rigid'
+  for name, value in vars(materials).items():
+    if name == 'model_id' or value is None:
+      continue
+    a = _per_particle(value, n)
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+      raise MPMInputError(
+        f'mpm.run: material field {name} is not finite for {int(bad.sum())} '
+        f'of {n} particles ({_rows(bad)}); check the materials (and the '
+        'MPDP field or params they came from).')
+  E = np.broadcast_to(np.asarray(materials.E), (n,))
+  nu = np.broadcast_to(np.asarray(materials.nu), (n,))
+  rho = np.broadcast_to(np.asarray(materials.rho), (n,))
+  for label, bad, fix in (
+      ('rho <= 0', rho <= 0, 'a density in kg/m^3'),
+      ('E <= 0', stressed & (E <= 0), "a Young's modulus in Pa"),
+      ('nu outside (-1, 0.5)', stressed & ((nu <= -1) | (nu >= 0.5)),
+       "a Poisson's ratio below 0.5 (0.5 is incompressible: no time step "
+       'is stable)')):
+    if bad.any():
+      raise MPMInputError(
+        f'mpm.run: {label} for {int(bad.sum())} of {n} particles '
+        f'({_rows(bad)}); give each {fix}.')
+  for name in ('x', 'v', 'F', 'C', 'mass', 'vol0'):
+    a = getattr(state, name, None)
+    if a is None:
+      continue
+    bad = ~np.isfinite(_per_particle(a, n)).all(axis=1)
+    if bad.any():
+      raise MPMInputError(
+        f'mpm.run: the initial state has non-finite {name} for '
+        f'{int(bad.sum())} of {n} particles ({_rows(bad)}); the inputs it '
+        'was built from (positions, velocities, materials, params) are not '
+        'finite.')
+    if name in ('mass', 'vol0'):
+      low = ~(_per_particle(a, n) > 0).all(axis=1)
+      if low.any():
+        raise MPMInputError(
+          f'mpm.run: {name} <= 0 for {int(low.sum())} of {n} particles '
+          f'({_rows(low)}); give every particle a positive volume and '
+          'density.')
+  for value, bc in zip(forces.values, config.boundary_conditions):
+    if not np.all(np.isfinite(np.asarray(value))):
+      raise MPMInputError(
+        f'mpm.run: the value of {type(bc).__name__} is not finite: '
+        f'{np.asarray(value).tolist()}')
