@@ -115,6 +115,22 @@ class ValidationTest(absltest.TestCase):
     with self.assertRaisesRegex(pl.PipelineError, 'finite'):
       pl.ForceSpec(kind='point', vector=(1.0, float('nan'), 0.0), end=1.0)
     self.assertIs(pl.PipelineConfig(ground='sticky').ground, pl.Ground.STICKY)
+    # Shapes and types of values a user writes by hand.
+    for kw, want in ((dict(height=-2), r'PipelineConfig\.height=-2'),
+                     (dict(grid_res=16.5), r'grid_res=16\.5 .*whole'),
+                     (dict(initial_velocity=('cube', (1.0, 0.0, 0.0))),
+                      r"initial_velocity entry 'cube': give \(object name")):
+      with self.subTest(want), self.assertRaisesRegex(pl.PipelineError, want):
+        pl.PipelineConfig(**kw)
+    with self.assertRaisesRegex(pl.PipelineError, r'vector=\(0, 1\) must'):
+      pl.ForceSpec('impulse', 'cube', (0, 1))
+    scene = _block_scene()
+    for mats, want in (({'block': _RUBBER}, 'got dict'),
+                       (['jelly'], "material 'jelly' is not a material")):
+      with self.subTest(want), self.assertRaisesRegex(pl.PipelineError, want):
+        pl.prepare_scene(_KEY, scene, mats, pl.PipelineConfig())
+    with self.assertRaisesRegex(pl.PipelineError, 'must be a PipelineConfig'):
+      pl.simulate_scene(scene, pl.PipelineConfig().prepare)
 
   def test_motion_flags_name_the_bad_value(self):
     with self.assertRaisesRegex(app.UsageError, 'radius'):

@@ -24,6 +24,8 @@ import enum
 import math
 from typing import Any
 
+import numpy as np
+
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render import raster
 
@@ -85,6 +87,11 @@ def _finite(value) -> bool:
     return False
 
 
+def _whole(v) -> bool:
+  """An integer (not a bool, not 16.5)."""
+  return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
 def _check(owner: str, obj, checks) -> None:
   for ok, name, fix in checks:
     if not ok:
@@ -119,6 +126,13 @@ class ForceSpec:
   def __post_init__(self):
     object.__setattr__(self, 'kind',
                        _enum(ForceKind, self.kind, 'ForceSpec', 'kind'))
+    for k in ('vector', 'point'):
+      v = getattr(self, k)
+      if v is not None and (not isinstance(v, (tuple, list, np.ndarray))
+                            or len(v) != 3):
+        raise PipelineError(
+          f'ForceSpec on {self.object or "every object"!r}: {k}={v!r} must '
+          'be three numbers (x, y, z) in scene axes.')
     vals = list(self.vector) + list(self.point or ()) + [
       self.radius, self.start, self.end]
     if not all(_finite(v) for v in vals):
@@ -243,13 +257,17 @@ class PrepareConfig:
        'use a Courant number in (0, 1]'),
       (self.max_substeps_per_frame >= 1, 'max_substeps_per_frame',
        'use >= 1'),
-      (8 <= self.grid_res <= 512, 'grid_res', 'use 8..512'),
+      (_whole(self.grid_res) and 8 <= self.grid_res <= 512, 'grid_res',
+       'use a whole number in 8..512'),
       (_finite(self.margin) and self.margin >= 0, 'margin', 'use >= 0'),
       (_finite(self.particles_per_cell) and self.particles_per_cell > 0,
        'particles_per_cell', 'use > 0'),
       (self.max_particles >= 8, 'max_particles', 'use >= 8'),
       (self.bind_k >= 4, 'bind_k', 'use >= 4'),
-      (self.width >= 1 and self.height >= 1, 'width/height', 'use >= 1'),
+      (_whole(self.width) and self.width >= 1, 'width',
+       'use a whole number of pixels >= 1'),
+      (_whole(self.height) and self.height >= 1, 'height',
+       'use a whole number of pixels >= 1'),
       (self.camera_index >= -1, 'camera_index',
        'use -1 (fitted) or a camera index >= 0'),
       (len(self.background) == 3 and all(
@@ -266,7 +284,15 @@ class PrepareConfig:
        'floater_factor', 'use 0 (off) or >= 2 (times the median '
        '8th-neighbour distance)'),
     ])
-    for name, v in self.initial_velocity:
+    for item in self.initial_velocity:
+      if not (isinstance(item, (tuple, list)) and len(item) == 2
+              and isinstance(item[0], str)
+              and isinstance(item[1], (tuple, list, np.ndarray))):
+        raise PipelineError(
+          f'initial_velocity entry {item!r}: give (object name, (vx, vy, '
+          "vz)) pairs, e.g. initial_velocity=(('jelly cube', (1.0, 0.0, "
+          "0.0)),), name '' for every object")
+      name, v = item
       if len(v) != 3 or not all(_finite(c) for c in v):
         raise PipelineError(
           f'initial_velocity of {name or "every object"!r} is {v!r}: give '

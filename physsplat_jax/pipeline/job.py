@@ -104,6 +104,11 @@ def simulate_scene(
     The stage's own error (PipelineError, SimulationError, OutputError, ...)
     after ``report.json`` records it.
   """
+  if not isinstance(config, PipelineConfig):
+    raise PipelineError(
+      f'simulate_scene: config must be a PipelineConfig (all settings, '
+      f'flat), got {type(config).__name__}; e.g. PipelineConfig(num_frames='
+      '24, grid_res=32)')
   if out_dir is not None:
     out_lib.check_output_dir(out_dir)
   stages: dict[str, float] = {}

@@ -214,6 +214,12 @@ def check_inputs(scene: Scene, materials: Sequence[Any]
                  ) -> tuple[list[int], list[int]]:
   """(movable, fixed) object indices; raises on anything unusable."""
   names = [o.name for o in scene.objects]
+  if isinstance(materials, (dict, str)) or not hasattr(materials,
+                                                       '__len__'):
+    raise PipelineError(
+      f'materials must be a sequence with one material per object, in '
+      f'scene.objects order (e.g. perception.perceive_scene(scene)); got '
+      f'{type(materials).__name__}')
   if len(materials) != len(scene.objects):
     raise PipelineError(
       f'{len(materials)} materials for {len(scene.objects)} objects of scene '
@@ -265,6 +271,10 @@ def check_inputs(scene: Scene, materials: Sequence[Any]
 
 
 def _check_material(name: str, m) -> None:
+  if not all(hasattr(m, f) for f in ('model', 'E', 'nu', 'rho')):
+    raise PipelineError(
+      f'object {name!r}: material {m!r} is not a material; give a '
+      'pipeline.ObjectMaterial (or a perception result)')
   bad = []
   if not (np.isfinite(m.E) and m.E > 0):
     bad.append(f'E={m.E!r} (use > 0 Pa)')
