@@ -211,6 +211,11 @@ class ClientTest(absltest.TestCase):
     self.assertEqual((cm.exception.kind, cm.exception.attempts),
                      ('connection', 2))
     self.assertIn('cannot connect', str(cm.exception))
+    # The next question (e.g. the scene's next object) fails at once.
+    with self.assertRaisesRegex(mllm.MLLMError, 'not asked again') as cm:
+      c.complete('y')
+    self.assertEqual((cm.exception.kind, cm.exception.attempts, c.num_requests),
+                     ('connection', 0, 2))
 
   def test_malformed_response_body(self):
     script = lambda req, n: (Reply(body='<html>proxy error</html>')

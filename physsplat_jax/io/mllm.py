@@ -384,6 +384,10 @@ class MLLMClient:
                       'API key', config.api_key_env)
     self.num_requests = 0
     self.num_cache_hits = 0
+    # Set when a question ended because the endpoint could not be reached
+    # at all (refused, unknown host): later questions fail at once instead
+    # of spending their retries on a server that is not there.
+    self.unreachable: str | None = None
 
   def _body(self, prompt, images, system) -> bytes:
     content = [{'type': 'text', 'text': prompt}]
@@ -541,6 +545,9 @@ class MLLMClient:
       if text is not None:
         self.num_cache_hits += 1
         return MLLMReply(text=text, cached=True, attempts=0, key=key)
+    if self.unreachable:
+      raise MLLMError(f'{self.unreachable}; not asked again in this run',
+                      'connection', attempts=0)
     if end <= time.monotonic():
       raise self._deadline_error(budget)
     body = self._body(prompt, tuple(images() if lazy else images), system)
@@ -561,6 +568,8 @@ class MLLMClient:
             f'after {attempts} attempts')
           if retryable and attempts <= self.config.max_retries:
             what = f'after {attempts} attempts; no time left to retry'
+          if e.kind == 'connection':
+            self.unreachable = f'{e} ({what})'
           raise MLLMError(f'{e} ({what})', e.kind, e.status, attempts
                           ) from None
         logging.warning('mllm: attempt %d failed (%s); retrying in %.2f s',
