@@ -33,6 +33,13 @@ class DataError(PhysSplatError, ValueError):
   message names the field."""
 
 
+class UnknownObjectError(PhysSplatError, KeyError):
+  """A scene object asked for by a name the scene does not have."""
+
+  def __str__(self) -> str:  # the message, not KeyError's repr of it
+    return str(self.args[0]) if self.args else ''
+
+
 Array = jax.Array
 ArrayLike = Any
 
@@ -526,7 +533,7 @@ class Scene(struct.PyTreeNode):
     if isinstance(index_or_name, str):
       names = self.object_names
       if index_or_name not in names:
-        raise KeyError(
+        raise UnknownObjectError(
           f'scene {self.name!r} has no object {index_or_name!r}; objects: '
           f'{list(names)}'
         )

@@ -95,8 +95,15 @@ class ErrorPathTest(absltest.TestCase):
                 ps.distributed.DistributedStartError, ps.mpm.MPMInputError,
                 ps.mpdp.MPDPError, ps.training.TrainingError,
                 ps.sampling.SamplingError, ps.cameras.CameraError,
-                ps.deform.DeformError, ps.types.DataError):
+                ps.deform.DeformError, ps.types.DataError,
+                ps.types.UnknownObjectError, ps.render.RenderCapacityError):
       self.assertTrue(issubclass(cls, PhysSplatError), cls)
+    # Still what a caller caught before: a KeyError, a RuntimeError.
+    with self.assertRaises(KeyError) as cm:
+      _block_scene().object_mask('ball')
+    self.assertIsInstance(cm.exception, PhysSplatError)
+    self.assertTrue(str(cm.exception).startswith("scene 'block' has no"))
+    self.assertTrue(issubclass(ps.render.RenderCapacityError, RuntimeError))
 
 
 class ValidationTest(absltest.TestCase):

@@ -12,6 +12,9 @@ import warnings as _warnings
 from physsplat_jax.render.project import Projected as Projected
 from physsplat_jax.render.project import project as project
 from physsplat_jax.render.config import (
+  RenderCapacityError as RenderCapacityError,
+)
+from physsplat_jax.render.config import (
   RenderConfigError as RenderConfigError,
 )
 from physsplat_jax.render.config import (

@@ -18,6 +18,11 @@ class RenderConfigError(PhysSplatError, ValueError):
   """A :class:`RenderConfig` field has a value it cannot take."""
 
 
+class RenderCapacityError(PhysSplatError, RuntimeError):
+  """A render that still overflowed its intersection capacity after the
+  allowed re-runs; the message names the capacity to pass."""
+
+
 class RenderInputError(PhysSplatError, ValueError):
   """Something given to the renderer (Gaussians, camera, arrays, image)
   has a shape or value it cannot take."""

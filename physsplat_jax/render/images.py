@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.render import raster
+from physsplat_jax.render.config import RenderCapacityError
 from physsplat_jax.render.config import RenderConfig
 from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.render.config import RenderOutput
@@ -138,7 +139,8 @@ class PendingRender:
     """The :class:`RenderOutput` as NumPy arrays, never overflowing.
 
     Raises:
-      RuntimeError: still overflowing after ``max_retries`` re-runs.
+      RenderCapacityError: (a RuntimeError) still overflowing after
+        ``max_retries`` re-runs.
     """
     if self._result is not None:
       return self._result
@@ -159,7 +161,7 @@ class PendingRender:
         need = -(-int(out.max_tile_count) // config.chunk_size)
         if need > config.resolved_max_chunks(K):
           config = dataclasses.replace(config, max_chunks=need)
-    raise RuntimeError(
+    raise RenderCapacityError(
       f'render_image: still overflowing after {self._max_retries} re-runs '
       f'(intersections {int(out.num_intersections)}, capacity '
       f'{config.resolved_capacity(K)}); pass a larger RenderConfig.capacity'
@@ -239,7 +241,8 @@ def render_image(
     RenderInputError: non-finite values in the Gaussians, ``colors`` or
       ``background`` (which may also be a name: 'white', 'black', 'grey');
       wrong shapes.
-    RuntimeError: still overflowing after ``max_retries`` re-runs.
+    RenderCapacityError: (a RuntimeError) still overflowing after
+      ``max_retries`` re-runs.
   """
   from physsplat_jax.render import views  # (views imports this module)
 
