@@ -436,6 +436,23 @@ class DomainTest(absltest.TestCase):
     usable_top = spec.grid_lower[2] + spec.grid_size - 3 * spec.dx
     self.assertGreater(usable_top, top + 1.0 / (2 * 9.8))
 
+  def test_a_sideways_launch_leaves_room_behind(self):
+    """A launch that sets the grid's size by its reach still leaves every
+    wall 4 cells (a grid under 32 cells: grid_res / 8) from the objects, so
+    nothing starts inside the domain box's 3-cell border on the side away
+    from the motion (2.7 cells at 32 cells before)."""
+    scene = _scene(with_table=False)
+    for res in (16, 32):
+      cfg = _config(grid_res=res, margin=0.3, max_particles=400,
+                    initial_velocity=(('', (2.0, 0.0, 0.0)),))
+      prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER],
+                                 cfg)
+      spec, x = prep.spec, np.asarray(prep.x0)
+      self.assertGreater(spec.grid_size, 3 * 0.06)  # sized by the reach
+      near = min(x[:, 0].min(), x[:, 1].min(),
+                 spec.grid_size - x[:, 1].max()) / spec.dx
+      self.assertGreaterEqual(near, min(4.0, res / 8) - 1e-3, res)
+
 
 if __name__ == '__main__':
   absltest.main()

@@ -381,6 +381,12 @@ def sim_frame_stage(scene: Scene, movable, fixed, cfg: PrepareConfig,
   lo, hi = motion_reach(lo, hi, [R @ np.asarray(v) for v in kicks], gravity)
   L = max(float(np.max(ext)) * (1 + 2 * cfg.margin),
           float(np.max(hi - lo)) * (1 + 2 * min(cfg.margin, 0.1)))
+  # Sideways, at least 4 cells (fewer on a grid under 32) between the reach
+  # and each wall: the domain box's 3-cell border holds anything nearer (a
+  # launch that set L by its reach left 2.7 cells on a 32-cell grid, and the
+  # objects started in the border on the side away from the motion).
+  room = 2 * min(4.0, cfg.grid_res / 8) / cfg.grid_res
+  L = max(L, float(np.max((hi - lo)[:2])) / (1 - room))
   zlo = lo[2]
   for _ in range(2):  # the support may sit under the objects: find it
     for _ in range(2):  # vertical room: 4 cells below, 4 above
