@@ -228,6 +228,44 @@ class ValidationTest(absltest.TestCase):
     with self.assertRaisesRegex(mpm.MPMInputError, 'gravity.*3 finite'):
       mpm.SimConfig(grid=grid, dt=1e-3, gravity=(0.0, 0.0, np.nan))
 
+  def test_params_and_time_step_inputs_are_checked(self):
+    from physsplat_jax import mpm
+
+    scene = _block_scene()
+    cfg = pl.PipelineConfig(grid_res=16, max_particles=64, fill=False,
+                            num_frames=1, render='none')
+    prep, _ = pl.prepare_scene(_KEY, scene, [_RUBBER], cfg)
+    params = pl.init_params(prep, cfg)
+    bad = params.replace(velocity=jnp.zeros((3, 3)))
+    with self.assertRaisesRegex(pl.PipelineError, r'Params\.velocity has '
+                                r'shape \(3, 3\); expected \(1, 3\)'):
+      pl.simulate(bad, prep, cfg.simulate)
+    mat = mpm.make_materials('fixed_corotated', 0.0, 0.3, 1000.0, num=4)
+    with self.assertRaisesRegex(mpm.MPMInputError, 'E <= 0'):
+      mpm.choose_substeps(0.01, 1 / 30, mat)
+    with self.assertRaisesRegex(mpm.MPMInputError, 'no elastic wave speed'):
+      mpm.cfl_dt(-1e5, 0.3, 1e3, 0.1)
+
+  def test_silent_no_ops_are_warned_about(self):
+    """A point force whose ball holds no particle, a camera that sees no
+    Gaussian: runs that did nothing visible without a word."""
+    from physsplat_jax import cameras
+
+    away = make_camera(cameras.look_at((0.0, -1.0, 0.0), (0.0, -2.0, 0.0)),
+                       40.0, 40.0, 32, 24)
+    scene = _block_scene().replace(cameras=(away,))
+    cfg = pl.PipelineConfig(
+      grid_res=16, max_particles=64, fill=False, num_frames=1, width=32,
+      height=24, camera_index=0, forces=(pl.ForceSpec(
+        'point', 'block', (0.0, 0.0, 1.0), point=(5.0, 5.0, 5.0),
+        radius=0.01, end=1.0),))
+    with self.assertLogs('absl', level='WARNING') as logs:
+      prep, _ = pl.prepare_scene(_KEY, scene, [_RUBBER], cfg)
+      pl.run(pl.init_params(prep, cfg), prep, cfg)
+    text = '\n'.join(logs.output)
+    self.assertIn("point force on 'block': its ball", text)
+    self.assertIn('frame 0: the camera sees none of the', text)
+
   def test_cameras_are_checked(self):
     good = dict(viewmat=np.eye(4), fx=40.0, fy=40.0, width=32, height=24)
     make_camera(**good)

@@ -54,9 +54,14 @@ def cfl_dt(E, nu, rho, dx, cfl: float = DEFAULT_CFL, fluid=False) -> float:
   Returns:
     dt [s] (inf for an empty array).
   """
-  c = np.atleast_1d(wave_speed(E, nu, rho, fluid))
+  with np.errstate(all='ignore'):
+    c = np.atleast_1d(wave_speed(E, nu, rho, fluid))
   if c.size == 0:
     return math.inf
+  if not np.all(np.isfinite(c) & (c > 0)):
+    raise MPMInputError(
+      f'cfl_dt: no elastic wave speed for E={E}, nu={nu}, rho={rho}: need '
+      'E > 0, rho > 0 and -1 < nu < 0.5 (all finite)')
   return float(cfl * dx / np.max(c))
 
 
@@ -96,6 +101,13 @@ def stable_dt(materials: base.Materials, dx: float, models=None,
     ``(dt, reason)`` with reason 'elastic', 'speed', 'viscosity' or 'none'.
   """
   E, nu, rho, eta, fluid = _active(materials, models, body_id)
+  for label, bad in (('E <= 0', ~(E > 0)), ('rho <= 0', ~(rho > 0)),
+                     ('nu outside (-1, 0.5)', ~((nu > -1) & (nu < 0.5)))):
+    if bad.any():   # (NaN included) no wave speed, no time step
+      raise MPMInputError(
+        f'stable_dt: {label} (or not finite) for {int(bad.sum())} of '
+        f'{bad.size} stressed particles; give every deformable particle '
+        "a Young's modulus and density > 0 and a Poisson's ratio below 0.5")
   cands = [(math.inf, 'none')]
   if E.size:
     c = wave_speed(E, nu, rho, fluid)

@@ -37,6 +37,7 @@ from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline import frames as frames_lib
 from physsplat_jax.pipeline.colliders import Colliders
 from physsplat_jax.pipeline.colliders import find_colliders
+from physsplat_jax.pipeline.config import ForceKind
 from physsplat_jax.pipeline.config import Ground
 from physsplat_jax.pipeline.config import PipelineConfig
 from physsplat_jax.pipeline.config import PipelineError
@@ -578,6 +579,15 @@ def forces_stage(cfg: PrepareConfig, frame: SimFrame, x0, dobj, movable_names):
       sel = dobj == oi if oi >= 0 else np.ones(len(x0), bool)
       p = x0[sel].mean(0)
     f_pts.append(_quantise(p))
+    if f.kind is ForceKind.POINT:
+      sel = dobj == oi if oi >= 0 else np.ones(len(x0), bool)
+      hit = np.sum(np.sum((x0[sel] - p) ** 2, axis=1) < f.radius ** 2)
+      if hit == 0:
+        logging.warning(
+          'point force on %r: its ball (radius %.3g m around %s) holds none '
+          'of the object\'s particles, so it does nothing; move the point '
+          'onto the object or widen the radius.', f.object or 'every object',
+          f.radius, f.point)
   for name, _ in cfg.initial_velocity:
     if name and name not in movable_names:
       raise PipelineError(

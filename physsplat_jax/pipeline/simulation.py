@@ -163,12 +163,29 @@ def _mpm_materials(E, nu, rho, prepared: PreparedScene,
                        **fields)
 
 
+def _check_params(params, prepared: PreparedScene, config) -> None:
+  """Shapes of :class:`Params` (static: safe under ``jit``)."""
+  if not isinstance(params, Params):
+    raise PipelineError(f'params must be a pipeline.Params (init_params), got '
+                        f'{type(params).__name__}')
+  O = len(prepared.spec.object_names)
+  for name, want in (('log_scale', (O, 3)), ('velocity', (O, 3)),
+                     ('forces', (len(config.forces), 3))):
+    got = tuple(np.shape(getattr(params, name)))
+    if got != want:
+      raise PipelineError(
+        f'Params.{name} has shape {got}; expected {want} (one row per '
+        + ('movable object' if name != 'forces' else 'ForceSpec')
+        + ' of the prepared scene, as init_params makes it)')
+
+
 def initial_state(params: Params, prepared: PreparedScene,
                   config: SimulateConfig | PipelineConfig, field: Array | None = None):
   """``(state, materials, forces, sim_config)`` at frame 0 (pure);
   ``field`` as in :func:`driver_materials`."""
   config = as_simulate_config(config)
   spec = prepared.spec
+  _check_params(params, prepared, config)
   sim_config = make_sim_config(spec, config, prepared.x0.dtype)
   E, nu, rho = driver_materials(params, prepared, config, field)
   materials = _mpm_materials(E, nu, rho, prepared, sim_config)
