@@ -134,4 +134,4 @@ def _motions() -> dict:
 
 
 if __name__ == '__main__':
-  cli.run(main)
+  cli.run(main, cpu_devices=2)

@@ -81,12 +81,24 @@ class MultiDeviceTest(absltest.TestCase):
   @classmethod
   def setUpClass(cls):
     super().setUpClass()
-    cls.result = run_worker(['particles', 'sweep'], env=_X64_ENV)
+    cls.result = run_worker(['particles', 'sweep', 'render_device'],
+                            env=_X64_ENV)
 
   def test_worker_saw_four_devices_in_float64(self):
     self.assertLen(self.result['devices'], 4)
     self.assertTrue(self.result['x64'])
     self.assertEqual(self.result['process_count'], 1)
+
+  def test_frames_rendered_on_a_second_cpu_device_are_the_same(self):
+    """pipeline.run's render_device='auto' renders on cpu:1 beside the
+    simulation on cpu:0 (not when unpipelined); frames bit for bit."""
+    r = self.result['render_device']
+    self.assertEqual(r['auto_device'], 'cpu:1')
+    self.assertEqual(r['serial_device'], 'None')
+    self.assertEqual(r['num_frames'], 4)
+    self.assertGreater(r['image_range'], 0.1)  # something was drawn
+    self.assertEqual(r['image_err'], 0.0)
+    self.assertEqual(r['pos_err'], 0.0)
 
   def test_particle_sharded_rollout_matches_single_device(self):
     r = self.result['particles']

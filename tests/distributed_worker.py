@@ -378,7 +378,33 @@ def check_multiprocess():
   return out
 
 
-CHECKS = dict(particles=check_particles,
+def check_render_device():
+  """pipeline.run rendering on a second CPU device ('auto') against the
+  simulation's own device: the same frames, bit for bit."""
+  import dataclasses
+  import numpy as np
+  from physsplat_jax import pipeline as pl
+  from physsplat_jax.pipeline import host
+  prepared, params, config = _pipeline_setup()
+  config = dataclasses.replace(config, render='fast')
+  out = {}
+  runs = {}
+  for name, choice in (('same', None), ('auto', 'auto')):
+    images = []
+    res = pl.run(params, prepared, config, render_device=choice,
+                 on_frame=lambda f, means, image: images.append(image))
+    runs[name] = (np.stack(images), res.gaussian_positions)
+  state0 = pl.simulation.initial_state(params, prepared, config)[0]
+  out['auto_device'] = str(host._frame_device('auto', state0, True))
+  out['serial_device'] = str(host._frame_device('auto', state0, False))
+  out['image_err'] = float(np.max(np.abs(runs['same'][0] - runs['auto'][0])))
+  out['pos_err'] = float(np.max(np.abs(runs['same'][1] - runs['auto'][1])))
+  out['num_frames'] = int(len(runs['auto'][0]))
+  out['image_range'] = float(np.ptp(runs['auto'][0]))
+  return out
+
+
+CHECKS = dict(render_device=check_render_device, particles=check_particles,
               particles_grad=check_particles_grad, sweep=check_sweep,
               grad=check_grad, multiprocess=check_multiprocess)
 

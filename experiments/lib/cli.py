@@ -18,6 +18,7 @@ import json
 import os
 import sys
 
+import jax
 from absl import app
 from absl import flags
 from absl import logging
@@ -61,16 +62,25 @@ def _verbose() -> bool:
     return False
 
 
-def _setup() -> None:
-  """What every script does first: the persistent compilation cache."""
+def _setup(cpu_devices: int | None = None) -> None:
+  """What every script does first: the persistent compilation cache; with
+  ``cpu_devices``, that many CPU devices if the machine has as many cores
+  (before JAX starts; not when ``XLA_FLAGS`` or an earlier setting chose)."""
   compile_cache.enable_compilation_cache(_CACHE.value)
+  if (cpu_devices and (os.cpu_count() or 1) >= cpu_devices
+      and 'device_count' not in os.environ.get('XLA_FLAGS', '')
+      and jax.config.jax_num_cpu_devices < cpu_devices):
+    try:
+      jax.config.update('jax_num_cpu_devices', cpu_devices)
+    except RuntimeError:  # JAX has started: keep what it has
+      pass
 
 
-def guard(main):
+def guard(main, cpu_devices: int | None = None):
   """``main`` with the package's errors turned into one line and exit 1."""
 
   def wrapped(argv):
-    _setup()
+    _setup(cpu_devices)
     try:
       return main(argv)
     except app.UsageError as e:
@@ -96,6 +106,11 @@ def usage_error(message: str) -> app.UsageError:
   return app.UsageError(message, exitcode=2)
 
 
-def run(main) -> None:
-  """``absl.app.run(main)`` with :func:`guard`."""
-  app.run(guard(main))
+def run(main, cpu_devices: int | None = None) -> None:
+  """``absl.app.run(main)`` with :func:`guard`.
+
+  ``cpu_devices=2`` (the pipeline scripts) gives a CPU process a second
+  device, on which ``pipeline.run`` renders each frame while the first
+  simulates the next (``render_device='auto'``).
+  """
+  app.run(guard(main, cpu_devices))

@@ -134,7 +134,7 @@ class _FrameMaker:
   """
 
   def __init__(self, prepared: PreparedScene, config: SimulateConfig,
-               need_all: bool, timings: dict):
+               need_all: bool, timings: dict, device=None):
     self.prepared = prepared
     self.config = config
     self.render = config.render is not RenderMode.NONE
@@ -146,11 +146,22 @@ class _FrameMaker:
     # none of these recompiles them.
     self.view = prepared.replace(spec=None, camera=None)
     self.camera = prepared.camera.unlabelled()
+    self.orbit, self.background = prepared.orbit, prepared.background
+    # A device of its own for deforming and rendering (``_frame_device``):
+    # the scene's arrays are copied there once, each frame's x and F per
+    # frame.
+    self.device = device
+    if device is not None:
+      self.view, self.camera, self.orbit, self.background = jax.device_put(
+        (self.view, self.camera, self.orbit, self.background), device)
     self.capacities: list[int] = []  # in order of first use
     self.reruns = 0
 
   def dispatch(self, f: int, t: float, state) -> _Pending:
     t1 = time.perf_counter()
+    if self.device is not None:
+      state = state.replace(x=jax.device_put(state.x, self.device),
+                            F=jax.device_put(state.F, self.device))
     means, covs, rots = _deform_jit(self.view, state.x, state.F,
                                     use_driver_F=self.config.use_driver_F)
     # What finish() fetches is copied to the host as soon as it is ready.
@@ -163,10 +174,10 @@ class _FrameMaker:
     t2 = time.perf_counter()
     self.timings['deform'] += t2 - t1
     if self.render:
-      camera = _camera_jit(self.camera, self.prepared.orbit, f,
+      camera = _camera_jit(self.camera, self.orbit, f,
                            self.config.num_frames)
       p.render = images.render_image_async(
-        p.gaussians, camera, background=self.prepared.background,
+        p.gaussians, camera, background=self.background,
         covariances=p.covariances, view_rotations=p.rotations,
         config=self.rcfg)
       # The counted capacity (first frame) serves the next frames too. A
@@ -198,6 +209,12 @@ class _FrameMaker:
       if cap not in self.capacities:
         self.capacities.append(cap)
       self._keep_larger(p.render.config, p.gaussians.num)
+      if p.index == 0 and int(out.num_visible) == 0:
+        logging.warning(
+          'frame 0: the camera sees none of the %d Gaussians (all behind it, '
+          'outside its view or its near/far range): the video will show only '
+          'the background; pick another camera (camera_index, -1 fits one to '
+          'the scene) or check the scene\'s up axis.', p.gaussians.num)
       frame.image = np.clip(out.image, 0.0, 1.0)
       t5 = time.perf_counter()
       self.timings['render.clip'] += t5 - t4
@@ -208,6 +225,27 @@ class _FrameMaker:
     """Keeps a capacity that a frame needed (counted or grown)."""
     if cfg.resolved_capacity(k) > self.rcfg.resolved_capacity(k):
       self.rcfg = dataclasses.replace(self.rcfg, capacity=cfg.capacity)
+
+
+def _frame_device(choice, state, pipelined: bool):
+  """Where the per-frame deformation and render run (None: with the
+  simulation).
+
+  'auto' picks a second CPU device when the simulation runs pipelined on a
+  CPU device and the process has another one (``jax_num_cpu_devices``):
+  XLA runs one device's programs one after another, so on the simulation's
+  own device frame ``f``'s render waited for frame ``f + 1``'s simulation;
+  on another it runs beside it. On a GPU the render stays on the GPU.
+  """
+  if choice != 'auto':
+    return choice
+  if not pipelined:
+    return None
+  sim = next(iter(state.x.devices()))
+  if sim.platform != 'cpu':
+    return None
+  others = [d for d in jax.local_devices(backend='cpu') if d != sim]
+  return others[0] if others else None
 
 
 class _WallWatch:
@@ -251,6 +289,7 @@ def run(
   on_frame: Callable | None = None,
   fps: float | None = None,
   pipelined: bool = True,
+  render_device='auto',
 ) -> RunOutput:
   """Host loop: simulate frame by frame, streaming frames to writers.
 
@@ -284,6 +323,13 @@ def run(
       Frame 0 is dispatched from a worker thread: JAX settings made by a
       context manager around ``run`` (thread-local, e.g. ``jax.
       default_device``) do not reach it; set them globally, or pass False.
+    render_device: where the frames are deformed and rendered: 'auto' (a
+      second CPU device when the simulation runs pipelined on a CPU and
+      the process has one, e.g. ``jax.config.update('jax_num_cpu_devices',
+      2)`` before JAX starts, as ``experiments.demo`` and ``simulate`` do:
+      the render then runs beside the next frame's simulation instead of
+      after it), None (the simulation's device), or a ``jax.Device``.
+      The outputs are the same.
 
   Returns:
     :class:`RunOutput`.
@@ -315,7 +361,8 @@ def run(
     params, prepared.replace(camera=None),
     dataclasses.replace(config, num_frames=1), field)
   timings['compile'] += time.perf_counter() - t0
-  maker = _FrameMaker(prepared, config, ply, timings)
+  maker = _FrameMaker(prepared, config, ply, timings,
+                      _frame_device(render_device, state, pipelined))
   positions, particles = [], []
   num = config.num_frames
 
