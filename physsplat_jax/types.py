@@ -92,7 +92,8 @@ def _nonfinite_rows(a) -> np.ndarray:
   return np.flatnonzero(~np.asarray(ok))
 
 
-def _rows_text(rows: np.ndarray) -> str:
+def rows_text(rows) -> str:
+  """The first few of some row indices, for a message: '0, 1, 2, 3, 4, ...'."""
   shown = ', '.join(str(int(r)) for r in rows[:5])
   return shown + (', ...' if len(rows) > 5 else '')
 
@@ -151,7 +152,7 @@ def check_gaussians(g: Gaussians, where: str = 'gaussians', *,
       if rows.size:
         raise DataError(
           f'{where}: {rows.size} of {K} Gaussians have non-finite {name} '
-          f'(rows {_rows_text(rows)}); drop them (Gaussians.subset) or fix '
+          f'(rows {rows_text(rows)}); drop them (Gaussians.subset) or fix '
           'the scene file')
   return K
 

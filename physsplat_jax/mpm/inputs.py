@@ -12,12 +12,27 @@ from __future__ import annotations
 import numpy as np
 
 from physsplat_jax.mpm.errors import MPMInputError
+from physsplat_jax.types import rows_text
 
 
 def _rows(bad: np.ndarray) -> str:
-  idx = np.flatnonzero(bad)
-  shown = ', '.join(str(int(i)) for i in idx[:5])
-  return shown + (', ...' if len(idx) > 5 else '')
+  return rows_text(np.flatnonzero(bad))
+
+
+def material_fault(E, nu, rho, stressed=True):
+  """The first material value no time step can simulate, as ``(label,
+  mask, fix)``, or None: rho <= 0 anywhere, E <= 0 or nu outside
+  (-1, 0.5) where ``stressed`` (NaN counts as outside every range)."""
+  E, nu, rho = (np.asarray(a, np.float64) for a in (E, nu, rho))
+  for label, bad, fix in (
+      ('rho <= 0', ~(rho > 0), 'a density in kg/m^3'),
+      ('E <= 0', stressed & ~(E > 0), "a Young's modulus in Pa"),
+      ('nu outside (-1, 0.5)', stressed & ~((nu > -1) & (nu < 0.5)),
+       "a Poisson's ratio below 0.5 (0.5 is incompressible: no time step "
+       'is stable)')):
+    if np.any(bad):
+      return label, bad, fix
+  return None
 
 
 def _per_particle(a, n: int) -> np.ndarray:
@@ -50,19 +65,14 @@ def check_run_inputs(state, materials, forces, config) -> None:
         f'mpm.run: material field {name} is not finite for {int(bad.sum())} '
         f'of {n} particles ({_rows(bad)}); check the materials (and the '
         'MPDP field or params they came from).')
-  E = np.broadcast_to(np.asarray(materials.E), (n,))
-  nu = np.broadcast_to(np.asarray(materials.nu), (n,))
-  rho = np.broadcast_to(np.asarray(materials.rho), (n,))
-  for label, bad, fix in (
-      ('rho <= 0', rho <= 0, 'a density in kg/m^3'),
-      ('E <= 0', stressed & (E <= 0), "a Young's modulus in Pa"),
-      ('nu outside (-1, 0.5)', stressed & ((nu <= -1) | (nu >= 0.5)),
-       "a Poisson's ratio below 0.5 (0.5 is incompressible: no time step "
-       'is stable)')):
-    if bad.any():
-      raise MPMInputError(
-        f'mpm.run: {label} for {int(bad.sum())} of {n} particles '
-        f'({_rows(bad)}); give each {fix}.')
+  fault = material_fault(
+    *(np.broadcast_to(np.asarray(a), (n,))
+      for a in (materials.E, materials.nu, materials.rho)), stressed)
+  if fault:
+    label, bad, fix = fault
+    raise MPMInputError(
+      f'mpm.run: {label} for {int(bad.sum())} of {n} particles '
+      f'({_rows(bad)}); give each {fix}.')
   for name in ('x', 'v', 'F', 'C', 'mass', 'vol0'):
     a = getattr(state, name, None)
     if a is None:

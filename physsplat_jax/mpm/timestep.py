@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from physsplat_jax.mpm import base
+from physsplat_jax.mpm import inputs
 from physsplat_jax.mpm.base import MPMInputError
 
 DEFAULT_CFL = 0.35
@@ -101,13 +102,12 @@ def stable_dt(materials: base.Materials, dx: float, models=None,
     ``(dt, reason)`` with reason 'elastic', 'speed', 'viscosity' or 'none'.
   """
   E, nu, rho, eta, fluid = _active(materials, models, body_id)
-  for label, bad in (('E <= 0', ~(E > 0)), ('rho <= 0', ~(rho > 0)),
-                     ('nu outside (-1, 0.5)', ~((nu > -1) & (nu < 0.5)))):
-    if bad.any():   # (NaN included) no wave speed, no time step
-      raise MPMInputError(
-        f'stable_dt: {label} (or not finite) for {int(bad.sum())} of '
-        f'{bad.size} stressed particles; give every deformable particle '
-        "a Young's modulus and density > 0 and a Poisson's ratio below 0.5")
+  fault = inputs.material_fault(E, nu, rho)
+  if fault:   # (NaN included) no wave speed, no time step
+    label, bad, fix = fault
+    raise MPMInputError(
+      f'stable_dt: {label} (or not finite) for {int(bad.sum())} of '
+      f'{bad.size} stressed particles; give each {fix}.')
   cands = [(math.inf, 'none')]
   if E.size:
     c = wave_speed(E, nu, rho, fluid)

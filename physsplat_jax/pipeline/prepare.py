@@ -573,14 +573,13 @@ def forces_stage(cfg: PrepareConfig, frame: SimFrame, x0, dobj, movable_names):
           f'from {list(movable_names)}')
       oi = list(movable_names).index(f.object)
     f_obj.append(oi)
+    sel = dobj == oi if oi >= 0 else np.ones(len(x0), bool)
     if f.point is not None:
       p = np.asarray(frame.to_sim(jnp.asarray(f.point, jnp.float32)))
     else:
-      sel = dobj == oi if oi >= 0 else np.ones(len(x0), bool)
       p = x0[sel].mean(0)
     f_pts.append(_quantise(p))
     if f.kind is ForceKind.POINT:
-      sel = dobj == oi if oi >= 0 else np.ones(len(x0), bool)
       hit = np.sum(np.sum((x0[sel] - p) ** 2, axis=1) < f.radius ** 2)
       if hit == 0:
         logging.warning(
