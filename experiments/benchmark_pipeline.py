@@ -14,7 +14,9 @@ run, warm (a scene's runs share its cache), with the host loop unpipelined
 warm run's is what the pipelining saves; ``profile`` adds a warm,
 pipelined run traced over ``--profile_frames`` (``experiments.simulate
 --profile_frames``): per frame, the host's wall time, the device's busy
-time and the costliest kernels, apart from the timed runs. Presets: ``paper`` is the paper's
+time and the costliest kernels, apart from the timed runs. A run may carry its own
+overrides after an ``@`` (``warm@scan_unroll=8``, several joined by ``+``):
+on a warm cache only the programs they change compile again. Presets: ``paper`` is the paper's
 setting (64^3 grid, 768 substeps per frame at 30 fps, 150 frames = a 5 s video,
 800x800, up to 200k particles) for a GPU; ``cpu`` is sized for a 2-core
 CPU (the ``make demo`` settings).
@@ -46,7 +48,9 @@ _PRESET = flags.DEFINE_enum('preset', 'cpu', sorted(PRESETS), 'settings')
 _RUNS = flags.DEFINE_list(
   'runs', ['cold', 'warm'], 'in order, sharing one compile cache per scene: '
   'cold, warm, serial (--nopipelined: exact per-stage times; warm when a '
-  'run before it filled the cache) and/or profile (traced frames)')
+  'run before it filled the cache) and/or profile (traced frames); '
+  'KIND@KEY=VALUE[+KEY=VALUE] adds overrides to one run, e.g. '
+  'warm@scan_unroll=8')
 _PROFILE_FRAMES = flags.DEFINE_list(
   'profile_frames', None, 'START,STOP: the frames the profile run traces '
   '(default the middle third of the run)')
@@ -87,20 +91,31 @@ def run_once(scene: str, preset: dict, out: str, cache: str,
               devices=report['devices'], **extra)
 
 
+def _pairs(what: str, items) -> dict:
+  """``KEY=VALUE`` items as a dict (a usage error naming ``what``)."""
+  pairs = {}
+  for item in items:
+    key, sep, value = item.partition('=')
+    if not sep or not key:
+      raise cli.usage_error(f'{what}: {item!r} is not KEY=VALUE (e.g. '
+                            'render_config.backend=jax)')
+    pairs[key] = value
+  return pairs
+
+
 def main(argv):
   del argv
   preset = PRESETS[_PRESET.value]
-  bad = sorted(set(_RUNS.value) - {'cold', 'warm', 'serial', 'profile'})
-  if bad:
-    raise cli.usage_error(
-      f'--runs: {bad} are not cold, warm, serial or profile')
-  overrides = {}
-  for item in _SET.value:
-    key, sep, value = item.partition('=')
-    if not sep or not key:
-      raise cli.usage_error(f'--set: {item!r} is not KEY=VALUE (e.g. '
-                            'render_config.backend=jax)')
-    overrides[key] = value
+  overrides = _pairs('--set', _SET.value)
+  specs = {}
+  for run in _RUNS.value:
+    kind, _, extra = run.partition('@')
+    if kind not in ('cold', 'warm', 'serial', 'profile'):
+      raise cli.usage_error(
+        f'--runs: {run!r} is not cold, warm, serial or profile (each with '
+        'optional @KEY=VALUE overrides)')
+    specs[run] = (kind, _pairs(f'--runs {run}',
+                               extra.split('+') if extra else []))
   frames = int(overrides.get('num_frames', preset['num_frames']))
   window = ','.join(_PROFILE_FRAMES.value or
                     [str(frames // 3), str(max(2 * frames // 3, 1))])
@@ -111,12 +126,15 @@ def main(argv):
     cache = tempfile.mkdtemp(prefix='physsplat_cache_')
     try:
       runs = {}
-      for run in _RUNS.value:
-        out = os.path.join(_OUT.value, os.path.basename(scene), run)
+      for run, (kind, extra) in specs.items():
+        out = os.path.join(_OUT.value, os.path.basename(scene),
+                           run.replace('@', '_').replace('+', '_'))
         runs[run] = run_once(
-          scene, preset, out, cache, pipelined=run != 'serial',
-          overrides=overrides,
-          profile_frames=window if run == 'profile' else None)
+          scene, preset, out, cache, pipelined=kind != 'serial',
+          overrides={**overrides, **extra},
+          profile_frames=window if kind == 'profile' else None)
+        if extra:
+          runs[run]['overrides'] = extra
         print(f'{scene} {run}: {runs[run].get("wall_s")} s', flush=True)
       results['scenes'][scene] = runs
     finally:
