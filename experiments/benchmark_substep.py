@@ -19,9 +19,7 @@ variant once more under JAX's profiler and reports the device's busy time
 per substep (summed kernel time; of the untraced wall time above, the rest
 is launch gaps and the host),
 the kernels it launched, and the most expensive ones with the name scopes
-they came from (experiments/lib/profile.py). ``--unroll=1,8`` times each
-variant also with 8 substeps per iteration of the frame's loop
-(``SimConfig.scan_unroll``). Figures: docs/benchmarks.md.
+they came from (experiments/lib/profile.py). Figures: docs/benchmarks.md.
 """
 
 import dataclasses
@@ -53,10 +51,6 @@ _PROFILE = flags.DEFINE_boolean(
   'profile', False, 'also trace each variant once: device-busy time per '
   'substep and the most expensive kernels')
 _TOP = flags.DEFINE_integer('top', 12, '--profile: kernels listed per variant')
-_UNROLL = flags.DEFINE_list(
-  'unroll', ['1'], 'substeps per loop iteration (SimConfig.scan_unroll), '
-  'each variant timed with each; a variant unrolled k > 1 times is named '
-  'VARIANT/unrollK')
 
 
 def _profile(name, fn, args, substeps):
@@ -86,22 +80,13 @@ def main(argv):
                                    substeps_per_frame=_SUBSTEPS.value)
   n = prepared.num_particles
   clock = time.perf_counter if _CLOCK.value == 'wall' else time.process_time
-  try:
-    unrolls = [int(u) for u in _UNROLL.value]
-  except ValueError:
-    unrolls = [0]
-  if min(unrolls) < 1:
-    raise cli.usage_error(f'--unroll={",".join(_UNROLL.value)}: give '
-                          'whole numbers >= 1, e.g. --unroll=1,8')
   runs = {}
   for name in _VARIANTS.value:
     s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
-    for k in unrolls:
-      fn = jax.jit(substep_lib.make_frame(
-        name, dataclasses.replace(c, scan_unroll=k)))
-      out = fn(s, m, f)
-      jax.block_until_ready(out)
-      runs[name if k == 1 else f'{name}/unroll{k}'] = (fn, out, m, f)
+    fn = jax.jit(substep_lib.make_frame(name, c))
+    out = fn(s, m, f)
+    jax.block_until_ready(out)
+    runs[name] = (fn, out, m, f)
   best = {name: float('inf') for name in runs}
   for _ in range(_ROUNDS.value):
     for name, (fn, s, m, f) in runs.items():

@@ -26,8 +26,8 @@
 #   video     a 150-frame 800x800 video of 100k Gaussians, rendered as
 #             pipeline.run renders, and gsplat's same loop (issue 15)
 #   video_scene  the same on the tabletop scene
-#   substep   benchmark_substep on the tabletop: grouped / without body and
-#             plane / bare, each with 1 and 8 substeps per loop iteration,
+#   substep   benchmark_substep on the tabletop: grouped (merged or split
+#             constitutive slices) / masked / without body and plane / bare,
 #             with a profile (device-busy time and the costliest kernels
 #             per substep)
 #   substep_graphs  the grouped and bare substeps again with XLA's command
@@ -35,10 +35,10 @@
 #             (WHILE, CONDITIONAL), one process each
 #   sorts     the optimised render program: are its sorts CUB radix sorts?
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
-#             substeps/frame), tabletop: cold, warm, a warm run traced over
-#             frames 60-64 (host wall and device-busy time per frame,
-#             costliest kernels) and a warm run with 8 substeps per loop
-#             iteration (issue 17)
+#             substeps/frame), tabletop: cold, warm, warm unpipelined
+#             (exact stage times), and a warm run traced over frames 60-64
+#             (host wall and device-busy time per frame, costliest kernels)
+#             (issue 17)
 #   pipeline_noautotune  the cold run with XLA's GPU autotuning off
 #   sweep_*   Pallas block and warps around the defaults (sweep_default),
 #             1M at 1024^2
@@ -161,8 +161,8 @@ run_video_scene() {
 }
 run_substep() {
   gsplat_wait
-  step substep 170 $PY -m experiments.benchmark_substep --scene=tabletop \
-    --variants=scene,no_plane_no_body,bare --unroll=1,8 --profile \
+  step substep 120 $PY -m experiments.benchmark_substep --scene=tabletop \
+    --variants=scene,split,masked,no_plane_no_body,bare --profile \
     --out="$WORK/substep.json"
 }
 # Each substep is one CUDA graph by default (XLA's command buffers); the
@@ -199,7 +199,7 @@ echo XLA sort ops: \$(cat *after_optimizations.txt | grep -c ' sort(')"
 run_pipeline() {
   gsplat_wait
   step pipeline 290 $PY -m experiments.benchmark_pipeline --preset=paper \
-    --scenes=tabletop --runs=cold,warm,profile,warm@scan_unroll=8 \
+    --scenes=tabletop --runs=cold,warm,serial,profile \
     --profile_frames=60,64 \
     --out="$WORK/pipeline" --set="${PIPELINE_SET:-}"
 }

@@ -120,28 +120,6 @@ class StepTest(absltest.TestCase):
                                                          Fs[-1].shape),
                                  atol=1e-12)
 
-  def test_unrolled_substep_loop_gives_the_same_frame(self):
-    """scan_unroll only regroups the substeps of a frame's loop (7 steps,
-    3 per iteration: a remainder too)."""
-    with jax.enable_x64(True):
-      grid = mpm.GridSpec(res=16, size=1.0)
-      cfg = mpm.SimConfig(grid=grid, dt=2e-4, substeps_per_frame=7,
-                          dtype='float64')
-      x0 = _block(4, (0.35, 0.35, 0.35), grid.dx / 2, jitter=0.5)
-      v0 = 0.3 * np.random.default_rng(4).normal(size=x0.shape)
-      mat = mpm.make_materials('neo_hookean', 2e4, 0.3, 1000.,
-                               num=len(x0), dtype=jnp.float64)
-      s = mpm.init_state(x0, v0, (grid.dx / 2) ** 3, mat, cfg)
-      one = jax.jit(mpm.make_frame(cfg))(s, mat, None)
-      three = jax.jit(mpm.make_frame(cfg.replace(scan_unroll=3)))(
-        s, mat, None)
-      self.assertEqual(int(three.step), 7)
-      self.assertGreater(float(jnp.abs(one.x - s.x).max()), 1e-4)
-      for a, b in ((one.x, three.x), (one.v, three.v), (one.F, three.F)):
-        np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
-      with self.assertRaisesRegex(mpm.MPMInputError, 'scan_unroll'):
-        cfg.replace(scan_unroll=0)
-
   def test_momentum_conserved_without_gravity_and_walls(self):
     with jax.enable_x64(True):
       grid = mpm.GridSpec(res=16, size=1.0)

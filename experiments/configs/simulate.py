@@ -58,7 +58,6 @@ def get_config():
   c.render_config = ml_collections.ConfigDict(
     dict(rasterize_mode='classic', backend='auto'))
   c.remat_frames = True
-  c.scan_unroll = 1  # substeps per loop iteration (mpm.SimConfig)
   c.seed = 0
   return c
 

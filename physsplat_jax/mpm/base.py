@@ -383,9 +383,6 @@ class SimConfig:
       particles exactly the 'rigid' model's): each model's return mapping
       and the rigid projection then run on their own particles only (the
       pipeline sets it). None: every model evaluated on every particle.
-    scan_unroll: substeps per iteration of the frame's loop (``lax.scan``
-      ``unroll``): on a GPU each iteration also costs a host round trip for
-      its condition; more code to compile.
   """
 
   grid: GridSpec = GridSpec()
@@ -404,7 +401,6 @@ class SimConfig:
   sort_particles: bool = True
   dtype: str = 'float32'
   model_counts: tuple[int, ...] | None = None
-  scan_unroll: int = 1
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
@@ -417,10 +413,6 @@ class SimConfig:
                           f'{self.substeps_per_frame!r} must be >= 1.')
     object.__setattr__(self, 'substeps_per_frame',
                        int(self.substeps_per_frame))
-    if int(self.scan_unroll) < 1:
-      raise MPMInputError(f'SimConfig.scan_unroll = {self.scan_unroll!r} '
-                          'must be >= 1 (1: no unrolling).')
-    object.__setattr__(self, 'scan_unroll', int(self.scan_unroll))
     object.__setattr__(self, 'gravity', _vec3(self.gravity, 'gravity'))
     models = tuple(self.models)
     if not models:

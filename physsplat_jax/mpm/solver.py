@@ -474,8 +474,7 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
 
     if config.remat_frames:
       body = jax.checkpoint(body)
-    carry, _ = jax.lax.scan(body, carry, None, length=n_sub,
-                            unroll=min(config.scan_unroll, n_sub))
+    carry, _ = jax.lax.scan(body, carry, None, length=n_sub)
     t = _step_time(carry['step'], config.dt, t0.dtype)
     return _unorder(_from_soa(dict(carry, t=t), aux), inv)
 

@@ -319,8 +319,6 @@ class SimulateConfig:
     render: :class:`RenderMode`.
     render_config: static rasterizer settings.
     remat_frames: ``jax.checkpoint`` each frame (memory ~ frames).
-    scan_unroll: substeps per iteration of the substep loop
-      (``mpm.SimConfig.scan_unroll``).
   """
 
   num_frames: int = 60
@@ -333,7 +331,6 @@ class SimulateConfig:
   render: RenderMode = RenderMode.FAST
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
-  scan_unroll: int = 1
 
   def __post_init__(self):
     object.__setattr__(self, 'ground',
@@ -345,7 +342,6 @@ class SimulateConfig:
       (_finite(self.gravity), 'gravity', 'use a finite number [m/s^2]'),
       (_finite(self.friction) and self.friction >= 0, 'friction',
        'use a finite friction coefficient >= 0'),
-      (_whole(self.scan_unroll) and self.scan_unroll >= 1, 'scan_unroll', 'use a whole number >= 1'),
     ])
 
 
@@ -396,7 +392,6 @@ class PipelineConfig:
   render: RenderMode = RenderMode.FAST
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
-  scan_unroll: int = 1
   seed: int = 0
 
   def __post_init__(self):

@@ -107,7 +107,6 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
     models=models, boundary_conditions=tuple(bcs),
     num_bodies=nb, body_fixed=(False,) * nb,
     remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)),
-    scan_unroll=config.scan_unroll,
     model_counts=tuple(counts))
 
 
