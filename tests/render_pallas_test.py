@@ -233,10 +233,10 @@ class PallasConfigTest(absltest.TestCase):
       tile_size=12, subtile_size=None).resolved_backend(), 'jax')
     g = test_util.random_gaussians(jax.random.PRNGKey(0), 10)
     cam = _camera(32, 24)
-    # Forward: one pixel per thread; backward: two.
-    self.assertEqual(raster.RenderConfig().resolved_pallas(), (32, 2, 1))
+    # Two pixels per thread in both kernels.
+    self.assertEqual(raster.RenderConfig().resolved_pallas(), (32, 1, 1))
     self.assertEqual(raster.RenderConfig(
-      subtile_size=None, pallas_block=8).resolved_pallas(), (8, 8, 4))
+      subtile_size=None, pallas_block=8).resolved_pallas(), (8, 4, 4))
     self.assertEqual(raster.RenderConfig(
       subtile_size=2, pallas_num_warps=4).resolved_pallas(), (32, 4, 4))
     self.assertEqual(raster.RenderConfig(subtile_size=4).resolved_pallas(),

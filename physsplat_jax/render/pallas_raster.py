@@ -12,8 +12,8 @@ The sub-tile's slot range ``[start, end)`` comes from ``ranges``. Triton
 lowers ref indexing, not indexing of loaded values, and needs power-of-two
 block shapes.
 
-Forward (per program, one pixel per thread, as gsplat
-``rasterize_to_pixels``): the slots are walked front to back one at a
+Forward (per program, two pixels per thread by default, see
+``RenderConfig.resolved_pallas``): the slots are walked front to back one at a
 time, each thread loading the slot's 10 features as scalars
 ``feat_ref[f, idx]`` (one address across the warp: a broadcast) and
 blending it into its own pixel::
@@ -137,7 +137,7 @@ def _forward_kernel(ranges_ref, feat_ref, acc_ref, logt_ref, stop_ref, *,
   px, py = _pixels(t, s, dtype)
 
   def gaussian(idx, c):
-    # One slot for every pixel of the program (one pixel per thread), no
+    # One slot for every pixel of the program (two per thread by default), no
     # work across threads.
     T, stop, r, g, b, d = c
     f, _, _, ok, _, _, alpha = _slot(feat_ref, idx, px, py, s)
