@@ -182,10 +182,10 @@ class PlatformFormsTest(absltest.TestCase):
   """Which form each platform's program gets."""
 
   def test_rigid_contacts_are_one_sum_on_cuda(self):
-    """Three planes: on CUDA the contact sets are one per-body sum (3 in
-    all, with the body's mass and momenta and its inertia) and the
+    """Three planes: on CUDA the contact sets are one per-body sum (2 in
+    all, with the one of the body's mass, momenta and inertia) and the
     per-body values reach the particles by gathers; on the CPU one product
-    per plane (5 sums) and 4 one-hot products for the per-body values
+    per plane (4 sums) and 4 one-hot products for the per-body values
     (``rigid._per_particle``)."""
     x, v, body, mass, planes = _bodies_in_a_corner()
     F = tuple(tuple(jnp.ones(len(x)) for _ in range(3)) for _ in range(3))
@@ -197,9 +197,9 @@ class PlatformFormsTest(absltest.TestCase):
                            planes=planes)[1]
 
     cpu, cuda = (_ops(project, (x, v), p) for p in ('cpu', 'cuda'))
-    self.assertEqual(cpu['dot_general'], 9)
+    self.assertEqual(cpu['dot_general'], 8)
     self.assertEqual(cuda['dot_general'], 0)
-    self.assertEqual(cuda['reduce'], 3)
+    self.assertEqual(cuda['reduce'], 2)
     self.assertGreaterEqual(cuda['gather'], 1)
 
   def test_g2p_is_a_product_on_cpu_a_sum_on_cuda(self):

@@ -97,7 +97,10 @@ def _per_particle(seg, num_segments, dtype, form='auto'):
   once, computed.
   """
   def gather(*cols):
-    return [a[seg] for a in cols]
+    # Unsigned indices: no wrapping of negative ones (a select over the
+    # particles, on a GPU a kernel of its own).
+    idx = seg.astype(jnp.uint32)
+    return [a[idx] for a in cols]
 
   def product(*cols):
     onehot = (seg[:, None] == jnp.arange(num_segments)).astype(dtype)
@@ -157,7 +160,8 @@ def _apply(Ainv, b):
 
 
 def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
-            reduce_fn=None, planes=(), contact_form='auto', C=None):
+            reduce_fn=None, planes=(), contact_form='auto', C=None,
+            origin=None, all_rigid=False):
   """Rigid-body projection of the G2P result.
 
   Args:
@@ -179,14 +183,24 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
     C: nested-tuple G2P affine velocities, whose spin (the axial vector of
       their skew part) enters ``L`` with each particle's own inertia, as it
       enters ``I``; None: no spin (particles given as points).
+    origin: static 3-tuple [m] about which the per-body sums are taken in
+      one pass and then moved to each body's centre (parallel axes); a
+      point near the bodies (the grid's centre) keeps the float32
+      cancellation small. None: the coordinate origin.
+    all_rigid: static: every particle given is rigid (``body_id >= 0``;
+      the solver's slice of the rigid particles), so that no mask is
+      computed.
 
   Returns:
     ``(rigid, x_new, v_new, C_new, F_new)``: (N,) bool mask and the rigid
     values for every particle (meaningful where ``rigid``).
   """
   B = num_bodies
-  rigid = body_id >= 0
-  seg = jnp.where(rigid, body_id, B)
+  if all_rigid:
+    rigid, seg = jnp.ones(body_id.shape, bool), body_id
+  else:
+    rigid = body_id >= 0
+    seg = jnp.where(rigid, body_id, B)
   dtype = mass.dtype
 
   ssum = _segment_sums(seg, B + 1, dtype, reduce_fn)
@@ -195,37 +209,49 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   def at(a):  # per-body (B+1,) -> per-particle
     return at_all([a])[0]
 
-  M, *mxv = ssum([mass] + [mass * x[d] for d in range(3)]
-                 + [mass * v[d] for d in range(3)])
+  pairs = [(a, b) for a in range(3) for b in range(a, 3)]
+  # Each particle's own spin: its inertia (m dx^2/24, as in I below) times
+  # the axial vector of C's skew part (C = [omega]_x after a projection).
+  # Without it, L missed what I counted and every projection slowed a free
+  # body's spin (by ~8 % per substep for a body a few cells wide).
+  spin = ([(dx * dx / 48.0) * mass * t for t in la.axial(C)]
+          if C is not None else None)
+  # All sums in one pass over the particles, about the fixed point
+  # ``origin`` (the grid's centre), moved to the mass centre by the
+  # parallel-axis theorem: L_c = L_o - c' x P, S_c = S_o - M c' c'^T (c'
+  # the centre about ``origin``). The sums about c itself need c first: a
+  # second pass, on a GPU two more kernels per substep of a few us each.
+  o = (0.0, 0.0, 0.0) if origin is None else origin
+  q = [x[d] - o[d] for d in range(3)]
+  mq = [mass * q[d] for d in range(3)]
+  mv = [mass * v[d] for d in range(3)]
+  orbital = [mq[1] * v[2] - mq[2] * v[1], mq[2] * v[0] - mq[0] * v[2],
+             mq[0] * v[1] - mq[1] * v[0]]
+  if spin is not None:
+    orbital = [a + b for a, b in zip(orbital, spin)]
+  sums = ssum([mass] + mq + mv + orbital
+              + [mq[a] * q[b] for a, b in pairs])
+  M, Mq, P, Lo, So = sums[0], sums[1:4], sums[4:7], sums[7:10], sums[10:]
   # Safe division (an empty segment has M = 0): a select, so that the
   # derivative of 1 / M is never inf * 0.
   Ms = jnp.where(M > 0, M, 1.0)
-  c = [mxv[d] / Ms for d in range(3)]
-  V = [mxv[3 + d] / Ms for d in range(3)]
-  r = [x[d] - cp for d, cp in enumerate(at_all(c))]
-  mr = [mass * r[d] for d in range(3)]
-  r2 = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
-  pairs = [(a, b) for a in range(3) for b in range(a, 3)]
-  orbital = [mr[1] * v[2] - mr[2] * v[1], mr[2] * v[0] - mr[0] * v[2],
-             mr[0] * v[1] - mr[1] * v[0]]
-  if C is not None:
-    # Each particle's own spin: its inertia (m dx^2/24, as in I below)
-    # times the axial vector of C's skew part (C = [omega]_x after a
-    # projection). Without it, L missed what I counted and every
-    # projection slowed a free body's spin (by ~8 % per substep for a
-    # body a few cells wide).
-    twice = la.axial(C)
-    orbital = [o + (dx * dx / 48.0) * mass * t
-               for o, t in zip(orbital, twice)]
-  sums = ssum(orbital + [mass * r2] + [mr[a] * r[b] for a, b in pairs])
-  L = sums[:3]
+  cq = [Mq[d] / Ms for d in range(3)]  # mass centre about origin
+  c = [cq[d] + o[d] for d in range(3)]
+  V = [P[d] / Ms for d in range(3)]
+  r = [q[d] - cp for d, cp in enumerate(at_all(cq))]
+  L = [Lo[0] - (cq[1] * P[2] - cq[2] * P[1]),
+       Lo[1] - (cq[2] * P[0] - cq[0] * P[2]),
+       Lo[2] - (cq[0] * P[1] - cq[1] * P[0])]
+  # Second moments about c: S_ab = sum m r_a r_b.
+  S = {(a, b): sa - M * cq[a] * cq[b] for (a, b), sa in zip(pairs, So)}
+  r2 = S[0, 0] + S[1, 1] + S[2, 2]
   own = M * dx * dx / 24.0
   I = [[None] * 3 for _ in range(3)]
-  for (a, b), s in zip(pairs, sums[4:]):
-    s = -s
+  for (a, b) in pairs:
+    s_ab = -S[a, b]
     if a == b:
-      s = s + sums[3] + own
-    I[a][b] = I[b][a] = s
+      s_ab = s_ab + r2 + own
+    I[a][b] = I[b][a] = s_ab
   I = tuple(tuple(row) for row in I)
   # Empty (dump) segment: make I the identity so the solve stays finite.
   empty = M <= 0

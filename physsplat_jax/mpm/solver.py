@@ -342,7 +342,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
           take(aux['body_id']), take(mass), jax.tree.map(take, x),
           jax.tree.map(take, v_grid), jax.tree.map(take, Fe), reduce_fn,
           planes=[q + (rad,) for q in boundary.contact_planes(config, t)]
-          + walls, C=jax.tree.map(take, C_new))
+          + walls, C=jax.tree.map(take, C_new),
+          origin=tuple(lo_d + 0.5 * grid.size for lo_d in grid.lower),
+          all_rigid=rigid_group is not None)
         x_new = tuple(merge(p, q) for p, q in zip(x_new, xr))
         v_new = tuple(merge(p, q) for p, q in zip(v_new, vr))
         C_new = jax.tree.map(merge, C_new, Cr)
