@@ -385,6 +385,8 @@ def main(argv):
               _COMPARE.value, _GRAD.value, _PALLAS.value, _INTERPRET.value,
               _GSPLAT.value)
     if _VIDEO.value > 0:
+      print(json.dumps(r), flush=True)  # what is measured so far
+      print(f'video: {_VIDEO.value} frames', flush=True)
       r.update(bench_video(g, cam, config, _VIDEO.value, up, _GSPLAT.value))
     print(json.dumps(r))
     results.append(r)

@@ -147,7 +147,7 @@ run_donut() {
 # 800x800 through the pipeline's host path, and gsplat's same loop.
 run_video() {
   gsplat_wait
-  step video 90 $PY -m experiments.benchmark_render --num=100000 \
+  step video 150 $PY -m experiments.benchmark_render --num=100000 \
     --width=800 --height=800 --video_frames=150 --repeats=3 \
     --out="$WORK/video.json"
 }
@@ -155,7 +155,7 @@ run_video() {
 # took 18 ms per frame there at this size.
 run_video_scene() {
   gsplat_wait
-  step video_scene 90 $PY -m experiments.benchmark_render \
+  step video_scene 120 $PY -m experiments.benchmark_render \
     --scene=tabletop --width=800 --height=800 --video_frames=150 \
     --repeats=3 --out="$WORK/video_scene.json"
 }
