@@ -13,13 +13,12 @@ where the video is and where the time went. ``make demo`` runs it.
 import os
 
 from absl import flags
-from ml_collections import config_flags
 
 from experiments.lib import cli
 from experiments.lib import simulate as lib
 from physsplat_jax import pipeline as pl
 
-_CONFIG = config_flags.DEFINE_config_file(
+_CONFIG = cli.define_config_file(
   'config', os.path.join(os.path.dirname(__file__), 'configs', 'demo.py'),
   'demo settings')
 _SCENE = flags.DEFINE_string('scene', 'tabletop',

@@ -19,7 +19,6 @@ import jax
 import numpy as np
 from absl import flags
 from absl import logging
-from ml_collections import config_flags
 
 from experiments.lib import cli
 from physsplat_jax.training import simtrain
@@ -33,9 +32,8 @@ _E_INIT = flags.DEFINE_float('E_init', 0.3, 'initial E / true mean E')
 _DEGREE = flags.DEFINE_integer('field_degree', 2, 'polynomial log-field '
                                'degree (0: mean only)')
 _OUT = flags.DEFINE_string('out', None, 'optional JSON results path')
-_CONFIG = config_flags.DEFINE_config_file('config', None, 'config file '
-                                          '(its sim.task is used)',
-                                          lock_config=True)
+_CONFIG = cli.define_config_file('config', None, 'config file '
+                                 '(its sim.task is used)', lock_config=True)
 flags.mark_flags_as_required(['config'])
 
 

@@ -30,7 +30,7 @@ from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
 from physsplat_jax import segmentation
 
-_CONFIG = config_flags.DEFINE_config_file(
+_CONFIG = cli.define_config_file(
   'config', lib.DEFAULT_CONFIG, 'pipeline config (get_config() of a .py)')
 _SCENE = flags.DEFINE_string(
   'scene', 'tabletop', 'built-in scene (tabletop, ficus, donut) or a 3DGS '

@@ -19,7 +19,6 @@ import subprocess
 import jax
 from absl import flags
 from absl import logging
-from ml_collections import config_flags
 
 from experiments.lib import cli
 from physsplat_jax.mpdp import model as model_lib
@@ -32,8 +31,8 @@ _EXPORT = flags.DEFINE_string('export', None,
                               'if set, write the final params (npz) here')
 _MODE = flags.DEFINE_enum('mode', 'supervised', ['supervised', 'simulator'],
                           'training mode')
-_CONFIG = config_flags.DEFINE_config_file('config', None, 'config file',
-                                          lock_config=True)
+_CONFIG = cli.define_config_file('config', None, 'config file',
+                                 lock_config=True)
 flags.mark_flags_as_required(['workdir', 'config'])
 
 

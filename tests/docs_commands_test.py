@@ -31,7 +31,8 @@ def _defined(path: pathlib.Path) -> set[str]:
   names = set()
   for node in ast.walk(ast.parse(path.read_text())):
     if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
-        and node.func.attr.startswith('DEFINE') and node.args
+        and (node.func.attr.startswith('DEFINE')
+             or node.func.attr == 'define_config_file') and node.args
         and isinstance(node.args[0], ast.Constant)):
       names.add(node.args[0].value)
     # Tables of (flags.DEFINE_x, 'name', ...) rows.

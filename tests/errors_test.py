@@ -9,6 +9,8 @@ import contextlib
 import io
 import json
 import os
+import subprocess
+import sys
 import tempfile
 
 import jax
@@ -75,6 +77,19 @@ class ErrorPathTest(absltest.TestCase):
     code, text = _run_guarded(app.UsageError('--poke: expected NAME:values'))
     self.assertEqual(code, 2)
     self.assertEqual(text, 'error: --poke: expected NAME:values\n')
+
+  def test_unknown_config_field_is_one_line_exit_2(self):
+    # ml_collections applies --config.* overrides while the script's flag
+    # is defined, at import: no traceback from inside it.
+    proc = subprocess.run(
+      [sys.executable, '-m', 'experiments.simulate', '--config.nosuch=1',
+       '--config.num_frames=2'], capture_output=True, text=True,
+      check=False, timeout=120,
+      cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    self.assertEqual(proc.returncode, 2, proc.stderr)
+    self.assertNotIn('Traceback', proc.stderr)
+    self.assertIn("error: the config has no field 'nosuch' "
+                  '(--config.nosuch=1)', proc.stderr)
 
   def test_unexpected_errors_keep_their_traceback(self):
     with self.assertRaises(ZeroDivisionError):

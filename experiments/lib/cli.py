@@ -22,6 +22,7 @@ import jax
 from absl import app
 from absl import flags
 from absl import logging
+from ml_collections import config_flags
 
 from physsplat_jax import compile_cache
 from physsplat_jax.errors import PhysSplatError
@@ -43,6 +44,27 @@ def define_out(default: str | None, help_text: str) -> flags.FlagHolder:
   if 'out' in flags.FLAGS:
     return flags.FlagHolder(flags.FLAGS, flags.FLAGS['out'])
   return flags.DEFINE_string('out', default, help_text)
+
+
+def define_config_file(name: str, default: str | None, help_text: str,
+                       **kwargs):
+  """``ml_collections.config_flags.DEFINE_config_file``, with an override
+  of a field the config does not have (``--config.nosuch=1``) as one line
+  and exit code 2: ml_collections applies the command line's overrides
+  while the flag is defined, when the script is imported, and raised
+  AttributeError from deep inside itself."""
+  try:
+    return config_flags.DEFINE_config_file(name, default, help_text,
+                                           **kwargs)
+  except (AttributeError, KeyError) as e:
+    field = str(e).strip('"\'')
+    given = [a for a in sys.argv[1:] if a.startswith(f'--{name}.')
+             and a.split('=')[0].split('.')[-1] == field]
+    where = f' ({given[0]})' if given else ''
+    print(f'error: the {name} has no field {field!r}{where}; --helpfull '
+          f'lists the --{name}.* fields, docs/configs.md says what they '
+          'mean', file=sys.stderr)
+    sys.exit(2)
 
 
 def write_json(path: str | None, result) -> None:
