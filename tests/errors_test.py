@@ -243,6 +243,25 @@ class ValidationTest(absltest.TestCase):
     with self.assertRaisesRegex(mpm.MPMInputError, 'gravity.*3 finite'):
       mpm.SimConfig(grid=grid, dt=1e-3, gravity=(0.0, 0.0, np.nan))
 
+  def test_init_state_names_bad_volumes_and_shapes(self):
+    from physsplat_jax import mpm
+
+    cfg = mpm.SimConfig(grid=mpm.GridSpec(res=12, size=1.0))
+    x = np.full((10, 3), 0.5)
+    mat = mpm.make_materials('fixed_corotated', 1e4, 0.3, 1000.0, num=10)
+    vol = np.full(10, 1e-6)
+    vol[7] = 0.0
+    for kw, want in (
+        (dict(volume=np.ones(3)), r'volume has shape \(3,\); expected '
+         r'\(10,\) or a scalar'),
+        (dict(volume=vol), r'volume is 0\.0 for particle 7 \(1 of 10'),
+        (dict(volume=np.nan), 'volume is nan for particle 0'),
+        (dict(volume=1e-6, F=np.ones((10, 3))),
+         r'F has shape \(10, 3\); expected \(10, 3, 3\)')):
+      with self.subTest(want), self.assertRaisesRegex(mpm.MPMInputError,
+                                                      want):
+        mpm.init_state(x, np.zeros(3), materials=mat, config=cfg, **kw)
+
   def test_params_and_time_step_inputs_are_checked(self):
     from physsplat_jax import mpm
 

@@ -87,8 +87,9 @@ def init_state(x, v, volume, materials: base.Materials,
     ``MPMState`` at t = 0.
 
   Raises:
-    ValueError: wrong shapes, particles outside the grid, bad body ids or
-      model ids (checked when the inputs are concrete).
+    MPMInputError (a ValueError): wrong shapes; particles outside the
+      grid, volumes not finite and > 0, bad body ids or model ids (checked
+      when the inputs are concrete).
   """
   dtype = config.jnp_dtype
   x = jnp.asarray(x, dtype)
@@ -101,7 +102,18 @@ def init_state(x, v, volume, materials: base.Materials,
   if v.shape != (n, 3):
     raise MPMInputError(f'init_state: v has shape {v.shape}; expected ({n}, 3) '
                         'or (3,).')
-  volume = jnp.broadcast_to(jnp.asarray(volume, dtype), (n,))
+  volume = jnp.asarray(volume, dtype)
+  if volume.ndim > 1 or (volume.ndim == 1 and volume.shape != (n,)):
+    raise MPMInputError(f'init_state: volume has shape {volume.shape}; '
+                        f'expected ({n},) or a scalar [m^3].')
+  volume = jnp.broadcast_to(volume, (n,))
+  vh = _host(volume)  # (velocities: mpm.run checks them, as the state's)
+  if vh is not None and n and not np.all(np.isfinite(vh) & (vh > 0)):
+    bad = ~(np.isfinite(vh) & (vh > 0))
+    i = int(np.argmax(bad))
+    raise MPMInputError(
+      f'init_state: volume is {vh[i]} for particle {i} ({int(bad.sum())} of '
+      f'{n} not finite and > 0); give volumes > 0 [m^3].')
   for f in base.FLOAT_FIELDS + ('model_id',):
     a = getattr(materials, f)
     if np.shape(a) != (n,):
@@ -164,6 +176,9 @@ def init_state(x, v, volume, materials: base.Materials,
   if F is None:
     F = jnp.broadcast_to(jnp.eye(3, dtype=dtype), (n, 3, 3))
   F = jnp.asarray(F, dtype)
+  if F.shape != (n, 3, 3):
+    raise MPMInputError(f'init_state: F has shape {F.shape}; expected '
+                        f'({n}, 3, 3) deformation gradients.')
   return base.MPMState(
     x=x, v=v, F=F, C=jnp.zeros((n, 3, 3), dtype),
     Jp=jnp.ones((n,), dtype), ep=jnp.zeros((n,), dtype),
