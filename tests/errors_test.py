@@ -91,6 +91,22 @@ class ErrorPathTest(absltest.TestCase):
     self.assertIn("error: the config has no field 'nosuch' "
                   '(--config.nosuch=1)', proc.stderr)
 
+  def test_bad_flags_are_one_line_exit_2(self):
+    for args, want in ((['--config.num_frames=abc'],
+                        "error: flag --config.num_frames=abc: invalid "
+                        "literal for int()"),
+                       (['--nosuch_flag=1'], 'error: Unknown command line '
+                        'flag \'nosuch_flag\'')):
+      proc = subprocess.run(
+        [sys.executable, '-m', 'experiments.simulate', *args],
+        capture_output=True, text=True, check=False, timeout=120,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+      with self.subTest(args[0]):
+        self.assertEqual(proc.returncode, 2, proc.stderr)
+        lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        self.assertEqual(len(lines), 1, proc.stderr)
+        self.assertTrue(lines[0].startswith(want), lines[0])
+
   def test_unexpected_errors_keep_their_traceback(self):
     with self.assertRaises(ZeroDivisionError):
       _run_guarded(ZeroDivisionError('bug'))

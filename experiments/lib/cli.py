@@ -128,11 +128,24 @@ def usage_error(message: str) -> app.UsageError:
   return app.UsageError(message, exitcode=2)
 
 
+def parse_flags(argv):
+  """absl's flag parsing with a bad flag (an unknown one, a value of the
+  wrong type, a required one missing) as one ``error:`` line and exit code
+  2, as the scripts' other usage errors (absl printed 'FATAL Flags parsing
+  error' and exited 1)."""
+  try:
+    return flags.FLAGS(argv)
+  except flags.Error as e:
+    message = ' '.join(str(e).split())
+    print(f'error: {message}; --helpfull lists the flags', file=sys.stderr)
+    sys.exit(2)
+
+
 def run(main, cpu_devices: int | None = None) -> None:
-  """``absl.app.run(main)`` with :func:`guard`.
+  """``absl.app.run(main)`` with :func:`guard` and :func:`parse_flags`.
 
   ``cpu_devices=2`` (the pipeline scripts) gives a CPU process a second
   device, on which ``pipeline.run`` renders each frame while the first
   simulates the next (``render_device='auto'``).
   """
-  app.run(guard(main, cpu_devices))
+  app.run(guard(main, cpu_devices), flags_parser=parse_flags)
