@@ -11,9 +11,12 @@
 # (default all, in the order below; `sweep` means all the sweeps,
 # `substep_graphs` both of its runs), so the work can be split over two
 # calls on a warm machine, e.g.
-#   bash experiments/gpu_session.sh 430 env pipeline substep
-#   bash experiments/gpu_session.sh 430 video video_scene substep_graphs \
+#   bash experiments/gpu_session.sh 430 env pipeline substep substep_graphs
+#   bash experiments/gpu_session.sh 430 video video_scene pipeline_scenes \
 #     render donut mpm sweep
+# (on 2026-11-27 the H100 took 4 s for env, ~110 s for pipeline, 10 s for
+# substep, 17 s per sweep and ~70 s for gsplat's build; 15 minutes of
+# device time in all, the machine's start included)
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
@@ -39,6 +42,8 @@
 #             (exact stage times), and a warm run traced over frames 60-64
 #             (host wall and device-busy time per frame, costliest kernels)
 #             (issue 17)
+#   pipeline_scenes  the same preset on ficus and the donut (up to 200k
+#             particles): cold and warm (issue 17's other scenes)
 #   pipeline_noautotune  the cold run with XLA's GPU autotuning off
 #   sweep_*   Pallas block and warps around the defaults (sweep_default),
 #             1M at 1024^2
@@ -54,7 +59,8 @@ shift $(( $# > 0 ? 1 : 0 ))
 SWEEPS="sweep_default sweep_pallas_block16 sweep_pallas_block64 \
 sweep_num_warps1 sweep_num_warps4"
 ORDER="env mpm render donut video video_scene substep substep_graphs_off \
-substep_graphs_while sorts pipeline pipeline_noautotune $SWEEPS tests"
+substep_graphs_while sorts pipeline pipeline_scenes pipeline_noautotune \
+$SWEEPS tests"
 STEPS=
 for s in ${*:-all}; do
   case $s in
@@ -202,6 +208,12 @@ run_pipeline() {
     --scenes=tabletop --runs=cold,warm,serial,profile \
     --profile_frames=60,64 \
     --out="$WORK/pipeline" --set="${PIPELINE_SET:-}"
+}
+run_pipeline_scenes() {
+  gsplat_wait
+  step pipeline_scenes 240 $PY -m experiments.benchmark_pipeline \
+    --preset=paper --scenes=ficus,donut --runs=cold,warm \
+    --out="$WORK/pipeline_scenes" --set="${PIPELINE_SET:-}"
 }
 # The cold run again with XLA's GPU autotuning off: how much of the cold
 # compile it is.
