@@ -4,7 +4,8 @@ Commands ``python -m experiments.NAME --flag=...`` are extracted from the
 Markdown (backslash continuations joined); each NAME must be a script and
 each flag one that the script defines (its own ``DEFINE_*`` calls, the
 flags of what it imports, absl's), and ``--config.FIELD`` on the pipeline
-scripts a field of their config file.
+scripts a field of their config file. Links between the Markdown files
+(``[text](file.md#anchor)``, ``[text](#anchor)``) reach a real heading.
 """
 
 import ast
@@ -84,6 +85,28 @@ class DocsCommandsTest(absltest.TestCase):
         if name not in flags and not (name.startswith('no')
                                       and name[2:] in flags):
           bad.append(f'{doc}: experiments.{script} {tok}: no such flag')
+    self.assertGreater(seen, 20)
+    self.assertEqual(bad, [])
+
+  def test_links_reach_real_headings(self):
+    docs = [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]
+
+    def slug(heading):  # GitHub's anchors
+      text = heading.lstrip('#').strip().lower()
+      return re.sub(r'[^\w\- ]', '', text).replace(' ', '-')
+
+    anchors = {md.resolve(): {slug(ln) for ln in md.read_text().splitlines()
+                              if ln.startswith('#')} for md in docs}
+    bad, seen = [], 0
+    for md in docs:
+      for m in re.finditer(r'\]\(([^)#\s]*)#([^)\s]+)\)', md.read_text()):
+        target = (md.parent / m.group(1)).resolve() if m.group(1) else (
+          md.resolve())
+        if target not in anchors:
+          continue
+        seen += 1
+        if m.group(2) not in anchors[target]:
+          bad.append(f'{md.name}: {m.group(0)}')
     self.assertGreater(seen, 20)
     self.assertEqual(bad, [])
 
