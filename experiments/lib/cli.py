@@ -46,25 +46,46 @@ def define_out(default: str | None, help_text: str) -> flags.FlagHolder:
   return flags.DEFINE_string('out', default, help_text)
 
 
+def _unknown_field(e: Exception, argv) -> str | None:
+  """The one-line message for an override of a config field that does not
+  exist (ml_collections raises AttributeError / KeyError naming it), or
+  None when no ``--NAME.PATH`` argument names that field (then the error
+  came from elsewhere, e.g. a bug in a config file, and is not ours to
+  word)."""
+  field = str(e).strip('"\'')
+  for arg in argv[1:]:
+    if arg.startswith('--') and '.' in arg.split('=')[0]:
+      name, *path = arg[2:].split('=')[0].split('.')
+      if field in path:
+        return (f'the {name} has no field {field!r} ({arg}); --helpfull '
+                f'lists the --{name}.* fields, docs/configs.md says what '
+                'they mean')
+  return None
+
+
+def _usage_exit(message: str) -> None:
+  print(f'error: {message}', file=sys.stderr)
+  sys.exit(2)
+
+
 def define_config_file(name: str, default: str | None, help_text: str,
                        **kwargs):
-  """``ml_collections.config_flags.DEFINE_config_file``, with an override
-  of a field the config does not have (``--config.nosuch=1``) as one line
-  and exit code 2: ml_collections applies the command line's overrides
-  while the flag is defined, when the script is imported, and raised
-  AttributeError from deep inside itself."""
+  """``ml_collections.config_flags.DEFINE_config_file``, with a bad
+  override (``--config.nosuch=1``, overrides in an order it refuses) as
+  one line and exit code 2. Without ``--config=FILE`` on the command line
+  ml_collections applies the overrides while the flag is defined, when
+  the script is imported (with it, while flags are parsed:
+  :func:`parse_flags`), and raised from deep inside itself."""
   try:
     return config_flags.DEFINE_config_file(name, default, help_text,
                                            **kwargs)
   except (AttributeError, KeyError) as e:
-    field = str(e).strip('"\'')
-    given = [a for a in sys.argv[1:] if a.startswith(f'--{name}.')
-             and a.split('=')[0].split('.')[-1] == field]
-    where = f' ({given[0]})' if given else ''
-    print(f'error: the {name} has no field {field!r}{where}; --helpfull '
-          f'lists the --{name}.* fields, docs/configs.md says what they '
-          'mean', file=sys.stderr)
-    sys.exit(2)
+    message = _unknown_field(e, sys.argv)
+    if message is None:
+      raise
+    _usage_exit(message)
+  except flags.Error as e:
+    _usage_exit(f'{" ".join(str(e).split())}; --helpfull lists the flags')
 
 
 def write_json(path: str | None, result) -> None:
@@ -130,15 +151,19 @@ def usage_error(message: str) -> app.UsageError:
 
 def parse_flags(argv):
   """absl's flag parsing with a bad flag (an unknown one, a value of the
-  wrong type, a required one missing) as one ``error:`` line and exit code
-  2, as the scripts' other usage errors (absl printed 'FATAL Flags parsing
-  error' and exited 1)."""
+  wrong type, a required one missing, an override of a config field that
+  does not exist) as one ``error:`` line and exit code 2, as the scripts'
+  other usage errors (absl printed 'FATAL Flags parsing error' and exited
+  1)."""
   try:
     return flags.FLAGS(argv)
   except flags.Error as e:
-    message = ' '.join(str(e).split())
-    print(f'error: {message}; --helpfull lists the flags', file=sys.stderr)
-    sys.exit(2)
+    _usage_exit(f'{" ".join(str(e).split())}; --helpfull lists the flags')
+  except (AttributeError, KeyError) as e:  # --config=FILE --config.nosuch=1
+    message = _unknown_field(e, argv)
+    if message is None:
+      raise
+    _usage_exit(message)
 
 
 def run(main, cpu_devices: int | None = None) -> None:

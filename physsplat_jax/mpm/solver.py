@@ -88,8 +88,8 @@ def init_state(x, v, volume, materials: base.Materials,
 
   Raises:
     MPMInputError (a ValueError): wrong shapes; particles outside the
-      grid, volumes not finite and > 0, bad body ids or model ids (checked
-      when the inputs are concrete).
+      grid, negative or non-finite volumes, bad body ids or model ids
+      (checked when the inputs are concrete).
   """
   dtype = config.jnp_dtype
   x = jnp.asarray(x, dtype)
@@ -103,17 +103,21 @@ def init_state(x, v, volume, materials: base.Materials,
     raise MPMInputError(f'init_state: v has shape {v.shape}; expected ({n}, 3) '
                         'or (3,).')
   volume = jnp.asarray(volume, dtype)
-  if volume.ndim > 1 or (volume.ndim == 1 and volume.shape != (n,)):
+  if volume.ndim > 1 or (volume.ndim == 1 and volume.shape not in ((n,),
+                                                                  (1,))):
     raise MPMInputError(f'init_state: volume has shape {volume.shape}; '
                         f'expected ({n},) or a scalar [m^3].')
   volume = jnp.broadcast_to(volume, (n,))
-  vh = _host(volume)  # (velocities: mpm.run checks them, as the state's)
-  if vh is not None and n and not np.all(np.isfinite(vh) & (vh > 0)):
-    bad = ~(np.isfinite(vh) & (vh > 0))
+  # Zero is allowed: a massless particle follows the grid (a sampler may
+  # leave a driver without candidates). Velocities: mpm.run checks them.
+  vh = _host(volume)
+  if vh is not None and n and not np.all(np.isfinite(vh) & (vh >= 0)):
+    bad = ~(np.isfinite(vh) & (vh >= 0))
     i = int(np.argmax(bad))
     raise MPMInputError(
-      f'init_state: volume is {vh[i]} for particle {i} ({int(bad.sum())} of '
-      f'{n} not finite and > 0); give volumes > 0 [m^3].')
+      f'init_state: volume is {float(vh[i]):.3g} for particle {i} '
+      f'({int(bad.sum())} of {n} negative or not finite); give volumes >= 0 '
+      '[m^3].')
   for f in base.FLOAT_FIELDS + ('model_id',):
     a = getattr(materials, f)
     if np.shape(a) != (n,):
