@@ -14,9 +14,10 @@ run, warm (a scene's runs share its cache), with the host loop unpipelined
 warm run's is what the pipelining saves; ``profile`` adds a warm,
 pipelined run traced over ``--profile_frames`` (``experiments.simulate
 --profile_frames``): per frame, the host's wall time, the device's busy
-time and the costliest kernels, apart from the timed runs. A run may carry its own
-overrides after an ``@`` (``warm@scan_unroll=8``, several joined by ``+``):
-on a warm cache only the programs they change compile again. Presets: ``paper`` is the paper's
+time and the costliest kernels, apart from the timed runs. A run may carry
+its own overrides after an ``@`` (``warm@render_config.backend=jax``,
+several joined by ``+``): on a warm cache only the programs they change
+compile again. Presets: ``paper`` is the paper's
 setting (64^3 grid, 768 substeps per frame at 30 fps, 150 frames = a 5 s video,
 800x800, up to 200k particles) for a GPU; ``cpu`` is sized for a 2-core
 CPU (the ``make demo`` settings).
@@ -50,7 +51,7 @@ _RUNS = flags.DEFINE_list(
   'cold, warm, serial (--nopipelined: exact per-stage times; warm when a '
   'run before it filled the cache) and/or profile (traced frames); '
   'KIND@KEY=VALUE[+KEY=VALUE] adds overrides to one run, e.g. '
-  'warm@scan_unroll=8')
+  'warm@render_config.backend=jax')
 _PROFILE_FRAMES = flags.DEFINE_list(
   'profile_frames', None, 'START,STOP: the frames the profile run traces '
   '(default the middle third of the run)')

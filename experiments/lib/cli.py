@@ -14,6 +14,7 @@ It also turns on JAX's persistent compilation cache
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -63,9 +64,24 @@ def _unknown_field(e: Exception, argv) -> str | None:
   return None
 
 
-def _usage_exit(message: str) -> None:
-  print(f'error: {message}', file=sys.stderr)
-  sys.exit(2)
+@contextlib.contextmanager
+def _flag_errors(argv):
+  """A bad flag or config override raised inside as one ``error:`` line
+  and exit code 2: absl's errors, and ml_collections' AttributeError /
+  KeyError for a field that does not exist (re-raised when no argument
+  names that field: then it is not a usage error)."""
+  try:
+    yield
+  except flags.Error as e:
+    print(f'error: {" ".join(str(e).split())}; --helpfull lists the flags',
+          file=sys.stderr)
+    sys.exit(2)
+  except (AttributeError, KeyError) as e:
+    message = _unknown_field(e, argv)
+    if message is None:
+      raise
+    print(f'error: {message}', file=sys.stderr)
+    sys.exit(2)
 
 
 def define_config_file(name: str, default: str | None, help_text: str,
@@ -76,16 +92,9 @@ def define_config_file(name: str, default: str | None, help_text: str,
   ml_collections applies the overrides while the flag is defined, when
   the script is imported (with it, while flags are parsed:
   :func:`parse_flags`), and raised from deep inside itself."""
-  try:
+  with _flag_errors(sys.argv):
     return config_flags.DEFINE_config_file(name, default, help_text,
                                            **kwargs)
-  except (AttributeError, KeyError) as e:
-    message = _unknown_field(e, sys.argv)
-    if message is None:
-      raise
-    _usage_exit(message)
-  except flags.Error as e:
-    _usage_exit(f'{" ".join(str(e).split())}; --helpfull lists the flags')
 
 
 def write_json(path: str | None, result) -> None:
@@ -155,15 +164,8 @@ def parse_flags(argv):
   does not exist) as one ``error:`` line and exit code 2, as the scripts'
   other usage errors (absl printed 'FATAL Flags parsing error' and exited
   1)."""
-  try:
+  with _flag_errors(argv):  # (--config=FILE --config.nosuch=1: here)
     return flags.FLAGS(argv)
-  except flags.Error as e:
-    _usage_exit(f'{" ".join(str(e).split())}; --helpfull lists the flags')
-  except (AttributeError, KeyError) as e:  # --config=FILE --config.nosuch=1
-    message = _unknown_field(e, argv)
-    if message is None:
-      raise
-    _usage_exit(message)
 
 
 def run(main, cpu_devices: int | None = None) -> None:
