@@ -264,6 +264,26 @@ class ValidationTest(absltest.TestCase):
         run(**kw)
     with self.assertRaisesRegex(mpm.MPMInputError, 'gravity.*3 finite'):
       mpm.SimConfig(grid=grid, dt=1e-3, gravity=(0.0, 0.0, np.nan))
+    # A massless particle (init_state allows volume 0) runs and follows the
+    # grid: inside a block moving at a uniform velocity, it moves with it.
+    vol = np.full(20, 1e-4)
+    vol[5] = 0.0
+    v0 = np.array([0.3, -0.2, 0.1])
+    s = mpm.init_state(x, v0, vol, mat, cfg)
+    end = mpm.run(s, mat, None, cfg, 1).state
+    g = np.asarray(cfg.gravity)
+    np.testing.assert_allclose(np.asarray(end.v[5]), v0 + 2e-3 * g,
+                               atol=1e-5)
+    # x advances by dt * v after each substep's velocity update.
+    np.testing.assert_allclose(np.asarray(end.x[5] - s.x[5]),
+                               2e-3 * v0 + 3e-6 * g, atol=1e-7)
+    for st, want in ((s.replace(mass=s.mass.at[3].set(-1.0)),
+                      r'mass < 0 for 1 of 20 particles \(3\)'),
+                     (mpm.init_state(x, v0, 0.0, mat, cfg),
+                      'is 0 for all 20 particles')):
+      with self.subTest(want), self.assertRaisesRegex(mpm.MPMInputError,
+                                                      want):
+        mpm.run(st, mat, None, cfg, 1)
 
   def test_init_state_names_bad_volumes_and_shapes(self):
     from physsplat_jax import mpm

@@ -47,7 +47,8 @@ def check_run_inputs(state, materials, forces, config) -> None:
   Checked: at least one particle; finite material fields, density > 0,
   and for particles with a stress (every model but 'rigid') E > 0 and
   -1 < nu < 0.5; finite positions, velocities, F, C, masses and volumes,
-  masses and volumes > 0; finite force values.
+  masses and volumes >= 0 and not all 0 (a massless particle follows the
+  grid); finite force values.
   """
   n = int(np.shape(state.x)[0])
   if n == 0:
@@ -85,12 +86,20 @@ def check_run_inputs(state, materials, forces, config) -> None:
         'was built from (positions, velocities, materials, params) are not '
         'finite.')
     if name in ('mass', 'vol0'):
-      low = ~(_per_particle(a, n) > 0).all(axis=1)
+      # Zero is allowed, as init_state allows it: a massless particle (a
+      # driver a sampler left without candidates) follows the grid.
+      a = _per_particle(a, n)
+      low = ~(a >= 0).all(axis=1)
       if low.any():
         raise MPMInputError(
-          f'mpm.run: {name} <= 0 for {int(low.sum())} of {n} particles '
-          f'({_rows(low)}); give every particle a positive volume and '
-          'density.')
+          f'mpm.run: {name} < 0 for {int(low.sum())} of {n} particles '
+          f'({_rows(low)}); give every particle a volume >= 0 and a '
+          'density > 0.')
+      if not (a > 0).any():
+        raise MPMInputError(
+          f'mpm.run: {name} is 0 for all {n} particles, so nothing would '
+          'move; give the particles their volumes (init_state\'s volume, '
+          '[m^3]).')
   for value, bc in zip(forces.values, config.boundary_conditions):
     if not np.all(np.isfinite(np.asarray(value))):
       raise MPMInputError(
