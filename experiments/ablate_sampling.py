@@ -58,6 +58,7 @@ import numpy as np
 from absl import app
 from absl import flags
 
+from experiments.lib import cli
 from physsplat_jax import deform
 from physsplat_jax import mpm
 from physsplat_jax import sampling
@@ -442,4 +443,4 @@ def main(argv, f):
 
 if __name__ == '__main__':
   _f = _define_flags()
-  app.run(lambda argv: main(argv, _f))
+  cli.run(lambda argv: main(argv, _f))

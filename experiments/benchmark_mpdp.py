@@ -36,6 +36,7 @@ import numpy as np
 from absl import app
 from absl import flags
 
+from experiments.lib import cli
 from physsplat_jax import mpdp
 from physsplat_jax.mpdp import knn as knn_lib
 from physsplat_jax.mpdp import model as model_lib
@@ -168,4 +169,4 @@ def main(argv):
 
 
 if __name__ == '__main__':
-  app.run(main)
+  cli.run(main, cache_default='off')

@@ -54,9 +54,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from absl import app
 from absl import flags
 
+from experiments.lib import cli
 from physsplat_jax import cameras
 from physsplat_jax import gaussians as gs
 from physsplat_jax.io import video as video_lib
@@ -396,4 +396,4 @@ def main(argv):
 
 
 if __name__ == '__main__':
-  app.run(main)
+  cli.run(main, cache_default='off')

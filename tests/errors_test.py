@@ -113,6 +113,22 @@ class ErrorPathTest(absltest.TestCase):
         lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
         self.assertTrue(lines[-1].startswith(want), lines[-1])
 
+  def test_every_script_runs_through_cli_run(self):
+    # app.run directly would keep absl's 'FATAL Flags parsing error' (exit
+    # 1) and the package's errors as tracebacks.
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    folder = os.path.join(root, 'experiments')
+    scripts = [f for f in sorted(os.listdir(folder)) if f.endswith('.py')
+               and "__name__ == '__main__'" in open(
+                 os.path.join(folder, f)).read()]
+    self.assertGreater(len(scripts), 10)
+    for name in scripts:
+      with self.subTest(name):
+        text = open(os.path.join(folder, name)).read()
+        main = text[text.index("__name__ == '__main__'"):]
+        self.assertIn('cli.run(', main)
+        self.assertNotIn('app.run(', main)
+
   def test_unexpected_errors_keep_their_traceback(self):
     with self.assertRaises(ZeroDivisionError):
       _run_guarded(ZeroDivisionError('bug'))

@@ -114,11 +114,14 @@ def _verbose() -> bool:
     return False
 
 
-def _setup(cpu_devices: int | None = None) -> None:
-  """What every script does first: the persistent compilation cache; with
+def _setup(cpu_devices: int | None = None,
+           cache_default: str | None = None) -> None:
+  """What every script does first: the persistent compilation cache
+  (``--compile_cache``, else ``cache_default``, else the user folder); with
   ``cpu_devices``, that many CPU devices if the machine has as many cores
   (before JAX starts; not when ``XLA_FLAGS`` or an earlier setting chose)."""
-  compile_cache.enable_compilation_cache(_CACHE.value)
+  compile_cache.enable_compilation_cache(
+    _CACHE.value if _CACHE.value is not None else cache_default)
   if (cpu_devices and (os.cpu_count() or 1) >= cpu_devices
       and 'device_count' not in os.environ.get('XLA_FLAGS', '')
       and jax.config.jax_num_cpu_devices < cpu_devices):
@@ -128,11 +131,12 @@ def _setup(cpu_devices: int | None = None) -> None:
       pass
 
 
-def guard(main, cpu_devices: int | None = None):
+def guard(main, cpu_devices: int | None = None,
+          cache_default: str | None = None):
   """``main`` with the package's errors turned into one line and exit 1."""
 
   def wrapped(argv):
-    _setup(cpu_devices)
+    _setup(cpu_devices, cache_default)
     try:
       return main(argv)
     except app.UsageError as e:
@@ -168,11 +172,16 @@ def parse_flags(argv):
     return flags.FLAGS(argv)
 
 
-def run(main, cpu_devices: int | None = None) -> None:
+def run(main, cpu_devices: int | None = None,
+        cache_default: str | None = None) -> None:
   """``absl.app.run(main)`` with :func:`guard` and :func:`parse_flags`.
 
   ``cpu_devices=2`` (the pipeline scripts) gives a CPU process a second
   device, on which ``pipeline.run`` renders each frame while the first
-  simulates the next (``render_device='auto'``).
+  simulates the next (``render_device='auto'``). ``cache_default``: the
+  compilation cache folder when ``--compile_cache`` is not given (None:
+  the user folder; ``'off'`` for the benchmarks that report compile
+  times, so that a second run measures compilation again).
   """
-  app.run(guard(main, cpu_devices), flags_parser=parse_flags)
+  app.run(guard(main, cpu_devices, cache_default),
+          flags_parser=parse_flags)
