@@ -10,7 +10,9 @@ substep.py: ``scene``, the pipeline's grouped substep; ``split``, the
 same with a constitutive slice per model on a GPU too; ``masked``;
 ``no_plane``; ``no_plane_no_body``; ``bare``, one fixed-corotated material
 with no body and no plane), all compiled first and timed in turns (best of
-``--rounds``).
+``--rounds``). ``--constitutive_kernels=auto,jax`` times each variant with
+the stress update as one Pallas kernel (on a CUDA GPU) and as XLA's
+fusion, in the same process.
 
 The differences say what the materials, the rigid bodies and the plane
 contact cost per substep. ``--clock=cpu`` reports process CPU time instead
@@ -51,6 +53,11 @@ _PROFILE = flags.DEFINE_boolean(
   'profile', False, 'also trace each variant once: device-busy time per '
   'substep and the most expensive kernels')
 _TOP = flags.DEFINE_integer('top', 12, '--profile: kernels listed per variant')
+_KERNELS = flags.DEFINE_list(
+  'constitutive_kernels', ['auto'], 'SimConfig.constitutive_kernel values '
+  "(auto, jax, pallas); with more than one, each variant runs with each, "
+  "named VARIANT@KERNEL (auto: the stress update as one Pallas kernel on "
+  "a CUDA GPU)")
 
 
 def _profile(name, fn, args, substeps):
@@ -81,12 +88,20 @@ def main(argv):
   n = prepared.num_particles
   clock = time.perf_counter if _CLOCK.value == 'wall' else time.process_time
   runs = {}
-  for name in _VARIANTS.value:
-    s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
-    fn = jax.jit(substep_lib.make_frame(name, c))
-    out = fn(s, m, f)
-    jax.block_until_ready(out)
-    runs[name] = (fn, out, m, f)
+  kernels = _KERNELS.value
+  bad = sorted(set(kernels) - set(mpm.CONSTITUTIVE_KERNELS))
+  if bad:
+    raise cli.usage_error(f'--constitutive_kernels: unknown {bad}; use '
+                          f'{", ".join(mpm.CONSTITUTIVE_KERNELS)}')
+  for kernel in kernels:
+    for name in _VARIANTS.value:
+      s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
+      c = dataclasses.replace(c, constitutive_kernel=kernel)
+      fn = jax.jit(substep_lib.make_frame(name, c))
+      out = fn(s, m, f)
+      jax.block_until_ready(out)
+      runs[name if len(kernels) == 1 else f'{name}@{kernel}'] = (fn, out, m,
+                                                                f)
   best = {name: float('inf') for name in runs}
   for _ in range(_ROUNDS.value):
     for name, (fn, s, m, f) in runs.items():

@@ -78,6 +78,10 @@ _TARGETS = flags.DEFINE_list(
   'simulate (the whole differentiable simulate of the scene and its '
   'gradient)')
 _FRAMES = flags.DEFINE_integer('frames', 2, 'simulate: frames')
+_KERNEL = flags.DEFINE_enum(
+  'constitutive_kernel', 'auto', ['auto', 'jax', 'pallas'],
+  'mpm, simulate: SimConfig.constitutive_kernel (auto: the stress update '
+  'as one Pallas kernel on CUDA; jax: XLA\'s fusion)')
 _RENDER_SIZE = flags.DEFINE_integer('render_size', 1024,
                                     'render: image edge [pixels]')
 _RENDER_SLOTS = flags.DEFINE_integer(
@@ -160,7 +164,8 @@ def compile_simulate(sharding, scene_name: str, frames: int) -> list[dict]:
   settings for ``frames`` frames, and the gradient of a loss on the final
   Gaussian means (rendering off) with respect to every parameter."""
   config, prepared, params = substep_lib.demo_scene(scene_name)
-  config = dataclasses.replace(config, num_frames=frames)
+  config = dataclasses.replace(config, num_frames=frames,
+                               constitutive_kernel=_KERNEL.value)
   sim = config.simulate
   nograd = dataclasses.replace(sim, render='none')
 
@@ -186,12 +191,12 @@ def compile_simulate(sharding, scene_name: str, frames: int) -> list[dict]:
 def main(argv):
   del argv
   dump_dir = ptxas = None
-  if 'render' in _TARGETS.value:
+  if {'render', 'mpm'} & set(_TARGETS.value):
     # ptxas reads the PTX that XLA dumps; the flag must be set before XLA
     # reads its flags (the first compile).
     ptxas = ptxas_lib.find_ptxas()
     if ptxas is None:
-      logging.warning('no ptxas (nvidia-cuda-nvcc wheel or PATH): render '
+      logging.warning('no ptxas (nvidia-cuda-nvcc wheel or PATH): Pallas '
                       'kernels compiled without a register report')
     else:
       dump_dir = tempfile.mkdtemp(prefix='gpu_kernels_')
@@ -224,13 +229,14 @@ def main(argv):
               f"spilled, {r['threads']} threads, {r['shared_bytes']} B "
               f"shared: {r['warps_per_sm']} warps/SM; "
               f"{r['ptx_instructions']} PTX instructions")
-      shutil.rmtree(dump_dir, ignore_errors=True)
   if 'simulate' in _TARGETS.value:
     for row in compile_simulate(sharding, _SCENE.value, _FRAMES.value):
       rows.append(row)
       print(f"{row['variant']:18s} compiled in {row['compile_s']} s")
   info = dict(spec=os.path.basename(_SPEC.value), jax_version=jax.__version__)
   if 'mpm' not in _TARGETS.value:
+    if dump_dir is not None:
+      shutil.rmtree(dump_dir, ignore_errors=True)
     cli.write_json(_OUT.value, dict(info, rows=rows))
     return
   prepared, state, mats, forces, sim_config = (
@@ -239,6 +245,7 @@ def main(argv):
                                    substeps_per_frame=_SUBSTEPS.value)
   for name in _VARIANTS.value:
     s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
+    c = dataclasses.replace(c, constitutive_kernel=_KERNEL.value)
     args = _abstract((s, m, f), sharding)
     t = time.perf_counter()
     compiled = jax.jit(substep_lib.make_frame(name, c)).lower(*args).compile()
@@ -248,7 +255,20 @@ def main(argv):
     rows.append(row)
     logging.info('%s', row)
     print(f"{name:18s} {row['kernels']:4d} kernels/substep  "
-          f"({', '.join(f'{k} {v}' for k, v in row['by_kind'].items())})")
+          f"({', '.join(f'{k} {v}' for k, v in row['by_kind'].items())}), "
+          f"compiled in {row['compile_s']} s")
+  if dump_dir is not None:
+    # The constitutive update's Pallas kernel (mpm/pallas_constitutive.py):
+    # registers and spills of the last variant compiled with it.
+    limits = ptxas_lib.spec_limits(pathlib.Path(_SPEC.value).read_text())
+    res = ptxas_lib.kernel_resources(dump_dir, ('constitutive_update',),
+                                     limits, ptxas)
+    for name, r in res.items():
+      rows.append(dict(variant=f'{name} (ptxas)', **r))
+      print(f"{name:18s} {r['registers']} registers, {r['spill_bytes']} B "
+            f"spilled, {r['threads']} threads: {r['warps_per_sm']} warps/SM; "
+            f"{r['ptx_instructions']} PTX instructions")
+    shutil.rmtree(dump_dir, ignore_errors=True)
   cli.write_json(_OUT.value, dict(
     info, scene=_SCENE.value, particles=prepared.num_particles,
     models=sim_config.models, rows=rows))

@@ -32,7 +32,8 @@
 #   substep   benchmark_substep on the tabletop: grouped (merged or split
 #             constitutive slices) / masked / without body and plane / bare,
 #             with a profile (device-busy time and the costliest kernels
-#             per substep)
+#             per substep), each with the stress update as one Pallas
+#             kernel (auto) and as XLA's fusion (jax)
 #   substep_graphs  the grouped and bare substeps again with XLA's command
 #             buffers (CUDA graphs) off, and with loops as graphs too
 #             (WHILE, CONDITIONAL), one process each
@@ -40,8 +41,9 @@
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
 #             substeps/frame), tabletop: cold, warm, warm unpipelined
 #             (exact stage times), and a warm run traced over frames 60-64
-#             (host wall and device-busy time per frame, costliest kernels)
-#             (issue 17)
+#             (host wall and device-busy time per frame, costliest kernels),
+#             and a warm run with the stress update as XLA's fusion
+#             (constitutive_kernel=jax, against the Pallas kernel) (issue 17)
 #   pipeline_scenes  the same preset on ficus and the donut (up to 200k
 #             particles): cold and warm (issue 17's other scenes)
 #   pipeline_noautotune  the cold run with XLA's GPU autotuning off
@@ -167,9 +169,9 @@ run_video_scene() {
 }
 run_substep() {
   gsplat_wait
-  step substep 120 $PY -m experiments.benchmark_substep --scene=tabletop \
+  step substep 150 $PY -m experiments.benchmark_substep --scene=tabletop \
     --variants=scene,split,masked,no_plane_no_body,bare --profile \
-    --out="$WORK/substep.json"
+    --constitutive_kernels=auto,jax --out="$WORK/substep.json"
 }
 # Each substep is one CUDA graph by default (XLA's command buffers); the
 # scan over substeps stays a host loop unless WHILE is enabled too.
@@ -204,8 +206,9 @@ echo XLA sort ops: \$(cat *after_optimizations.txt | grep -c ' sort(')"
 # PIPELINE_SET: extra --set overrides, e.g. render_config.backend=jax.
 run_pipeline() {
   gsplat_wait
-  step pipeline 290 $PY -m experiments.benchmark_pipeline --preset=paper \
-    --scenes=tabletop --runs=cold,warm,serial,profile \
+  step pipeline 320 $PY -m experiments.benchmark_pipeline --preset=paper \
+    --scenes=tabletop \
+    --runs=cold,warm,serial,profile,warm@constitutive_kernel=jax \
     --profile_frames=60,64 \
     --out="$WORK/pipeline" --set="${PIPELINE_SET:-}"
 }

@@ -12,6 +12,7 @@ platform got, and check on the CPU that the two forms agree in value.
 (docs/benchmarks.md).
 """
 
+import dataclasses
 import pathlib
 import re
 import tempfile
@@ -36,8 +37,10 @@ def _ops(fn, args, platform):
   """Counts of StableHLO ops in ``fn`` lowered for ``platform``."""
   text = jax.jit(fn).trace(*args).lower(
     lowering_platforms=(platform,)).as_text()
-  return {op: len(re.findall(rf'stablehlo\.{op}\b', text))
-          for op in ('while', 'dot_general', 'scatter', 'reduce', 'gather')}
+  ops = {op: len(re.findall(rf'stablehlo\.{op}\b', text))
+         for op in ('while', 'dot_general', 'scatter', 'reduce', 'gather')}
+  ops['triton'] = text.count('__gpu$xla.gpu.triton')
+  return ops
 
 
 class FormsAgreeTest(absltest.TestCase):
@@ -247,6 +250,13 @@ class PlatformFormsTest(absltest.TestCase):
     cpu, cuda = (_ops(frame, (s, mat, forces), p) for p in ('cpu', 'cuda'))
     self.assertEqual(cuda['while'], 1)
     self.assertEqual(cuda['dot_general'], 0)
+    # The stress update is one Pallas (Triton) kernel on CUDA only
+    # (SimConfig.constitutive_kernel='auto'; 'jax' keeps XLA's fusion).
+    self.assertEqual(cuda['triton'], 1)
+    self.assertEqual(cpu['triton'], 0)
+    jax_cuda = _ops(mpm.make_frame(dataclasses.replace(
+      cfg, constitutive_kernel='jax')), (s, mat, forces), 'cuda')
+    self.assertEqual(jax_cuda['triton'], 0)
     # The scan and Drucker-Prager's Jacobi loop (neo-Hookean has no SVD;
     # the stress is computed in the substep only, not again before the
     # scan), and the products.

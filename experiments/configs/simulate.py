@@ -58,6 +58,9 @@ def get_config():
   c.render_config = ml_collections.ConfigDict(
     dict(rasterize_mode='classic', backend='auto'))
   c.remat_frames = True
+  # MPM stress update: 'auto' (one Pallas kernel on a CUDA GPU, JAX
+  # elsewhere), 'jax' or 'pallas' (docs/mpm.md).
+  c.constitutive_kernel = 'auto'
   c.seed = 0
   return c
 

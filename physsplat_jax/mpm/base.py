@@ -349,6 +349,9 @@ def default_force(bc) -> np.ndarray:
 # -------------------------------------------------------------------- config
 
 
+CONSTITUTIVE_KERNELS = ('auto', 'jax', 'pallas')
+
+
 @dataclasses.dataclass(frozen=True)
 class SimConfig:
   """Static configuration of an MLS-MPM simulation (frozen, hashable).
@@ -383,6 +386,11 @@ class SimConfig:
       particles exactly the 'rigid' model's): each model's return mapping
       and the rigid projection then run on their own particles only (the
       pipeline sets it). None: every model evaluated on every particle.
+    constitutive_kernel: how the stress update runs: 'auto' (one Pallas
+      kernel on a CUDA GPU, ``mpm.pallas_constitutive``; the pure-JAX
+      update elsewhere), 'jax' (the pure-JAX update everywhere) or
+      'pallas' (the kernel everywhere; interpreted off a GPU, slow: for
+      tests). Same values and gradients either way.
   """
 
   grid: GridSpec = GridSpec()
@@ -401,6 +409,7 @@ class SimConfig:
   sort_particles: bool = True
   dtype: str = 'float32'
   model_counts: tuple[int, ...] | None = None
+  constitutive_kernel: str = 'auto'
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
@@ -460,6 +469,10 @@ class SimConfig:
           f'SimConfig.model_counts = {mc}: give one count >= 0 per model of '
           f'{models} (with rigid bodies, one of them "rigid"), or None.')
       object.__setattr__(self, 'model_counts', mc)
+    if self.constitutive_kernel not in CONSTITUTIVE_KERNELS:
+      raise MPMInputError(
+        f'SimConfig.constitutive_kernel = {self.constitutive_kernel!r}; use '
+        f"{', '.join(repr(k) for k in CONSTITUTIVE_KERNELS)}.")
     if self.dtype not in ('float32', 'float64'):
       raise MPMInputError(f"SimConfig.dtype = {self.dtype!r}; use 'float32' or "
                           "'float64'.")

@@ -75,6 +75,7 @@ import jax
 import jax.numpy as jnp
 
 from physsplat_jax.mpm import linalg as la
+from physsplat_jax.mpm import transfer
 
 SVD_MODELS = ('stvk', 'von_mises', 'plasticine', 'drucker_prager', 'snow',
               'foam', 'bingham')
@@ -463,3 +464,92 @@ def constitute_slices(slices, dt, F, C, Jpep, mat):
       out = jax.lax.dynamic_update_slice(out, jnp.stack([Jp, ep]), (0, a))
   Fe, tau = jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
   return Fe, out, tau
+
+
+def _split_over_devices(a) -> bool:
+  """Whether ``a`` varies over a manual mesh axis (inside ``shard_map``);
+  the attribute's name differs across JAX versions."""
+  aval = jax.typeof(a)
+  mat = getattr(aval, 'manual_axis_type', None)
+  varying = (getattr(mat, 'varying', None) if mat is not None
+             else getattr(aval, 'vma', None))
+  return bool(varying)
+
+
+def make_update(config):
+  """``update(F, C, Jpep, body_id, mat) -> (F_e, Jpep, tau)``: the
+  return-mapped state and Kirchhoff stress of a substep (the carried
+  (3, 3, N) ``F`` and ``C`` arrays in, nested-tuple matrices out; ``Jpep``
+  the (2, N) plastic state ``(Jp, ep)``, passed through where no model
+  changes it), computed once into memory (``transfer.materialize``):
+  XLA:CPU otherwise fuses the whole stress computation into the scatter's
+  per-contribution loop and recomputes it for each of the 108
+  contributions of a particle.
+
+  With ``config.model_counts`` the particles are sorted by model and each
+  model runs on its own slice only (on a GPU, the models with a spectral
+  form share one: :func:`constitutive_slices`); without, every model runs
+  on every particle and ``body_id >= 0`` marks the stress-free rigid ones.
+  On a CUDA GPU (``config.constitutive_kernel``, default 'auto') the
+  update is one Pallas kernel (``mpm.pallas_constitutive``), whose program
+  compiles in a fraction of the time XLA's fusion passes take over the
+  same chain; same values, same gradients. Particles split over devices
+  (``shard_map``) keep the pure-JAX update.
+  """
+  # (Imported here: the kernel's module imports this one.)
+  from physsplat_jax.mpm import pallas_constitutive  # noqa: PLC0415
+
+  dt, models = config.dt, config.models
+  has_bodies = config.num_bodies > 0
+  groups = model_groups(config)
+  single = constitutive_slices(config, merge=False)
+  merged = constitutive_slices(config, merge=True)
+
+  def with_jax(F, C, Jpep, body_id, mat):
+    F, C = la.to_mat(F), la.to_mat(C)
+    if groups:
+      args = (F, C, Jpep, mat)
+      if merged == single:
+        return constitute_slices(single, dt, *args)
+      # A slice per model on the CPU (an elastic model's closed form is
+      # cheaper than an SVD); elsewhere one blended slice, whose program
+      # compiles faster (constitutive_slices).
+      return jax.lax.platform_dependent(
+        *args, cpu=functools.partial(constitute_slices, single, dt),
+        default=functools.partial(constitute_slices, merged, dt))
+    rigid = body_id >= 0 if has_bodies else None
+    Fe, Jp, ep, tau = constitutive_update(models, mat.model_id, F, C,
+                                          Jpep[0], Jpep[1], mat, dt,
+                                          zero_stress=rigid)
+    if not all(m in NO_PLASTIC_STATE for m in models):
+      Jpep = jnp.stack([Jp, ep])
+    return Fe, Jpep, tau
+
+  def with_kernel(F, C, Jpep, body_id, mat, interpret):
+    n = F.shape[-1]
+    slices = merged if groups else ((models, 0, 0, n),)
+    body = body_id if (has_bodies and not groups) else None
+    Fe, Jpep, tau = pallas_constitutive.constitute(
+      slices, dt, F, C, Jpep, mat, body, interpret=interpret)
+    return la.to_mat(Fe), Jpep, la.to_mat(tau)
+
+  kernel = config.constitutive_kernel
+
+  def update(F, C, Jpep, body_id, mat):
+    args = (F, C, Jpep, body_id, mat)
+    compiled = functools.partial(with_kernel, interpret=False)
+    if kernel == 'jax' or _split_over_devices(F):
+      # (Particles split over devices inside shard_map: the pure-JAX
+      # update; the kernel's interpreted form does not run there.)
+      out = with_jax(*args)
+    elif kernel == 'pallas':  # interpreted off a CUDA GPU (slow: tests)
+      out = jax.lax.platform_dependent(
+        *args, cuda=compiled,
+        default=functools.partial(with_kernel, interpret=True))
+    elif pallas_constitutive.available():  # 'auto'
+      out = jax.lax.platform_dependent(*args, cuda=compiled, default=with_jax)
+    else:  # 'auto' where this JAX cannot build the kernel
+      out = with_jax(*args)
+    return transfer.materialize(out)
+
+  return update

@@ -48,12 +48,32 @@ values are (nearly) equal. Its gradient is exact, including at F = I
 
 from __future__ import annotations
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 
 from physsplat_jax.types import Array
 
 Mat = tuple  # tuple[tuple[Array, Array, Array], ...] of (N,) arrays
+
+# Set while a kernel body is traced (``kernel_mode``): primal code only.
+_KERNEL_MODE = [False]
+
+
+@contextlib.contextmanager
+def kernel_mode():
+  """Traces this module's functions for the body of a Pallas kernel: the
+  forward computations only, without their custom VJPs (a kernel has no
+  lowering for them; the caller differentiates the pure-JAX path instead),
+  and the polar iteration and Jacobi sweeps as loops (no platform choice
+  inside a kernel; unrolled, the tabletop's update took 5-8 s to compile
+  for an H100, as loops 0.7-0.9 s). Same arithmetic, same values."""
+  _KERNEL_MODE[0], old = True, _KERNEL_MODE[0]
+  try:
+    yield
+  finally:
+    _KERNEL_MODE[0] = old
 
 # Scaled Newton iterations: 6 reach float32 round-off even for condition
 # numbers ~4e4 (measured); float64 gets 9.
@@ -223,25 +243,33 @@ def solve_sym(a: Mat, b):
 
 
 def _polar_newton(F: Mat, iters: int) -> Mat:
+  if _KERNEL_MODE[0]:
+    # In a kernel a loop: the unrolled chain's code took seconds to compile.
+    return jax.lax.fori_loop(0, iters, lambda _, X: _newton_step(X), F)
   X = F
   for _ in range(iters):
-    c = cofactor(X)
-    d = X[0][0] * c[0][0] + X[0][1] * c[0][1] + X[0][2] * c[0][2]
-    # A singular F has no polar factor; keep the iteration finite (the
-    # solver never lets det F reach 0, see constitutive.safe_J).
-    tiny = jnp.asarray(1e-30 if d.dtype == jnp.float64 else 1e-20, d.dtype)
-    d = jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
-    # X^{-T} = cof(X) / det(X); scale by (|X^{-1}| / |X|)^{1/2}.
-    n1 = frob2(X)
-    n2 = frob2(c) / (d * d)
-    g = jnp.sqrt(jnp.sqrt(n2 / n1))
-    gi = 0.5 / (g * d)
-    X = tuple(tuple(0.5 * g * X[i][j] + gi * c[i][j] for j in range(3))
-              for i in range(3))
+    X = _newton_step(X)
   return X
 
 
-@jax.custom_vjp
+def _newton_step(X: Mat) -> Mat:
+  """One scaled Newton step ``(g X + X^{-T} / g) / 2``."""
+  c = cofactor(X)
+  d = X[0][0] * c[0][0] + X[0][1] * c[0][1] + X[0][2] * c[0][2]
+  # A singular F has no polar factor; keep the iteration finite (the
+  # solver never lets det F reach 0, see constitutive.safe_J).
+  # (A Python float: no negated constant array in a Pallas kernel.)
+  tiny = 1e-30 if d.dtype == jnp.float64 else 1e-20
+  d = jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d)
+  # X^{-T} = cof(X) / det(X); scale by (|X^{-1}| / |X|)^{1/2}.
+  n1 = frob2(X)
+  n2 = frob2(c) / (d * d)
+  g = jnp.sqrt(jnp.sqrt(n2 / n1))
+  gi = 0.5 / (g * d)
+  return tuple(tuple(0.5 * g * X[i][j] + gi * c[i][j] for j in range(3))
+               for i in range(3))
+
+
 def polar_mat(F: Mat) -> Mat:
   """Rotation factor ``R`` of ``F = R S`` (nested-tuple fields).
 
@@ -252,6 +280,13 @@ def polar_mat(F: Mat) -> Mat:
   Returns:
     R as a nested tuple.
   """
+  if _KERNEL_MODE[0]:
+    return _polar_newton(F, _iters(F))
+  return _polar_mat(F)
+
+
+@jax.custom_vjp
+def _polar_mat(F: Mat) -> Mat:
   return _polar_newton(F, _iters(F))
 
 
@@ -276,7 +311,7 @@ def _polar_bwd(res, Rbar):
   return (matmul(R, skew_from(b)),)
 
 
-polar_mat.defvjp(_polar_fwd, _polar_bwd)
+_polar_mat.defvjp(_polar_fwd, _polar_bwd)
 
 
 def polar(F: Array) -> Array:
@@ -438,6 +473,8 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
     return carry
 
   carry = (tuple(S), V0)
+  if unroll is None and _KERNEL_MODE[0]:
+    unroll = False
   if unroll is None:
     A, V = jax.lax.platform_dependent(carry, cpu=looped, default=unrolled)
   else:
@@ -577,7 +614,13 @@ def make_spectral_map(fn):
     return F_bar, p_bar
 
   apply.defvjp(fwd, bwd)
-  return apply
+
+  def apply_or_primal(F, p):
+    if _KERNEL_MODE[0]:
+      return forward(F, p)[0]
+    return apply(F, p)
+
+  return apply_or_primal
 
 
 def scale_cols(a: Mat, d) -> Mat:

@@ -233,8 +233,6 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   red = (lambda a: a) if reduce_fn is None else reduce_fn  # noqa: E731
   grid = config.grid
   dt = config.dt
-  models = config.models
-  G = grid.res
   inv_dx = grid.inv_dx
   lo, hi = grid.particle_bounds
   stress_scale = -dt * 4.0 * inv_dx * inv_dx
@@ -260,46 +258,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     walls.append((hi_p, tuple(-a for a in e), 0.0, 'separate', True, 0.0))
 
   groups = constitutive.model_groups(config)
-  single_slices = constitutive.constitutive_slices(config, merge=False)
-  merged_slices = constitutive.constitutive_slices(config, merge=True)
   rigid_group = ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
 
-  def constitute(F, C, Jpep, aux, mat):
-    """The return-mapped ``(F_e, Jpep, tau)`` of ``F`` (nested-tuple
-    matrices; ``Jpep`` the (2, N) plastic state ``(Jp, ep)``, passed
-    through where no model changes it), computed once into memory
-    (``transfer.materialize``):
-    XLA:CPU otherwise fuses the whole stress computation into the
-    scatter's per-contribution loop and recomputes it for each of the 108
-    contributions of a particle.
-
-    With ``config.model_counts`` the particles are sorted by model and each
-    model runs on its own slice only (on a GPU, the models with a spectral
-    form share one: ``constitutive.constitutive_slices``).
-    """
-    if groups:
-      args = (F, C, Jpep, mat)
-      if merged_slices == single_slices:
-        Fe, Jpep, tau = constitutive.constitute_slices(single_slices, dt,
-                                                       *args)
-      else:
-        # A slice per model on the CPU (an elastic model's closed form is
-        # cheaper than an SVD); elsewhere one blended slice, whose program
-        # compiles faster (constitutive.constitutive_slices).
-        Fe, Jpep, tau = jax.lax.platform_dependent(
-          *args,
-          cpu=functools.partial(constitutive.constitute_slices,
-                                single_slices, dt),
-          default=functools.partial(constitutive.constitute_slices,
-                                    merged_slices, dt))
-    else:
-      rigid = aux['body_id'] >= 0 if has_bodies else None
-      Fe, Jp, ep, tau = constitutive.constitutive_update(
-        models, mat.model_id, F, C, Jpep[0], Jpep[1], mat, dt,
-        zero_stress=rigid)
-      if not all(m in constitutive.NO_PLASTIC_STATE for m in models):
-        Jpep = jnp.stack([Jp, ep])
-    return transfer.materialize((Fe, Jpep, tau))
+  constitute = constitutive.make_update(config)
 
   def substep(c, aux, mat, forces):
     x = tuple(c['xv'][d] for d in range(3))
@@ -308,7 +269,8 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     t = c['t']
     mass, vol0 = aux['mass'], aux['vol0']
     with jax.named_scope('constitutive'):
-      Fe, Jpep, tau = constitute(la.to_mat(c['F']), C, c['Jpep'], aux, mat)
+      Fe, Jpep, tau = constitute(c['F'], c['C'], c['Jpep'], aux['body_id'],
+                                 mat)
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,

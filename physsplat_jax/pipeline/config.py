@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax import mpm
 from physsplat_jax.render import raster
 
 
@@ -319,6 +320,9 @@ class SimulateConfig:
     render: :class:`RenderMode`.
     render_config: static rasterizer settings.
     remat_frames: ``jax.checkpoint`` each frame (memory ~ frames).
+    constitutive_kernel: the MPM stress update: 'auto' (one Pallas kernel
+      on a CUDA GPU, pure JAX elsewhere), 'jax' or 'pallas'
+      (``mpm.SimConfig.constitutive_kernel``).
   """
 
   num_frames: int = 60
@@ -331,6 +335,7 @@ class SimulateConfig:
   render: RenderMode = RenderMode.FAST
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
+  constitutive_kernel: str = 'auto'
 
   def __post_init__(self):
     object.__setattr__(self, 'ground',
@@ -342,6 +347,9 @@ class SimulateConfig:
       (_finite(self.gravity), 'gravity', 'use a finite number [m/s^2]'),
       (_finite(self.friction) and self.friction >= 0, 'friction',
        'use a finite friction coefficient >= 0'),
+      (self.constitutive_kernel in mpm.CONSTITUTIVE_KERNELS,
+       'constitutive_kernel',
+       f"use {', '.join(repr(k) for k in mpm.CONSTITUTIVE_KERNELS)}"),
     ])
 
 
@@ -392,6 +400,7 @@ class PipelineConfig:
   render: RenderMode = RenderMode.FAST
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
+  constitutive_kernel: str = 'auto'
   seed: int = 0
 
   def __post_init__(self):

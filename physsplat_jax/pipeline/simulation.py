@@ -107,7 +107,8 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
     models=models, boundary_conditions=tuple(bcs),
     num_bodies=nb, body_fixed=(False,) * nb,
     remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)),
-    model_counts=tuple(counts))
+    model_counts=tuple(counts),
+    constitutive_kernel=config.constitutive_kernel)
 
 
 def driver_materials(params: Params, prepared: PreparedScene,

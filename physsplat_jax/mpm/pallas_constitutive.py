@@ -1,0 +1,234 @@
+"""A substep's whole constitutive update as one Pallas kernel (GPU).
+
+On a GPU the stress update of a scene with several materials is a long
+per-particle chain (polar iteration, Jacobi sweeps, every model's return
+map, the blend by model id). XLA compiles it as one fusion, but its fusion
+passes grow much faster than the chain: of the tabletop's MPM frame
+compiled for an H100 (without a GPU), 12 of 17 s went to them, against 3 s
+for the one-material block (docs/benchmarks.md). The same code traced as
+the body of a Pallas (Triton) kernel skips those passes: one kernel over
+blocks of particles, one ``pl.when`` per slice of particles sorted by model
+(``constitutive.constitutive_slices``), the plastic state written in place
+(an aliased output), nothing per particle kept between substeps.
+
+The kernel computes exactly what :func:`constitutive.constitute_slices`
+computes (the same functions, traced in ``linalg.kernel_mode``: forward
+code only, Jacobi sweeps unrolled). Its derivative is that of the pure-JAX
+path (``jax.custom_vjp``: the backward pass differentiates
+``constitute_slices``), so gradients are unchanged. Off a GPU it runs in
+Pallas interpret mode (slow; for tests).
+"""
+
+from __future__ import annotations
+
+from concurrent import futures
+import functools
+
+from absl import logging
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
+
+from physsplat_jax.mpm import constitutive
+from physsplat_jax.mpm import linalg as la
+
+BLOCK = 128  # particles per program (one per thread with 4 warps)
+NUM_WARPS = 4
+
+# Values of the masked-off lanes of the last block: any valid material
+# state (they are computed and never stored).
+_BENIGN = {'E': 1.0, 'nu': 0.25, 'rho': 1.0}
+
+
+def _index(lead, start, block):
+  # Leading indices as int32 scalars (interpret mode's discharge rules take
+  # no Python ints), then the block of particles.
+  return tuple(jnp.int32(i) for i in lead) + (pl.ds(start, block),)
+
+
+def _kernel(slices, dt, n, block, treedef, names, has_body, *refs):
+  F_ref, C_ref, J_ref = refs[:3]
+  k = 3 + len(names)
+  mat_refs = refs[3:k]
+  body_ref = refs[k] if has_body else None
+  Fe_ref, Jo_ref, tau_ref = refs[-3:]
+  start = pl.program_id(0) * block
+  idx = start + jax.lax.iota(jnp.int32, block)
+  inside = idx < n
+
+  def load(ref, lead, other):
+    return plgpu.load(ref.at[_index(lead, start, block)], mask=inside,
+                      other=other)
+
+  def store(ref, lead, value, mask):
+    plgpu.store(ref.at[_index(lead, start, block)], value, mask=mask)
+
+  F = tuple(tuple(load(F_ref, (i, j), float(i == j)) for j in range(3))
+            for i in range(3))
+  C = tuple(tuple(load(C_ref, (i, j), 0.0) for j in range(3))
+            for i in range(3))
+  Jp, ep = load(J_ref, (0,), 1.0), load(J_ref, (1,), 0.0)
+  mat = jax.tree.unflatten(treedef, [
+    load(r, (), 0 if name == 'model_id' else _BENIGN.get(name, 0.0))
+    for r, name in zip(mat_refs, names)])
+  rigid = load(body_ref, (), -1) >= 0 if has_body else None
+
+  for models, k0, a, b in slices:
+    @pl.when((start < b) & (start + block > a))
+    def _(models=models, k0=k0, a=a, b=b):
+      ids = None if len(models) == 1 else mat.model_id - k0
+      with la.kernel_mode():
+        Fe, Jp_new, ep_new, tau = constitutive.constitutive_update(
+          models, ids, F, C, Jp, ep, mat, dt, zero_stress=rigid)
+      mask = inside & (idx >= a) & (idx < b)
+      for i in range(3):
+        for j in range(3):
+          store(Fe_ref, (i, j), Fe[i][j], mask)
+          store(tau_ref, (i, j), tau[i][j], mask)
+      if not all(m in constitutive.NO_PLASTIC_STATE for m in models):
+        store(Jo_ref, (0,), Jp_new, mask)
+        store(Jo_ref, (1,), ep_new, mask)
+
+
+def _struct(shape, dtype, like):
+  """An output's shape and dtype, varying over the manual mesh axes as
+  ``like`` does (inside ``shard_map``, e.g. particles split over devices,
+  Pallas needs that said; outside it is empty)."""
+  aval = jax.typeof(like)
+  for field in ('manual_axis_type', 'vma'):  # (the name across JAX versions)
+    value = getattr(aval, field, None)
+    if value is not None:
+      try:
+        return jax.ShapeDtypeStruct(shape, dtype, **{field: value})
+      except TypeError:
+        pass
+  return jax.ShapeDtypeStruct(shape, dtype)
+
+
+def _reference(slices, dt, has_body, F, C, Jpep, mat, body_id):
+  """The pure-JAX update on the same (3, 3, N) arrays."""
+  Fm, Cm = la.to_mat(F), la.to_mat(C)
+  if has_body:  # one slice, no model_counts (see ``constitute``)
+    (models, _, _, _), = slices
+    Fe, Jp, ep, tau = constitutive.constitutive_update(
+      models, mat.model_id, Fm, Cm, Jpep[0], Jpep[1], mat, dt,
+      zero_stress=body_id >= 0)
+    if not all(m in constitutive.NO_PLASTIC_STATE for m in models):
+      Jpep = jnp.stack([Jp, ep])
+  else:
+    Fe, Jpep, tau = constitutive.constitute_slices(slices, dt, Fm, Cm, Jpep,
+                                                   mat)
+  return la.from_mat(Fe), Jpep, la.from_mat(tau)
+
+
+def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
+               interpret: bool = False, block: int = BLOCK,
+               num_warps: int = NUM_WARPS):
+  """The constitutive update of every particle in one Pallas kernel.
+
+  Args:
+    slices: static ``(models, first_model_index, start, end)`` per slice of
+      particles (``constitutive.constitutive_slices``), covering ``[0, N)``;
+      or one slice ``(config.models, 0, 0, N)`` with ``body_id`` for a scene
+      without ``model_counts``.
+    dt: substep [s] (Python float).
+    F, C: (3, 3, N) trial deformation gradients and affine velocities.
+    Jpep: (2, N) plastic state ``(Jp, ep)``.
+    mat: ``Materials`` with (N,) leaves.
+    body_id: (N,) int32 or None; where ``>= 0`` the particle carries no
+      stress (rigid bodies, for a scene without ``model_counts``).
+    interpret: run the kernel in Pallas interpret mode (any backend).
+    block, num_warps: particles per program and warps per program.
+
+  Returns:
+    ``(F_e, Jpep, tau)``: (3, 3, N), (2, N), (3, 3, N).
+  """
+  n = F.shape[-1]
+  has_body = body_id is not None
+  leaves, treedef = jax.tree.flatten(mat)
+  names = tuple(type(mat).__dataclass_fields__)
+  names = tuple(f for f in names if getattr(mat, f) is not None)
+  if len(names) != len(leaves) or any(
+      jnp.shape(q) != (n,) for q in leaves):
+    raise ValueError('pallas_constitutive.constitute: materials need one '
+                     f'(N,) = ({n},) array per field')
+  bodies = (body_id,) if has_body else ()
+
+  def kernel_call(F, C, Jpep, leaves, bodies):
+    kernel = functools.partial(_kernel, slices, dt, n, block, treedef, names,
+                               has_body)
+    dtype = F.dtype
+    params = {} if interpret else {
+      'compiler_params': plgpu.CompilerParams(num_warps=num_warps,
+                                              num_stages=1)}
+    return pl.pallas_call(
+      kernel,
+      out_shape=(_struct((3, 3, n), dtype, F),
+                 _struct(Jpep.shape, Jpep.dtype, Jpep),
+                 _struct((3, 3, n), dtype, F)),
+      grid=(pl.cdiv(n, block),),
+      input_output_aliases={2: 1},
+      interpret=interpret,
+      name='constitutive_update',
+      **params,
+    )(F, C, Jpep, *leaves, *bodies)
+
+  @jax.custom_vjp
+  def update(F, C, Jpep, leaves, bodies):
+    return kernel_call(F, C, Jpep, leaves, bodies)
+
+  def reference(F, C, Jpep, leaves, bodies):
+    return _reference(slices, dt, has_body, F, C, Jpep,
+                      jax.tree.unflatten(treedef, leaves),
+                      bodies[0] if has_body else None)
+
+  def fwd(F, C, Jpep, leaves, bodies):
+    return (kernel_call(F, C, Jpep, leaves, bodies),
+            (F, C, Jpep, leaves, bodies))
+
+  def bwd(res, cot):
+    _, vjp = jax.vjp(reference, *res)
+    return vjp(cot)
+
+  update.defvjp(fwd, bwd)
+  return update(F, C, Jpep, leaves, bodies)
+
+
+@functools.lru_cache(maxsize=None)
+def available() -> bool:
+  """Whether the kernel builds on this process's GPU (checked once, even
+  while a program is traced: every model, 128 particles, float32). True
+  without a GPU (off a GPU 'auto' never runs it; a program lowered for a
+  GPU it cannot see is compiled there first). False, with a warning, when
+  this JAX's Pallas cannot build it: ``SimConfig.constitutive_kernel =
+  'auto'`` then keeps the pure-JAX update instead of failing the run."""
+  if jax.default_backend() != 'gpu':
+    return True
+  from physsplat_jax.mpm import base  # noqa: PLC0415
+
+  def build():
+    models = base.CANONICAL_MODELS
+    n = 128
+    mat = base.make_materials(
+      [models[i % len(models)] for i in range(n)], 1e5, 0.3, 1000.0,
+      config_models=models)
+    F = jnp.broadcast_to(jnp.eye(3)[:, :, None], (3, 3, n))
+    Jpep = jnp.stack([jnp.ones(n), jnp.zeros(n)])
+    slices = ((models, 0, 0, n),)
+    out = jax.jit(lambda F, J, m: constitute(slices, 1e-4, F, 0 * F, J, m))(
+      F, Jpep, mat)
+    jax.block_until_ready(out)
+
+  try:
+    # On a thread of its own: JAX's tracing state is per thread, so this
+    # runs (compiles and executes) even while the caller traces a program.
+    with futures.ThreadPoolExecutor(1) as pool:
+      pool.submit(build).result()
+  except Exception as e:  # noqa: BLE001 (any failure: fall back)
+    logging.warning(
+      'The MPM stress kernel (Pallas) does not build with this JAX (%s: '
+      '%s); the pure-JAX update runs instead (SimConfig.'
+      "constitutive_kernel='jax' silences this).", type(e).__name__, e)
+    return False
+  return True

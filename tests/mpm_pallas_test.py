@@ -1,0 +1,231 @@
+"""The stress update as one Pallas kernel (mpm/pallas_constitutive.py).
+
+On a CUDA GPU ``SimConfig.constitutive_kernel='auto'`` runs it compiled;
+here it runs in Pallas interpret mode (the same kernel body: masked loads
+and stores per block of particles, one ``pl.when`` per slice) and must
+equal the pure-JAX update, for every model, at block edges and slice
+boundaries inside a block, in float32 and float64, in value and gradient,
+and inside a whole frame. tests/gpu_program_test.py checks that CUDA gets
+the kernel and the CPU does not.
+"""
+
+import contextlib
+import dataclasses
+import threading
+from unittest import mock
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+
+from physsplat_jax import mpm
+from physsplat_jax.mpm import constitutive
+from physsplat_jax.mpm import pallas_constitutive as pc
+
+_MODELS = mpm.CANONICAL_MODELS
+
+
+def _inputs(models, counts, dtype, seed=0):
+  """Random trial states near the rest state: F = I + noise, a velocity
+  gradient C, a plastic state (Jp, ep) and per-model default materials,
+  sorted by model."""
+  n = sum(counts)
+  rng = np.random.default_rng(seed)
+  F = np.eye(3)[:, :, None] + 0.08 * rng.standard_normal((3, 3, n))
+  C = 2.0 * rng.standard_normal((3, 3, n))
+  Jpep = np.stack([rng.uniform(0.9, 1.1, n), rng.uniform(0.0, 0.05, n)])
+  names = [m for m, c in zip(models, counts) for _ in range(c)]
+  E = rng.uniform(2e4, 2e5, n)
+  mat = mpm.make_materials(names, E, 0.3, 1000.0, config_models=models,
+                           dtype=dtype)
+  cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+  return cast(F), cast(C), cast(Jpep), mat
+
+
+@contextlib.contextmanager
+def _no_logs():
+  yield
+
+
+def _assert_close(test, got, want, rtol):
+  for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+    g, w = np.asarray(g), np.asarray(w)
+    scale = np.maximum(np.abs(w).max(axis=-1, keepdims=True), 1e-30)
+    test.assertLess(float(np.max(np.abs(g - w) / scale)), rtol)
+
+
+class PallasConstitutiveTest(absltest.TestCase):
+
+  def test_every_model_equals_the_jax_update(self):
+    """All models blended in one slice, 150 particles in blocks of 64
+    (the last block partial), float32 and float64."""
+    counts = (20, 10, 10, 15, 15, 10, 15, 15, 15, 15, 10)
+    slices = ((_MODELS, 0, 0, sum(counts)),)
+    for dtype, rtol in ((jnp.float32, 2e-5), (jnp.float64, 1e-11)):
+      with self.subTest(str(dtype)), jax.enable_x64(dtype == jnp.float64):
+        F, C, Jpep, mat = _inputs(_MODELS, counts, dtype)
+        got = pc.constitute(slices, 1e-4, F, C, Jpep, mat, interpret=True,
+                            block=64)
+        want = pc._reference(slices, 1e-4, False, F, C, Jpep, mat, None)
+        self.assertEqual(got[0].dtype, dtype)
+        _assert_close(self, got, want, rtol)
+
+  def test_slices_inside_blocks_equal_the_per_model_update(self):
+    """A pipeline-style scene sorted by model with SimConfig.model_counts:
+    the merged slices (one SVD for the spectral models, as on a GPU) with
+    boundaries inside blocks, against the per-model slices of the CPU
+    path; the rigid slice keeps F and has no stress."""
+    models = ('fixed_corotated', 'drucker_prager', 'snow', 'newtonian',
+              'rigid')
+    counts = (30, 45, 20, 25, 30)
+    cfg = mpm.SimConfig(models=models, model_counts=counts, num_bodies=1)
+    merged = constitutive.constitutive_slices(cfg, merge=True)
+    single = constitutive.constitutive_slices(cfg, merge=False)
+    self.assertLess(len(merged), len(single))
+    F, C, Jpep, mat = _inputs(models, counts, jnp.float32, seed=1)
+    got = pc.constitute(merged, 1e-4, F, C, Jpep, mat, interpret=True,
+                        block=32)
+    want = pc._reference(single, 1e-4, False, F, C, Jpep, mat, None)
+    _assert_close(self, got, want, 2e-5)
+    np.testing.assert_array_equal(got[0][..., -30:], F[..., -30:])
+    np.testing.assert_array_equal(got[2][..., -30:], 0.0)
+
+  def test_gradient_is_the_jax_updates(self):
+    """The kernel's VJP differentiates the pure-JAX update (float64)."""
+    models = ('neo_hookean', 'von_mises', 'rigid')
+    counts = (9, 11, 6)
+    slices = ((models[:2], 0, 0, 20), (models[2:], 2, 20, 26))
+    with jax.enable_x64(True):
+      F, C, Jpep, mat = _inputs(models, counts, jnp.float64, seed=2)
+      body = jnp.asarray([-1] * 20 + [0] * 6, jnp.int32)
+      w = [jnp.asarray(np.random.default_rng(3).standard_normal(s))
+           for s in ((3, 3, 26), (2, 26), (3, 3, 26))]
+
+      def loss(fn, F, E):
+        out = fn(F, mat.replace(E=E))
+        return sum(jnp.sum(a * b) for a, b in zip(out, w))
+
+      def kernel(F, m):
+        return pc.constitute(slices, 1e-4, F, C, Jpep, m, interpret=True,
+                             block=16)
+
+      def reference(F, m):
+        return pc._reference(slices, 1e-4, False, F, C, Jpep, m, None)
+
+      got = jax.grad(lambda *a: loss(kernel, *a), (0, 1))(F, mat.E)
+      want = jax.grad(lambda *a: loss(reference, *a), (0, 1))(F, mat.E)
+      _assert_close(self, got, want, 1e-12)
+      self.assertTrue(all(np.all(np.isfinite(g)) for g in got))
+      # One slice of every model with rigid particles marked by body_id
+      # (a scene without model_counts).
+      one = ((models, 0, 0, 26),)
+      got = pc.constitute(one, 1e-4, F, C, Jpep, mat, body, interpret=True,
+                          block=16)
+      want = pc._reference(one, 1e-4, True, F, C, Jpep, mat, body)
+      _assert_close(self, got, want, 1e-11)
+      np.testing.assert_array_equal(got[2][..., 20:], 0.0)
+
+  def test_a_frame_with_the_kernel_equals_the_jax_frame(self):
+    """Two substeps of a scene of three materials and a rigid body on a
+    plane, with and without model_counts: 'pallas' (interpreted here)
+    against 'jax'."""
+    g = mpm.GridSpec(res=16, size=1.0)
+    sp = g.dx / 2
+    cell = np.stack(np.meshgrid(*[np.arange(2)] * 3, indexing='ij'),
+                    -1).reshape(-1, 3)
+    models = ('fixed_corotated', 'neo_hookean', 'drucker_prager', 'rigid')
+    x = np.concatenate([0.3 + 0.12 * k + (cell + 0.5) * sp
+                        for k in range(4)])
+    names = [m for m in models for _ in range(8)]
+    mat = mpm.make_materials(names, 2e4, 0.3, 1000.0, config_models=models)
+    body = np.array([-1] * 24 + [0] * 8)
+    v = np.random.default_rng(4).normal(size=(32, 3))
+    for counts in ((8, 8, 8, 8), None):
+      cfg = mpm.SimConfig(
+        grid=g, dt=1e-3, substeps_per_frame=2, models=models, num_bodies=1,
+        model_counts=counts, constitutive_kernel='jax',
+        boundary_conditions=(mpm.SurfaceCollider(
+          point=(0, 0, 0.25), surface='separate', friction=0.5),))
+      s = mpm.init_state(x, v, sp ** 3, mat, cfg, body_id=body)
+      forces = mpm.make_forces(cfg)
+      out = {k: jax.jit(mpm.make_frame(dataclasses.replace(
+        cfg, constitutive_kernel=k)))(s, mat, forces)
+             for k in ('jax', 'pallas')}
+      with self.subTest(counts=counts):
+        for f in ('x', 'v', 'F', 'C', 'Jp', 'ep'):
+          np.testing.assert_allclose(
+            getattr(out['pallas'], f), getattr(out['jax'], f),
+            atol=2e-5 * max(1.0, float(np.abs(getattr(out['jax'], f)).max())),
+            err_msg=f)
+
+  def test_auto_falls_back_where_the_kernel_does_not_build(self):
+    """On a GPU whose JAX cannot build the kernel, 'auto' warns once and
+    keeps the pure-JAX update; the check runs eagerly even while a frame
+    is traced. (The GPU and the failure are simulated.)"""
+    calls = []
+    real = pc.constitute
+
+    def interpreted(*args, **kw):
+      calls.append(threading.current_thread() is threading.main_thread())
+      return real(*args, **dict(kw, interpret=True))
+
+    def broken(*args, **kw):
+      raise AttributeError("module 'triton' has no attribute 'load'")
+
+    cfg = mpm.SimConfig(models=('neo_hookean',))
+    x = jnp.zeros((3, 3, 4)) + jnp.eye(3)[:, :, None]
+    mat = mpm.make_materials('neo_hookean', 1e4, 0.3, 1e3, num=4)
+    args = (x, 0 * x, jnp.ones((2, 4)), jnp.full(4, -1), mat)
+    try:
+      with mock.patch.object(jax, 'default_backend', lambda: 'gpu'):
+        for fake, want in ((broken, False), (interpreted, True)):
+          pc.available.cache_clear()
+          with mock.patch.object(pc, 'constitute', fake), \
+              self.assertLogs(level='WARNING') if not want else \
+              _no_logs():
+            update = constitutive.make_update(cfg)
+            traced = jax.jit(update).trace(*args)  # the check, inside a trace
+          self.assertEqual(pc.available(), want)
+          if not want:  # no kernel in the program, for CUDA either
+            self.assertNotIn('triton', traced.lower(
+              lowering_platforms=('cuda',)).as_text())
+      # Built once on a thread of its own (and traced once more for the
+      # frame's CUDA branch, on this one).
+      self.assertEqual(calls.count(False), 1)
+    finally:
+      pc.available.cache_clear()
+
+  def test_particles_split_over_devices_keep_the_jax_update(self):
+    """Inside shard_map (particles varying over a mesh axis) even
+    'pallas' runs the pure-JAX update: the same values as outside."""
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    models = ('neo_hookean', 'drucker_prager')
+    F, C, Jpep, mat = _inputs(models, (10, 6), jnp.float32)
+    body = jnp.full(16, -1)
+    cfg = mpm.SimConfig(models=models, constitutive_kernel='pallas')
+    update = constitutive.make_update(cfg)
+    mesh = jax.make_mesh((1,), ('p',))
+    specs = (P(None, None, 'p'), P(None, None, 'p'), P(None, 'p'), P('p'),
+             P('p'))
+    args = [jax.device_put(a, NamedSharding(mesh, s))
+            for a, s in zip((F, C, Jpep, body, mat), specs)]
+    mat_spec = ((P('p'),) * 3,) * 3  # nested-tuple (N,) fields
+    got = jax.jit(jax.shard_map(
+      update, mesh=mesh, in_specs=specs,
+      out_specs=(mat_spec, P(None, 'p'), mat_spec)))(*args)
+    want = jax.jit(constitutive.make_update(
+      dataclasses.replace(cfg, constitutive_kernel='jax')))(F, C, Jpep, body,
+                                                            mat)
+    _assert_close(self, got, want, 1e-6)
+
+  def test_unknown_kernel_is_named(self):
+    with self.assertRaisesRegex(mpm.MPMInputError,
+                                "constitutive_kernel = 'triton'; use 'auto'"):
+      mpm.SimConfig(constitutive_kernel='triton')
+
+
+if __name__ == '__main__':
+  absltest.main()
