@@ -13,6 +13,8 @@ python experiments/fit_material.py --config=experiments/configs/mpdp.py \
 """
 
 import json
+import math
+import os
 import subprocess
 
 import jax
@@ -37,8 +39,39 @@ _CONFIG = cli.define_config_file('config', None, 'config file '
 flags.mark_flags_as_required(['config'])
 
 
+def _check_flags() -> list[int]:
+  """The seeds; a flag no fit can use is a usage error before any work."""
+  try:
+    seeds = [int(s) for s in _SEEDS.value]
+  except ValueError:
+    raise cli.usage_error(f'--seeds={",".join(_SEEDS.value)}: give integer '
+                          'seeds separated by commas') from None
+  for name, ok, want in (
+      ('E_init', math.isfinite(_E_INIT.value) and _E_INIT.value > 0,
+       'a finite fraction of the true mean E > 0'),
+      ('learning_rate', math.isfinite(_LR.value) and _LR.value > 0,
+       'a finite step size > 0'),
+      ('field_degree', _DEGREE.value >= 0, 'an integer >= 0'),
+      ('steps', _STEPS.value >= 1, 'an integer >= 1')):
+    if not ok:
+      raise cli.usage_error(f'--{name}={flags.FLAGS[name].value}: give '
+                            f'{want}')
+  bad = sorted(set(_OBSERVE.value) - {'trajectory', 'video'})
+  if bad:
+    raise cli.usage_error(f'--observe: unknown {bad}; use trajectory and/or '
+                          'video')
+  if _OUT.value:
+    folder = os.path.dirname(os.path.abspath(_OUT.value))
+    if os.path.isdir(_OUT.value) or not os.path.isdir(folder) or not (
+        os.access(folder, os.W_OK)):
+      raise cli.usage_error(f'--out={_OUT.value}: give a JSON file path in '
+                            'an existing, writable folder')
+  return seeds
+
+
 def main(argv):
   del argv
+  seeds = _check_flags()
   tc = simtrain.TaskConfig.from_dict(_CONFIG.value.sim.task)
   if tc.dtype == 'float64':
     jax.config.update('jax_enable_x64', True)
@@ -47,7 +80,7 @@ def main(argv):
   logging.info('devices %s, git %s, task %s', jax.devices(), sha, tc)
   render = 'differentiable' if 'video' in _OBSERVE.value else 'none'
   rows = []
-  for seed in map(int, _SEEDS.value):
+  for seed in seeds:
     task = simtrain.make_task(seed, tc, render=render)
     for observe in _OBSERVE.value:
       r = simtrain.fit_material(

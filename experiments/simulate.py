@@ -83,6 +83,7 @@ def main(argv):
                             motions=_motions())
   logging.info('git %s, config %s', sha, config)
   if _PHYSGAUSSIAN.value:
+    _check_physgaussian_flags()
     lib.run_physgaussian(_SCENE.value, _PHYSGAUSSIAN.value, _OUT.value,
                          config, ply=_PLY.value, auto_substeps=_AUTO.value)
     print(f'wrote {_OUT.value}')
@@ -109,6 +110,33 @@ def main(argv):
             f'({got["device"]}): {got["wall_ms"]:.1f} ms wall and '
             f'{got["busy_ms"]:.1f} ms device-busy per frame, '
             f'{got["launches"]:.0f} kernels per frame')
+
+
+# What a PhysGaussian JSON run takes from the command line besides the
+# scene and --out: the rest of the run is the JSON's.
+_PHYSGAUSSIAN_FLAGS = ('scene', 'out', 'physgaussian', 'auto_substeps',
+                       'ply', 'config')
+_PHYSGAUSSIAN_CONFIG = ('fill', 'render', 'width', 'height')
+
+
+def _check_physgaussian_flags() -> None:
+  """A flag that --physgaussian would ignore is a usage error (it ran the
+  JSON's frames, materials and motion without a word)."""
+  own = set(flags.FLAGS.get_key_flags_for_module(sys.modules[__name__]))
+  own |= {flags.FLAGS[n] for n in flags.FLAGS if n.startswith(
+    ('material_', 'default_material', 'perception_', 'mllm_'))}
+  ignored = sorted(f'--{f.name}' for f in own
+                   if f.present and f.name not in _PHYSGAUSSIAN_FLAGS)
+  ignored += sorted(
+    a.split('=')[0] for a in sys.argv[1:] if a.startswith('--config.')
+    and a.split('=')[0][len('--config.'):] not in _PHYSGAUSSIAN_CONFIG)
+  if ignored:
+    raise cli.usage_error(
+      f'--physgaussian runs its JSON as PhysGaussian does, so '
+      f'{", ".join(ignored)} would be ignored: set these in the JSON '
+      '(frame_num, materials, boundary conditions), or drop --physgaussian. '
+      'It takes --scene, --out, --ply, --auto_substeps and '
+      f'{", ".join("--config." + k for k in _PHYSGAUSSIAN_CONFIG)}.')
 
 
 def _profile_window(config):

@@ -162,10 +162,48 @@ def save_sweep(out_dir: str, result: SweepResult, frame_dt: float,
   return dict(npz=npz, json=js)
 
 
-def prepare(scene_name: str, config_path: str | None, overrides: dict):
+def sweep_substeps(report: dict, config, E_scale=(1.0,), nu_scale=(1.0,),
+                   rho_scale=(1.0,), velocity=None) -> int | None:
+  """Substeps per frame stable for every item of a sweep, or None when
+  the prepared scene's own count already is.
+
+  The items share one compiled program, hence one substep count, which
+  ``prepare_scene`` chose for the unscaled materials: a stiffer or lighter
+  item (E up, rho down, nu towards 0.5) or a faster one would blow up with
+  it. The bound is ``prepare_scene``'s (CFL on the wave speed plus the
+  initial speed), with the largest wave-speed factor over the items.
+  """
+  import math
+
+  from physsplat_jax.mpm import timestep
+
+  ts = report.time_step
+  c_max, n0 = ts['max_wave_speed_m_s'], ts['substeps_per_frame']
+  # The wave speed's factor for nu -> s nu (E and rho scale it as
+  # sqrt(E / rho)), at the worst base nu (material values lie in [0, 0.49]).
+  base_nu = np.linspace(0.0, 0.49, 50)
+  nu_factor = max(float(np.max(
+    timestep.wave_speed(1.0, np.minimum(base_nu * s, 0.499), 1.0)
+    / timestep.wave_speed(1.0, base_nu, 1.0))) for s in nu_scale)
+  factor = math.sqrt(max(E_scale) / min(rho_scale)) * max(nu_factor, 1.0)
+  norm = lambda v: float(np.linalg.norm(v))  # noqa: E731
+  v0 = max([norm(v) for _, v in config.initial_velocity] + [0.0])
+  v1 = max([norm(v) for v in velocity or ()] + [v0])
+  speed0, speed1 = c_max + v0, c_max * factor + v1
+  if speed0 <= 0 or speed1 <= speed0:
+    return None
+  # n0 was chosen for speed0 (and rounded up to its bucket): scaled by the
+  # speeds it stays at or above the count the items need.
+  return math.ceil(n0 * speed1 / speed0)
+
+
+def prepare(scene_name: str, config_path: str | None, overrides: dict,
+            scales: dict | None = None, velocity=None):
   """Loads, perceives (offline library) and prepares the scene; the arrays
   of process 0 are broadcast so that every process simulates the same
-  bits (all processes call it)."""
+  bits (all processes call it). With the sweep's ``scales`` (``E_scale``,
+  ``nu_scale``, ``rho_scale``) and ``velocity``, the substep count is the
+  one stable for its stiffest, fastest item (:func:`sweep_substeps`)."""
   import jax
   from jax.experimental import multihost_utils
 
@@ -178,8 +216,23 @@ def prepare(scene_name: str, config_path: str | None, overrides: dict):
   config = sim.build_config(scene.name, config_path,
                             dict(overrides, render='none'))
   materials = perception.perceive_scene(scene)
-  prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
-                                 materials, config)
+  key = jax.random.PRNGKey(config.seed)
+  prepared, report = pl.prepare_scene(key, scene, materials, config)
+  need = sweep_substeps(report, config, velocity=velocity, **(scales or {}))
+  if (need is not None and config.substeps_per_frame is None
+      and need > config.max_substeps_per_frame):
+    raise pl.PipelineError(
+      f'sweep: its stiffest or fastest item needs {need} substeps per frame '
+      f'(the scene itself {report.time_step["substeps_per_frame"]}), over '
+      f'max_substeps_per_frame={config.max_substeps_per_frame}; narrow '
+      '--e_scale/--nu_scale/--rho_scale or the velocities, or raise '
+      'max_substeps_per_frame in a --config file.')
+  if need is not None and config.substeps_per_frame is None:
+    logging.info('sweep: %d substeps per frame (the stiffest or fastest '
+                 'item needs more than the scene\'s %d)', need,
+                 report.time_step['substeps_per_frame'])
+    config = dataclasses.replace(config, substeps_per_frame=need)
+    prepared, _ = pl.prepare_scene(key, scene, materials, config)
   params = pl.init_params(prepared, config)
   if jax.process_count() > 1:
     multihost_utils.assert_equal(
@@ -227,14 +280,29 @@ def main(argv):
     raise app.UsageError('--out=DIR is required')
   try:
     velocity = parse_velocities(f.velocity) or None
-    scales = {k: [float(v) for v in getattr(f, k)]
-              for k in ('e_scale', 'nu_scale', 'rho_scale')}
   except ValueError as e:
     raise app.UsageError(str(e)) from None
+  scales = {}
+  for k in ('e_scale', 'nu_scale', 'rho_scale'):
+    try:
+      scales[k] = [float(v) for v in getattr(f, k)]
+    except ValueError:
+      raise cli.usage_error(f'--{k}={",".join(getattr(f, k))}: give '
+                            'numbers > 0 separated by commas') from None
   logging.info('devices %s', jax.devices())
   overrides = dict(num_frames=f.frames, fps=f.fps, grid_res=f.grid_res,
                    max_particles=f.max_particles)
-  prepared, params, config = prepare(f.scene, f.config, overrides)
+  prepared, params, config = prepare(
+    f.scene, f.config, overrides, velocity=velocity,
+    scales=dict(E_scale=scales['e_scale'], nu_scale=scales['nu_scale'],
+                rho_scale=scales['rho_scale']))
+  nu_max = float(np.max(np.asarray(prepared.means)[:, 1]))
+  if nu_max * max(scales['nu_scale']) >= 0.5:
+    raise cli.usage_error(
+      f'--nu_scale={",".join(f.nu_scale)}: the largest Poisson ratio of the '
+      f'scene ({nu_max:.3g}) times {max(scales["nu_scale"]):g} reaches 0.5 '
+      f'(it would be clipped to 0.49 and recorded wrongly); use scales below '
+      f'{0.5 / nu_max:.3g}')
   axis = (dist.BATCH_AXIS if f.mode == 'batch' else dist.PARTICLE_AXIS)
   mesh = dist.make_mesh(f.num_devices, axis)
   result = run_sweep(prepared, params, config, mesh, scales['e_scale'],
@@ -242,6 +310,9 @@ def main(argv):
                      f.mode)
   logging.info('%d items, mode %s: compile %.2f s, run %.2f s',
                len(result.table), f.mode, result.compile_s, result.run_s)
+  finite = [bool(np.all(np.isfinite(m))) for m in result.means]
+  for row, ok in zip(result.table, finite):
+    row['finite'] = ok
   if info.is_main:
     files = save_sweep(f.out, result, config.frame_dt, dict(
       scene=f.scene, devices=[str(d) for d in jax.devices()],
@@ -251,6 +322,16 @@ def main(argv):
           f'({info.process_count} processes): compile '
           f'{result.compile_s:.1f} s, run {result.run_s:.1f} s -> '
           f'{files["npz"]}')
+  bad = [row for row in result.table if not row['finite']]
+  if bad:
+    from physsplat_jax.pipeline import PipelineError
+
+    raise PipelineError(
+      f'sweep: {len(bad)} of {len(result.table)} items went non-finite '
+      f'(e.g. {bad[0]}; "finite": false in sweep.json, their rows NaN) '
+      f'with {prepared.spec.substeps_per_frame} substeps per frame: narrow '
+      '--e_scale/--nu_scale/--rho_scale, or give more substeps '
+      '(substeps_per_frame in a --config file).')
 
 
 if __name__ == '__main__':

@@ -299,6 +299,31 @@ class BatchHelpersTest(absltest.TestCase):
       dist.sweep_params(base, velocity=[(1.0, 2.0)])
 
 
+  def test_sweep_substeps_cover_the_stiffest_item(self):
+    # experiments/sweep.py: the items share the scene's substep count,
+    # chosen for its unscaled materials (E * 1e4 went NaN, silently).
+    from experiments import sweep as sweep_script
+    from physsplat_jax.mpm import timestep
+
+    report = mock.Mock(time_step=dict(max_wave_speed_m_s=10.0,
+                                      substeps_per_frame=200))
+    config = pl.PipelineConfig(initial_velocity=(('a', (2.0, 0.0, 0.0)),))
+    need = sweep_script.sweep_substeps
+    self.assertIsNone(need(report, config, E_scale=(0.5, 1.0)))
+    # 100x the wave speed (sqrt(1e4)), the initial speed 2 m/s unchanged.
+    self.assertEqual(need(report, config, E_scale=(1.0, 1e4)),
+                     int(np.ceil(200 * (10 * 100 + 2) / 12)))
+    self.assertEqual(need(report, config, rho_scale=(0.25,)),
+                     int(np.ceil(200 * 22 / 12)))
+    self.assertEqual(need(report, config, velocity=[(0, 0, 14.0)]),
+                     int(np.ceil(200 * 24 / 12)))
+    # nu 0.3 -> 0.45 raises the P-wave speed; the factor covers any base nu.
+    got = need(report, config, nu_scale=(1.5,))
+    f = float(timestep.wave_speed(1, 0.45, 1) / timestep.wave_speed(1, 0.3,
+                                                                     1))
+    self.assertGreaterEqual(got, np.ceil(200 * (10 * f + 2) / 12))
+
+
 class RuntimeTest(absltest.TestCase):
 
   def test_single_process_needs_no_runtime(self):

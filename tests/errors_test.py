@@ -113,6 +113,30 @@ class ErrorPathTest(absltest.TestCase):
         lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
         self.assertTrue(lines[-1].startswith(want), lines[-1])
 
+  def test_physgaussian_refuses_flags_it_would_ignore(self):
+    proc = subprocess.run(
+      [sys.executable, '-m', 'experiments.simulate', '--out=/nonexistent',
+       '--physgaussian=experiments/configs/jelly_drop.json',
+       '--velocity=*:5,0,0', '--config.num_frames=1', '--config.width=64'],
+      capture_output=True, text=True, check=False, timeout=120,
+      cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    self.assertEqual(proc.returncode, 2, proc.stderr)
+    last = proc.stderr.strip().splitlines()[-1]
+    self.assertIn('--velocity, --config.num_frames would be ignored', last)
+    self.assertNotIn('width', last.split('would be ignored')[0])
+
+  def test_fit_material_checks_its_flags_first(self):
+    # --E_init=-1 used to end in a FloatingPointError traceback at step 0.
+    proc = subprocess.run(
+      [sys.executable, '-m', 'experiments.fit_material',
+       '--config=experiments/configs/mpdp.py', '--E_init=-1'],
+      capture_output=True, text=True, check=False, timeout=120,
+      cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    self.assertEqual(proc.returncode, 2, proc.stderr)
+    self.assertEqual(proc.stderr.strip().splitlines()[-1],
+                     'error: --E_init=-1.0: give a finite fraction of the '
+                     'true mean E > 0')
+
   def test_every_script_runs_through_cli_run(self):
     # app.run directly would keep absl's 'FATAL Flags parsing error' (exit
     # 1) and the package's errors as tracebacks.
@@ -147,6 +171,7 @@ class ErrorPathTest(absltest.TestCase):
                 ps.distributed.DistributedError,
                 ps.distributed.DistributedStartError, ps.mpm.MPMInputError,
                 ps.mpdp.MPDPError, ps.training.TrainingError,
+                ps.training.DivergedError,
                 ps.sampling.SamplingError, ps.cameras.CameraError,
                 ps.deform.DeformError, ps.types.DataError,
                 ps.types.UnknownObjectError, ps.render.RenderCapacityError):
@@ -157,6 +182,7 @@ class ErrorPathTest(absltest.TestCase):
     self.assertIsInstance(cm.exception, PhysSplatError)
     self.assertTrue(str(cm.exception).startswith("scene 'block' has no"))
     self.assertTrue(issubclass(ps.render.RenderCapacityError, RuntimeError))
+    self.assertTrue(issubclass(ps.training.DivergedError, FloatingPointError))
 
 
 class ValidationTest(absltest.TestCase):

@@ -6,6 +6,7 @@ Training through the simulator is tested in tests/mpdp_sim_test.py.
 import functools
 import json
 import os
+import re
 import tempfile
 
 import jax
@@ -283,6 +284,30 @@ class TrainTest(absltest.TestCase):
       np.testing.assert_array_equal(
         np.asarray(predict(p, pts, means, mask)),
         np.asarray(predict(r2['params'], pts, means, mask)))
+
+  def test_bad_settings_and_a_diverging_run_stop_with_a_message(self):
+    # A NaN learning rate used to train to a NaN checkpoint, exit 0.
+    for field, value, want in (('learning_rate', float('nan'),
+                                'learning_rate = nan; give a finite'),
+                               ('batch_size', 0, 'batch_size = 0')):
+      config = test_config.get_config()
+      config.train[field] = value
+      with self.subTest(field), tempfile.TemporaryDirectory() as workdir, \
+          self.assertRaisesRegex(model_lib.MPDPError, want):
+        train_lib.train_and_evaluate(config, workdir)
+    config = test_config.get_config()
+    config.train.learning_rate = 1e30
+    config.train.grad_clip = 1e30
+    with tempfile.TemporaryDirectory() as workdir:
+      with self.assertRaisesRegex(model_lib.MPDPError,
+                                  r'went non-finite by step (\d+).*nothing '
+                                  'from it was saved.*learning_rate') as cm:
+        train_lib.train_and_evaluate(config, workdir)
+      bad = int(re.search(r'by step (\d+)', str(cm.exception)).group(1))
+      ckpt = os.path.join(workdir, 'checkpoints')
+      saved = [int(d) for d in (os.listdir(ckpt) if os.path.isdir(ckpt)
+                                else ()) if d.isdigit()]
+      self.assertTrue(all(s < bad for s in saved), (saved, bad))
 
   def test_same_eval_and_train_seed_rejected(self):
     config = test_config.get_config()

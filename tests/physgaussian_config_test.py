@@ -209,6 +209,13 @@ class TransformTest(parameterized.TestCase):
       np.testing.assert_allclose(0.5 * (lo + hi), [1, 1, 1], atol=1e-12)
       self.assertAlmostEqual(float(np.max(hi - lo)), 1.0, places=12)
 
+  def test_scale_leaving_the_grid_is_named(self):
+    # (This message used to be a NameError from inside the transform.)
+    c = pg.parse_config({'scale': 50.0}, warn=False)
+    with self.assertRaisesRegex(pg.ConfigError, r"field 'scale' = 50\.0: "
+                                'the object cube .* leaves the grid'):
+      pg.make_norm_transform(c, self._points(np.float32))
+
   def test_rotation_matrix(self):
     c = pg.parse_config({'rotation_degree': [90.0], 'rotation_axis': [2]},
                         warn=False)

@@ -226,13 +226,18 @@ class BackgroundWritersTest(absltest.TestCase):
   def test_png_output_through_the_background_writer(self):
     d = tempfile.mkdtemp()
     self.addCleanup(shutil.rmtree, d, ignore_errors=True)
+    # A longer earlier run's frames go (they used to stay behind this
+    # run's); the user's other files stay.
+    for name in ('frame_0002.png', 'frame_0007.png', 'notes.txt'):
+      with open(os.path.join(d, name), 'w') as fh:
+        fh.write('old')
     frames = _smooth_frames(4, 12, 10)
     sink = outputs.BackgroundWriters([outputs.PngOutput(d)])
     for i, f in enumerate(frames):
       sink.write(outputs.Frame(index=i, time=0.0, image=f))
     self.assertEqual(sink.close(), {'frames': d})
     self.assertEqual(sorted(os.listdir(d)),
-                     [f'frame_{i:04d}.png' for i in range(4)])
+                     [f'frame_{i:04d}.png' for i in range(4)] + ['notes.txt'])
     back = video.load_png(os.path.join(d, 'frame_0003.png'))
     np.testing.assert_array_equal(back, np.round(frames[3] * 255))
 

@@ -22,10 +22,12 @@ import dataclasses
 import json
 import math
 import os
+import re
 import tempfile
 from typing import Any, Protocol, Sequence
 
 import numpy as np
+from absl import logging
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io import export as export_lib
@@ -154,12 +156,29 @@ class VideoOutput:
     return {'video': final}
 
 
+def _clear_frames(directory: str, ext: str) -> None:
+  """Removes an earlier run's ``frame_NNNN.<ext>`` files from
+  ``directory`` (only that pattern: nothing else of the user's), so that
+  the folder holds this run's frames only, not a longer run's tail."""
+  if not os.path.isdir(directory):
+    return
+  old = [f for f in os.listdir(directory)
+         if re.fullmatch(rf'frame_\d{{4,}}\.{ext}', f)]
+  for f in old:
+    os.remove(os.path.join(directory, f))
+  if old:
+    logging.info('removed %d frames of an earlier run from %s', len(old),
+                 directory)
+
+
 class PngOutput:
-  """``frames/frame_%04d.png`` (each PNG complete when written)."""
+  """``frames/frame_%04d.png`` (each PNG complete when written; an
+  earlier run's frames in the folder are removed first)."""
 
   def __init__(self, directory: str):
     self.directory = os.fspath(directory)
     self._count = 0
+    _clear_frames(self.directory, 'png')
 
   def write(self, frame: Frame) -> None:
     if frame.image is not None:
@@ -177,12 +196,14 @@ class PngOutput:
 
 
 class PlyOutput:
-  """``ply/frame_%04d.ply``: every Gaussian of the scene, deformed."""
+  """``ply/frame_%04d.ply``: every Gaussian of the scene, deformed (an
+  earlier run's frames in the folder are removed first)."""
 
   def __init__(self, directory: str, base: Gaussians):
     self.directory = os.fspath(directory)
     self._base = base
     self._count = 0
+    _clear_frames(self.directory, 'ply')
 
   def write(self, frame: Frame) -> None:
     if frame.gaussians is None:

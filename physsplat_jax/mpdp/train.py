@@ -21,6 +21,7 @@ channel_weights, log_every, eval_every, checkpoint_every, max_to_keep).
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 
@@ -178,6 +179,12 @@ def restore_latest(mngr: ocp.CheckpointManager, state):
   return state
 
 
+def _finite(loss, params) -> bool:
+  """Whether the loss and every weight are finite (one host sync)."""
+  leaves = [jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(params)]
+  return bool(jnp.isfinite(loss) & jnp.all(jnp.stack(leaves)))
+
+
 def train_and_evaluate(config, workdir: str) -> dict:
   """Trains MPDP on synthetic objects, checkpointing and resuming in workdir.
 
@@ -192,6 +199,14 @@ def train_and_evaluate(config, workdir: str) -> dict:
     ``train_loss`` and ``params`` (the trained params pytree).
   """
   tc = config.train
+  for name, ok, want in (
+      ('learning_rate', math.isfinite(tc.learning_rate)
+       and tc.learning_rate > 0, 'a finite number > 0'),
+      ('batch_size', tc.batch_size >= 1, 'an integer >= 1'),
+      ('num_steps', tc.num_steps >= 0, 'an integer >= 0')):
+    if not ok:
+      raise MPDPError(f'config.train.{name} = {getattr(tc, name)!r}; give '
+                      f'{want}.')
   if tc.batch_size > config.data.num_train:
     raise MPDPError(f'config.train.batch_size ({tc.batch_size}) exceeds '
                     f'config.data.num_train ({config.data.num_train}).')
@@ -227,7 +242,15 @@ def train_and_evaluate(config, workdir: str) -> dict:
       batch = _batch(train_data, tc.seed, step, tc.batch_size)
       state, loss, per = step_fn(state, batch)
       done = step + 1
-      if done % tc.log_every == 0 or done == tc.num_steps:
+      log = done % tc.log_every == 0 or done == tc.num_steps
+      save = done % tc.checkpoint_every == 0 or done == tc.num_steps
+      if (log or save) and not _finite(loss, state['params']):
+        raise MPDPError(
+          f'MPDP training went non-finite by step {done} (train loss '
+          f'{float(loss)}); nothing from it was saved (the last checkpoint '
+          f'in {workdir} is from before). Lower config.train.learning_rate '
+          f'(now {tc.learning_rate}) or config.train.grad_clip.')
+      if log:
         rec = {'step': done, 'train_loss': float(loss),
                'train_msle': [float(x) for x in per],
                'elapsed_s': time.time() - t_start}
@@ -235,7 +258,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
           rec.update(evaluate(state['params'], mcfg, eval_data))
         logging.info('step %d: %s', done, rec)
         _write_metrics(workdir, rec)
-      if done % tc.checkpoint_every == 0 or done == tc.num_steps:
+      if save:
         mngr.save(done, args=ocp.args.StandardSave(state))
     mngr.wait_until_finished()
   result = evaluate(state['params'], mcfg, eval_data)

@@ -161,7 +161,7 @@ def make_norm_transform(config: PhysGaussianConfig, means: Array,
   half = 0.5 * config.scale
   if 1.0 - half < 0 or 1.0 + half > config.grid_lim:
     raise ConfigError(
-      f'{_where(config.source, "scale")} = {config.scale}: the object cube '
+      f"{config.source}: field 'scale' = {config.scale}: the object cube "
       f'[{1 - half}, {1 + half}] leaves the grid [0, {config.grid_lim}]; use '
       'scale <= 2 and grid_lim >= 1 + scale / 2.'
     )

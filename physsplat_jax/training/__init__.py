@@ -8,6 +8,7 @@ needs no simulator, is ``physsplat_jax.mpdp.train``.
 
 from physsplat_jax.training import simtrain as simtrain
 from physsplat_jax.training.simtrain import Task as Task
+from physsplat_jax.training.simtrain import DivergedError as DivergedError
 from physsplat_jax.training.simtrain import TrainingError as TrainingError
 from physsplat_jax.training.simtrain import TaskConfig as TaskConfig
 from physsplat_jax.training.simtrain import fit_material as fit_material

@@ -66,6 +66,12 @@ class TrainingError(PhysSplatError, ValueError):
   the message names it and the fix."""
 
 
+class DivergedError(PhysSplatError, FloatingPointError):
+  """A simulation, training or fitting step went non-finite (a
+  ``FloatingPointError``); the message names the step and what to
+  change."""
+
+
 
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
@@ -273,7 +279,7 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
     A :class:`Task`.
 
   Raises:
-    FloatingPointError: the target simulation is not finite (raise
+    DivergedError (a FloatingPointError): the target simulation is not finite (raise
       ``tc.substeps_per_frame``).
   """
   scene, materials, obj = make_cantilever(seed, tc)
@@ -298,7 +304,7 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
   traj = pl.simulate_jit(params, prepared, config, field=field)
   target = traj.means
   if not bool(jnp.all(jnp.isfinite(target))):
-    raise FloatingPointError(
+    raise DivergedError(
       f'cantilever {seed}: the ground-truth simulation is not finite; raise '
       f'TaskConfig.substeps_per_frame (now {tc.substeps_per_frame}).')
   images = traj.images
@@ -390,7 +396,7 @@ def make_train_step(config: pl.PipelineConfig, tx) -> Callable:
   loss (one jitted ``value_and_grad`` shared by all tasks, which have equal
   shapes and static specs) is averaged over the tasks, then one optax
   update is applied. A non-finite loss or gradient raises
-  ``FloatingPointError`` naming the step (lower the learning rate or raise
+  ``DivergedError`` (a ``FloatingPointError``) naming the step (lower the learning rate or raise
   the substeps) instead of writing NaNs into the weights.
   """
   grad_fn = _grad_fn(config)
@@ -411,7 +417,7 @@ def make_train_step(config: pl.PipelineConfig, tx) -> Callable:
       grads = g if grads is None else jax.tree.map(jnp.add, grads, g)
     grads = jax.tree.map(lambda x: x / len(tasks), grads)
     if not (np.all(np.isfinite(losses)) and _finite(grads)):
-      raise FloatingPointError(
+      raise DivergedError(
         f'step {int(state["step"])}: non-finite trajectory loss or gradient '
         f'(losses {losses}); lower the learning rate or raise '
         'substeps_per_frame.')
@@ -705,7 +711,7 @@ def fit_material(task: Task, observe: str = 'trajectory',
   for i in range(num_steps):
     new, new_opt, loss, g = step(theta, opt)
     if not (np.isfinite(float(loss)) and _finite(g)):
-      raise FloatingPointError(
+      raise DivergedError(
         f'fit_material step {i}: non-finite loss or gradient; lower '
         'learning_rate or raise substeps_per_frame.')
     theta, opt = new, new_opt
