@@ -34,6 +34,7 @@ import time
 from absl import flags
 
 from experiments.lib import cli
+from physsplat_jax.pipeline import PipelineError
 
 PRESETS = {
   'paper': dict(grid_res=64, num_frames=150, fps=30.0, substeps_per_frame=768,
@@ -136,7 +137,11 @@ def main(argv):
           profile_frames=window if kind == 'profile' else None)
         if extra:
           runs[run]['overrides'] = extra
-        print(f'{scene} {run}: {runs[run].get("wall_s")} s', flush=True)
+        if 'error' in runs[run]:
+          print(f'{scene} {run}: failed: {" ".join(runs[run]["error"])}',
+                flush=True)
+        else:
+          print(f'{scene} {run}: {runs[run].get("wall_s")} s', flush=True)
       results['scenes'][scene] = runs
     finally:
       shutil.rmtree(cache, ignore_errors=True)
@@ -144,6 +149,13 @@ def main(argv):
   with open(path, 'w') as f:
     json.dump(results, f, indent=1)
   print(json.dumps(results, indent=1))
+  failed = [f'{scene} {run}: {" ".join(r["error"])}'
+            for scene, runs in results['scenes'].items()
+            for run, r in runs.items() if 'error' in r]
+  if failed:
+    # The runs that worked are in pipeline.json; the exit code says not all.
+    raise PipelineError(f'{len(failed)} run(s) failed ({path} has the '
+                        f'rest): {"; ".join(failed)}')
 
 
 if __name__ == '__main__':

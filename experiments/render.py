@@ -12,6 +12,7 @@ of the scene's (--camera_index; -1 fits one to the scene) or one from
 scenes trained with it (Mip-Splatting's 2D filter).
 """
 
+import os
 import time
 
 import jax
@@ -45,11 +46,18 @@ _RASTERIZE_MODE = flags.DEFINE_enum(
 
 def main(argv):
   del argv
+  out = _OUT.value
+  if os.path.isdir(out) or not out.lower().endswith('.png'):
+    raise cli.usage_error(f'--out={out}: give the path of a .png file')
   logging.info('devices %s', jax.devices())
   scene = load_scene(_SCENE.value)
   camera = _CAMERA_INDEX.value
   if _CAMERA_FILE.value:
     cams = camera_io.load_cameras(_CAMERA_FILE.value)
+    if not -1 <= camera < len(cams):
+      raise cli.usage_error(
+        f'--camera_index={camera}: {_CAMERA_FILE.value} has {len(cams)} '
+        f'cameras; use 0..{len(cams) - 1} (-1: the first)')
     camera = cams[camera if camera >= 0 else 0]
   t0 = time.perf_counter()
   config = RenderConfig(rasterize_mode=_RASTERIZE_MODE.value)

@@ -113,6 +113,28 @@ class ErrorPathTest(absltest.TestCase):
         lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
         self.assertTrue(lines[-1].startswith(want), lines[-1])
 
+  def test_bad_config_files_are_one_line_exit_2(self):
+    # Both were tracebacks from inside ml_collections.
+    with tempfile.TemporaryDirectory() as d:
+      broken = os.path.join(d, 'broken.py')
+      with open(broken, 'w') as fh:
+        fh.write('def get_config(:\n')
+      for path, want in (
+          ('experiments/configs/jelly_drop.json',
+           'error: --config=experiments/configs/jelly_drop.json: not a '
+           'config file'),
+          (broken, f'error: config file {broken}, line 1: invalid syntax')):
+        proc = subprocess.run(
+          [sys.executable, '-m', 'experiments.simulate', '--out=/nonexistent',
+           f'--config={path}'], capture_output=True, text=True, check=False,
+          timeout=120,
+          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        with self.subTest(path):
+          self.assertEqual(proc.returncode, 2, proc.stderr)
+          self.assertNotIn('Traceback', proc.stderr)
+          self.assertTrue(proc.stderr.strip().splitlines()[-1].startswith(
+            want), proc.stderr[-500:])
+
   def test_physgaussian_refuses_flags_it_would_ignore(self):
     proc = subprocess.run(
       [sys.executable, '-m', 'experiments.simulate', '--out=/nonexistent',

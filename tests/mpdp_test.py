@@ -309,6 +309,33 @@ class TrainTest(absltest.TestCase):
                                 else ()) if d.isdigit()]
       self.assertTrue(all(s < bad for s in saved), (saved, bad))
 
+  def test_resume_with_another_model_and_bad_weight_files_are_named(self):
+    # Both were tracebacks from inside orbax / numpy.
+    config = test_config.get_config()
+    config.train.num_steps = 2
+    with tempfile.TemporaryDirectory() as workdir:
+      train_lib.train_and_evaluate(config, workdir)
+      config.model.global_features = 8
+      with self.assertRaisesRegex(model_lib.MPDPError,
+                                  'cannot resume from the checkpoint of step '
+                                  '2 .*new --workdir'):
+        train_lib.train_and_evaluate(config, workdir)
+      for name, body in (('a.json', '{"metadata": {}}'),
+                         ('a.npz', 'not a zip')):
+        with open(os.path.join(workdir, name), 'w') as fh:
+          fh.write(body)
+      with open(os.path.join(workdir, 'b.json'), 'w') as fh:
+        fh.write('{"model_config": %s}' % json.dumps(
+          model_lib.ModelConfig().__dict__ if hasattr(
+            model_lib.ModelConfig(), '__dict__') else {}))
+      with open(os.path.join(workdir, 'b.npz'), 'w') as fh:
+        fh.write('not a zip')
+      for name, want in (('a', r'a\.json: not a model description'),
+                         ('b', r'b\.npz: not a weights file')):
+        with self.subTest(name), self.assertRaisesRegex(model_lib.MPDPError,
+                                                        want):
+          pretrained.load_params(workdir, name)
+
   def test_same_eval_and_train_seed_rejected(self):
     config = test_config.get_config()
     config.data.eval_seed = config.data.seed

@@ -76,8 +76,17 @@ def _flag_errors(argv):
     print(f'error: {" ".join(str(e).split())}; --helpfull lists the flags',
           file=sys.stderr)
     sys.exit(2)
+  except SyntaxError as e:  # a config .py that does not parse
+    print(f'error: config file {e.filename}, line {e.lineno}: {e.msg}; fix '
+          'the file (a .py with get_config())', file=sys.stderr)
+    sys.exit(2)
   except (AttributeError, KeyError) as e:
     message = _unknown_field(e, argv)
+    if message is None and 'get_config' in str(e):
+      config = [a for a in argv[1:] if a.split('=')[0] in ('--config',)]
+      message = (f'{config[0] if config else "--config"}: not a config '
+                 'file (a .py defining get_config(); a PhysGaussian JSON '
+                 'goes to --physgaussian)')
     if message is None:
       raise
     print(f'error: {message}', file=sys.stderr)

@@ -72,17 +72,27 @@ def load_params(directory: str, name: str = PRETRAINED_NAME):
     raise MPDPError(
       f'MPDP params not found: expected {npz} and {js}; train them with '
       'experiments/train_mpdp.py --export=<dir>.')
-  with open(js) as f:
-    meta = json.load(f)
+  fix = ('write both with experiments/train_mpdp.py --export=<dir> (or '
+         'mpdp.save_params)')
+  try:
+    with open(js) as f:
+      meta = json.load(f)
+    cfg = model_lib.ModelConfig.from_dict(meta['model_config'])
+  except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+    raise MPDPError(f'MPDP params {js}: not a model description '
+                    f'({type(e).__name__}: {e}); {fix}.') from None
   params = {}
-  with np.load(npz) as data:
-    for key in data.files:
-      node = params
-      *parents, leaf = key.split('/')
-      for p in parents:
-        node = node.setdefault(p, {})
-      node[leaf] = device_array(data[key])
-  cfg = model_lib.ModelConfig.from_dict(meta['model_config'])
+  try:
+    with np.load(npz, allow_pickle=False) as data:
+      for key in data.files:
+        node = params
+        *parents, leaf = key.split('/')
+        for p in parents:
+          node = node.setdefault(p, {})
+        node[leaf] = device_array(data[key])
+  except (OSError, ValueError, KeyError) as e:
+    raise MPDPError(f'MPDP params {npz}: not a weights file written by '
+                    f'save_params ({type(e).__name__}); {fix}.') from None
   return params, cfg, meta.get('metadata', {})
 
 

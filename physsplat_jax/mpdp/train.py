@@ -173,8 +173,16 @@ def restore_latest(mngr: ocp.CheckpointManager, state):
   latest = mngr.latest_step()
   if latest is None:
     return state
-  state = mngr.restore(latest, args=ocp.args.StandardRestore(
-    jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
+  try:
+    state = mngr.restore(latest, args=ocp.args.StandardRestore(
+      jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
+  except Exception as e:  # noqa: BLE001 (orbax raises many kinds)
+    raise MPDPError(
+      f'cannot resume from the checkpoint of step {latest} in '
+      f'{mngr.directory}: it does not fit this config\'s model and '
+      f'optimiser, or it is damaged ({type(e).__name__}: '
+      f'{" ".join(str(e).split())[:200]}); train in a new --workdir, or '
+      'with the config that wrote it.') from None
   logging.info('resumed from step %d', latest)
   return state
 
