@@ -226,6 +226,14 @@ class ValidationTest(absltest.TestCase):
     # Shapes and types of values a user writes by hand.
     for kw, want in ((dict(height=-2), r'PipelineConfig\.height=-2'),
                      (dict(grid_res=16.5), r'grid_res=16\.5 .*whole'),
+                     # Were truncated (2.5) or TypeErrors deep inside.
+                     (dict(num_frames=2.5), r'num_frames=2\.5 is invalid: '
+                      'use a whole number'),
+                     (dict(gravity='9.8'), r"gravity='9\.8' is invalid: "
+                      'use a number'),
+                     (dict(render_config='fast'), 'use a physsplat_jax.'
+                      'render.RenderConfig'),
+                     (dict(substeps_per_frame=2.5), 'whole number or None'),
                      (dict(initial_velocity=('cube', (1.0, 0.0, 0.0))),
                       r"initial_velocity entry 'cube': give \(object name")):
       with self.subTest(want), self.assertRaisesRegex(pl.PipelineError, want):

@@ -93,6 +93,30 @@ def _whole(v) -> bool:
   return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
 
 
+def _check_types(owner: str, obj) -> None:
+  """Every int, float and bool field holds one (``2.5`` frames was
+  truncated, ``'9.8'`` a TypeError deep inside the simulation)."""
+  for f in dataclasses.fields(obj):
+    kind = str(f.type).replace('| None', '').strip()
+    optional = '| None' in str(f.type)
+    value = getattr(obj, f.name)
+    if value is None and optional:
+      continue
+    real = (isinstance(value, (int, float, np.integer, np.floating))
+            and not isinstance(value, (bool, np.bool_)))
+    for want, ok, fix in (
+        ('int', _whole(value), 'a whole number'),
+        ('float', real, 'a number'),
+        ('bool', isinstance(value, (bool, np.bool_)) or (
+          _whole(value) and value in (0, 1)), 'True or False'),
+        ('raster.RenderConfig', isinstance(value, raster.RenderConfig),
+         'a physsplat_jax.render.RenderConfig')):
+      if kind == want and not ok:
+        raise PipelineError(
+          f'{owner}.{f.name}={value!r} is invalid: use {fix}'
+          f'{" or None" if optional else ""}.')
+
+
 def _check(owner: str, obj, checks) -> None:
   for ok, name, fix in checks:
     if not ok:
@@ -236,6 +260,7 @@ class PrepareConfig:
   ground_height: float | None = None
 
   def __post_init__(self):
+    _check_types('PrepareConfig', self)
     object.__setattr__(self, 'ground',
                        _enum(Ground, self.ground, 'PrepareConfig', 'ground'))
     object.__setattr__(self, 'camera_path', _enum(
@@ -338,6 +363,7 @@ class SimulateConfig:
   constitutive_kernel: str = 'auto'
 
   def __post_init__(self):
+    _check_types('SimulateConfig', self)
     object.__setattr__(self, 'ground',
                        _enum(Ground, self.ground, 'SimulateConfig', 'ground'))
     object.__setattr__(self, 'render', _enum(
@@ -406,6 +432,7 @@ class PipelineConfig:
   def __post_init__(self):
     # Validates (and normalises enums) through the two parts, naming the
     # field as the user wrote it.
+    _check_types('PipelineConfig', self)
     try:
       p, s = self.prepare, self.simulate
     except PipelineError as e:
