@@ -442,6 +442,12 @@ class OfflineTest(parameterized.TestCase):
     ('bad_field', {'material': 'jelly', 'colour': 'red'},
      r"unknown field\(s\) \['colour'\]"),
     ('bad_model', {'material': 'jelly', 'model': 'gooey'}, "'gooey'"),
+    # Out-of-range model parameters (accepted before; they blew up a frame
+    # later, blamed on the time step).
+    ('bad_angle', {'material': 'sand', 'friction_angle': 95.0},
+     r'friction_angle=95\.0 \(use an angle in \[0, 90\) deg\)'),
+    ('bad_theta', {'material': 'snow', 'theta_c': -0.1},
+     r'theta_c=-0\.1 \(use a critical compression'),
   )
   def test_bad_override(self, spec, pattern):
     scene = _scene(('cube',))

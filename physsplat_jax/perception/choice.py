@@ -109,6 +109,24 @@ class MaterialChoiceError(PhysSplatError, ValueError):
 MaterialChoice = ObjectMaterial
 
 
+# The model parameters' physical ranges (mpm.Materials): a value outside
+# was accepted and blew up a frame later, blamed on the time step.
+PARAM_RANGES = {
+  'friction_angle': (lambda v: 0.0 <= v < 90.0, 'an angle in [0, 90) deg'),
+  'yield_stress': (lambda v: v >= 0.0, 'a stress >= 0 [Pa]'),
+  'viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
+  'plastic_viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
+  'hardening': (lambda v: v >= 0.0, '0 (off) or a multiplier > 0'),
+  'xi': (lambda v: 0.0 <= v <= 100.0, 'a hardening coefficient in '
+         '[0, 100] (snow: ~10)'),
+  'softening': (lambda v: v >= 0.0, 'a softening >= 0 [Pa]'),
+  'theta_c': (lambda v: 0.0 < v < 1.0, 'a critical compression in (0, 1)'),
+  'theta_s': (lambda v: 0.0 < v < 1.0, 'a critical stretch in (0, 1)'),
+  'dp_cohesion': (lambda v: v >= 0.0, 'a cohesion strain >= 0'),
+  'dp_volume_correction': (lambda v: v in (0.0, 1.0), '0 or 1'),
+}
+
+
 def check_choice(c: MaterialChoice) -> MaterialChoice:
   """Returns ``c`` or raises :class:`MaterialChoiceError` if any value is
   unphysical."""
@@ -126,6 +144,8 @@ def check_choice(c: MaterialChoice) -> MaterialChoice:
   for k, v in c.params:
     if not math.isfinite(v):
       bad.append(f'param {k}={v}')
+    elif k in PARAM_RANGES and not PARAM_RANGES[k][0](v):
+      bad.append(f'{k}={v} (use {PARAM_RANGES[k][1]})')
   if bad:
     raise MaterialChoiceError(f'material of object {c.object_name!r}: invalid '
                               + ', '.join(bad))
