@@ -233,6 +233,13 @@ class SceneIOTest(parameterized.TestCase):
     with self.assertLogs(level='WARNING') as logs:
       load_scene(huge, num_cameras=1)
     self.assertIn('5 of', ' '.join(logs.output))
+    # All transparent: a video of only the background, said at load.
+    clear = os.path.join(self.dir, 'clear.ply')
+    save_ply(clear, g.replace(opacity_logits=jnp.full_like(g.opacity_logits,
+                                                           -50.0)))
+    with self.assertLogs(level='WARNING') as logs:
+      load_scene(clear, num_cameras=1)
+    self.assertIn('every Gaussian is transparent', ' '.join(logs.output))
     with self.assertRaisesRegex(SceneFileError, 'donut, ficus, tabletop'):
       load_scene(os.path.join(self.dir, 'missing.ply'))
     with self.assertRaisesRegex(SceneFileError, 'name or a path'):

@@ -127,6 +127,14 @@ def check_gaussians(g: Gaussians, path: str) -> None:
       'axis up to %.3g, scene extent %.3g): they will cover the frames; '
       'check the file\'s scale_* fields (log-scales expected).', path, huge,
       g.num, float(scale.max()), extent)
+  # Activated opacity below a rasteriser's 1/255 cut-off: nothing is drawn.
+  opacity = 1.0 / (1.0 + np.exp(-np.asarray(g.opacity_logits, np.float64)))
+  if g.num and float(np.max(opacity)) < 1.0 / 255.0:
+    logging.warning(
+      '%s: every Gaussian is transparent (largest opacity %.3g < 1/255): '
+      'the frames will show only the background; check the file\'s opacity '
+      'field (logits expected, as 3DGS writes them).', path,
+      float(np.max(opacity)))
 
 
 def load_scene(path: str | PathLike, **options) -> Scene:
