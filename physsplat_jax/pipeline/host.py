@@ -275,6 +275,21 @@ class _WallWatch:
         ', '.join(which))
 
 
+def _pipeline_fix(e, prepared):
+  """The solver's error with the fix in the pipeline's terms (the solver
+  speaks of dt and damping; a pipeline user sets config fields)."""
+  head, sep, _ = str(e).partition('Use a smaller dt')
+  if not sep:
+    return e
+  n = prepared.spec.substeps_per_frame
+  return mpm.SimulationError(
+    f'{head}Give more substeps per frame (now {n}: substeps_per_frame='
+    f'{2 * n}, or a lower cfl with the automatic choice), lower the '
+    "stiffest object's E (--material_override=NAME={\"E\": ...}), lower "
+    'the initial velocities or forces, or raise margin if it was thrown '
+    'out of the grid.', e.frame, e.reason)
+
+
 def run(
   params: Params,
   prepared: PreparedScene,
@@ -418,11 +433,11 @@ def run(
         if not pipelined:
           flush()
       flush()
-    except mpm.SimulationError:
+    except mpm.SimulationError as e:
       # Every frame before the failing one is written, as without the
       # pipeline.
       flush()
-      raise
+      raise _pipeline_fix(e, prepared) from None
   finally:
     t3 = time.perf_counter()
     files = sink.close()
