@@ -11,7 +11,8 @@
 # (default all, in the order below; `sweep` means all the sweeps,
 # `substep_graphs` both of its runs), so the work can be split over two
 # calls on a warm machine, e.g.
-#   bash experiments/gpu_session.sh 430 env pipeline substep substep_graphs
+#   bash experiments/gpu_session.sh 430 env mpm_kernel pipeline substep \
+#     substep_graphs
 #   bash experiments/gpu_session.sh 430 video video_scene pipeline_scenes \
 #     render donut mpm sweep
 # (on 2026-11-27 the H100 took 4 s for env, ~110 s for pipeline, 10 s for
@@ -20,6 +21,8 @@
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
+#   mpm_kernel  tests/mpm_pallas_test.py on the GPU: the stress update's
+#             Pallas kernel compiled there against the pure-JAX update
 #   mpm       benchmark_mpm block at 10k / 100k / 1M (no naive reference)
 #   render    benchmark_render at 1024^2, 100k and 1M Gaussians on a sphere:
 #             the JAX compositor, the compiled Pallas kernels (image PSNR
@@ -60,7 +63,8 @@ BUDGET=${1:-500}
 shift $(( $# > 0 ? 1 : 0 ))
 SWEEPS="sweep_default sweep_pallas_block16 sweep_pallas_block64 \
 sweep_num_warps1 sweep_num_warps4"
-ORDER="env mpm render donut video video_scene substep substep_graphs_off \
+ORDER="env mpm_kernel mpm render donut video video_scene substep \
+substep_graphs_off \
 substep_graphs_while sorts pipeline pipeline_scenes pipeline_noautotune \
 $SWEEPS tests"
 STEPS=
@@ -240,7 +244,13 @@ run_sweep_num_warps1() { run_sweep sweep_num_warps1 --num_warps=1; }
 run_sweep_num_warps4() { run_sweep sweep_num_warps4 --num_warps=4; }
 run_tests() {
   step tests 150 $PY -m pytest -q -n 8 tests/render_pallas_test.py \
-    tests/sorting_test.py tests/pipeline_test.py tests/render_test.py
+    tests/sorting_test.py tests/pipeline_test.py tests/render_test.py \
+    tests/mpm_pallas_test.py
+}
+# The MPM stress kernel compiled for this GPU against the pure-JAX update
+# (every model, float32/64, gradient, a whole frame): before timing it.
+run_mpm_kernel() {
+  step mpm_kernel 120 $PY -m pytest -q -n 4 tests/mpm_pallas_test.py
 }
 
 for s in $STEPS; do

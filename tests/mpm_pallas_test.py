@@ -1,12 +1,13 @@
 """The stress update as one Pallas kernel (mpm/pallas_constitutive.py).
 
 On a CUDA GPU ``SimConfig.constitutive_kernel='auto'`` runs it compiled;
-here it runs in Pallas interpret mode (the same kernel body: masked loads
-and stores per block of particles, one ``pl.when`` per slice) and must
-equal the pure-JAX update, for every model, at block edges and slice
-boundaries inside a block, in float32 and float64, in value and gradient,
-and inside a whole frame. tests/gpu_program_test.py checks that CUDA gets
-the kernel and the CPU does not.
+on the CPU it runs in Pallas interpret mode (the same kernel body: masked
+loads and stores per block of particles, one ``pl.when`` per slice; on a
+GPU these tests run it compiled) and must equal the pure-JAX update, for
+every model, at block edges and slice boundaries inside a block, in
+float32 and float64, in value and gradient, and inside a whole frame.
+tests/gpu_program_test.py checks that CUDA gets the kernel and the CPU
+does not.
 """
 
 import contextlib
@@ -24,6 +25,9 @@ from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import pallas_constitutive as pc
 
 _MODELS = mpm.CANONICAL_MODELS
+# Compiled (Triton) where a GPU runs the tests (experiments/gpu_session.sh
+# tests), interpreted elsewhere.
+_INTERPRET = jax.default_backend() != 'gpu'
 
 
 def _inputs(models, counts, dtype, seed=0):
@@ -65,8 +69,8 @@ class PallasConstitutiveTest(absltest.TestCase):
     for dtype, rtol in ((jnp.float32, 2e-5), (jnp.float64, 1e-11)):
       with self.subTest(str(dtype)), jax.enable_x64(dtype == jnp.float64):
         F, C, Jpep, mat = _inputs(_MODELS, counts, dtype)
-        got = pc.constitute(slices, 1e-4, F, C, Jpep, mat, interpret=True,
-                            block=64)
+        got = pc.constitute(slices, 1e-4, F, C, Jpep, mat,
+                            interpret=_INTERPRET, block=64)
         want = pc._reference(slices, 1e-4, False, F, C, Jpep, mat, None)
         self.assertEqual(got[0].dtype, dtype)
         _assert_close(self, got, want, rtol)
@@ -84,8 +88,8 @@ class PallasConstitutiveTest(absltest.TestCase):
     single = constitutive.constitutive_slices(cfg, merge=False)
     self.assertLess(len(merged), len(single))
     F, C, Jpep, mat = _inputs(models, counts, jnp.float32, seed=1)
-    got = pc.constitute(merged, 1e-4, F, C, Jpep, mat, interpret=True,
-                        block=32)
+    got = pc.constitute(merged, 1e-4, F, C, Jpep, mat,
+                        interpret=_INTERPRET, block=32)
     want = pc._reference(single, 1e-4, False, F, C, Jpep, mat, None)
     _assert_close(self, got, want, 2e-5)
     np.testing.assert_array_equal(got[0][..., -30:], F[..., -30:])
@@ -107,8 +111,8 @@ class PallasConstitutiveTest(absltest.TestCase):
         return sum(jnp.sum(a * b) for a, b in zip(out, w))
 
       def kernel(F, m):
-        return pc.constitute(slices, 1e-4, F, C, Jpep, m, interpret=True,
-                             block=16)
+        return pc.constitute(slices, 1e-4, F, C, Jpep, m,
+                             interpret=_INTERPRET, block=16)
 
       def reference(F, m):
         return pc._reference(slices, 1e-4, False, F, C, Jpep, m, None)
@@ -120,8 +124,8 @@ class PallasConstitutiveTest(absltest.TestCase):
       # One slice of every model with rigid particles marked by body_id
       # (a scene without model_counts).
       one = ((models, 0, 0, 26),)
-      got = pc.constitute(one, 1e-4, F, C, Jpep, mat, body, interpret=True,
-                          block=16)
+      got = pc.constitute(one, 1e-4, F, C, Jpep, mat, body,
+                          interpret=_INTERPRET, block=16)
       want = pc._reference(one, 1e-4, True, F, C, Jpep, mat, body)
       _assert_close(self, got, want, 1e-11)
       np.testing.assert_array_equal(got[2][..., 20:], 0.0)
