@@ -473,7 +473,9 @@ def drivers_stage(key, cand, mats, names, dx: float, cfg: PrepareConfig):
       raise PipelineError(
         f'object {name!r} got only {counts[i]} driving particles (need '
         f'>= {need}): it is small for the grid (dx = {dx:.4f} m); raise '
-        'grid_res, particles_per_cell or max_particles.')
+        'grid_res, particles_per_cell or max_particles'
+        + (f', or lower bind_k (now {cfg.bind_k})' if cfg.bind_k > 8 else '')
+        + '.')
   return drv.x[order], drv.volume[order], dobj, counts
 
 
