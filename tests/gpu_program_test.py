@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 
+import mpm_blocks
 from experiments.lib import hlo
 from experiments.lib import ptxas
 from physsplat_jax import mpm
@@ -229,23 +230,7 @@ class PlatformFormsTest(absltest.TestCase):
     on a plane: on CUDA the only loop is the scan over substeps (no Jacobi
     loops) and nothing is a matrix product (G2P, rigid sums); on the CPU
     the Jacobi loops and the products are there."""
-    g = mpm.GridSpec(res=16, size=1.0)
-    sp = g.dx / 2
-    cell = np.stack(np.meshgrid(*[np.arange(2)] * 3, indexing='ij'),
-                    -1).reshape(-1, 3)
-    models = ('fixed_corotated', 'neo_hookean', 'drucker_prager', 'rigid')
-    x = np.concatenate([0.3 + 0.12 * k + (cell + 0.5) * sp
-                        for k in range(4)])
-    names = [m for m in models for _ in range(8)]
-    mat = mpm.make_materials(names, 2e4, 0.3, 1000.0, config_models=models)
-    cfg = mpm.SimConfig(
-      grid=g, dt=1e-3, substeps_per_frame=2, models=models, num_bodies=1,
-      model_counts=(8, 8, 8, 8),
-      boundary_conditions=(mpm.SurfaceCollider(
-        point=(0, 0, 0.25), surface='separate', friction=0.5),))
-    body = np.array([-1] * 24 + [0] * 8)
-    s = mpm.init_state(x, np.zeros(3), sp ** 3, mat, cfg, body_id=body)
-    forces = mpm.make_forces(cfg)
+    s, mat, forces, cfg = mpm_blocks.four_blocks()
     frame = mpm.make_frame(cfg)
     cpu, cuda = (_ops(frame, (s, mat, forces), p) for p in ('cpu', 'cuda'))
     self.assertEqual(cuda['while'], 1)

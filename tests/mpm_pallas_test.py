@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 
+import mpm_blocks
 from physsplat_jax import mpm
 from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import pallas_constitutive as pc
@@ -134,25 +135,9 @@ class PallasConstitutiveTest(absltest.TestCase):
     """Two substeps of a scene of three materials and a rigid body on a
     plane, with and without model_counts: 'pallas' (interpreted here)
     against 'jax'."""
-    g = mpm.GridSpec(res=16, size=1.0)
-    sp = g.dx / 2
-    cell = np.stack(np.meshgrid(*[np.arange(2)] * 3, indexing='ij'),
-                    -1).reshape(-1, 3)
-    models = ('fixed_corotated', 'neo_hookean', 'drucker_prager', 'rigid')
-    x = np.concatenate([0.3 + 0.12 * k + (cell + 0.5) * sp
-                        for k in range(4)])
-    names = [m for m in models for _ in range(8)]
-    mat = mpm.make_materials(names, 2e4, 0.3, 1000.0, config_models=models)
-    body = np.array([-1] * 24 + [0] * 8)
     v = np.random.default_rng(4).normal(size=(32, 3))
     for counts in ((8, 8, 8, 8), None):
-      cfg = mpm.SimConfig(
-        grid=g, dt=1e-3, substeps_per_frame=2, models=models, num_bodies=1,
-        model_counts=counts, constitutive_kernel='jax',
-        boundary_conditions=(mpm.SurfaceCollider(
-          point=(0, 0, 0.25), surface='separate', friction=0.5),))
-      s = mpm.init_state(x, v, sp ** 3, mat, cfg, body_id=body)
-      forces = mpm.make_forces(cfg)
+      s, mat, forces, cfg = mpm_blocks.four_blocks(v, counts)
       out = {k: jax.jit(mpm.make_frame(dataclasses.replace(
         cfg, constitutive_kernel=k)))(s, mat, forces)
              for k in ('jax', 'pallas')}
