@@ -403,6 +403,13 @@ class Camera(struct.PyTreeNode):
     )
 
 
+def check_camera(camera: Camera) -> None:
+  """:func:`make_camera`'s checks on a camera built otherwise (e.g. by
+  ``Camera.replace``), on its concrete values; raises :class:`DataError`."""
+  _check_camera_values(camera.viewmat, camera.fx, camera.fy, camera.width,
+                       camera.height, camera.near, camera.far, camera.name)
+
+
 def _check_camera_values(viewmat, fx, fy, width, height, near, far,
                          name='') -> None:
   """:func:`make_camera`'s checks, on the values that are concrete."""

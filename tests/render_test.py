@@ -236,6 +236,15 @@ class CapacityTest(parameterized.TestCase):
       images.render_image(bad, cam)
     with self.assertRaisesRegex(RenderInputError, 'colors has non-finite'):
       images.render_image(g, cam, colors=jnp.full((5, 3), jnp.nan))
+    # A camera edited with replace (make_camera's checks skipped): was a
+    # black image.
+    for bad_cam, want in ((cam.replace(near=jnp.asarray(9.0),
+                                       far=jnp.asarray(1.0)),
+                           r'near=9\.0, far=1\.0; need 0 < near < far'),
+                          (cam.replace(fx=jnp.asarray(jnp.nan)),
+                           'focal length fx=nan')):
+      with self.subTest(want), self.assertRaisesRegex(RenderInputError, want):
+        images.render_image(g, bad_cam)
     np.testing.assert_array_equal(
       images.render_image(g, cam, background='white').image,
       images.render_image(g, cam, background=(1.0, 1.0, 1.0)).image)

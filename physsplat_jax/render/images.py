@@ -28,6 +28,7 @@ from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import DataError
 from physsplat_jax.types import Gaussians
+from physsplat_jax.types import check_camera
 from physsplat_jax.types import check_gaussians
 
 # pylint: disable=protected-access
@@ -250,6 +251,9 @@ def render_image(
     background = views.parse_background(background)
   try:
     check_gaussians(gaussians, 'render_image', sh=colors is None)
+    # (A camera from Camera.replace skipped make_camera's checks: near >
+    # far or a NaN focal length rendered a black image.)
+    check_camera(camera)
   except DataError as e:
     raise RenderInputError(str(e)) from None
   for name, a in (('colors', colors), ('background', background)):
