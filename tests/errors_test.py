@@ -234,12 +234,21 @@ class ValidationTest(absltest.TestCase):
                      (dict(render_config='fast'), 'use a physsplat_jax.'
                       'render.RenderConfig'),
                      (dict(substeps_per_frame=2.5), 'whole number or None'),
+                     (dict(initial_velocity=(('a', (1.0, 0, 0)),
+                                             ('a', (0, 1.0, 0)))),
+                      "initial_velocity names 'a' more than once"),
                      (dict(initial_velocity=('cube', (1.0, 0.0, 0.0))),
                       r"initial_velocity entry 'cube': give \(object name")):
       with self.subTest(want), self.assertRaisesRegex(pl.PipelineError, want):
         pl.PipelineConfig(**kw)
     with self.assertRaisesRegex(pl.PipelineError, r'vector=\(0, 1\) must'):
       pl.ForceSpec('impulse', 'cube', (0, 1))
+    # A force that starts after the last frame does nothing: said once.
+    with self.assertLogs(level='WARNING') as logs:
+      pl.PipelineConfig(num_frames=2, fps=24.0, forces=(
+        pl.ForceSpec('impulse', 'cube', (0, 0, 1.0), start=98.75),))
+    self.assertIn("force on 'cube' starts at 98.8 s, after the run ends",
+                  ' '.join(logs.output))
     scene = _block_scene()
     for mats, want in (({'block': _RUBBER}, 'got dict'),
                        (['jelly'], "material 'jelly' is not a material")):

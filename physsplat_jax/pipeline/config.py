@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 from typing import Any
 
 import numpy as np
+from absl import logging
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax import mpm
@@ -91,6 +93,12 @@ def _finite(value) -> bool:
 def _whole(v) -> bool:
   """An integer (not a bool, not 16.5)."""
   return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+
+@functools.lru_cache(maxsize=64)
+def _warn_once(message: str) -> None:
+  """A config warning, once per process (configs are rebuilt often)."""
+  logging.warning('%s', message)
 
 
 def _check_types(owner: str, obj) -> None:
@@ -325,6 +333,12 @@ class PrepareConfig:
         raise PipelineError(
           f'initial_velocity of {name or "every object"!r} is {v!r}: give '
           'three finite numbers [m/s].')
+    names = [n for n, _ in self.initial_velocity]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+      raise PipelineError(
+        f'initial_velocity names {", ".join(repr(n) for n in twice)} more '
+        'than once (one would silently win); give each object one velocity.')
 
   @property
   def frame_dt(self) -> float:
@@ -446,6 +460,14 @@ class PipelineConfig:
     object.__setattr__(self, 'sampling', p.sampling)
     object.__setattr__(self, 'camera_path', p.camera_path)
     object.__setattr__(self, 'render', s.render)
+    duration = self.num_frames / self.fps
+    for f in self.forces:
+      if f.start >= duration:
+        _warn_once(
+          f'the {f.kind.value} force on {f.object or "every object"!r} '
+          f'starts at {f.start:.3g} s, after the run ends ({self.num_frames} '
+          f'frames at {self.fps:g} fps = {duration:.3g} s): it does nothing; '
+          'start it earlier or simulate more frames.')
 
   @property
   def prepare(self) -> PrepareConfig:
