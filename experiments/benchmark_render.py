@@ -245,10 +245,13 @@ def bench_video(g: Gaussians, cam, config: raster.RenderConfig, frames: int,
   orbit, base = _orbit(g, up), cam.unlabelled()
   cam_fn = jax.jit(capture.frame_camera)
   # Warm-up: compiles, and fits the capacity that the frames then reuse.
+  t0 = time.perf_counter()
   warm = images.render_image_async(g, cam_fn(base, orbit, 0, frames),
                                    config=config)
   warm.result()
   config = warm.config
+  warm_s = time.perf_counter() - t0
+  print(f'video: warm-up frame (compiles) {warm_s:.2f} s', flush=True)
   t0 = time.perf_counter()
   pending = None
   for f in range(frames + 1):
@@ -261,7 +264,9 @@ def bench_video(g: Gaussians, cam, config: raster.RenderConfig, frames: int,
       video_lib.to_uint8(np.clip(out.image, 0.0, 1.0))
       config = pending.config
     pending = nxt
-  res = {'video_frames': frames, 'video_s': time.perf_counter() - t0}
+  res = {'video_frames': frames, 'video_s': time.perf_counter() - t0,
+         'video_warmup_s': warm_s}
+  print(f'video: {frames} frames in {res["video_s"]:.2f} s', flush=True)
   res['video_frame_ms'] = 1e3 * res['video_s'] / frames
   if use_gsplat:
     viewmats = [np.asarray(cam_fn(base, orbit, f, frames).viewmat)

@@ -87,6 +87,11 @@ OUT=${OUT:-out/gpu_session}
 WORK=$(mktemp -d /tmp/gpu_session.XXXX)
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+# The same torch extension flags in every process as in gsplat's build
+# below: with other flags, a step's first gsplat call rebuilds its CUDA
+# code (~80 s; a likely reason the video step of 2026-11-27 ran past its
+# limit before printing anything).
+export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
 PY=${PYTHON:-python3}
 
 if ls .whl/*.whl >/dev/null 2>&1; then
@@ -123,7 +128,7 @@ step() {
 GSPLAT=
 for s in $STEPS; do
   case $s in render|donut|video|video_scene)
-    ( TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 timeout 240 $PY -c \
+    ( timeout 240 $PY -c \
       "from gsplat.cuda._backend import _C; print('gsplat built')" \
       > "$WORK/gsplat_build.log" 2>&1 ) &
     GSPLAT=$!
