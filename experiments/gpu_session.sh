@@ -89,8 +89,8 @@ mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 # The same torch extension flags in every process as in gsplat's build
 # below: with other flags, a step's first gsplat call rebuilds its CUDA
-# code (~80 s; a likely reason the video step of 2026-11-27 ran past its
-# limit before printing anything).
+# code (~80 s; one possible reason, not verified, why the video step of
+# 2026-11-27 ran past its limit before printing anything).
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-16}
 PY=${PYTHON:-python3}
 
