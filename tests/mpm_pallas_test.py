@@ -95,6 +95,12 @@ class PallasConstitutiveTest(absltest.TestCase):
     _assert_close(self, got, want, 2e-5)
     np.testing.assert_array_equal(got[0][..., -30:], F[..., -30:])
     np.testing.assert_array_equal(got[2][..., -30:], 0.0)
+    # F and C as rows of one (18, N) array (the solver's carry): the same.
+    FC = jnp.concatenate([F.reshape(9, -1), C.reshape(9, -1)])
+    packed = pc.constitute(merged, 1e-4, (FC, 0), (FC, 9), Jpep, mat,
+                           interpret=_INTERPRET, block=32)
+    for a, b in zip(packed, got):
+      np.testing.assert_array_equal(a, b)
 
   def test_gradient_is_the_jax_updates(self):
     """The kernel's VJP differentiates the pure-JAX update (float64)."""
@@ -163,9 +169,9 @@ class PallasConstitutiveTest(absltest.TestCase):
       raise AttributeError("module 'triton' has no attribute 'load'")
 
     cfg = mpm.SimConfig(models=('neo_hookean',))
-    x = jnp.zeros((3, 3, 4)) + jnp.eye(3)[:, :, None]
+    FC = jnp.zeros((18, 4)).at[jnp.array([0, 4, 8])].set(1.0)  # F = I, C = 0
     mat = mpm.make_materials('neo_hookean', 1e4, 0.3, 1e3, num=4)
-    args = (x, 0 * x, jnp.ones((2, 4)), jnp.full(4, -1), mat)
+    args = (FC, jnp.ones((2, 4)), jnp.full(4, -1), mat)
     try:
       with mock.patch.object(jax, 'default_backend', lambda: 'gpu'):
         for fake, want in ((broken, False), (interpreted, True)):
@@ -197,16 +203,16 @@ class PallasConstitutiveTest(absltest.TestCase):
     cfg = mpm.SimConfig(models=models, constitutive_kernel='pallas')
     update = constitutive.make_update(cfg)
     mesh = jax.make_mesh((1,), ('p',))
-    specs = (P(None, None, 'p'), P(None, None, 'p'), P(None, 'p'), P('p'),
-             P('p'))
+    FC = jnp.concatenate([F.reshape(9, -1), C.reshape(9, -1)])
+    specs = (P(None, 'p'), P(None, 'p'), P('p'), P('p'))
     args = [jax.device_put(a, NamedSharding(mesh, s))
-            for a, s in zip((F, C, Jpep, body, mat), specs)]
+            for a, s in zip((FC, Jpep, body, mat), specs)]
     mat_spec = ((P('p'),) * 3,) * 3  # nested-tuple (N,) fields
     got = jax.jit(jax.shard_map(
       update, mesh=mesh, in_specs=specs,
       out_specs=(mat_spec, P(None, 'p'), mat_spec)))(*args)
     want = jax.jit(constitutive.make_update(
-      dataclasses.replace(cfg, constitutive_kernel='jax')))(F, C, Jpep, body,
+      dataclasses.replace(cfg, constitutive_kernel='jax')))(FC, Jpep, body,
                                                             mat)
     _assert_close(self, got, want, 1e-6)
 

@@ -477,9 +477,10 @@ def _split_over_devices(a) -> bool:
 
 
 def make_update(config):
-  """``update(F, C, Jpep, body_id, mat) -> (F_e, Jpep, tau)``: the
+  """``update(FC, Jpep, body_id, mat) -> (F_e, Jpep, tau)``: the
   return-mapped state and Kirchhoff stress of a substep (the carried
-  (3, 3, N) ``F`` and ``C`` arrays in, nested-tuple matrices out; ``Jpep``
+  (18, N) ``FC``, F's nine rows then C's, row-major, in; nested-tuple
+  matrices out; ``Jpep``
   the (2, N) plastic state ``(Jp, ep)``, passed through where no model
   changes it), computed once into memory (``transfer.materialize``):
   XLA:CPU otherwise fuses the whole stress computation into the scatter's
@@ -505,8 +506,8 @@ def make_update(config):
   single = constitutive_slices(config, merge=False)
   merged = constitutive_slices(config, merge=True)
 
-  def with_jax(F, C, Jpep, body_id, mat):
-    F, C = la.to_mat(F), la.to_mat(C)
+  def with_jax(FC, Jpep, body_id, mat):
+    F, C = la.rows_mat(FC, 0), la.rows_mat(FC, 9)
     if groups:
       args = (F, C, Jpep, mat)
       if merged == single:
@@ -525,20 +526,20 @@ def make_update(config):
       Jpep = jnp.stack([Jp, ep])
     return Fe, Jpep, tau
 
-  def with_kernel(F, C, Jpep, body_id, mat, interpret):
-    n = F.shape[-1]
+  def with_kernel(FC, Jpep, body_id, mat, interpret):
+    n = FC.shape[-1]
     slices = merged if groups else ((models, 0, 0, n),)
     body = body_id if (has_bodies and not groups) else None
     Fe, Jpep, tau = pallas_constitutive.constitute(
-      slices, dt, F, C, Jpep, mat, body, interpret=interpret)
+      slices, dt, (FC, 0), (FC, 9), Jpep, mat, body, interpret=interpret)
     return la.to_mat(Fe), Jpep, la.to_mat(tau)
 
   kernel = config.constitutive_kernel
 
-  def update(F, C, Jpep, body_id, mat):
-    args = (F, C, Jpep, body_id, mat)
+  def update(FC, Jpep, body_id, mat):
+    args = (FC, Jpep, body_id, mat)
     compiled = functools.partial(with_kernel, interpret=False)
-    if kernel == 'jax' or _split_over_devices(F):
+    if kernel == 'jax' or _split_over_devices(FC):
       # (Particles split over devices inside shard_map: the pure-JAX
       # update; the kernel's interpreted form does not run there.)
       out = with_jax(*args)

@@ -87,6 +87,18 @@ def to_mat(a: Array) -> Mat:
   return tuple(tuple(a[i, j] for j in range(3)) for i in range(3))
 
 
+def rows_mat(a: Array, first: int) -> Mat:
+  """Nested tuple of the nine rows ``first .. first + 8`` of an (M, ...)
+  array holding matrices row-major (``a[first + 3 i + j] = M[i][j]``)."""
+  return tuple(tuple(a[first + 3 * i + j] for j in range(3))
+               for i in range(3))
+
+
+def mat_rows(m: Mat) -> tuple:
+  """The nine fields of ``m`` in :func:`rows_mat`'s order."""
+  return tuple(a for row in m for a in row)
+
+
 def from_mat(m: Mat) -> Array:
   """Nested tuple ``M[i][j]`` -> (3, 3, ...) array."""
   return jnp.stack([jnp.stack(list(r)) for r in m])

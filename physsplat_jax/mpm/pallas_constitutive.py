@@ -47,7 +47,7 @@ def _index(lead, start, block):
   return tuple(jnp.int32(i) for i in lead) + (pl.ds(start, block),)
 
 
-def _kernel(slices, dt, n, block, treedef, names, has_body, *refs):
+def _kernel(slices, dt, n, block, treedef, names, has_body, rows, *refs):
   F_ref, C_ref, J_ref = refs[:3]
   k = 3 + len(names)
   mat_refs = refs[3:k]
@@ -64,9 +64,12 @@ def _kernel(slices, dt, n, block, treedef, names, has_body, *refs):
   def store(ref, lead, value, mask):
     plgpu.store(ref.at[_index(lead, start, block)], value, mask=mask)
 
-  F = tuple(tuple(load(F_ref, (i, j), float(i == j)) for j in range(3))
-            for i in range(3))
-  C = tuple(tuple(load(C_ref, (i, j), 0.0) for j in range(3))
+  def lead(k, i, j):  # (i, j) of a (3, 3, N) array, or a packed row
+    return (i, j) if rows[k] is None else (rows[k] + 3 * i + j,)
+
+  F = tuple(tuple(load(F_ref, lead(0, i, j), float(i == j))
+                  for j in range(3)) for i in range(3))
+  C = tuple(tuple(load(C_ref, lead(1, i, j), 0.0) for j in range(3))
             for i in range(3))
   Jp, ep = load(J_ref, (0,), 1.0), load(J_ref, (1,), 0.0)
   mat = jax.tree.unflatten(treedef, [
@@ -133,7 +136,10 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
       or one slice ``(config.models, 0, 0, N)`` with ``body_id`` for a scene
       without ``model_counts``.
     dt: substep [s] (Python float).
-    F, C: (3, 3, N) trial deformation gradients and affine velocities.
+    F, C: (3, 3, N) trial deformation gradients and affine velocities, or
+      each ``(array, first_row)``: nine rows of an (M, N) array (the
+      solver's carry holds F and C as one (18, N) array: one kernel per
+      substep fewer on a GPU than two arrays).
     Jpep: (2, N) plastic state ``(Jp, ep)``.
     mat: ``Materials`` with (N,) leaves.
     body_id: (N,) int32 or None; where ``>= 0`` the particle carries no
@@ -144,6 +150,8 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
   Returns:
     ``(F_e, Jpep, tau)``: (3, 3, N), (2, N), (3, 3, N).
   """
+  rows = tuple(a[1] if isinstance(a, tuple) else None for a in (F, C))
+  F, C = (a[0] if isinstance(a, tuple) else a for a in (F, C))
   n = F.shape[-1]
   has_body = body_id is not None
   leaves, treedef = jax.tree.flatten(mat)
@@ -157,7 +165,7 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
 
   def kernel_call(F, C, Jpep, leaves, bodies):
     kernel = functools.partial(_kernel, slices, dt, n, block, treedef, names,
-                               has_body)
+                               has_body, rows)
     dtype = F.dtype
     params = {} if interpret else {
       'compiler_params': plgpu.CompilerParams(num_warps=num_warps,
@@ -179,6 +187,8 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
     return kernel_call(F, C, Jpep, leaves, bodies)
 
   def reference(F, C, Jpep, leaves, bodies):
+    F, C = (a if r is None else a[r:r + 9].reshape(3, 3, n)
+            for a, r in zip((F, C), rows))
     return _reference(slices, dt, has_body, F, C, Jpep,
                       jax.tree.unflatten(treedef, leaves),
                       bodies[0] if has_body else None)

@@ -196,9 +196,11 @@ def init_state(x, v, volume, materials: base.Materials,
 
 
 def _to_soa(state: base.MPMState):
+  n = state.x.shape[0]
   carry = dict(
     xv=jnp.concatenate([state.x.T, state.v.T]),
-    F=jnp.transpose(state.F, (1, 2, 0)), C=jnp.transpose(state.C, (1, 2, 0)),
+    FC=jnp.concatenate([jnp.transpose(state.F, (1, 2, 0)).reshape(9, n),
+                        jnp.transpose(state.C, (1, 2, 0)).reshape(9, n)]),
     Jpep=jnp.stack([state.Jp, state.ep]),
     t=state.t, step=state.step,
   )
@@ -210,8 +212,9 @@ def _to_soa(state: base.MPMState):
 def _from_soa(carry, aux) -> base.MPMState:
   return base.MPMState(
     x=carry['xv'][:3].T, v=carry['xv'][3:].T,
-    F=jnp.transpose(carry['F'], (2, 0, 1)),
-    C=jnp.transpose(carry['C'], (2, 0, 1)), Jp=carry['Jpep'][0],
+    F=jnp.transpose(carry['FC'][:9].reshape(3, 3, -1), (2, 0, 1)),
+    C=jnp.transpose(carry['FC'][9:].reshape(3, 3, -1), (2, 0, 1)),
+    Jp=carry['Jpep'][0],
     ep=carry['Jpep'][1],
     vol0=aux['vol0'], mass=aux['mass'], body_id=aux['body_id'],
     bc_data=aux['bc_data'], t=carry['t'], step=carry['step'],
@@ -265,12 +268,12 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   def substep(c, aux, mat, forces):
     x = tuple(c['xv'][d] for d in range(3))
     v = tuple(c['xv'][3 + d] for d in range(3))
-    C = la.to_mat(c['C'])
+    FC = c['FC']
+    C = la.rows_mat(FC, 9)
     t = c['t']
     mass, vol0 = aux['mass'], aux['vol0']
     with jax.named_scope('constitutive'):
-      Fe, Jpep, tau = constitute(c['F'], c['C'], c['Jpep'], aux['body_id'],
-                                 mat)
+      Fe, Jpep, tau = constitute(FC, c['Jpep'], aux['body_id'], mat)
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
@@ -334,8 +337,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
                     for d in range(3))
     step = c['step'] + 1
     out = dict(
-      xv=jnp.stack(tuple(x_new) + tuple(v_new)), F=la.from_mat(F_new),
-      C=la.from_mat(C_new), Jpep=Jpep,
+      xv=jnp.stack(tuple(x_new) + tuple(v_new)),
+      # F and C as one array: on a GPU one kernel writes both (two did).
+      FC=jnp.stack(la.mat_rows(F_new) + la.mat_rows(C_new)), Jpep=Jpep,
       t=_step_time(step, dt, t.dtype), step=step,
     )
     return out
