@@ -133,6 +133,7 @@ def run_case(shape: str, n: int, method: str, k: int, repeats: int) -> dict:
 
 def main(argv):
   del argv
+  cli.positive_ints('k', [_K.value])
   if _CASE.value:
     shape, n, method = _CASE.value.split(',')
     print(json.dumps(run_case(shape, int(n), method, _K.value,
@@ -140,7 +141,7 @@ def main(argv):
     return
   results = []
   for shape in _SHAPES.value:
-    for n in map(int, _SIZES.value):
+    for n in cli.positive_ints('sizes', _SIZES.value):
       for method in _METHODS.value:
         if method not in ('grid', 'brute'):
           raise app.UsageError(f'unknown method {method!r}; use grid, brute')

@@ -204,7 +204,8 @@ def main(argv):
               load=os.getloadavg())
   print(json.dumps(info), flush=True)
   rows = []
-  for n in map(int, _SIZES.value):
+  sizes = cli.positive_ints('sizes', _SIZES.value)
+  for n in sizes:
     r = bench_package(n, _STEPS.value, _REPEATS.value)
     print(json.dumps(r), flush=True)
     rows.append(r)
@@ -215,7 +216,7 @@ def main(argv):
       print(json.dumps(q), flush=True)
       rows.append(q)
   if _GRAD.value:
-    g = bench_grad(int(_SIZES.value[0]), _STEPS.value)
+    g = bench_grad(sizes[0], _STEPS.value)
     print(json.dumps(g), flush=True)
     rows.append(g)
   info['load_end'] = os.getloadavg()

@@ -383,7 +383,8 @@ def main(argv):
   else:
     cam = sphere_camera(_SIZE.value, _WIDTH.value, _HEIGHT.value)
     up = (0.0, 0.0, 1.0)
-    runs = [(sphere_scene(int(n)), cam) for n in _NUM.value]
+    runs = [(sphere_scene(n), cam)
+            for n in cli.positive_ints('num', _NUM.value)]
   results = []
   for g, cam in runs:
     r = bench(g, cam, config, _REPEATS.value, _BASELINE.value,

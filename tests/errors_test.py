@@ -73,6 +73,14 @@ class ErrorPathTest(absltest.TestCase):
     self.assertEqual(code, 1)
     self.assertIn("a.ply", text)
 
+  def test_list_flags_of_counts_are_checked(self):
+    # benchmark_mpm --sizes=0 was an IndexError from inside the solver.
+    self.assertEqual(cli.positive_ints('sizes', ['10', '2']), [10, 2])
+    for bad in (['0'], ['abc'], [], ['3', '-1']):
+      with self.subTest(bad), self.assertRaisesRegex(
+          app.UsageError, '--sizes=.*: give whole numbers >= 1'):
+        cli.positive_ints('sizes', bad)
+
   def test_usage_errors_exit_2(self):
     code, text = _run_guarded(app.UsageError('--poke: expected NAME:values'))
     self.assertEqual(code, 2)

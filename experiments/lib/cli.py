@@ -171,6 +171,19 @@ def usage_error(message: str) -> app.UsageError:
   return app.UsageError(message, exitcode=2)
 
 
+def positive_ints(name: str, values) -> list[int]:
+  """A list flag's values as integers >= 1, or a usage error naming the
+  flag (``--sizes=0`` was an IndexError from inside the solver)."""
+  try:
+    out = [int(v) for v in values]
+  except ValueError:
+    out = []
+  if not out or min(out) < 1:
+    raise usage_error(f'--{name}={",".join(map(str, values))}: give whole '
+                      'numbers >= 1 separated by commas')
+  return out
+
+
 def parse_flags(argv):
   """absl's flag parsing with a bad flag (an unknown one, a value of the
   wrong type, a required one missing, an override of a config field that
