@@ -147,6 +147,19 @@ class ErrorTest(parameterized.TestCase):
     ('_box', {'additional_material_params': [{'point': [1, 1, 1]}]},
      'size'),
     ('_dt', {'substep_dt': 0.1, 'frame_dt': 0.01}, 'substep_dt'),
+    # Accepted before: a box of negative size, a window that ends before
+    # it starts, a zero normal (that one failed later, naming no file).
+    ('_bc_size', {'boundary_conditions': [
+      {'type': 'cuboid', 'point': [1, 1, 1], 'size': [-0.1, 0.1, 0.1],
+       'velocity': [0, 0, 0]}]}, r"\.size' = \[-0\.1, 0\.1, 0\.1\]: give "
+     'half-extents > 0'),
+    ('_bc_window', {'boundary_conditions': [
+      {'type': 'cuboid', 'point': [1, 1, 1], 'size': [0.1, 0.1, 0.1],
+       'velocity': [0, 0, 0], 'start_time': 1.0, 'end_time': 0.5}]},
+     'end_time 0.5 is before start_time 1.0'),
+    ('_bc_normal', {'boundary_conditions': [
+      {'type': 'surface_collider', 'point': [1, 1, 0], 'normal': [0, 0, 0],
+       'surface': 'sticky', 'friction': 0.1}]}, r"\.normal' = .*non-zero"),
   )
   def test_bad_field(self, raw, needle):
     with self.assertRaisesRegex(pg.ConfigError, needle):

@@ -480,6 +480,20 @@ def _parse_bc(source, i, bc):
       f'{_where(source, field + ".surface")}: {params["surface"]!r}; '
       f'expected one of {list(SURFACE_TYPES)}.'
     )
+  # Values no boundary condition can use (accepted before, then did
+  # nothing or failed later without naming the file).
+  size = params.get('size')
+  if size is not None and not all(s > 0 for s in size):
+    raise ConfigError(f'{_where(source, field + ".size")} = {list(size)}: '
+                      'give half-extents > 0.')
+  start, end = params.get('start_time', 0.0), params.get('end_time', 1e3)
+  if end < start:
+    raise ConfigError(f'{_where(source, field)}: end_time {end} is before '
+                      f'start_time {start}; give end_time >= start_time.')
+  normal = params.get('normal')
+  if normal is not None and not any(abs(c) > 0 for c in normal):
+    raise ConfigError(f'{_where(source, field + ".normal")} = '
+                      f'{list(normal)}: give a non-zero vector.')
   return BoundaryCondition(type=kind, params=tuple(sorted(params.items())))
 
 
