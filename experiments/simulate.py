@@ -45,9 +45,13 @@ _IMPULSE = flags.DEFINE_multi_string(
 _POKE = flags.DEFINE_multi_string(
   'poke', None, 'NAME:ax,ay,az@x,y,z/r[@t0-t1] acceleration [m/s^2] of the '
   "object's particles within r [m] of a point (scene coordinates)")
+# The methods a command line can drive ('boxes' and 'masks' need arrays
+# that only the library call takes).
 _SEGMENT = flags.DEFINE_enum(
-  'segment', None, segmentation.METHODS, 'segment the scene first (default: '
-  'keep its objects)')
+  'segment', None, [m for m in segmentation.METHODS
+                    if m not in ('boxes', 'masks')],
+  'segment the scene first (default: keep its objects): auto (an object-id '
+  'property, else geometric), attribute or geometric')
 _UP = flags.DEFINE_string(
   'up_axis', None, "scene file: its up axis: x, y, z, -x, -y, -z, a "
   "direction 'x,y,z', or auto (default: from its sidecar, cameras or "
