@@ -531,6 +531,16 @@ class ValidationTest(absltest.TestCase):
     with self.assertRaisesRegex(pl.PipelineError, 'initial speed 300'):
       substeps(initial_velocity=(('', (300.0, 0.0, 0.0)),),
                substeps_per_frame=slow)
+    # Too many substeps because frames are far apart or the scene is not
+    # in metres: the message says which (it named neither).
+    with self.assertRaisesRegex(pl.PipelineError,
+                                r'a frame lasts 1e\+04 s \(fps=0\.0001\): '
+                                'raise fps'):
+      substeps(fps=1e-4)
+    with self.assertRaisesRegex(pl.PipelineError, 'give its scale '
+                                r'\(--meters_per_unit\)'):
+      prep_lib.time_step_stage([_RUBBER], (False,), field, dobj, 1e-7,
+                               pl.PrepareConfig(), 9.8)
 
 
 class FailureTest(absltest.TestCase):

@@ -554,12 +554,21 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
   if substeps <= cfg.max_substeps_per_frame:
     substeps = min(bucket_substeps(substeps), cfg.max_substeps_per_frame)
   if substeps > cfg.max_substeps_per_frame:
+    # The usual causes, when the numbers say so: frames far apart, or a
+    # scene whose units are not metres.
+    hints = ''
+    if frame_dt > 0.2:
+      hints += f'; a frame lasts {frame_dt:.3g} s (fps={cfg.fps:g}): raise fps'
+    if dx < 1e-4:
+      hints += (f'; a grid cell is {dx:.3g} m: if the scene is not in '
+                'metres, give its scale (--meters_per_unit)')
     raise PipelineError(
       f'the stiffest material (wave speed {c_max:.3g} m/s) and initial '
       f'speeds ({v_max:.3g} m/s) need {substeps} substeps per frame at '
       f'dx={dx:.3g} m, over max_substeps_per_frame='
       f'{cfg.max_substeps_per_frame}: lower E (or mark the object rigid), '
-      'lower grid_res or the velocities, or raise max_substeps_per_frame.')
+      'lower grid_res or the velocities, or raise max_substeps_per_frame'
+      f'{hints}.')
   return substeps, c_max
 
 
