@@ -233,6 +233,11 @@ class SceneIOTest(parameterized.TestCase):
     with self.assertLogs(level='WARNING') as logs:
       load_scene(huge, num_cameras=1)
     self.assertIn('5 of', ' '.join(logs.output))
+    # One Gaussian (no extent): loads with cameras around it (the camera
+    # fit failed in look_at, naming no file).
+    one = os.path.join(self.dir, 'one.ply')
+    save_ply(one, g.subset(np.arange(g.num) == 0))
+    self.assertLen(load_scene(one, num_cameras=2).cameras, 2)
     # All transparent: a video of only the background, said at load.
     clear = os.path.join(self.dir, 'clear.ply')
     save_ply(clear, g.replace(opacity_logits=jnp.full_like(g.opacity_logits,

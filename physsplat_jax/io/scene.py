@@ -382,6 +382,10 @@ def fitted_orbit(
     lo = hi = np.zeros(3)
   else:
     lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
+  if not float(np.max(hi - lo)) > 0:
+    # One Gaussian, or all at one point: frame a unit box around it (the
+    # camera fit needed an extent and failed in look_at, naming no file).
+    lo, hi = lo - 0.5, hi + 0.5
   up = up_vector(up_axis)
   cams = []
   for i in range(int(num_cameras)):
