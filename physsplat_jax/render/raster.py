@@ -187,7 +187,9 @@ def _check_pallas(config):
   if jax.default_backend() != 'gpu' and not config.interpret:
     raise RenderConfigError(
       f"RenderConfig: backend='pallas' runs on a GPU; on "
-      f"'{jax.default_backend()}' set interpret=True (slow, for tests)"
+      f"'{jax.default_backend()}' use backend='auto' or 'jax' (scripts: "
+      "--config.render_config.backend=auto), or interpret=True (slow, for "
+      'tests)'
     )
 
 
