@@ -134,11 +134,11 @@ def check_choice(c: MaterialChoice) -> MaterialChoice:
   if c.model not in CANONICAL_MODELS:
     bad.append(f'model {c.model!r} not in {list(CANONICAL_MODELS)}')
   if not (math.isfinite(c.E) and c.E > 0):
-    bad.append(f'E={c.E}')
+    bad.append(f"E={c.E} (use a Young's modulus > 0 [Pa])")
   if not (math.isfinite(c.nu) and 0.0 <= c.nu < 0.5):
-    bad.append(f'nu={c.nu}')
+    bad.append(f"nu={c.nu} (use a Poisson's ratio in [0, 0.5))")
   if not (math.isfinite(c.rho) and c.rho > 0):
-    bad.append(f'rho={c.rho}')
+    bad.append(f'rho={c.rho} (use a density > 0 [kg/m^3])')
   if c.source not in SOURCES:
     bad.append(f'source {c.source!r}')
   for k, v in c.params:
