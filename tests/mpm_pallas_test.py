@@ -102,6 +102,23 @@ class PallasConstitutiveTest(absltest.TestCase):
     for a, b in zip(packed, got):
       np.testing.assert_array_equal(a, b)
 
+  def test_batched_by_vmap(self):
+    """A sweep vmaps the simulation over materials: the batched kernel
+    (an extra grid axis) equals one call per item."""
+    models = ('neo_hookean', 'drucker_prager')
+    F, C, Jpep, mat = _inputs(models, (40, 50), jnp.float32)
+    slices = ((models, 0, 0, 90),)
+
+    def one(E):
+      return pc.constitute(slices, 1e-4, F, C, Jpep, mat.replace(E=E),
+                           interpret=_INTERPRET, block=64)
+
+    Es = jnp.stack([mat.E, 3.0 * mat.E])
+    got = jax.vmap(one)(Es)
+    for k in range(2):
+      for a, b in zip(got, one(Es[k])):
+        np.testing.assert_array_equal(a[k], b)
+
   def test_gradient_is_the_jax_updates(self):
     """The kernel's VJP differentiates the pure-JAX update (float64)."""
     models = ('neo_hookean', 'von_mises', 'rigid')
