@@ -102,6 +102,39 @@ class PallasConstitutiveTest(absltest.TestCase):
     for a, b in zip(packed, got):
       np.testing.assert_array_equal(a, b)
 
+  def test_solver_update_gradient_equals_the_jax_path(self):
+    """Through ``constitutive.make_update`` (F and C packed as the solver
+    carries them), 'pallas' against 'jax', with model_counts (slices) and
+    without (body_id marks the rigid particles): values and the gradient
+    with respect to FC, the plastic state and E (float64)."""
+    models = ('neo_hookean', 'snow', 'rigid')
+    counts = (9, 11, 6)
+    with jax.enable_x64(True):
+      F, C, Jpep, mat = _inputs(models, counts, jnp.float64, seed=5)
+      FC = jnp.concatenate([F.reshape(9, -1), C.reshape(9, -1)])
+      body = jnp.asarray([-1] * 20 + [0] * 6, jnp.int32)
+      rng = np.random.default_rng(6)
+      w = [[jnp.asarray(rng.standard_normal(26)) for _ in range(3)]
+           for _ in range(3)]
+      for model_counts in (counts, None):
+        cfg = mpm.SimConfig(models=models, model_counts=model_counts,
+                            num_bodies=1, dtype='float64')
+
+        def loss(kernel, FC, Jpep, E, cfg=cfg):
+          update = constitutive.make_update(
+            dataclasses.replace(cfg, constitutive_kernel=kernel))
+          Fe, J, tau = update(FC, Jpep, body, mat.replace(E=E))
+          return (sum(jnp.sum(w[i][j] * (Fe[i][j] + 1e-5 * tau[i][j]))
+                      for i in range(3) for j in range(3))
+                  + jnp.sum(J * J))
+
+        with self.subTest(model_counts=model_counts):
+          got = jax.value_and_grad(
+            lambda *a: loss('pallas', *a), (0, 1, 2))(FC, Jpep, mat.E)
+          want = jax.value_and_grad(
+            lambda *a: loss('jax', *a), (0, 1, 2))(FC, Jpep, mat.E)
+          _assert_close(self, got, want, 1e-10)
+
   def test_batched_by_vmap(self):
     """A sweep vmaps the simulation over materials: the batched kernel
     (an extra grid axis) equals one call per item."""
@@ -192,7 +225,7 @@ class PallasConstitutiveTest(absltest.TestCase):
     try:
       with mock.patch.object(jax, 'default_backend', lambda: 'gpu'):
         for fake, want in ((broken, False), (interpreted, True)):
-          pc.available.cache_clear()
+          pc._available.cache_clear()
           with mock.patch.object(pc, 'constitute', fake), \
               self.assertLogs(level='WARNING') if not want else \
               _no_logs():
@@ -202,11 +235,12 @@ class PallasConstitutiveTest(absltest.TestCase):
           if not want:  # no kernel in the program, for CUDA either
             self.assertNotIn('triton', traced.lower(
               lowering_platforms=('cuda',)).as_text())
-      # Built once on a thread of its own (and traced once more for the
+      # Built on a thread of its own, in the solver's two forms (slices;
+      # one slice with body_id), once (and traced once more for the
       # frame's CUDA branch, on this one).
-      self.assertEqual(calls.count(False), 1)
+      self.assertEqual(calls.count(False), 2)
     finally:
-      pc.available.cache_clear()
+      pc._available.cache_clear()
 
   def test_particles_split_over_devices_keep_the_jax_update(self):
     """Inside shard_map (particles varying over a mesh axis) even

@@ -12,6 +12,8 @@ Both run as one ``jax.vmap`` of ``pipeline.simulate`` split over the mesh
 
 from __future__ import annotations
 
+import dataclasses
+
 import itertools
 from typing import Any, Callable, Sequence
 
@@ -105,6 +107,10 @@ def make_simulate_batch(config: pl.PipelineConfig, mesh: Mesh,
     ``simulate_batch_fn(params_batch, prepared) -> pytree`` with a leading
     batch axis, sharded over the mesh (see ``sharded_vmap`` for padding).
   """
+  if mesh.size > 1 and config.constitutive_kernel == 'auto':
+    # A Pallas kernel has no partitioning rule: under the batch's sharding
+    # XLA would gather every item to every device for it.
+    config = dataclasses.replace(config, constitutive_kernel='jax')
   select = select or (lambda t: t)
 
   def one(params, prepared):

@@ -547,7 +547,7 @@ def make_update(config):
       out = jax.lax.platform_dependent(
         *args, cuda=compiled,
         default=functools.partial(with_kernel, interpret=True))
-    elif pallas_constitutive.available():  # 'auto'
+    elif pallas_constitutive.available(config.dtype):  # 'auto'
       out = jax.lax.platform_dependent(*args, cuda=compiled, default=with_jax)
     else:  # 'auto' where this JAX cannot build the kernel
       out = with_jax(*args)

@@ -49,6 +49,7 @@ values are (nearly) equal. Its gradient is exact, including at F = I
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -57,8 +58,13 @@ from physsplat_jax.types import Array
 
 Mat = tuple  # tuple[tuple[Array, Array, Array], ...] of (N,) arrays
 
-# Set while a kernel body is traced (``kernel_mode``): primal code only.
-_KERNEL_MODE = [False]
+class _Mode(threading.local):
+  on = False
+
+
+# Set while a kernel body is traced (``kernel_mode``), in that thread only:
+# primal code only.
+_MODE = _Mode()
 
 
 @contextlib.contextmanager
@@ -69,11 +75,11 @@ def kernel_mode():
   and the polar iteration and Jacobi sweeps as loops (no platform choice
   inside a kernel; unrolled, the tabletop's update took 5-8 s to compile
   for an H100, as loops 0.7-0.9 s). Same arithmetic, same values."""
-  _KERNEL_MODE[0], old = True, _KERNEL_MODE[0]
+  _MODE.on, old = True, _MODE.on
   try:
     yield
   finally:
-    _KERNEL_MODE[0] = old
+    _MODE.on = old
 
 # Scaled Newton iterations: 6 reach float32 round-off even for condition
 # numbers ~4e4 (measured); float64 gets 9.
@@ -255,7 +261,7 @@ def solve_sym(a: Mat, b):
 
 
 def _polar_newton(F: Mat, iters: int) -> Mat:
-  if _KERNEL_MODE[0]:
+  if _MODE.on:
     # In a kernel a loop: the unrolled chain's code took seconds to compile.
     return jax.lax.fori_loop(0, iters, lambda _, X: _newton_step(X), F)
   X = F
@@ -292,7 +298,7 @@ def polar_mat(F: Mat) -> Mat:
   Returns:
     R as a nested tuple.
   """
-  if _KERNEL_MODE[0]:
+  if _MODE.on:
     return _polar_newton(F, _iters(F))
   return _polar_mat(F)
 
@@ -485,7 +491,7 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
     return carry
 
   carry = (tuple(S), V0)
-  if unroll is None and _KERNEL_MODE[0]:
+  if unroll is None and _MODE.on:
     unroll = False
   if unroll is None:
     A, V = jax.lax.platform_dependent(carry, cpu=looped, default=unrolled)
@@ -628,7 +634,7 @@ def make_spectral_map(fn):
   apply.defvjp(fwd, bwd)
 
   def apply_or_primal(F, p):
-    if _KERNEL_MODE[0]:
+    if _MODE.on:
       return forward(F, p)[0]
     return apply(F, p)
 

@@ -13,7 +13,7 @@ blocks of particles, one ``pl.when`` per slice of particles sorted by model
 
 The kernel computes exactly what :func:`constitutive.constitute_slices`
 computes (the same functions, traced in ``linalg.kernel_mode``: forward
-code only, Jacobi sweeps unrolled). Its derivative is that of the pure-JAX
+code only, the polar iteration and Jacobi sweeps as loops). Its derivative is that of the pure-JAX
 path (``jax.custom_vjp``: the backward pass differentiates
 ``constitute_slices``), so gradients are unchanged. Off a GPU it runs in
 Pallas interpret mode (slow; for tests).
@@ -161,6 +161,9 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
       jnp.shape(q) != (n,) for q in leaves):
     raise ValueError('pallas_constitutive.constitute: materials need one '
                      f'(N,) = ({n},) array per field')
+  if has_body and len(slices) != 1:
+    raise ValueError('pallas_constitutive.constitute: body_id goes with one '
+                     'slice of every model (a scene without model_counts)')
   bodies = (body_id,) if has_body else ()
 
   def kernel_call(F, C, Jpep, leaves, bodies):
@@ -205,40 +208,58 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
   return update(F, C, Jpep, leaves, bodies)
 
 
+def available(dtype: str = 'float32') -> bool:
+  """Whether the kernel builds on this process's GPU, in ``dtype``
+  (checked once per dtype, even while a program is traced: every model,
+  F and C packed in one array as the solver carries them, with slices and
+  with ``body_id``). True without a GPU (off a GPU 'auto' never runs it; a
+  program lowered for a GPU it cannot see is compiled there first). False,
+  with a warning, when this JAX's Pallas cannot build it:
+  ``SimConfig.constitutive_kernel = 'auto'`` then keeps the pure-JAX update
+  instead of failing the run."""
+  return _available(str(jnp.dtype(dtype)))
+
+
 @functools.lru_cache(maxsize=None)
-def available() -> bool:
-  """Whether the kernel builds on this process's GPU (checked once, even
-  while a program is traced: every model, 128 particles, float32). True
-  without a GPU (off a GPU 'auto' never runs it; a program lowered for a
-  GPU it cannot see is compiled there first). False, with a warning, when
-  this JAX's Pallas cannot build it: ``SimConfig.constitutive_kernel =
-  'auto'`` then keeps the pure-JAX update instead of failing the run."""
+def _available(dtype: str) -> bool:
   if jax.default_backend() != 'gpu':
     return True
   from physsplat_jax.mpm import base  # noqa: PLC0415
 
   def build():
     models = base.CANONICAL_MODELS
-    n = 128
-    mat = base.make_materials(
-      [models[i % len(models)] for i in range(n)], 1e5, 0.3, 1000.0,
-      config_models=models)
-    F = jnp.broadcast_to(jnp.eye(3)[:, :, None], (3, 3, n))
-    Jpep = jnp.stack([jnp.ones(n), jnp.zeros(n)])
-    slices = ((models, 0, 0, n),)
-    out = jax.jit(lambda F, J, m: constitute(slices, 1e-4, F, 0 * F, J, m))(
-      F, Jpep, mat)
-    jax.block_until_ready(out)
+    deformable = tuple(m for m in models if m != 'rigid')
+    n, m = 128, 96
+    names = [deformable[i % len(deformable)] for i in range(m)]
+    mat = base.make_materials(names + ['rigid'] * (n - m), 1e5, 0.3, 1000.0,
+                              config_models=models, dtype=dtype)
+    eye = jnp.eye(3, dtype=dtype).reshape(9, 1)
+    FC = jnp.concatenate([jnp.broadcast_to(eye, (9, n)),
+                          jnp.zeros((9, n), dtype)])
+    Jpep = jnp.stack([jnp.ones(n, dtype), jnp.zeros(n, dtype)])
+    body = jnp.where(jnp.arange(n) < m, -1, 0).astype(jnp.int32)
+    sliced = ((deformable, 0, 0, m), (('rigid',), models.index('rigid'), m,
+                                     n))
+    one = ((models, 0, 0, n),)
+    for slices, body_id in ((sliced, None), (one, body)):
+      out = jax.jit(lambda FC, J, mt, b, s=slices: constitute(
+        s, 1e-4, (FC, 0), (FC, 9), J, mt, b))(FC, Jpep, mat, body_id)
+      jax.block_until_ready(out)
+
+  def in_thread():
+    with jax.enable_x64(dtype == 'float64'):
+      build()
 
   try:
     # On a thread of its own: JAX's tracing state is per thread, so this
     # runs (compiles and executes) even while the caller traces a program.
     with futures.ThreadPoolExecutor(1) as pool:
-      pool.submit(build).result()
+      pool.submit(in_thread).result()
   except Exception as e:  # noqa: BLE001 (any failure: fall back)
     logging.warning(
-      'The MPM stress kernel (Pallas) does not build with this JAX (%s: '
-      '%s); the pure-JAX update runs instead (SimConfig.'
-      "constitutive_kernel='jax' silences this).", type(e).__name__, e)
+      'The MPM stress kernel (Pallas) does not build with this JAX in %s '
+      '(%s: %s); the pure-JAX update runs instead (SimConfig.'
+      "constitutive_kernel='jax' silences this).", dtype, type(e).__name__,
+      e)
     return False
   return True
