@@ -162,7 +162,7 @@ def save_sweep(out_dir: str, result: SweepResult, frame_dt: float,
   return dict(npz=npz, json=js)
 
 
-def sweep_substeps(report: dict, config, E_scale=(1.0,), nu_scale=(1.0,),
+def sweep_substeps(report, config, E_scale=(1.0,), nu_scale=(1.0,),
                    rho_scale=(1.0,), velocity=None) -> int | None:
   """Substeps per frame stable for every item of a sweep, or None when
   the prepared scene's own count already is.
@@ -219,15 +219,14 @@ def prepare(scene_name: str, config_path: str | None, overrides: dict,
   key = jax.random.PRNGKey(config.seed)
   prepared, report = pl.prepare_scene(key, scene, materials, config)
   need = sweep_substeps(report, config, velocity=velocity, **(scales or {}))
-  if (need is not None and config.substeps_per_frame is None
-      and need > config.max_substeps_per_frame):
-    raise pl.PipelineError(
-      f'sweep: its stiffest or fastest item needs {need} substeps per frame '
-      f'(the scene itself {report.time_step["substeps_per_frame"]}), over '
-      f'max_substeps_per_frame={config.max_substeps_per_frame}; narrow '
-      '--e_scale/--nu_scale/--rho_scale or the velocities, or raise '
-      'max_substeps_per_frame in a --config file.')
   if need is not None and config.substeps_per_frame is None:
+    if need > config.max_substeps_per_frame:
+      raise pl.PipelineError(
+        f'sweep: its stiffest or fastest item needs {need} substeps per '
+        f'frame (the scene itself {report.time_step["substeps_per_frame"]}), '
+        f'over max_substeps_per_frame={config.max_substeps_per_frame}; narrow '
+        '--e_scale/--nu_scale/--rho_scale or the velocities, or raise '
+        'max_substeps_per_frame in a --config file.')
     logging.info('sweep: %d substeps per frame (the stiffest or fastest '
                  'item needs more than the scene\'s %d)', need,
                  report.time_step['substeps_per_frame'])

@@ -83,7 +83,7 @@ def _flag_errors(argv):
   except (AttributeError, KeyError) as e:
     message = _unknown_field(e, argv)
     if message is None and 'get_config' in str(e):
-      config = [a for a in argv[1:] if a.split('=')[0] in ('--config',)]
+      config = [a for a in argv[1:] if a.split('=')[0] == '--config']
       message = (f'{config[0] if config else "--config"}: not a config '
                  'file (a .py defining get_config(); a PhysGaussian JSON '
                  'goes to --physgaussian)')

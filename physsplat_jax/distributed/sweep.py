@@ -13,7 +13,6 @@ Both run as one ``jax.vmap`` of ``pipeline.simulate`` split over the mesh
 from __future__ import annotations
 
 import dataclasses
-
 import itertools
 from typing import Any, Callable, Sequence
 

@@ -466,6 +466,19 @@ def constitute_slices(slices, dt, F, C, Jpep, mat):
   return Fe, out, tau
 
 
+def constitute_all(models, dt, F, C, Jpep, mat, zero_stress=None):
+  """:func:`constitutive_update` of every model in ``models`` on every
+  particle (``mat.model_id`` picks), with the plastic state as the (2, N)
+  ``Jpep`` (passed through where no model changes it): ``(F_e, Jpep,
+  tau)``. The form of a scene without ``model_counts``."""
+  Fe, Jp, ep, tau = constitutive_update(models, mat.model_id, F, C, Jpep[0],
+                                        Jpep[1], mat, dt,
+                                        zero_stress=zero_stress)
+  if not all(m in NO_PLASTIC_STATE for m in models):
+    Jpep = jnp.stack([Jp, ep])
+  return Fe, Jpep, tau
+
+
 def _split_over_devices(a) -> bool:
   """Whether ``a`` varies over a manual mesh axis (inside ``shard_map``);
   the attribute's name differs across JAX versions."""
@@ -480,9 +493,9 @@ def make_update(config):
   """``update(FC, Jpep, body_id, mat) -> (F_e, Jpep, tau)``: the
   return-mapped state and Kirchhoff stress of a substep (the carried
   (18, N) ``FC``, F's nine rows then C's, row-major, in; nested-tuple
-  matrices out; ``Jpep``
-  the (2, N) plastic state ``(Jp, ep)``, passed through where no model
-  changes it), computed once into memory (``transfer.materialize``):
+  matrices out; ``Jpep`` the (2, N) plastic state ``(Jp, ep)``, passed
+  through where no model changes it), computed once into memory
+  (``transfer.materialize``):
   XLA:CPU otherwise fuses the whole stress computation into the scatter's
   per-contribution loop and recomputes it for each of the 108
   contributions of a particle.
@@ -518,13 +531,8 @@ def make_update(config):
       return jax.lax.platform_dependent(
         *args, cpu=functools.partial(constitute_slices, single, dt),
         default=functools.partial(constitute_slices, merged, dt))
-    rigid = body_id >= 0 if has_bodies else None
-    Fe, Jp, ep, tau = constitutive_update(models, mat.model_id, F, C,
-                                          Jpep[0], Jpep[1], mat, dt,
-                                          zero_stress=rigid)
-    if not all(m in NO_PLASTIC_STATE for m in models):
-      Jpep = jnp.stack([Jp, ep])
-    return Fe, Jpep, tau
+    return constitute_all(models, dt, F, C, Jpep, mat,
+                          body_id >= 0 if has_bodies else None)
 
   def with_kernel(FC, Jpep, body_id, mat, interpret):
     n = FC.shape[-1]

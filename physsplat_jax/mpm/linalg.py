@@ -58,6 +58,7 @@ from physsplat_jax.types import Array
 
 Mat = tuple  # tuple[tuple[Array, Array, Array], ...] of (N,) arrays
 
+
 class _Mode(threading.local):
   on = False
 
@@ -80,6 +81,7 @@ def kernel_mode():
     yield
   finally:
     _MODE.on = old
+
 
 # Scaled Newton iterations: 6 reach float32 round-off even for condition
 # numbers ~4e4 (measured); float64 gets 9.

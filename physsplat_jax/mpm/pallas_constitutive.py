@@ -13,10 +13,10 @@ blocks of particles, one ``pl.when`` per slice of particles sorted by model
 
 The kernel computes exactly what :func:`constitutive.constitute_slices`
 computes (the same functions, traced in ``linalg.kernel_mode``: forward
-code only, the polar iteration and Jacobi sweeps as loops). Its derivative is that of the pure-JAX
-path (``jax.custom_vjp``: the backward pass differentiates
-``constitute_slices``), so gradients are unchanged. Off a GPU it runs in
-Pallas interpret mode (slow; for tests).
+code only, the polar iteration and Jacobi sweeps as loops). Its derivative
+is that of the pure-JAX path (``jax.custom_vjp``: the backward pass
+differentiates ``constitute_slices``), so gradients are unchanged. Off a
+GPU it runs in Pallas interpret mode (slow; for tests).
 """
 
 from __future__ import annotations
@@ -114,11 +114,8 @@ def _reference(slices, dt, has_body, F, C, Jpep, mat, body_id):
   Fm, Cm = la.to_mat(F), la.to_mat(C)
   if has_body:  # one slice, no model_counts (see ``constitute``)
     (models, _, _, _), = slices
-    Fe, Jp, ep, tau = constitutive.constitutive_update(
-      models, mat.model_id, Fm, Cm, Jpep[0], Jpep[1], mat, dt,
-      zero_stress=body_id >= 0)
-    if not all(m in constitutive.NO_PLASTIC_STATE for m in models):
-      Jpep = jnp.stack([Jp, ep])
+    Fe, Jpep, tau = constitutive.constitute_all(models, dt, Fm, Cm, Jpep,
+                                                mat, body_id >= 0)
   else:
     Fe, Jpep, tau = constitutive.constitute_slices(slices, dt, Fm, Cm, Jpep,
                                                    mat)

@@ -28,8 +28,8 @@ from typing import Any
 import numpy as np
 from absl import logging
 
-from physsplat_jax.errors import PhysSplatError
 from physsplat_jax import mpm
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render import raster
 
 
