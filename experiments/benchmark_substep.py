@@ -12,7 +12,9 @@ same with a constitutive slice per model on a GPU too; ``masked``;
 with no body and no plane), all compiled first and timed in turns (best of
 ``--rounds``). ``--constitutive_kernels=auto,jax`` times each variant with
 the stress update as one Pallas kernel (on a CUDA GPU) and as XLA's
-fusion, in the same process.
+fusion, in the same process; ``--gpu_graphs=frame,substep,off`` with the
+frame launched on a GPU as one CUDA graph, as one graph per substep (XLA's
+default) and with none (``SimConfig.gpu_graphs``).
 
 The differences say what the materials, the rigid bodies and the plane
 contact cost per substep. ``--clock=cpu`` reports process CPU time instead
@@ -37,6 +39,7 @@ from experiments.lib import hlo
 from experiments.lib import profile
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
+from physsplat_jax.mpm import solver
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
 _SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
@@ -58,11 +61,16 @@ _KERNELS = flags.DEFINE_list(
   "(auto, jax, pallas); with more than one, each variant runs with each, "
   "named VARIANT@KERNEL (auto: the stress update as one Pallas kernel on "
   "a CUDA GPU)")
+_GRAPHS = flags.DEFINE_list(
+  'gpu_graphs', ['frame'], 'SimConfig.gpu_graphs values (frame, substep, '
+  'off): how a CUDA GPU launches the timed frame (one CUDA graph for the '
+  'loop, one per substep, none); with more than one, each variant runs '
+  'with each, named VARIANT@GRAPHS (the CPU ignores them)')
 
 
 def _profile(name, fn, args, substeps):
-  """One traced call of a variant's frame, per substep."""
-  labels = hlo.kernel_labels(fn.lower(*args).compile().as_text())
+  """One traced call of a variant's compiled frame, per substep."""
+  labels = hlo.kernel_labels(fn.as_text())
   with tempfile.TemporaryDirectory() as logdir:
     _, path = profile.trace(lambda: fn(*args), logdir)
     got = profile.per_call(profile.kernel_times(path), substeps, labels,
@@ -93,15 +101,24 @@ def main(argv):
   if bad:
     raise cli.usage_error(f'--constitutive_kernels: unknown {bad}; use '
                           f'{", ".join(mpm.CONSTITUTIVE_KERNELS)}')
+  graphs = _GRAPHS.value
+  bad = sorted(set(graphs) - set(mpm.GPU_GRAPHS))
+  if bad:
+    raise cli.usage_error(f'--gpu_graphs: unknown {bad}; use '
+                          f'{", ".join(mpm.GPU_GRAPHS)}')
   for kernel in kernels:
-    for name in _VARIANTS.value:
-      s, m, f, c = substep_lib.variant(name, state, mats, forces, sim_config)
-      c = dataclasses.replace(c, constitutive_kernel=kernel)
-      fn = jax.jit(substep_lib.make_frame(name, c))
-      out = fn(s, m, f)
-      jax.block_until_ready(out)
-      runs[name if len(kernels) == 1 else f'{name}@{kernel}'] = (fn, out, m,
-                                                                f)
+    for graph in graphs:
+      for name in _VARIANTS.value:
+        s, m, f, c = substep_lib.variant(name, state, mats, forces,
+                                         sim_config)
+        c = dataclasses.replace(c, constitutive_kernel=kernel)
+        fn = solver.compile_frame(
+          jax.jit(substep_lib.make_frame(name, c)).lower(s, m, f), graph)
+        out = fn(s, m, f)
+        jax.block_until_ready(out)
+        label = name + (f'@{kernel}' if len(kernels) > 1 else '') + (
+          f'@{graph}' if len(graphs) > 1 else '')
+        runs[label] = (fn, out, m, f)
   best = {name: float('inf') for name in runs}
   for _ in range(_ROUNDS.value):
     for name, (fn, s, m, f) in runs.items():

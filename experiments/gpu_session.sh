@@ -8,21 +8,26 @@
 # 500, to fit one 10-minute device call with the install and the copy back;
 # a step that would not fit is skipped, so the last ones may be). STEPs pick
 # some of the steps below and run in the order given, most important first
-# (default all, in the order below; `sweep` means all the sweeps,
-# `substep_graphs` both of its runs), so the work can be split over two
+# (default all, in the order below; `sweep` means all the sweeps), so the
+# work can be split over two
 # calls on a warm machine, e.g.
 #   bash experiments/gpu_session.sh 430 env mpm_kernel pipeline substep \
 #     substep_graphs
 #   bash experiments/gpu_session.sh 430 video video_scene pipeline_scenes \
 #     render donut mpm sweep
+#   NO_GSPLAT=1 bash experiments/gpu_session.sh 540 env mpm_kernel \
+#     substep_graphs pipeline video pipeline_scenes substep
 # (on 2026-11-27 the H100 took 4 s for env, ~110 s for pipeline, 10 s for
 # substep, 17 s per sweep and ~70 s for gsplat's build; 15 minutes of
 # device time in all, the machine's start included)
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
-#   mpm_kernel  tests/mpm_pallas_test.py on the GPU: the stress update's
-#             Pallas kernel compiled there against the pure-JAX update
+#   mpm_kernel  tests/mpm_pallas_test.py and mpm_graphs_test.py on the
+#             GPU: the stress update's Pallas kernel compiled there against
+#             the pure-JAX update; a frame launched as one CUDA graph, one
+#             per substep and none, the same bits; and the 50k-particle
+#             gradient of issue 17 (grad_finite_test's slow ScaleTest)
 #   mpm       benchmark_mpm block at 10k / 100k / 1M (no naive reference)
 #   render    benchmark_render at 1024^2, 100k and 1M Gaussians on a sphere:
 #             the JAX compositor, the compiled Pallas kernels (image PSNR
@@ -37,16 +42,19 @@
 #             with a profile (device-busy time and the costliest kernels
 #             per substep), each with the stress update as one Pallas
 #             kernel (auto) and as XLA's fusion (jax)
-#   substep_graphs  the grouped and bare substeps again with XLA's command
-#             buffers (CUDA graphs) off, and with loops as graphs too
-#             (WHILE, CONDITIONAL), one process each
+#   substep_graphs  the grouped and bare substeps with the frame launched
+#             as one CUDA graph (SimConfig.gpu_graphs='frame'), one per
+#             substep ('substep', XLA's default) and none ('off'), one
+#             process
 #   sorts     the optimised render program: are its sorts CUB radix sorts?
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
 #             substeps/frame), tabletop: cold, warm, warm unpipelined
 #             (exact stage times), and a warm run traced over frames 60-64
 #             (host wall and device-busy time per frame, costliest kernels),
-#             and a warm run with the stress update as XLA's fusion
-#             (constitutive_kernel=jax, against the Pallas kernel) (issue 17)
+#             a warm run with one CUDA graph per substep (gpu_graphs=
+#             substep) and one with the stress update as XLA's fusion
+#             (constitutive_kernel=jax) (issue 17); PIPELINE_RUNS replaces
+#             the list of runs
 #   pipeline_scenes  the same preset on ficus and the donut (up to 200k
 #             particles): cold and warm (issue 17's other scenes)
 #   pipeline_noautotune  the cold run with XLA's GPU autotuning off
@@ -61,22 +69,23 @@
 set -u
 BUDGET=${1:-500}
 shift $(( $# > 0 ? 1 : 0 ))
+# NO_GSPLAT=1: no gsplat build, and the render steps time ours alone.
+NO_GSPLAT=${NO_GSPLAT:-}
+GS=${NO_GSPLAT:+--nogsplat}
 SWEEPS="sweep_default sweep_pallas_block16 sweep_pallas_block64 \
 sweep_num_warps1 sweep_num_warps4"
 ORDER="env mpm_kernel mpm render donut video video_scene substep \
-substep_graphs_off \
-substep_graphs_while sorts pipeline pipeline_scenes pipeline_noautotune \
+substep_graphs sorts pipeline pipeline_scenes pipeline_noautotune \
 $SWEEPS tests"
 STEPS=
 for s in ${*:-all}; do
   case $s in
     all) STEPS="$STEPS $ORDER" ;;
     sweep) STEPS="$STEPS $SWEEPS" ;;
-    substep_graphs) STEPS="$STEPS substep_graphs_off substep_graphs_while" ;;
     *)
       if [[ " $ORDER " != *" $s "* ]]; then
         echo "gpu_session.sh: unknown step '$s'; steps: all $ORDER sweep" \
-          "substep_graphs" >&2
+          >&2
         exit 2
       fi
       STEPS="$STEPS $s" ;;
@@ -126,7 +135,8 @@ step() {
 # gsplat compiles its CUDA code at first use: built in the background from
 # the start when a step needs it (see the header).
 GSPLAT=
-for s in $STEPS; do
+for s in ${NO_GSPLAT:+none} $STEPS; do
+  [[ $s == none ]] && break
   case $s in render|donut|video|video_scene)
     ( timeout 240 $PY -c \
       "from gsplat.cuda._backend import _C; print('gsplat built')" \
@@ -152,13 +162,13 @@ run_render() {
   gsplat_wait
   step render 200 $PY -m experiments.benchmark_render \
     --num=100000,1000000 --size=1024 --grad --backend=jax --pallas \
-    --repeats=3 --out="$WORK/render.json"
+    --repeats=3 --out="$WORK/render.json" $GS
 }
 run_donut() {
   gsplat_wait
   step donut 90 $PY -m experiments.benchmark_render --scene=donut \
     --width=1024 --height=1024 --grad --backend=jax --pallas --repeats=5 \
-    --out="$WORK/donut.json"
+    --out="$WORK/donut.json" $GS
 }
 # Issue 15's video target: 150 orbiting frames of 100k Gaussians at
 # 800x800 through the pipeline's host path, and gsplat's same loop.
@@ -166,7 +176,7 @@ run_video() {
   gsplat_wait
   step video 150 $PY -m experiments.benchmark_render --num=100000 \
     --width=800 --height=800 --video_frames=150 --repeats=3 \
-    --out="$WORK/video.json"
+    --out="$WORK/video.json" $GS
 }
 # The same on the tabletop (16.7k Gaussians): the pipeline's render stage
 # took 18 ms per frame there at this size.
@@ -174,7 +184,7 @@ run_video_scene() {
   gsplat_wait
   step video_scene 120 $PY -m experiments.benchmark_render \
     --scene=tabletop --width=800 --height=800 --video_frames=150 \
-    --repeats=3 --out="$WORK/video_scene.json"
+    --repeats=3 --out="$WORK/video_scene.json" $GS
 }
 run_substep() {
   gsplat_wait
@@ -182,22 +192,14 @@ run_substep() {
     --variants=scene,split,masked,no_plane_no_body,bare --profile \
     --constitutive_kernels=auto,jax --out="$WORK/substep.json"
 }
-# Each substep is one CUDA graph by default (XLA's command buffers); the
-# scan over substeps stays a host loop unless WHILE is enabled too.
-run_substep_graphs_off() {
+# How the frame is launched (SimConfig.gpu_graphs), in one process: the
+# substep loop as one CUDA graph (XLA's command buffers with WHILE, the
+# default), one graph per substep (XLA's default) and no graphs.
+run_substep_graphs() {
   gsplat_wait
-  XLA_FLAGS="${XLA_FLAGS:-} --xla_gpu_enable_command_buffer=" \
-  step substep_graphs_off 80 $PY -m experiments.benchmark_substep \
-    --scene=tabletop --variants=scene,bare --profile \
-    --out="$WORK/substep_graphs_off.json"
-}
-run_substep_graphs_while() {
-  gsplat_wait
-  XLA_FLAGS="${XLA_FLAGS:-} \
---xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL" \
-  step substep_graphs_while 80 $PY -m experiments.benchmark_substep \
-    --scene=tabletop --variants=scene,bare --profile \
-    --out="$WORK/substep_graphs_while.json"
+  step substep_graphs 100 $PY -m experiments.benchmark_substep \
+    --scene=tabletop --variants=scene,bare --gpu_graphs=frame,substep,off \
+    --profile --out="$WORK/substep_graphs.json"
 }
 run_sorts() {
   step sorts 60 bash -c "XLA_FLAGS=--xla_dump_to=$WORK/hlo $PY -m \
@@ -217,7 +219,8 @@ run_pipeline() {
   gsplat_wait
   step pipeline 320 $PY -m experiments.benchmark_pipeline --preset=paper \
     --scenes=tabletop \
-    --runs=cold,warm,serial,profile,warm@constitutive_kernel=jax \
+    --runs=${PIPELINE_RUNS:-cold,warm,serial,profile,\
+warm@gpu_graphs=substep,warm@constitutive_kernel=jax} \
     --profile_frames=60,64 \
     --out="$WORK/pipeline" --set="${PIPELINE_SET:-}"
 }
@@ -250,12 +253,14 @@ run_sweep_num_warps4() { run_sweep sweep_num_warps4 --num_warps=4; }
 run_tests() {
   step tests 150 $PY -m pytest -q -n 8 tests/render_pallas_test.py \
     tests/sorting_test.py tests/pipeline_test.py tests/render_test.py \
-    tests/mpm_pallas_test.py
+    tests/mpm_pallas_test.py tests/mpm_graphs_test.py
 }
 # The MPM stress kernel compiled for this GPU against the pure-JAX update
 # (every model, float32/64, gradient, a whole frame): before timing it.
 run_mpm_kernel() {
-  step mpm_kernel 120 $PY -m pytest -q -n 4 tests/mpm_pallas_test.py
+  step mpm_kernel 120 $PY -m pytest -q -n 4 -m 'slow or not slow' \
+    tests/mpm_pallas_test.py tests/mpm_graphs_test.py \
+    tests/grad_finite_test.py::ScaleTest
 }
 
 for s in $STEPS; do

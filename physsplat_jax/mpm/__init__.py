@@ -17,6 +17,7 @@ Public API (see docs/mpm.md):
 
 from physsplat_jax.mpm.base import CANONICAL_MODELS as CANONICAL_MODELS
 from physsplat_jax.mpm.base import CONSTITUTIVE_KERNELS as CONSTITUTIVE_KERNELS
+from physsplat_jax.mpm.base import GPU_GRAPHS as GPU_GRAPHS
 from physsplat_jax.mpm.base import FLOAT_FIELDS as FLOAT_FIELDS
 from physsplat_jax.mpm.base import Cuboid as Cuboid
 from physsplat_jax.mpm.base import EnforceRotation as EnforceRotation

@@ -350,6 +350,7 @@ def default_force(bc) -> np.ndarray:
 
 
 CONSTITUTIVE_KERNELS = ('auto', 'jax', 'pallas')
+GPU_GRAPHS = ('frame', 'substep', 'off')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -391,6 +392,14 @@ class SimConfig:
       update elsewhere), 'jax' (the pure-JAX update everywhere) or
       'pallas' (the kernel everywhere; interpreted off a GPU, slow: for
       tests). Same values and gradients either way.
+    gpu_graphs: how :func:`run` has a CUDA GPU launch a frame (its
+      compiled program; nothing changes elsewhere): 'frame' (the substep
+      loop as one CUDA graph, XLA's command buffers with WHILE: the host
+      launches once per frame instead of once per substep), 'substep'
+      (XLA's default: each substep's kernels one graph, the loop driven
+      from the host) or 'off' (every kernel launched by the host). Same
+      results either way; an XLA that cannot build 'frame' gets
+      'substep', with a warning.
   """
 
   grid: GridSpec = GridSpec()
@@ -410,6 +419,7 @@ class SimConfig:
   dtype: str = 'float32'
   model_counts: tuple[int, ...] | None = None
   constitutive_kernel: str = 'auto'
+  gpu_graphs: str = 'frame'
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
@@ -473,6 +483,10 @@ class SimConfig:
       raise MPMInputError(
         f'SimConfig.constitutive_kernel = {self.constitutive_kernel!r}; use '
         f"{', '.join(repr(k) for k in CONSTITUTIVE_KERNELS)}.")
+    if self.gpu_graphs not in GPU_GRAPHS:
+      raise MPMInputError(
+        f'SimConfig.gpu_graphs = {self.gpu_graphs!r}; use '
+        f"{', '.join(repr(k) for k in GPU_GRAPHS)}.")
     if self.dtype not in ('float32', 'float64'):
       raise MPMInputError(f"SimConfig.dtype = {self.dtype!r}; use 'float32' or "
                           "'float64'.")

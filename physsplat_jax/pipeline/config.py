@@ -364,6 +364,10 @@ class SimulateConfig:
     constitutive_kernel: the MPM stress update: 'auto' (one Pallas kernel
       on a CUDA GPU, pure JAX elsewhere), 'jax' or 'pallas'
       (``mpm.SimConfig.constitutive_kernel``).
+    gpu_graphs: how a CUDA GPU launches each frame of :func:`run`'s
+      simulation: 'frame' (one CUDA graph per frame), 'substep' or 'off'
+      (``mpm.SimConfig.gpu_graphs``; the differentiable :func:`simulate`
+      compiles under its caller's ``jit`` with XLA's defaults).
   """
 
   num_frames: int = 60
@@ -377,6 +381,7 @@ class SimulateConfig:
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
   constitutive_kernel: str = 'auto'
+  gpu_graphs: str = 'frame'
 
   def __post_init__(self):
     _check_types('SimulateConfig', self)
@@ -392,6 +397,8 @@ class SimulateConfig:
       (self.constitutive_kernel in mpm.CONSTITUTIVE_KERNELS,
        'constitutive_kernel',
        f"use {', '.join(repr(k) for k in mpm.CONSTITUTIVE_KERNELS)}"),
+      (self.gpu_graphs in mpm.GPU_GRAPHS, 'gpu_graphs',
+       f"use {', '.join(repr(k) for k in mpm.GPU_GRAPHS)}"),
     ])
 
 
@@ -443,6 +450,7 @@ class PipelineConfig:
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
   constitutive_kernel: str = 'auto'
+  gpu_graphs: str = 'frame'
   seed: int = 0
 
   def __post_init__(self):

@@ -108,7 +108,8 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
     num_bodies=nb, body_fixed=(False,) * nb,
     remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)),
     model_counts=tuple(counts),
-    constitutive_kernel=config.constitutive_kernel)
+    constitutive_kernel=config.constitutive_kernel,
+    gpu_graphs=config.gpu_graphs)
 
 
 def driver_materials(params: Params, prepared: PreparedScene,

@@ -1,0 +1,101 @@
+"""How a frame is launched on a GPU (``SimConfig.gpu_graphs``).
+
+'frame' compiles ``mpm.run``'s frame with XLA's command buffers for the
+whole substep loop (WHILE, CONDITIONAL), 'substep' with XLA's default,
+'off' with none. The launch must not change a single value: on a GPU
+(experiments/gpu_session.sh runs this file there) the three compile to
+different executables and are compared here; on the CPU, whose XLA accepts
+and ignores the options, ``compile_frame(force=True)`` still checks that
+every option list parses.
+"""
+
+import dataclasses
+import warnings
+
+import jax
+import numpy as np
+from absl.testing import absltest
+
+import mpm_blocks
+from physsplat_jax import mpm
+from physsplat_jax.mpm import solver
+
+
+class GpuGraphsTest(absltest.TestCase):
+
+  def test_every_launch_gives_the_same_frames(self):
+    """Three frames of four materials and a rigid body on a plane: the
+    final state is bitwise the same however the frame is launched."""
+    v = np.random.default_rng(0).normal(size=(32, 3))
+    s, mat, forces, cfg = mpm_blocks.four_blocks(v)
+    out = {}
+    for g in mpm.GPU_GRAPHS:
+      with warnings.catch_warnings():
+        warnings.simplefilter('error')  # no fallback where XLA has them
+        res = mpm.run(s, mat, forces, dataclasses.replace(cfg, gpu_graphs=g),
+                      3)
+      out[g] = res.state
+    for g in ('substep', 'off'):
+      for f in ('x', 'v', 'F', 'C', 'Jp'):
+        np.testing.assert_array_equal(getattr(out[g], f),
+                                      getattr(out['frame'], f),
+                                      err_msg=f'{g}: {f}')
+
+  def test_every_option_list_compiles(self):
+    """Each gpu_graphs value's command-buffer list is one XLA accepts (the
+    first of 'frame's lists, not a fallback), and the program it compiles
+    computes what XLA's default compile does."""
+    s, mat, forces, cfg = mpm_blocks.four_blocks()
+    lowered = jax.jit(mpm.make_frame(cfg)).lower(s, mat, forces)
+    want = lowered.compile()(s, mat, forces)
+    for g in mpm.GPU_GRAPHS:
+      with self.subTest(g), warnings.catch_warnings():
+        warnings.simplefilter('error')
+        got = solver.compile_frame(lowered, g, force=True)(s, mat, forces)
+        np.testing.assert_array_equal(got.x, want.x)
+
+  def test_an_xla_without_the_options_falls_back_with_a_warning(self):
+    """An XLA that rejects the command-buffer kinds (an older or newer
+    one) gets XLA's default compile and a warning naming the setting; an
+    error that is not about the option is not retried."""
+    calls = []
+
+    class Lowered:
+
+      def compile(self, compiler_options=None):
+        calls.append(compiler_options)
+        if compiler_options:
+          raise ValueError('INVALID_ARGUMENT: While setting option '
+                           "xla_gpu_enable_command_buffer, 'WHILE' is not a "
+                           'valid enum value.')
+        return 'default'
+
+    with self.assertWarnsRegex(RuntimeWarning, "gpu_graphs = 'frame'.*"
+                               "gpu_graphs='substep'"):
+      self.assertEqual(solver.compile_frame(Lowered(), 'frame', force=True),
+                       'default')
+    self.assertLen(calls, 3)  # both lists of 'frame', then the default
+    self.assertIsNone(calls[-1])
+
+    calls.clear()
+
+    class Broken(Lowered):
+
+      def compile(self, compiler_options=None):
+        calls.append(compiler_options)
+        raise RuntimeError('RESOURCE_EXHAUSTED: out of memory')
+
+    with self.assertRaisesRegex(RuntimeError, 'out of memory'), \
+        warnings.catch_warnings():
+      warnings.simplefilter('ignore')
+      solver.compile_frame(Broken(), 'frame', force=True)
+    self.assertLen(calls, 2)  # one try with the option, then the default
+
+  def test_unknown_value_is_named(self):
+    with self.assertRaisesRegex(mpm.MPMInputError,
+                                "gpu_graphs = 'graph'; use 'frame'"):
+      mpm.SimConfig(gpu_graphs='graph')
+
+
+if __name__ == '__main__':
+  absltest.main()
