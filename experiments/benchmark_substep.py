@@ -12,9 +12,9 @@ same with a constitutive slice per model on a GPU too; ``masked``;
 with no body and no plane), all compiled first and timed in turns (best of
 ``--rounds``). ``--constitutive_kernels=auto,jax`` times each variant with
 the stress update as one Pallas kernel (on a CUDA GPU) and as XLA's
-fusion, in the same process; ``--gpu_graphs=frame,substep,off`` with the
-frame launched on a GPU as one CUDA graph, as one graph per substep (XLA's
-default) and with none (``SimConfig.gpu_graphs``).
+fusion, in the same process; ``--gpu_graphs=substep,frame,off`` with the
+frame launched on a GPU as one CUDA graph per substep (XLA's default), as
+one graph and with none (``SimConfig.gpu_graphs``).
 
 The differences say what the materials, the rigid bodies and the plane
 contact cost per substep. ``--clock=cpu`` reports process CPU time instead
@@ -39,7 +39,7 @@ from experiments.lib import hlo
 from experiments.lib import profile
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
-from physsplat_jax.mpm import solver
+from physsplat_jax.mpm import graphs
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
 _SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
@@ -62,9 +62,9 @@ _KERNELS = flags.DEFINE_list(
   "named VARIANT@KERNEL (auto: the stress update as one Pallas kernel on "
   "a CUDA GPU)")
 _GRAPHS = flags.DEFINE_list(
-  'gpu_graphs', ['frame'], 'SimConfig.gpu_graphs values (frame, substep, '
-  'off): how a CUDA GPU launches the timed frame (one CUDA graph for the '
-  'loop, one per substep, none); with more than one, each variant runs '
+  'gpu_graphs', ['substep'], 'SimConfig.gpu_graphs values (substep, frame, '
+  'off): how a CUDA GPU launches the timed frame (one CUDA graph per '
+  'substep, one for the loop, none); with more than one, each variant runs '
   'with each, named VARIANT@GRAPHS (the CPU ignores them)')
 
 
@@ -101,23 +101,23 @@ def main(argv):
   if bad:
     raise cli.usage_error(f'--constitutive_kernels: unknown {bad}; use '
                           f'{", ".join(mpm.CONSTITUTIVE_KERNELS)}')
-  graphs = _GRAPHS.value
-  bad = sorted(set(graphs) - set(mpm.GPU_GRAPHS))
+  launches = _GRAPHS.value
+  bad = sorted(set(launches) - set(mpm.GPU_GRAPHS))
   if bad:
     raise cli.usage_error(f'--gpu_graphs: unknown {bad}; use '
                           f'{", ".join(mpm.GPU_GRAPHS)}')
   for kernel in kernels:
-    for graph in graphs:
+    for graph in launches:
       for name in _VARIANTS.value:
         s, m, f, c = substep_lib.variant(name, state, mats, forces,
                                          sim_config)
         c = dataclasses.replace(c, constitutive_kernel=kernel)
-        fn = solver.compile_frame(
+        fn = graphs.compile_frame(
           jax.jit(substep_lib.make_frame(name, c)).lower(s, m, f), graph)
         out = fn(s, m, f)
         jax.block_until_ready(out)
         label = name + (f'@{kernel}' if len(kernels) > 1 else '') + (
-          f'@{graph}' if len(graphs) > 1 else '')
+          f'@{graph}' if len(launches) > 1 else '')
         runs[label] = (fn, out, m, f)
   best = {name: float('inf') for name in runs}
   for _ in range(_ROUNDS.value):

@@ -18,8 +18,11 @@
 #   NO_GSPLAT=1 bash experiments/gpu_session.sh 540 env mpm_kernel \
 #     substep_graphs pipeline video pipeline_scenes substep
 # (on 2026-11-27 the H100 took 4 s for env, ~110 s for pipeline, 10 s for
-# substep, 17 s per sweep and ~70 s for gsplat's build; 15 minutes of
-# device time in all, the machine's start included)
+# substep, 17 s per sweep and ~70 s for gsplat's build; the H200 in the
+# NO_GSPLAT call above 5 s for env, 46 s for mpm_kernel, 52 s for
+# substep_graphs, 143 s for pipeline (five runs), 13 s for video, 107 s
+# for pipeline_scenes and 112 s for substep, 479 s in all; 15 minutes of
+# device time in all, the machine's start (~30 s) included)
 # A failing step's last lines are also printed, so they reach the call's
 # output even when the tarball does not come back.
 #   env       nvidia-smi, jax devices and versions
@@ -43,18 +46,17 @@
 #             per substep), each with the stress update as one Pallas
 #             kernel (auto) and as XLA's fusion (jax)
 #   substep_graphs  the grouped and bare substeps with the frame launched
-#             as one CUDA graph (SimConfig.gpu_graphs='frame'), one per
-#             substep ('substep', XLA's default) and none ('off'), one
-#             process
+#             as one CUDA graph per substep (SimConfig.gpu_graphs=
+#             'substep', XLA's default), one for the whole loop ('frame')
+#             and none ('off'), one process
 #   sorts     the optimised render program: are its sorts CUB radix sorts?
 #   pipeline  benchmark_pipeline, paper preset (150 frames at 800x800, 768
 #             substeps/frame), tabletop: cold, warm, warm unpipelined
 #             (exact stage times), and a warm run traced over frames 60-64
 #             (host wall and device-busy time per frame, costliest kernels),
-#             a warm run with one CUDA graph per substep (gpu_graphs=
-#             substep) and one with the stress update as XLA's fusion
+#             and a warm run with the stress update as XLA's fusion
 #             (constitutive_kernel=jax) (issue 17); PIPELINE_RUNS replaces
-#             the list of runs
+#             the list of runs (e.g. add warm@gpu_graphs=frame)
 #   pipeline_scenes  the same preset on ficus and the donut (up to 200k
 #             particles): cold and warm (issue 17's other scenes)
 #   pipeline_noautotune  the cold run with XLA's GPU autotuning off
@@ -192,13 +194,13 @@ run_substep() {
     --variants=scene,split,masked,no_plane_no_body,bare --profile \
     --constitutive_kernels=auto,jax --out="$WORK/substep.json"
 }
-# How the frame is launched (SimConfig.gpu_graphs), in one process: the
-# substep loop as one CUDA graph (XLA's command buffers with WHILE, the
-# default), one graph per substep (XLA's default) and no graphs.
+# How the frame is launched (SimConfig.gpu_graphs), in one process: one
+# CUDA graph per substep (XLA's default, ours), the substep loop as one
+# graph (XLA's command buffers with WHILE) and no graphs.
 run_substep_graphs() {
   gsplat_wait
   step substep_graphs 100 $PY -m experiments.benchmark_substep \
-    --scene=tabletop --variants=scene,bare --gpu_graphs=frame,substep,off \
+    --scene=tabletop --variants=scene,bare --gpu_graphs=substep,frame,off \
     --profile --out="$WORK/substep_graphs.json"
 }
 run_sorts() {
@@ -220,7 +222,7 @@ run_pipeline() {
   step pipeline 320 $PY -m experiments.benchmark_pipeline --preset=paper \
     --scenes=tabletop \
     --runs=${PIPELINE_RUNS:-cold,warm,serial,profile,\
-warm@gpu_graphs=substep,warm@constitutive_kernel=jax} \
+warm@constitutive_kernel=jax} \
     --profile_frames=60,64 \
     --out="$WORK/pipeline" --set="${PIPELINE_SET:-}"
 }

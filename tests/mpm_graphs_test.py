@@ -18,7 +18,7 @@ from absl.testing import absltest
 
 import mpm_blocks
 from physsplat_jax import mpm
-from physsplat_jax.mpm import solver
+from physsplat_jax.mpm import graphs
 
 
 class GpuGraphsTest(absltest.TestCase):
@@ -51,7 +51,7 @@ class GpuGraphsTest(absltest.TestCase):
     for g in mpm.GPU_GRAPHS:
       with self.subTest(g), warnings.catch_warnings():
         warnings.simplefilter('error')
-        got = solver.compile_frame(lowered, g, force=True)(s, mat, forces)
+        got = graphs.compile_frame(lowered, g, force=True)(s, mat, forces)
         np.testing.assert_array_equal(got.x, want.x)
 
   def test_an_xla_without_the_options_falls_back_with_a_warning(self):
@@ -72,7 +72,7 @@ class GpuGraphsTest(absltest.TestCase):
 
     with self.assertWarnsRegex(RuntimeWarning, "gpu_graphs = 'frame'.*"
                                "gpu_graphs='substep'"):
-      self.assertEqual(solver.compile_frame(Lowered(), 'frame', force=True),
+      self.assertEqual(graphs.compile_frame(Lowered(), 'frame', force=True),
                        'default')
     self.assertLen(calls, 3)  # both lists of 'frame', then the default
     self.assertIsNone(calls[-1])
@@ -88,12 +88,12 @@ class GpuGraphsTest(absltest.TestCase):
     with self.assertRaisesRegex(RuntimeError, 'out of memory'), \
         warnings.catch_warnings():
       warnings.simplefilter('ignore')
-      solver.compile_frame(Broken(), 'frame', force=True)
+      graphs.compile_frame(Broken(), 'frame', force=True)
     self.assertLen(calls, 2)  # one try with the option, then the default
 
   def test_unknown_value_is_named(self):
     with self.assertRaisesRegex(mpm.MPMInputError,
-                                "gpu_graphs = 'graph'; use 'frame'"):
+                                "gpu_graphs = 'graph'; use 'substep'"):
       mpm.SimConfig(gpu_graphs='graph')
 
 

@@ -61,9 +61,9 @@ def get_config():
   # MPM stress update: 'auto' (one Pallas kernel on a CUDA GPU, JAX
   # elsewhere), 'jax' or 'pallas' (docs/mpm.md).
   c.constitutive_kernel = 'auto'
-  # How a CUDA GPU launches each simulated frame: 'frame' (one CUDA graph),
-  # 'substep' (XLA's default: one graph per substep) or 'off'.
-  c.gpu_graphs = 'frame'
+  # How a CUDA GPU launches each simulated frame: 'substep' (XLA's
+  # default: one CUDA graph per substep), 'frame' (one graph) or 'off'.
+  c.gpu_graphs = 'substep'
   c.seed = 0
   return c
 

@@ -86,16 +86,22 @@ def to_uint8(frame, what: str = 'frame') -> np.ndarray:
       f'{what}: integer dtype {a.dtype}; pass uint8 (0..255) or float in '
       '[0, 1] (e.g. frame / 255.0)'
     )
-  bad = ~np.isfinite(a)
-  if bad.any():
+  # NaN propagates through min and max, and an inf is one of them: two
+  # reductions instead of a boolean frame (a frame per video frame).
+  if not (np.isfinite(a.min()) and np.isfinite(a.max())):
+    bad = ~np.isfinite(a)
     i, j, _ = np.argwhere(bad)[0]
     raise VideoError(
       f'{what}: {int(bad.sum())} non-finite values (first at pixel row {i}, '
       f'column {j}); the render produced NaN/inf'
     )
-  return np.ascontiguousarray(
-    np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
-  )
+  # In place after the one copy: clip, scale, round half to even (as
+  # np.round), then the cast (C-contiguous, as astype makes it).
+  f = np.clip(a, 0.0, 1.0, dtype=np.float32 if a.dtype.itemsize <= 4
+              else a.dtype)
+  f *= 255.0
+  np.rint(f, out=f)
+  return f.astype(np.uint8, order='C')
 
 
 def pad_to_even(frame: np.ndarray) -> np.ndarray:

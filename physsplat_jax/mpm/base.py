@@ -350,7 +350,7 @@ def default_force(bc) -> np.ndarray:
 
 
 CONSTITUTIVE_KERNELS = ('auto', 'jax', 'pallas')
-GPU_GRAPHS = ('frame', 'substep', 'off')
+GPU_GRAPHS = ('substep', 'frame', 'off')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -387,19 +387,12 @@ class SimConfig:
       particles exactly the 'rigid' model's): each model's return mapping
       and the rigid projection then run on their own particles only (the
       pipeline sets it). None: every model evaluated on every particle.
-    constitutive_kernel: how the stress update runs: 'auto' (one Pallas
-      kernel on a CUDA GPU, ``mpm.pallas_constitutive``; the pure-JAX
-      update elsewhere), 'jax' (the pure-JAX update everywhere) or
-      'pallas' (the kernel everywhere; interpreted off a GPU, slow: for
-      tests). Same values and gradients either way.
-    gpu_graphs: how :func:`run` has a CUDA GPU launch a frame (its
-      compiled program; nothing changes elsewhere): 'frame' (the substep
-      loop as one CUDA graph, XLA's command buffers with WHILE: the host
-      launches once per frame instead of once per substep), 'substep'
-      (XLA's default: each substep's kernels one graph, the loop driven
-      from the host) or 'off' (every kernel launched by the host). Same
-      results either way; an XLA that cannot build 'frame' gets
-      'substep', with a warning.
+    constitutive_kernel: the stress update: 'auto' (one Pallas kernel on a
+      CUDA GPU, ``mpm.pallas_constitutive``, else pure JAX), 'jax' or
+      'pallas' (interpreted off a GPU: tests); same values and gradients.
+    gpu_graphs: how :func:`run` has a CUDA GPU launch a frame: 'substep'
+      (XLA's default, a CUDA graph per substep), 'frame' (the loop one
+      graph: no faster on an H200, docs/benchmarks.md) or 'off'.
   """
 
   grid: GridSpec = GridSpec()
@@ -419,7 +412,7 @@ class SimConfig:
   dtype: str = 'float32'
   model_counts: tuple[int, ...] | None = None
   constitutive_kernel: str = 'auto'
-  gpu_graphs: str = 'frame'
+  gpu_graphs: str = 'substep'
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
@@ -454,8 +447,7 @@ class SimConfig:
           f'SimConfig.boundary_conditions[{i}] is a {type(bc).__name__}; '
           'use the dataclasses of physsplat_jax.mpm (SurfaceCollider, '
           'Cuboid, ParticleImpulse, PointForce, EnforceTranslation, '
-          'EnforceRotation, SequentialRelease).'
-        )
+          'EnforceRotation, SequentialRelease).')
     object.__setattr__(self, 'boundary_conditions', bcs)
     if not 0.0 <= self.rpic_damping <= 1.0:
       raise MPMInputError(f'SimConfig.rpic_damping = {self.rpic_damping} must '
@@ -463,13 +455,11 @@ class SimConfig:
     fixed = tuple(bool(b) for b in self.body_fixed)
     if self.num_bodies < 0:
       raise MPMInputError('SimConfig.num_bodies must be >= 0.')
-    if not fixed:
-      fixed = (False,) * self.num_bodies
+    fixed = fixed or (False,) * self.num_bodies
     if len(fixed) != self.num_bodies:
       raise MPMInputError(
         f'SimConfig.body_fixed has {len(fixed)} entries for num_bodies = '
-        f'{self.num_bodies}; give one flag per body.'
-      )
+        f'{self.num_bodies}; give one flag per body.')
     object.__setattr__(self, 'body_fixed', fixed)
     if self.model_counts is not None:
       mc = tuple(int(c) for c in self.model_counts)
@@ -479,17 +469,13 @@ class SimConfig:
           f'SimConfig.model_counts = {mc}: give one count >= 0 per model of '
           f'{models} (with rigid bodies, one of them "rigid"), or None.')
       object.__setattr__(self, 'model_counts', mc)
-    if self.constitutive_kernel not in CONSTITUTIVE_KERNELS:
-      raise MPMInputError(
-        f'SimConfig.constitutive_kernel = {self.constitutive_kernel!r}; use '
-        f"{', '.join(repr(k) for k in CONSTITUTIVE_KERNELS)}.")
-    if self.gpu_graphs not in GPU_GRAPHS:
-      raise MPMInputError(
-        f'SimConfig.gpu_graphs = {self.gpu_graphs!r}; use '
-        f"{', '.join(repr(k) for k in GPU_GRAPHS)}.")
-    if self.dtype not in ('float32', 'float64'):
-      raise MPMInputError(f"SimConfig.dtype = {self.dtype!r}; use 'float32' or "
-                          "'float64'.")
+    for field, choices in (('constitutive_kernel', CONSTITUTIVE_KERNELS),
+                           ('gpu_graphs', GPU_GRAPHS),
+                           ('dtype', ('float32', 'float64'))):
+      if getattr(self, field) not in choices:
+        raise MPMInputError(
+          f'SimConfig.{field} = {getattr(self, field)!r}; use '
+          f"{', '.join(repr(k) for k in choices)}.")
 
   @property
   def frame_dt(self) -> float:

@@ -32,7 +32,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-import warnings
 from typing import Any, Callable, Iterator
 
 import jax
@@ -44,6 +43,7 @@ from physsplat_jax import sorting
 from physsplat_jax.mpm import base
 from physsplat_jax.mpm import boundary
 from physsplat_jax.mpm import constitutive
+from physsplat_jax.mpm import graphs
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import inputs
 from physsplat_jax.mpm import rigid as rigid_lib
@@ -595,43 +595,6 @@ def check_state(config: base.SimConfig, stats: dict, frame: int,
 # Compiled frame executables by (config, argument shapes and dtypes).
 _COMPILED: dict = {}
 
-# XLA's command-buffer (CUDA graph) kinds per SimConfig.gpu_graphs, most
-# complete first: a kind this XLA does not know fails the compile, and the
-# next list is tried. 'substep' passes nothing (XLA's own default).
-_GRAPH_KINDS = {
-  'frame': ('FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,DYNAMIC_SLICE_FUSION,'
-            'WHILE,CONDITIONAL',
-            'FUSION,CUBLAS,CUSTOM_CALL,WHILE,CONDITIONAL'),
-  'off': ('',),
-}
-
-
-def compile_frame(lowered, gpu_graphs: str, *, force: bool = False):
-  """Compiles a lowered frame program with ``SimConfig.gpu_graphs``' XLA
-  command buffers on a GPU (elsewhere, or with ``'substep'``, as XLA
-  compiles by default; ``force`` passes them on any backend: the CPU's XLA
-  accepts and ignores them, which tests use). Falls back to XLA's default,
-  with a warning, when this XLA rejects them.
-  """
-  kinds = _GRAPH_KINDS.get(gpu_graphs, ()) if (
-    force or jax.default_backend() == 'gpu') else ()
-  error = None
-  for k in kinds:
-    try:
-      return lowered.compile(
-        compiler_options={'xla_gpu_enable_command_buffer': k})
-    except Exception as e:  # noqa: BLE001 - an XLA without these kinds
-      error = e
-      if 'xla_gpu_enable_command_buffer' not in str(e):
-        break  # not the option: XLA's default compile says what it is
-  if error is not None:
-    warnings.warn(
-      f'SimConfig.gpu_graphs = {gpu_graphs!r}: this XLA could not compile '
-      f'the frame with command buffers {kinds[0]!r} '
-      f'({str(error).splitlines()[0][:200]}); using its default '
-      "(gpu_graphs='substep').", RuntimeWarning, stacklevel=2)
-  return lowered.compile()
-
 
 @functools.lru_cache(maxsize=32)
 def _jitted(config: base.SimConfig):
@@ -693,7 +656,7 @@ class FrameLoop:
                  for a in leaves))
     compiled = _COMPILED.get(key)
     if compiled is None:
-      compiled = compile_frame(
+      compiled = graphs.compile_frame(
         frame_jit.lower(state, materials, self.forces),
         self.config.gpu_graphs)
       if len(_COMPILED) >= 32:

@@ -365,9 +365,10 @@ class SimulateConfig:
       on a CUDA GPU, pure JAX elsewhere), 'jax' or 'pallas'
       (``mpm.SimConfig.constitutive_kernel``).
     gpu_graphs: how a CUDA GPU launches each frame of :func:`run`'s
-      simulation: 'frame' (one CUDA graph per frame), 'substep' or 'off'
-      (``mpm.SimConfig.gpu_graphs``; the differentiable :func:`simulate`
-      compiles under its caller's ``jit`` with XLA's defaults).
+      simulation: 'substep' (XLA's default, one CUDA graph per substep),
+      'frame' (one graph per frame) or 'off' (``mpm.SimConfig.gpu_graphs``;
+      the differentiable :func:`simulate` compiles under its caller's
+      ``jit`` with XLA's defaults).
   """
 
   num_frames: int = 60
@@ -381,7 +382,7 @@ class SimulateConfig:
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
   constitutive_kernel: str = 'auto'
-  gpu_graphs: str = 'frame'
+  gpu_graphs: str = 'substep'
 
   def __post_init__(self):
     _check_types('SimulateConfig', self)
@@ -450,7 +451,7 @@ class PipelineConfig:
   render_config: raster.RenderConfig = raster.RenderConfig()
   remat_frames: bool = True
   constitutive_kernel: str = 'auto'
-  gpu_graphs: str = 'frame'
+  gpu_graphs: str = 'substep'
   seed: int = 0
 
   def __post_init__(self):
