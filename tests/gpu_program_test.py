@@ -142,6 +142,26 @@ class FormsAgreeTest(absltest.TestCase):
         np.testing.assert_allclose(np.stack(got), np.stack(want),
                                    rtol=1e-12, err_msg=form)
 
+  def test_rigid_sums_without_the_dump_segment(self):
+    """The solver's rigid slice has no particle in the last (dump)
+    segment (``last_empty``): its sums are zeros, the others the full
+    forms' sums, for one body (a column sum, or a product with ones) and
+    for several."""
+    with jax.enable_x64(True):
+      rng = np.random.default_rng(2)
+      cols = [jnp.asarray(rng.normal(size=90)) for _ in range(4)]
+      for bodies in (1, 3):
+        seg = jnp.asarray(rng.integers(0, bodies, 90), jnp.int32)
+        want = [np.bincount(np.asarray(seg), np.asarray(c), bodies + 1)
+                for c in cols]
+        for form in ('product', 'reduction', 'auto'):
+          got = jax.jit(rigid._segment_sums(
+            seg, bodies + 1, jnp.float64, form=form, last_empty=True))(cols)
+          np.testing.assert_allclose(np.stack(got), np.stack(want),
+                                     rtol=1e-12, atol=1e-12,
+                                     err_msg=f'{bodies} {form}')
+          self.assertTrue(np.all(np.stack(got)[:, -1] == 0.0))
+
 
   def test_rigid_contacts_sequential_equals_merged(self):
     """Bodies pushed into a floor and two walls orthogonal to it and to

@@ -47,7 +47,8 @@ def _onehot_reduction(q, onehot):
   return jnp.sum(q[:, :, None] * onehot[:, None, :], axis=0)
 
 
-def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto'):
+def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto',
+                  last_empty=False):
   """``ssum(list of (N,) arrays) -> list of (num_segments,) sums``.
 
   All columns of one call are summed together (one (N, K) reduction instead
@@ -58,8 +59,37 @@ def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto'):
   (a masked sum, which XLA:GPU fuses with the columns' producers into one
   kernel, where the product is a GEMM launch of its own after a copy of
   its stacked operand) or 'auto' (the product on the CPU, the reduction
-  elsewhere, chosen at lowering).
+  elsewhere, chosen at lowering). ``last_empty`` (static): no particle is
+  in the last segment (the solver's slice of rigid particles has no dump
+  segment), whose sums are then zeros without being computed; with one
+  segment left, 'reduction' is a plain column sum (on a GPU half the
+  elements of the one-hot product's kernel, and no one-hot matrix) and
+  'product' the product with a column of ones.
   """
+  if last_empty:
+    inner = _segment_sums(seg, num_segments - 1, dtype, None, form) if (
+      num_segments > 2) else None
+
+    def product(q):  # every particle in segment 0: (N, K) -> (K, 1)
+      return _onehot_product(q, jnp.ones((q.shape[0], 1), dtype))
+
+    def column(q):
+      return jnp.sum(q, axis=0)[:, None]
+
+    def one(q):
+      if form in ('product', 'reduction'):
+        return product(q) if form == 'product' else column(q)
+      return jax.lax.platform_dependent(q, cpu=product, default=column)
+
+    def ssum_used(cols):
+      out = (one(jnp.stack(cols, axis=1)) if inner is None
+             else jnp.stack(inner(cols)))
+      out = jnp.concatenate([out, jnp.zeros_like(out[:, :1])], axis=1)
+      if reduce_fn is not None:
+        out = reduce_fn(out)
+      return list(out)
+
+    return ssum_used
   if num_segments <= _DENSE_SEGMENTS:
     onehot = (seg[:, None] == jnp.arange(num_segments)).astype(dtype)
 
@@ -203,7 +233,7 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
     seg = jnp.where(rigid, body_id, B)
   dtype = mass.dtype
 
-  ssum = _segment_sums(seg, B + 1, dtype, reduce_fn)
+  ssum = _segment_sums(seg, B + 1, dtype, reduce_fn, last_empty=all_rigid)
   at_all = _per_particle(seg, B + 1, dtype)
 
   def at(a):  # per-body (B+1,) -> per-particle
