@@ -252,21 +252,41 @@ def bench_video(g: Gaussians, cam, config: raster.RenderConfig, frames: int,
   config = warm.config
   warm_s = time.perf_counter() - t0
   print(f'video: warm-up frame (compiles) {warm_s:.2f} s', flush=True)
+  # Where the host's time goes per frame: dispatching the camera and the
+  # render, waiting for the device, fetching the outputs (and any re-run
+  # of an overflowing frame), and the clip and uint8 conversion the
+  # writers do.
+  parts = dict(dispatch=0.0, wait=0.0, fetch=0.0, convert=0.0)
+  reruns = 0
   t0 = time.perf_counter()
   pending = None
   for f in range(frames + 1):
     nxt = None
+    t1 = time.perf_counter()
     if f < frames:
       nxt = images.render_image_async(g, cam_fn(base, orbit, f, frames),
                                       config=config)
+    t2 = time.perf_counter()
+    parts['dispatch'] += t2 - t1
     if pending is not None:
+      pending.wait()
+      t3 = time.perf_counter()
       out = pending.result()
+      t4 = time.perf_counter()
       video_lib.to_uint8(np.clip(out.image, 0.0, 1.0))
+      parts['wait'] += t3 - t2
+      parts['fetch'] += t4 - t3
+      parts['convert'] += time.perf_counter() - t4
       config = pending.config
+      reruns += pending.reruns
     pending = nxt
   res = {'video_frames': frames, 'video_s': time.perf_counter() - t0,
-         'video_warmup_s': warm_s}
-  print(f'video: {frames} frames in {res["video_s"]:.2f} s', flush=True)
+         'video_warmup_s': warm_s, 'video_reruns': reruns,
+         **{f'video_{k}_ms': 1e3 * v / frames for k, v in parts.items()}}
+  print(f'video: {frames} frames in {res["video_s"]:.2f} s; per frame '
+        + ', '.join(f'{k} {1e3 * v / frames:.2f} ms' for k, v in
+                    parts.items())
+        + f'; {reruns} re-runs (overflow)', flush=True)
   res['video_frame_ms'] = 1e3 * res['video_s'] / frames
   if use_gsplat:
     viewmats = [np.asarray(cam_fn(base, orbit, f, frames).viewmat)

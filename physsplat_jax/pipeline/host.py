@@ -50,9 +50,11 @@ class RunOutput:
     times: (T+1,) [s].
     files: what was written ('video', 'frames', 'ply', ...) -> path.
     timings: seconds per stage ('compile', 'simulate', 'deform', 'render',
-      'write', 'total'; with rendering also 'render.wait', 'render.fetch'
-      and 'render.clip', the parts of 'render' collected after dispatch:
-      the device finishing, the fetch with any re-run, the clip).
+      'write', 'total'; with rendering also 'render.dispatch' (the
+      camera and the render dispatched, with frame 0's count of
+      intersections) and 'render.wait', 'render.fetch' and 'render.clip',
+      the parts collected after dispatch: the device finishing, the fetch
+      with any re-run, the clip).
     particle_substeps_per_s: MPM throughput over the run.
     render_stats: ``capacities``, the intersection capacities the frames
       were rendered with (one compiled render program each), and
@@ -184,7 +186,9 @@ class _FrameMaker:
       # capacity grown by frame f's re-run reaches frame f + 2 (frame f + 1
       # is dispatched before f is collected): f + 1 may re-run as well.
       self._keep_larger(p.render.config, p.gaussians.num)
-      self.timings['render'] += time.perf_counter() - t2
+      dt = time.perf_counter() - t2
+      self.timings['render'] += dt
+      self.timings['render.dispatch'] += dt
     return p
 
   def finish(self, p: _Pending) -> out_lib.Frame:
@@ -359,8 +363,8 @@ def run(
   timings = dict(compile=0.0, simulate=0.0, deform=0.0, render=0.0,
                  write=0.0)
   if config.render is not RenderMode.NONE:
-    timings.update({'render.wait': 0.0, 'render.fetch': 0.0,
-                    'render.clip': 0.0})
+    timings.update({'render.dispatch': 0.0, 'render.wait': 0.0,
+                    'render.fetch': 0.0, 'render.clip': 0.0})
   fps = fps or 1.0 / prepared.spec.frame_dt
   writers = list(writers or ())
   if out_dir is not None:
