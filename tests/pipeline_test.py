@@ -281,7 +281,8 @@ class RunTest(absltest.TestCase):
     self.assertGreater(out.gaussian_positions[-1, :, 2].min(), -0.01)
     for k in ('compile', 'simulate', 'deform', 'render', 'write', 'total'):
       self.assertIn(k, out.timings)
-    parts = [out.timings[f'render.{k}'] for k in ('wait', 'fetch', 'clip')]
+    parts = [out.timings[f'render.{k}']
+             for k in ('dispatch', 'wait', 'fetch', 'clip')]
     self.assertTrue(all(t >= 0 for t in parts))
     self.assertLessEqual(sum(parts), out.timings['render'] + 1e-6)
     # Every frame was rendered with one of the listed capacities.
@@ -289,6 +290,28 @@ class RunTest(absltest.TestCase):
     self.assertNotEmpty(caps)
     self.assertTrue(all(isinstance(c, int) and c >= 1024 for c in caps))
     self.assertGreaterEqual(out.render_stats['reruns'], 0)
+
+  def test_frames_reuse_the_first_counted_capacity(self):
+    """A scene large enough for its intersections to be counted (here:
+    a small min_capacity) is counted once, at frame 0, even when the count
+    is below the automatic capacity: the later frames reuse it instead of
+    counting again (a wait for the device each) and compiling a renderer
+    per count."""
+    from physsplat_jax.render import images
+    from physsplat_jax.render.config import RenderConfig
+    scene = _scene()
+    cfg = _config(render='fast', num_frames=3,
+                  render_config=RenderConfig(min_capacity=256))
+    prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD],
+                               cfg)
+    count = images.count_intersections
+    with mock.patch.object(images, 'count_intersections',
+                           side_effect=count) as counted:
+      out = pl.run(pl.init_params(prep, cfg), prep, cfg, pipelined=False)
+    self.assertEqual(counted.call_count, 1)
+    self.assertLen(out.render_stats['capacities'], 1)
+    # The count is below the automatic capacity (4 slots per Gaussian).
+    self.assertLess(out.render_stats['capacities'][0], 4 * 600)
 
   def test_pipelined_run_equals_serial_and_overlaps_the_next_frame(self):
     from physsplat_jax.pipeline import host

@@ -226,8 +226,13 @@ class _FrameMaker:
     return frame
 
   def _keep_larger(self, cfg, k: int) -> None:
-    """Keeps a capacity that a frame needed (counted or grown)."""
-    if cfg.resolved_capacity(k) > self.rcfg.resolved_capacity(k):
+    """Keeps a capacity that a frame needed (counted or grown): the first
+    one counted even when it is below the automatic size, so that the later
+    frames neither count again (a wait for the device each) nor compile a
+    renderer for each count's size; a frame that outgrows it re-runs."""
+    if cfg.capacity is not None and (
+        self.rcfg.capacity is None
+        or cfg.resolved_capacity(k) > self.rcfg.resolved_capacity(k)):
       self.rcfg = dataclasses.replace(self.rcfg, capacity=cfg.capacity)
 
 
