@@ -242,6 +242,33 @@ class PallasConstitutiveTest(absltest.TestCase):
     finally:
       pc._available.cache_clear()
 
+  def test_the_check_can_start_ahead_in_the_background(self):
+    """``start_probe`` (the pipeline calls it when it prepares a scene)
+    runs the check on a thread of its own, once however often it is
+    started; ``available`` then waits for it instead of checking again.
+    (The GPU is simulated.)"""
+    calls = []
+    real = pc.constitute
+
+    def interpreted(*args, **kw):
+      calls.append(threading.current_thread().name)
+      return real(*args, **dict(kw, interpret=True))
+
+    try:
+      pc._available.cache_clear()
+      pc._PROBES.clear()
+      with mock.patch.object(jax, 'default_backend', lambda: 'gpu'), \
+          mock.patch.object(pc, 'constitute', interpreted):
+        pc.start_probe('float32')
+        pc.start_probe('float32')
+        self.assertLen(pc._PROBES, 1)
+        self.assertTrue(pc.available('float32'))
+      self.assertLen(calls, 2)  # the solver's two forms, once
+      self.assertNotIn(threading.main_thread().name, calls)
+    finally:
+      pc._available.cache_clear()
+      pc._PROBES.clear()
+
   def test_particles_split_over_devices_keep_the_jax_update(self):
     """Inside shard_map (particles varying over a mesh axis) even
     'pallas' runs the pure-JAX update: the same values as outside."""

@@ -159,6 +159,31 @@ class PrepareTest(absltest.TestCase):
         initial_velocity=(('table', (0.0, 0.0, 1.0)),)))
 
 
+  def test_the_stress_kernel_check_starts_with_the_preparation(self):
+    """On a GPU with constitutive_kernel='auto', preparing a scene starts
+    the stress kernel's build check in the background; not with 'jax', and
+    not off a GPU. (The GPU and the check are simulated.)"""
+    from physsplat_jax.mpm import pallas_constitutive as pc
+    from physsplat_jax.pipeline import prepare
+    for backend, kernel, want in (('gpu', 'auto', True),
+                                  ('gpu', 'jax', False),
+                                  ('cpu', 'auto', False)):
+      with self.subTest(backend=backend, kernel=kernel), \
+          mock.patch.object(jax, 'default_backend', lambda b=backend: b), \
+          mock.patch.object(pc, 'start_probe') as probe:
+        got = prepare.start_kernel_check(
+          _config(constitutive_kernel=kernel))
+        self.assertEqual(got, want)
+        self.assertEqual(probe.call_count, int(want))
+    # prepare_scene calls it with its config.
+    with mock.patch.object(prepare, 'start_kernel_check',
+                           return_value=False) as check:
+      cfg = _config()
+      pl.prepare_scene(jax.random.PRNGKey(0), _scene(), [_RUBBER, _WOOD],
+                       cfg)
+      check.assert_called_once_with(cfg)
+
+
 class SimulateTest(absltest.TestCase):
 
   def test_free_fall_through_every_frame_map(self):

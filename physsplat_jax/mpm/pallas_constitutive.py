@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from concurrent import futures
 import functools
+import threading
 
 from absl import logging
 import jax
@@ -214,7 +215,32 @@ def available(dtype: str = 'float32') -> bool:
   with a warning, when this JAX's Pallas cannot build it:
   ``SimConfig.constitutive_kernel = 'auto'`` then keeps the pure-JAX update
   instead of failing the run."""
-  return _available(str(jnp.dtype(dtype)))
+  key = str(jnp.dtype(dtype))
+  with _PROBES_LOCK:
+    started = _PROBES.get(key)
+  if started is not None:
+    started.result()  # the background check (start_probe): done, or wait
+  return _available(key)
+
+
+# Checks started ahead by start_probe, by dtype.
+_PROBES: dict = {}
+_PROBES_LOCK = threading.Lock()
+
+
+def start_probe(dtype: str = 'float32') -> None:
+  """Starts :func:`available`'s check in the background, so that its
+  compiles (two programs with the kernel, seconds on a cold cache) overlap
+  other work instead of the frame's compile: ``pipeline.prepare_scene``
+  starts it. Nothing off a GPU, or when started before."""
+  if jax.default_backend() != 'gpu':
+    return
+  key = str(jnp.dtype(dtype))
+  with _PROBES_LOCK:
+    if key not in _PROBES:
+      pool = futures.ThreadPoolExecutor(1, thread_name_prefix='mpm-probe')
+      _PROBES[key] = pool.submit(_available, key)
+      pool.shutdown(wait=False)  # its thread ends with the check
 
 
 @functools.lru_cache(maxsize=None)

@@ -609,6 +609,19 @@ def forces_stage(cfg: PrepareConfig, frame: SimFrame, x0, dobj, movable_names):
 # ------------------------------------------------------------- composition
 
 
+def start_kernel_check(config) -> bool:
+  """On a GPU, with ``constitutive_kernel='auto'`` (a ``PrepareConfig``
+  has none: 'auto'), starts the MPM stress kernel's build check in the
+  background, so that its compiles (seconds on a cold cache) overlap the
+  preparation instead of the frame's compile. Returns whether it did."""
+  if (getattr(config, 'constitutive_kernel', 'auto') != 'auto'
+      or jax.default_backend() != 'gpu'):
+    return False
+  from physsplat_jax.mpm import pallas_constitutive  # noqa: PLC0415
+  pallas_constitutive.start_probe('float32')  # the prepared scene's dtype
+  return True
+
+
 def prepare_scene(
   key,
   scene: Scene,
@@ -655,6 +668,7 @@ def prepare_scene(
   if use_mpdp is None:
     use_mpdp = getattr(config, 'use_mpdp', True)
   cfg = as_prepare_config(config)
+  start_kernel_check(config)
   timings = {}
   t = time.perf_counter()
   movable, fixed = check_inputs(scene, materials)
