@@ -43,8 +43,8 @@ class GpuGraphsTest(absltest.TestCase):
 
   def test_every_option_list_compiles(self):
     """Each gpu_graphs value's command-buffer list is one XLA accepts (the
-    first of 'frame's lists, not a fallback), and the program it compiles
-    computes what XLA's default compile does."""
+    first of 'frame's lists: a fallback would warn, an error here), and the
+    program it compiles computes what XLA's default compile does."""
     s, mat, forces, cfg = mpm_blocks.four_blocks()
     lowered = jax.jit(mpm.make_frame(cfg)).lower(s, mat, forces)
     want = lowered.compile()(s, mat, forces)
@@ -55,39 +55,60 @@ class GpuGraphsTest(absltest.TestCase):
         np.testing.assert_array_equal(got.x, want.x)
 
   def test_an_xla_without_the_options_falls_back_with_a_warning(self):
-    """An XLA that rejects the command-buffer kinds (an older or newer
-    one) gets XLA's default compile and a warning naming the setting; an
-    error that is not about the option is not retried."""
+    """An XLA that lacks a kind of the first list gets the second, one that
+    knows neither list XLA's default, each with a warning naming the
+    setting; an error that is not about the option goes to XLA's default
+    compile at once (its own error if that fails too)."""
     calls = []
 
-    class Lowered:
+    def lowered(accepts):
 
-      def compile(self, compiler_options=None):
-        calls.append(compiler_options)
-        if compiler_options:
-          raise ValueError('INVALID_ARGUMENT: While setting option '
-                           "xla_gpu_enable_command_buffer, 'WHILE' is not a "
-                           'valid enum value.')
-        return 'default'
+      class Lowered:
 
+        def compile(self, compiler_options=None):
+          calls.append(compiler_options)
+          k = (compiler_options or {}).get('xla_gpu_enable_command_buffer')
+          if k is not None and not accepts(k):
+            raise ValueError('INVALID_ARGUMENT: While setting option '
+                             "xla_gpu_enable_command_buffer, 'CUDNN' is not "
+                             'a valid enum value.')
+          return k if k is not None else 'default'
+
+      return Lowered()
+
+    first, second = graphs._GRAPH_KINDS['frame']
+    with self.assertWarnsRegex(RuntimeWarning,
+                               "gpu_graphs = 'frame'.*lacks a kind"):
+      got = graphs.compile_frame(lowered(lambda k: 'CUDNN' not in k),
+                                 'frame', force=True)
+    self.assertEqual(got, second)
+    self.assertLen(calls, 2)
+
+    calls.clear()
     with self.assertWarnsRegex(RuntimeWarning, "gpu_graphs = 'frame'.*"
                                "gpu_graphs='substep'"):
-      self.assertEqual(graphs.compile_frame(Lowered(), 'frame', force=True),
-                       'default')
-    self.assertLen(calls, 3)  # both lists of 'frame', then the default
-    self.assertIsNone(calls[-1])
+      got = graphs.compile_frame(lowered(lambda k: False), 'frame',
+                                 force=True)
+    self.assertEqual(got, 'default')
+    self.assertEqual(calls, [{'xla_gpu_enable_command_buffer': first},
+                             {'xla_gpu_enable_command_buffer': second}, None])
+
+    calls.clear()
+    with warnings.catch_warnings():
+      warnings.simplefilter('error')
+      self.assertEqual(graphs.compile_frame(lowered(lambda k: True), 'frame',
+                                            force=True), first)
+    self.assertLen(calls, 1)
 
     calls.clear()
 
-    class Broken(Lowered):
+    class Broken:
 
       def compile(self, compiler_options=None):
         calls.append(compiler_options)
         raise RuntimeError('RESOURCE_EXHAUSTED: out of memory')
 
-    with self.assertRaisesRegex(RuntimeError, 'out of memory'), \
-        warnings.catch_warnings():
-      warnings.simplefilter('ignore')
+    with self.assertRaisesRegex(RuntimeError, 'out of memory'):
       graphs.compile_frame(Broken(), 'frame', force=True)
     self.assertLen(calls, 2)  # one try with the option, then the default
 

@@ -95,6 +95,38 @@ class Mp4Test(parameterized.TestCase):
       video.write_video(path, np.zeros((8, 8, 3)))
 
 
+class ToUint8Test(absltest.TestCase):
+
+  def test_rounding_in_every_float_dtype_and_layout(self):
+    """round(255 * clip(x, 0, 1)), half to even, computed in float32 (float64
+    for float64 frames: the old results, bit for bit; float16 frames no
+    longer round in float16); out-of-range values clipped; any memory
+    layout in, a C-contiguous frame out; the input untouched."""
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-0.3, 1.3, (24, 32, 3))
+    for dtype in (np.float16, np.float32, np.float64):
+      work = np.float64 if dtype == np.float64 else np.float32
+      a = x.astype(dtype)
+      for frame in (a, np.asfortranarray(a), a[::-1], a.transpose(1, 0, 2)):
+        with self.subTest(dtype=np.dtype(dtype).name,
+                          c=frame.flags['C_CONTIGUOUS']):
+          before = frame.copy()
+          got = video.to_uint8(frame)
+          self.assertEqual(got.dtype, np.uint8)
+          self.assertTrue(got.flags['C_CONTIGUOUS'])
+          want = np.round(np.clip(frame.astype(work), 0, 1) * work(255.0))
+          np.testing.assert_array_equal(got, want.astype(np.uint8))
+          np.testing.assert_array_equal(frame, before)
+
+  def test_non_finite_values_are_named_with_their_pixel(self):
+    for bad in (np.nan, np.inf, -np.inf):
+      frame = np.full((4, 5, 3), 0.5, np.float32)
+      frame[2, 3, 1] = bad
+      with self.assertRaisesRegex(video.VideoError,
+                                  '1 non-finite values.*row 2, column 3'):
+        video.to_uint8(frame, 'frame 7')
+
+
 class FallbackAndPngTest(absltest.TestCase):
 
   def test_gif_fallback_without_ffmpeg(self):

@@ -387,12 +387,12 @@ class SimConfig:
       particles exactly the 'rigid' model's): each model's return mapping
       and the rigid projection then run on their own particles only (the
       pipeline sets it). None: every model evaluated on every particle.
-    constitutive_kernel: the stress update: 'auto' (one Pallas kernel on a
-      CUDA GPU, ``mpm.pallas_constitutive``, else pure JAX), 'jax' or
-      'pallas' (interpreted off a GPU: tests); same values and gradients.
-    gpu_graphs: how :func:`run` has a CUDA GPU launch a frame: 'substep'
-      (XLA's default, a CUDA graph per substep), 'frame' (the loop one
-      graph: no faster on an H200, docs/benchmarks.md) or 'off'.
+    constitutive_kernel: 'auto' (the stress update as one Pallas kernel on
+      a CUDA GPU, ``mpm.pallas_constitutive``, else pure JAX), 'jax' (pure
+      JAX everywhere) or 'pallas' (the kernel everywhere; interpreted off a
+      GPU: tests); same values and gradients.
+    gpu_graphs: how :func:`run` has a GPU launch a frame: 'substep' (a CUDA
+      graph per substep, XLA's default), 'frame' (one graph) or 'off'.
   """
 
   grid: GridSpec = GridSpec()

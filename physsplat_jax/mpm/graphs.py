@@ -35,19 +35,29 @@ def compile_frame(lowered, gpu_graphs: str, *, force: bool = False):
   """
   kinds = _GRAPH_KINDS.get(gpu_graphs, ()) if (
     force or jax.default_backend() == 'gpu') else ()
-  error = None
-  for k in kinds:
+  for i, k in enumerate(kinds):
     try:
-      return lowered.compile(
+      compiled = lowered.compile(
         compiler_options={'xla_gpu_enable_command_buffer': k})
     except Exception as e:  # noqa: BLE001 - an XLA without these kinds
-      error = e
-      if 'xla_gpu_enable_command_buffer' not in str(e):
-        break  # not the option: XLA's default compile says what it is
-  if error is not None:
+      if 'xla_gpu_enable_command_buffer' in str(e):
+        continue  # this XLA lacks a kind of the list: the next list
+      # Not the option: XLA's default compile, or its error.
+      compiled = lowered.compile()
+      warnings.warn(
+        f'SimConfig.gpu_graphs = {gpu_graphs!r}: the frame did not compile '
+        f'with command buffers {k!r} ({str(e).splitlines()[0][:200]}); '
+        "compiled with XLA's default (gpu_graphs='substep') instead.",
+        RuntimeWarning, stacklevel=2)
+      return compiled
+    if i:
+      warnings.warn(
+        f'SimConfig.gpu_graphs = {gpu_graphs!r}: this XLA lacks a kind of '
+        f'{kinds[0]!r}; compiled with {k!r}.', RuntimeWarning, stacklevel=2)
+    return compiled
+  if kinds:
     warnings.warn(
-      f'SimConfig.gpu_graphs = {gpu_graphs!r}: this XLA could not compile '
-      f'the frame with command buffers {kinds[0]!r} '
-      f'({str(error).splitlines()[0][:200]}); using its default '
+      f'SimConfig.gpu_graphs = {gpu_graphs!r}: this XLA knows none of the '
+      f'command-buffer lists {list(kinds)}; compiled with its default '
       "(gpu_graphs='substep').", RuntimeWarning, stacklevel=2)
   return lowered.compile()
