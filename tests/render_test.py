@@ -145,6 +145,29 @@ class CapacityTest(parameterized.TestCase):
     np.testing.assert_array_equal(again.result().image, big.image)
     self.assertEqual(again.reruns, 0)
 
+  def test_async_fetches_only_the_image_clipped_on_the_device(self):
+    """fetch=('image',), clip=True (pipeline.run's frames): the image comes
+    to the host clipped to [0, 1], alpha and depth stay JAX arrays with the
+    full render's values, the flags come as NumPy; also after a re-run."""
+    g = _scene(seed=1)
+    cam = _camera()
+    full = images.render_image(g, cam, background=(2.0, 0.5, 0.0))
+    self.assertGreater(float(full.image.max()), 1.0)  # something to clip
+    small = raster.RenderConfig(capacity=int(full.num_intersections) // 3)
+    for config in (raster.RenderConfig(), small):
+      pending = images.render_image_async(g, cam, background=(2.0, 0.5, 0.0),
+                                          config=config, fetch=('image',),
+                                          clip=True)
+      out = pending.result()
+      self.assertIsInstance(out.image, np.ndarray)
+      self.assertIsInstance(out.overflow, np.ndarray)
+      self.assertIsInstance(out.alpha, jax.Array)
+      np.testing.assert_array_equal(out.image, np.clip(full.image, 0, 1))
+      np.testing.assert_array_equal(np.asarray(out.depth), full.depth)
+    self.assertGreaterEqual(pending.reruns, 1)
+    with self.assertRaisesRegex(RenderInputError, "fetch=.*'normals'.*use"):
+      images.render_image_async(g, cam, fetch=('image', 'normals'))
+
   def test_capacity_exact_boundary(self):
     g = _scene(seed=2, num=80)
     cam = _camera(48, 32)

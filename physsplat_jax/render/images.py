@@ -109,6 +109,15 @@ def start_host_copies(tree):
   return tree
 
 
+# The image fields of a RenderOutput (the rest are scalar flags, always
+# brought to the host).
+IMAGE_FIELDS = ('image', 'alpha', 'depth')
+
+# On the device: the image clipped to [0, 1] (the host's clip of a large
+# frame took longer than the render on a GPU).
+_clip_jit = jax.jit(lambda image: jnp.clip(image, 0.0, 1.0))
+
+
 class PendingRender:
   """A render dispatched by :func:`render_image_async`; :meth:`result` waits.
 
@@ -121,14 +130,29 @@ class PendingRender:
   """
 
   def __init__(self, fn, args: tuple, kwargs: dict, config: RenderConfig,
-               num: int, differentiable: bool, max_retries: int):
+               num: int, differentiable: bool, max_retries: int,
+               fetch: tuple[str, ...] = IMAGE_FIELDS, clip: bool = False):
     self._fn, self._args, self._kwargs = fn, args, kwargs
     self._num, self._differentiable = num, differentiable
     self._max_retries = max_retries
+    self._fetch, self._clip = tuple(fetch), clip
     self.config = config
     self.reruns = 0
-    self._out = start_host_copies(fn(*args, config=config, **kwargs))
+    self._out = self._run(config)
     self._result = None
+
+  def _run(self, config) -> RenderOutput:
+    """Dispatches the render; starts the copies of what :meth:`result`
+    fetches."""
+    out = self._fn(*self._args, config=config, **self._kwargs)
+    if self._clip:
+      out = out.replace(image=_clip_jit(out.image))
+    start_host_copies([getattr(out, f) for f in self._host_fields()])
+    return out
+
+  def _host_fields(self) -> list[str]:
+    return [f.name for f in dataclasses.fields(RenderOutput)
+            if f.name not in IMAGE_FIELDS or f.name in self._fetch]
 
   def wait(self) -> 'PendingRender':
     """Waits until the device has computed the render (no fetch)."""
@@ -137,7 +161,8 @@ class PendingRender:
     return self
 
   def result(self) -> RenderOutput:
-    """The :class:`RenderOutput` as NumPy arrays, never overflowing.
+    """The :class:`RenderOutput` as NumPy arrays (the image fields not in
+    ``fetch`` stay JAX arrays on the device), never overflowing.
 
     Raises:
       RenderCapacityError: (a RuntimeError) still overflowing after
@@ -149,8 +174,9 @@ class PendingRender:
     for attempt in range(self._max_retries + 1):
       if attempt:
         self.reruns += 1
-        self._out = self._fn(*self._args, config=config, **self._kwargs)
-      out = jax.device_get(self._out)
+        self._out = self._run(config)
+      out = self._out.replace(**{
+        f: np.asarray(getattr(self._out, f)) for f in self._host_fields()})
       if not bool(out.overflow):
         self.config, self._result, self._out = config, out, None
         self._args = self._kwargs = None
@@ -180,6 +206,8 @@ def render_image_async(
   config: RenderConfig = RenderConfig(),
   differentiable: bool = False,
   max_retries: int = 4,
+  fetch: tuple[str, ...] = IMAGE_FIELDS,
+  clip: bool = False,
 ) -> PendingRender:
   """:func:`render_image` without waiting: dispatches and returns at once.
 
@@ -189,7 +217,14 @@ def render_image_async(
   first (no ``config.capacity`` and more than ``min_capacity /
   capacity_factor`` Gaussians) waits here, for the count: pass the
   ``.config`` of an earlier render of similar frames to avoid it.
-  Arguments as for :func:`render_image`.
+  Arguments as for :func:`render_image`, and:
+
+  Args:
+    fetch: the image fields (``IMAGE_FIELDS``: 'image', 'alpha', 'depth')
+      that ``.result()`` brings to the host (their copies start as soon as
+      the render is done); the others stay JAX arrays on the device (a
+      video needs only the image: a third of the bytes at 800x800).
+    clip: clip the image to [0, 1] on the device.
   """
   fn = raster._render_diff_jit if differentiable else raster._render_jit
   K = gaussians.means.shape[0]
@@ -201,11 +236,15 @@ def render_image_async(
     need = count_intersections(gaussians, camera, covariances=covariances,
                                config=config)
     config = dataclasses.replace(config, capacity=_next_capacity(need))
+  bad = sorted(set(fetch) - set(IMAGE_FIELDS))
+  if bad:
+    raise RenderInputError(f'render_image_async: fetch={tuple(fetch)!r} names '
+                           f'{bad}; use some of {IMAGE_FIELDS}.')
   return PendingRender(
     fn, (gaussians, camera.unlabelled()),
     dict(background=jnp.asarray(background), covariances=covariances,
          view_rotations=view_rotations, colors=colors),
-    config, K, differentiable, max_retries)
+    config, K, differentiable, max_retries, fetch, clip)
 
 
 def render_image(
