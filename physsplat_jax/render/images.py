@@ -135,7 +135,10 @@ class PendingRender:
     self._fn, self._args, self._kwargs = fn, args, kwargs
     self._num, self._differentiable = num, differentiable
     self._max_retries = max_retries
-    self._fetch, self._clip = tuple(fetch), clip
+    self._clip = clip
+    # What result() brings to the host: the flags and the fetched images.
+    self._host = [f.name for f in dataclasses.fields(RenderOutput)
+                  if f.name not in IMAGE_FIELDS or f.name in fetch]
     self.config = config
     self.reruns = 0
     self._out = self._run(config)
@@ -147,12 +150,8 @@ class PendingRender:
     out = self._fn(*self._args, config=config, **self._kwargs)
     if self._clip:
       out = out.replace(image=_clip_jit(out.image))
-    start_host_copies([getattr(out, f) for f in self._host_fields()])
+    start_host_copies([getattr(out, f) for f in self._host])
     return out
-
-  def _host_fields(self) -> list[str]:
-    return [f.name for f in dataclasses.fields(RenderOutput)
-            if f.name not in IMAGE_FIELDS or f.name in self._fetch]
 
   def wait(self) -> 'PendingRender':
     """Waits until the device has computed the render (no fetch)."""
@@ -176,7 +175,7 @@ class PendingRender:
         self.reruns += 1
         self._out = self._run(config)
       out = self._out.replace(**{
-        f: np.asarray(getattr(self._out, f)) for f in self._host_fields()})
+        f: np.asarray(getattr(self._out, f)) for f in self._host})
       if not bool(out.overflow):
         self.config, self._result, self._out = config, out, None
         self._args = self._kwargs = None
