@@ -168,6 +168,29 @@ class CapacityTest(parameterized.TestCase):
     with self.assertRaisesRegex(RenderInputError, "fetch=.*'normals'.*use"):
       images.render_image_async(g, cam, fetch=('image', 'normals'))
 
+  def test_async_capacity_has_the_head_room_asked_for(self):
+    """The capacity a count or an overflow sets is the intersections times
+    ``headroom`` (10 % by default; the pipeline asks 50 % for a video's
+    frames), rounded up, never below; the image is the same."""
+    g = _scene(seed=3, num=600)
+    cam = _camera(96, 64)
+    full = images.render_image(g, cam)
+    total = int(full.num_intersections)
+    self.assertGreater(total, 2048)  # above the ladder's 1024 floor
+    counted = raster.RenderConfig(min_capacity=16)  # counts first
+    short = raster.RenderConfig(capacity=total // 3)  # overflows, re-runs
+    for config in (counted, short):
+      caps = {}
+      for headroom in (1.1, 1.5):
+        pending = images.render_image_async(g, cam, config=config,
+                                            headroom=headroom)
+        np.testing.assert_array_equal(pending.result().image, full.image)
+        caps[headroom] = pending.config.capacity
+        self.assertGreaterEqual(caps[headroom], headroom * total)
+        self.assertLess(caps[headroom], 1.25 * headroom * total)
+      self.assertEqual(caps[1.1], images._next_capacity(total))
+      self.assertGreater(caps[1.5], caps[1.1])
+
   def test_capacity_exact_boundary(self):
     g = _scene(seed=2, num=80)
     cam = _camera(48, 32)

@@ -34,14 +34,16 @@ from physsplat_jax.types import check_gaussians
 # pylint: disable=protected-access
 
 
-def _next_capacity(needed: int) -> int:
-  """``needed`` plus 10-25 % head-room, on a coarse grid of sizes.
+def _next_capacity(needed: int, headroom: float = 1.1) -> int:
+  """``needed`` times ``headroom`` (by default 10-25 % more), on a coarse
+  grid of sizes.
 
   Sizes are multiples of 1/8 of a power of two (8 per octave), so similar
   frames share one compiled renderer, while the sort (which runs over the
   whole buffer) stays within 25 % of the work needed.
   """
-  x = max(int(math.ceil(max(int(needed), 1) * 1.1)), 1024)
+  x = max(int(math.ceil(max(int(needed), 1) * max(float(headroom), 1.0))),
+          1024)
   step = 2 ** max(int(math.floor(math.log2(x))) - 3, 0)
   return int(-(-x // step) * step)
 
@@ -131,8 +133,10 @@ class PendingRender:
 
   def __init__(self, fn, args: tuple, kwargs: dict, config: RenderConfig,
                num: int, differentiable: bool, max_retries: int,
-               fetch: tuple[str, ...] = IMAGE_FIELDS, clip: bool = False):
+               fetch: tuple[str, ...] = IMAGE_FIELDS, clip: bool = False,
+               headroom: float = 1.1):
     self._fn, self._args, self._kwargs = fn, args, kwargs
+    self._headroom = headroom
     self._num, self._differentiable = num, differentiable
     self._max_retries = max_retries
     self._clip = clip
@@ -182,7 +186,8 @@ class PendingRender:
         return out
       total = int(out.num_intersections)
       if total > config.resolved_capacity(K):
-        config = dataclasses.replace(config, capacity=_next_capacity(total))
+        config = dataclasses.replace(
+          config, capacity=_next_capacity(total, self._headroom))
       if self._differentiable:
         need = -(-int(out.max_tile_count) // config.chunk_size)
         if need > config.resolved_max_chunks(K):
@@ -207,6 +212,7 @@ def render_image_async(
   max_retries: int = 4,
   fetch: tuple[str, ...] = IMAGE_FIELDS,
   clip: bool = False,
+  headroom: float = 1.1,
 ) -> PendingRender:
   """:func:`render_image` without waiting: dispatches and returns at once.
 
@@ -224,6 +230,11 @@ def render_image_async(
       the render is done); the others stay JAX arrays on the device (a
       video needs only the image: a third of the bytes at 800x800).
     clip: clip the image to [0, 1] on the device.
+    headroom: the capacity a count or an overflow sets, as a multiple of
+      the intersections counted (then rounded up to 8 sizes per octave):
+      more for the frames of a video, whose later frames may cover more of
+      the image than the one counted (each larger capacity is a re-run and
+      a new compiled renderer).
   """
   fn = raster._render_diff_jit if differentiable else raster._render_jit
   K = gaussians.means.shape[0]
@@ -234,7 +245,8 @@ def render_image_async(
     # that overflows and a second one (small scenes fit the minimum).
     need = count_intersections(gaussians, camera, covariances=covariances,
                                config=config)
-    config = dataclasses.replace(config, capacity=_next_capacity(need))
+    config = dataclasses.replace(config,
+                                 capacity=_next_capacity(need, headroom))
   bad = sorted(set(fetch) - set(IMAGE_FIELDS))
   if bad:
     raise RenderInputError(f'render_image_async: fetch={tuple(fetch)!r} names '
@@ -243,7 +255,7 @@ def render_image_async(
     fn, (gaussians, camera.unlabelled()),
     dict(background=jnp.asarray(background), covariances=covariances,
          view_rotations=view_rotations, colors=colors),
-    config, K, differentiable, max_retries, fetch, clip)
+    config, K, differentiable, max_retries, fetch, clip, headroom)
 
 
 def render_image(
