@@ -12,6 +12,8 @@ does not.
 
 import contextlib
 import dataclasses
+import os
+import tempfile
 import threading
 from unittest import mock
 
@@ -223,7 +225,8 @@ class PallasConstitutiveTest(absltest.TestCase):
     mat = mpm.make_materials('neo_hookean', 1e4, 0.3, 1e3, num=4)
     args = (FC, jnp.ones((2, 4)), jnp.full(4, -1), mat)
     try:
-      with mock.patch.object(jax, 'default_backend', lambda: 'gpu'):
+      with mock.patch.object(jax, 'default_backend', lambda: 'gpu'), \
+          mock.patch.object(pc, 'probe_record', lambda dtype: None):
         for fake, want in ((broken, False), (interpreted, True)):
           pc._available.cache_clear()
           with mock.patch.object(pc, 'constitute', fake), \
@@ -258,6 +261,7 @@ class PallasConstitutiveTest(absltest.TestCase):
       pc._available.cache_clear()
       pc._PROBES.clear()
       with mock.patch.object(jax, 'default_backend', lambda: 'gpu'), \
+          mock.patch.object(pc, 'probe_record', lambda dtype: None), \
           mock.patch.object(pc, 'constitute', interpreted):
         pc.start_probe('float32')
         pc.start_probe('float32')
@@ -268,6 +272,50 @@ class PallasConstitutiveTest(absltest.TestCase):
     finally:
       pc._available.cache_clear()
       pc._PROBES.clear()
+
+  def test_a_passed_check_is_recorded_and_not_repeated(self):
+    """A check that passed is recorded (in the compilation cache's
+    folder) and a later process skips it; a failed one is not recorded.
+    The record's name changes with the dtype, and there is none without a
+    cache. (The GPU and the later process are simulated.)"""
+    calls = []
+    real = pc.constitute
+
+    def interpreted(*args, **kw):
+      calls.append(1)
+      return real(*args, **dict(kw, interpret=True))
+
+    def broken(*args, **kw):
+      raise AttributeError("module 'triton' has no attribute 'load'")
+
+    tmp = tempfile.TemporaryDirectory()
+    self.addCleanup(tmp.cleanup)
+    folder = tmp.name
+    record = os.path.join(folder, 'checks', 'stress_kernel')
+    try:
+      with mock.patch.object(jax, 'default_backend', lambda: 'gpu'), \
+          mock.patch.object(pc, 'probe_record', lambda dtype: record):
+        pc._available.cache_clear()
+        with mock.patch.object(pc, 'constitute', broken), \
+            self.assertLogs(level='WARNING'):
+          self.assertFalse(pc._available('float32'))
+        self.assertFalse(os.path.exists(record))
+        pc._available.cache_clear()
+        with mock.patch.object(pc, 'constitute', interpreted):
+          self.assertTrue(pc._available('float32'))
+        self.assertLen(calls, 2)  # checked: the solver's two forms
+        self.assertTrue(os.path.exists(record))
+        pc._available.cache_clear()  # a later process
+        with mock.patch.object(pc, 'constitute', broken):
+          self.assertTrue(pc._available('float32'))  # not checked again
+        self.assertLen(calls, 2)
+    finally:
+      pc._available.cache_clear()
+    a, b = pc.probe_record('float32', folder), pc.probe_record('float64',
+                                                               folder)
+    self.assertTrue(a.startswith(folder))
+    self.assertNotEqual(a, b)
+    self.assertIsNone(pc.probe_record('float32', ''))
 
   def test_particles_split_over_devices_keep_the_jax_update(self):
     """Inside shard_map (particles varying over a mesh axis) even

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 from concurrent import futures
 import functools
+import hashlib
+import os
 import threading
 
 from absl import logging
@@ -243,9 +245,41 @@ def start_probe(dtype: str = 'float32') -> None:
       pool.shutdown(wait=False)  # its thread ends with the check
 
 
+def probe_record(dtype: str, folder: str | None = None) -> str | None:
+  """Where a passed check is recorded, or None (no compilation cache).
+
+  In ``folder`` (default the persistent compilation cache's), named by what decides the
+  check's outcome: JAX and jaxlib's versions, the GPU's kind, the dtype and
+  the kernel's source (this module, ``constitutive``, ``linalg``). A later
+  process with all of these equal skips the check (two programs traced,
+  loaded and run: seconds of host work at the start of every run)."""
+  if folder is None:
+    folder = jax.config.jax_compilation_cache_dir
+  if not folder:
+    return None
+  import jaxlib  # noqa: PLC0415
+
+  h = hashlib.sha256()
+  kind = jax.devices()[0].device_kind
+  for part in (jax.__version__, jaxlib.__version__, kind,
+               str(jnp.dtype(dtype))):
+    h.update(part.encode() + b'\0')
+  for module in (__file__, constitutive.__file__, la.__file__):
+    with open(module, 'rb') as f:
+      h.update(f.read())
+  return os.path.join(folder, 'physsplat_checks',
+                      f'stress_kernel_{h.hexdigest()[:32]}')
+
+
 @functools.lru_cache(maxsize=None)
 def _available(dtype: str) -> bool:
   if jax.default_backend() != 'gpu':
+    return True
+  try:
+    record = probe_record(dtype)
+  except OSError:
+    record = None
+  if record is not None and os.path.exists(record):
     return True
   from physsplat_jax.mpm import base  # noqa: PLC0415
 
@@ -285,4 +319,11 @@ def _available(dtype: str) -> bool:
       "constitutive_kernel='jax' silences this).", dtype, type(e).__name__,
       e)
     return False
+  if record is not None:
+    try:
+      os.makedirs(os.path.dirname(record), exist_ok=True)
+      with open(record, 'w') as f:
+        f.write('passed\n')
+    except OSError:  # a read-only cache: check again next time
+      pass
   return True
