@@ -84,7 +84,14 @@ def run_once(scene: str, preset: dict, out: str, cache: str,
   if profile_frames:
     with open(os.path.join(out, 'profile.json')) as f:
       extra['profile'] = json.load(f)
+  proc = dict(report.get('process_seconds') or {})
+  if proc:
+    # What the report does not cover: the process's end (writers' files
+    # closed, JAX and Python shutting down) and the time to launch it.
+    known = (proc.get('start') or 0.0) + proc.get('setup', 0.0)
+    proc['after'] = round(wall - known - report['stage_seconds']['total'], 3)
   return dict(wall_s=round(wall, 2), stage_seconds=report['stage_seconds'],
+              process_seconds=proc,
               num_particles=report['num_particles'],
               num_gaussians=report['num_gaussians'],
               substeps_per_frame=report['time_step']['substeps_per_frame'],

@@ -11,6 +11,7 @@ where the video is and where the time went. ``make demo`` runs it.
 """
 
 import os
+import time
 
 from absl import flags
 
@@ -32,14 +33,18 @@ _PIPELINED = flags.DEFINE_bool(
 
 def main(argv):
   del argv
+  started = cli.process_age()
+  cli.start_backend()
+  t0 = time.perf_counter()
   config = lib.build_config(_SCENE.value, _CONFIG.value,
                             motions=lib.load_config_file()[1])
   report = lib.run_scene(_SCENE.value, config, _OUT.value,
                          extra_report=dict(command='make demo'),
-                         pipelined=_PIPELINED.value)
+                         pipelined=_PIPELINED.value,
+                         process=dict(start_s=started, main_t0=t0))
   print(pl.summary(report))
   print(f'\nvideo: {report["files"].get("video")}')
 
 
 if __name__ == '__main__':
-  cli.run(main, cpu_devices=2)
+  cli.run(main, cpu_devices=2, fast_exit=True)

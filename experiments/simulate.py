@@ -18,6 +18,7 @@ PhysGaussian does. Any error ends in one line ``error: ...`` (exit 1;
 
 import os
 import sys
+import time
 
 from absl import flags
 from absl import logging
@@ -81,6 +82,10 @@ perception.define_flags()
 
 def main(argv):
   del argv
+  # Python's and the imports' time, before anything of this run.
+  started = cli.process_age()
+  cli.start_backend()
+  t0 = time.perf_counter()
   sha = lib.git_sha()
   motion = lib.motion_from_flags(_VELOCITY.value, _IMPULSE.value, _POKE.value)
   config = lib.build_config(_SCENE.value, _CONFIG.value, motion=motion,
@@ -101,7 +106,7 @@ def main(argv):
       scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
       mpdp_checkpoint=_MPDP.value, pipelined=_PIPELINED.value,
       extra_report=dict(command=' '.join(sys.argv), git=sha),
-      on_frame=window)
+      process=dict(start_s=started, main_t0=t0), on_frame=window)
   finally:
     if window is not None:
       window.close()
@@ -166,4 +171,4 @@ def _motions() -> dict:
 
 
 if __name__ == '__main__':
-  cli.run(main, cpu_devices=2)
+  cli.run(main, cpu_devices=2, fast_exit=True)

@@ -34,7 +34,6 @@ import warnings as _warnings
 # Subpackages, reachable by their names (ps.render.project, ps.mpm.rollout).
 from physsplat_jax import cameras as cameras
 from physsplat_jax import deform as deform
-from physsplat_jax import distributed as distributed
 from physsplat_jax import gaussians as gaussians
 from physsplat_jax import io as io
 from physsplat_jax import mpdp as mpdp
@@ -46,7 +45,6 @@ from physsplat_jax import render as render
 from physsplat_jax import sampling as sampling
 from physsplat_jax import scenes as scenes
 from physsplat_jax import segmentation as segmentation
-from physsplat_jax import training as training
 from physsplat_jax import types as types
 
 # Compile once: the persistent compilation cache.
@@ -127,10 +125,19 @@ from physsplat_jax.pipeline import simulate as simulate
 from physsplat_jax.pipeline import simulate_jit as simulate_jit
 from physsplat_jax.pipeline import simulate_scene as simulate_scene
 
-# Scale-out: sweeps and large simulations over many devices and hosts.
-from physsplat_jax.distributed import make_simulate_batch as make_simulate_batch
-from physsplat_jax.distributed import simulate_sharded as simulate_sharded
-from physsplat_jax.distributed import sweep_params as sweep_params
+# Imported at first use (``ps.training``, ``ps.sweep_params``, ...): they
+# bring optax and orbax, which a simulation does not need (on a GPU host of
+# 2026-11-27 importing them was over a second of a run's start).
+# ``training``: MPDP training and material fitting through the simulator;
+# ``distributed``, and from it the scale-out functions: sweeps and large
+# simulations over many devices and hosts.
+_LAZY = {
+  'training': ('physsplat_jax.training', None),
+  'distributed': ('physsplat_jax.distributed', None),
+  'make_simulate_batch': ('physsplat_jax.distributed', 'make_simulate_batch'),
+  'simulate_sharded': ('physsplat_jax.distributed', 'simulate_sharded'),
+  'sweep_params': ('physsplat_jax.distributed', 'sweep_params'),
+}
 
 __version__ = '0.2.0'
 
@@ -144,6 +151,13 @@ _DEPRECATED = {
 
 
 def __getattr__(name):
+  if name in _LAZY:
+    module, attr = _LAZY[name]
+    value = _importlib.import_module(module)
+    if attr is not None:
+      value = getattr(value, attr)
+    globals()[name] = value  # once
+    return value
   if name in _DEPRECATED:
     module, attr, instead = _DEPRECATED[name]
     _warnings.warn(f'physsplat_jax.{name} is deprecated: use {instead}; it '
@@ -151,3 +165,7 @@ def __getattr__(name):
                    stacklevel=2)
     return getattr(_importlib.import_module(module), attr)
   raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+
+
+def __dir__():
+  return sorted(set(globals()) | set(_LAZY))

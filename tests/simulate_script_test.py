@@ -102,3 +102,49 @@ class PhysGaussianModeTest(absltest.TestCase):
       last = ply_io.load_ply(os.path.join(out, 'ply', 'frame_0002.ply'))
       np.testing.assert_allclose(np.asarray(last.means)[traj['ids']],
                                  traj['x'][-1], atol=1e-5)
+
+
+class ScriptProcessTest(absltest.TestCase):
+
+  def test_a_run_reports_its_process_and_ends_with_its_output_complete(self):
+    """The script as a user runs it: its report holds the process's start
+    and setup times, and the process ends at once after ``main``
+    (``fast_exit``) with every output complete: the summary printed, the
+    video finalised (its index written at the end), the trajectory
+    readable; ``import physsplat_jax`` brought in neither optax nor orbax
+    (training loads them when first used)."""
+    import json
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    import numpy as np
+
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as d:
+      out = os.path.join(d, 'out')
+      proc = subprocess.run(
+        [sys.executable, '-m', 'experiments.simulate', '--scene=tabletop',
+         f'--out={out}', f'--compile_cache={d}/cache',
+         '--config.num_frames=2', '--config.grid_res=16',
+         '--config.width=32', '--config.height=24',
+         '--config.max_particles=600'],
+        capture_output=True, text=True, check=False, timeout=300, cwd=repo)
+      self.assertEqual(proc.returncode, 0, proc.stderr[-2000:])
+      self.assertIn('before it: ', proc.stdout)
+      self.assertIn('video: ', proc.stdout)  # the summary's last lines
+      report = json.load(open(os.path.join(out, 'report.json')))
+      times = report['process_seconds']
+      self.assertGreater(times['start'], 0.0)
+      self.assertGreaterEqual(times['setup'], 0.0)
+      with open(os.path.join(out, 'video.mp4'), 'rb') as f:
+        self.assertIn(b'moov', f.read())  # the MP4's index: a closed file
+      traj = np.load(os.path.join(out, 'trajectory.npz'))
+      self.assertEqual(traj['x'].shape[0], 3)
+    proc = subprocess.run(
+      [sys.executable, '-c', 'import sys, physsplat_jax as ps; '
+       'print(sorted(m for m in ("optax", "orbax.checkpoint") '
+       'if m in sys.modules)); ps.training; print("optax" in sys.modules)'],
+      capture_output=True, text=True, check=True, timeout=120, cwd=repo)
+    self.assertEqual(proc.stdout.split(), ['[]', 'True'])

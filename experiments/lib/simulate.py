@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import subprocess
+import time
 from typing import Any, Sequence
 
 from absl import app
@@ -180,13 +181,18 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
               extra_report: dict | None = None,
               scene_options: dict | None = None,
               mpdp_checkpoint: str | None = None,
-              pipelined: bool = True, on_frame=None) -> dict:
+              pipelined: bool = True, on_frame=None,
+              process: dict | None = None) -> dict:
   """The pipeline on a built-in scene or a scene file; the report.
 
   ``scene_options`` go to :func:`physsplat_jax.load_scene` for a scene file
   (``up_axis``, ``meters_per_unit``, ...); ``mpdp_checkpoint`` is a folder of
   MPDP weights to use instead of the shipped ones; ``on_frame`` is called
-  after each frame (``pipeline.run``).
+  after each frame (``pipeline.run``). ``process`` (``start_s``: seconds
+  from the process's start to the script's ``main``, ``main_t0``: its
+  ``time.perf_counter()`` there) adds the report's ``process_seconds``: the
+  start (Python, imports), and the setup before the pipeline (config, JAX's
+  backend, reading the scene).
   """
   outputs.check_output_dir(out)
   mpdp_params = load_mpdp(mpdp_checkpoint)
@@ -212,6 +218,11 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
                          config.camera_index)
   except ValueError as e:
     raise pl.PipelineError(f'--config.camera_index: {e}') from None
+  if process is not None:
+    extra_report = {**(extra_report or {}), 'process_seconds': dict(
+      start=None if process.get('start_s') is None
+      else round(process['start_s'], 3),
+      setup=round(time.perf_counter() - process['main_t0'], 3))}
   _, report = pl.simulate_scene(
     scene, config, out, perception_options=perception_options, ply=ply,
     extra_report=extra_report, mpdp_params=mpdp_params, pipelined=pipelined,

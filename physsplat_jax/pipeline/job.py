@@ -196,6 +196,12 @@ def summary(report: dict) -> str:
     f'{report["particle_substeps_per_s"] / 1e6:.2f} M particle-substeps/s',
     f'time {total:.1f} s: {parts}',
   ]
+  proc = report.get('process_seconds')
+  if proc:  # what a script spent before the pipeline (experiments.simulate)
+    start = ('' if proc.get('start') is None
+             else f'{proc["start"]:.1f} s to start (Python, imports), ')
+    lines.append(f'before it: {start}{proc.get("setup", 0.0):.1f} s to set '
+                 'up (config, JAX\'s backend, reading the scene)')
   for f, p in sorted(report.get('files', {}).items()):
     lines.append(f'  {f}: {p}')
   return '\n'.join(lines)
