@@ -39,7 +39,7 @@ bench: $(STAMP)
 # imageio-ffmpeg 0.6.0 (29 MB) rather than the newest (68 MB): the device
 # tool carries 64 MiB per call, tree and wheels together.
 GPU_WHEELS := trimesh==5.2.0 rtree==1.4.1 ml_collections==1.1.0 \
-  PyYAML==6.0.4 gsplat==1.5.3 imageio-ffmpeg==0.6.0
+  PyYAML==6.0.4 gsplat==1.5.3 imageio-ffmpeg==0.6.0 flatbuffers==25.12.19
 gpu-wheels:
 	rm -rf .whl && mkdir -p .whl
 	$(PYTHON) -m pip download --quiet --no-deps --only-binary=:all: \

@@ -43,6 +43,7 @@ from physsplat_jax import sorting
 from physsplat_jax.mpm import base
 from physsplat_jax.mpm import boundary
 from physsplat_jax.mpm import constitutive
+from physsplat_jax.mpm import frame_store
 from physsplat_jax.mpm import graphs
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import inputs
@@ -656,9 +657,10 @@ class FrameLoop:
                  for a in leaves))
     compiled = _COMPILED.get(key)
     if compiled is None:
-      compiled = graphs.compile_frame(
-        frame_jit.lower(state, materials, self.forces),
-        self.config.gpu_graphs)
+      # Traced once across processes when a compilation cache is on.
+      compiled = frame_store.compile_frame(
+        frame_jit, state, materials, self.forces, self.config,
+        lambda lowered: graphs.compile_frame(lowered, self.config.gpu_graphs))
       if len(_COMPILED) >= 32:
         _COMPILED.pop(next(iter(_COMPILED)))
       _COMPILED[key] = compiled
