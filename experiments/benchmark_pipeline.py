@@ -52,7 +52,8 @@ _RUNS = flags.DEFINE_list(
   'cold, warm, serial (--nopipelined: exact per-stage times; warm when a '
   'run before it filled the cache) and/or profile (traced frames); '
   'KIND@KEY=VALUE[+KEY=VALUE] adds overrides to one run, e.g. '
-  'warm@render_config.backend=jax')
+  'warm@render_config.backend=jax; a run named twice runs twice (the '
+  'second is reported as warm#2)')
 _PROFILE_FRAMES = flags.DEFINE_list(
   'profile_frames', None, 'START,STOP: the frames the profile run traces '
   '(default the middle third of the run)')
@@ -123,8 +124,13 @@ def main(argv):
       raise cli.usage_error(
         f'--runs: {run!r} is not cold, warm, serial or profile (each with '
         'optional @KEY=VALUE overrides)')
-    specs[run] = (kind, _pairs(f'--runs {run}',
-                               extra.split('+') if extra else []))
+    # A run named twice runs twice (warm, warm#2: the spread of warm runs).
+    name, i = run, 1
+    while name in specs:
+      i += 1
+      name = f'{run}#{i}'
+    specs[name] = (kind, _pairs(f'--runs {run}',
+                                extra.split('+') if extra else []))
   frames = int(overrides.get('num_frames', preset['num_frames']))
   window = ','.join(_PROFILE_FRAMES.value or
                     [str(frames // 3), str(max(2 * frames // 3, 1))])
@@ -137,7 +143,8 @@ def main(argv):
       runs = {}
       for run, (kind, extra) in specs.items():
         out = os.path.join(_OUT.value, os.path.basename(scene),
-                           run.replace('@', '_').replace('+', '_'))
+                           run.replace('@', '_').replace('+', '_')
+                           .replace('#', '_'))
         runs[run] = run_once(
           scene, preset, out, cache, pipelined=kind != 'serial',
           overrides={**overrides, **extra},

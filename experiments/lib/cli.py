@@ -157,6 +157,12 @@ def guard(main, cpu_devices: int | None = None,
   def wrapped(argv):
     _setup(cpu_devices, cache_default)
     try:
+      return _main(argv)
+    finally:
+      _join_backend()
+
+  def _main(argv):
+    try:
       result = main(argv)
       if fast_exit and not result:
         logging.flush()
@@ -200,7 +206,10 @@ def start_backend() -> threading.Thread:
   """Starts JAX's backend (``jax.devices()``) on a thread: on a GPU the
   client's start (driver, context, memory pool) then overlaps what the
   script does before its first JAX call (flags, config, reading the scene);
-  the first call waits for it. Errors are left to that first call."""
+  the first call waits for it. Errors are left to that first call.
+  :func:`guard` waits for the thread before the script ends (a process
+  that ends while the backend starts aborts)."""
+  global _BACKEND
 
   def start():
     try:
@@ -208,9 +217,17 @@ def start_backend() -> threading.Thread:
     except Exception:  # noqa: BLE001 - the main thread's call reports it
       pass
 
-  thread = threading.Thread(target=start, name='jax-backend', daemon=True)
-  thread.start()
-  return thread
+  _BACKEND = threading.Thread(target=start, name='jax-backend', daemon=True)
+  _BACKEND.start()
+  return _BACKEND
+
+
+_BACKEND: threading.Thread | None = None
+
+
+def _join_backend() -> None:
+  if _BACKEND is not None:
+    _BACKEND.join()
 
 
 def usage_error(message: str) -> app.UsageError:
