@@ -39,11 +39,11 @@ import jax.numpy as jnp
 import numpy as np
 from absl import logging
 
+from physsplat_jax import program_store
 from physsplat_jax import sorting
 from physsplat_jax.mpm import base
 from physsplat_jax.mpm import boundary
 from physsplat_jax.mpm import constitutive
-from physsplat_jax.mpm import frame_store
 from physsplat_jax.mpm import graphs
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import inputs
@@ -658,9 +658,11 @@ class FrameLoop:
     compiled = _COMPILED.get(key)
     if compiled is None:
       # Traced once across processes when a compilation cache is on.
-      compiled = frame_store.compile_frame(
-        frame_jit, state, materials, self.forces, self.config,
-        lambda lowered: graphs.compile_frame(lowered, self.config.gpu_graphs))
+      compiled = program_store.compile_stored(
+        frame_jit, (state, materials, self.forces), name='mpm_frame',
+        out_tree=jax.tree.structure(state), static_key=repr(self.config),
+        compile_fn=lambda lowered: graphs.compile_frame(
+          lowered, self.config.gpu_graphs))
       if len(_COMPILED) >= 32:
         _COMPILED.pop(next(iter(_COMPILED)))
       _COMPILED[key] = compiled

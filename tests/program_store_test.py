@@ -1,9 +1,10 @@
-"""The frame program stored between processes (``mpm.frame_store``).
+"""Programs stored traced between processes (``program_store``).
 
 A second process (simulated: the in-process caches cleared) reads the
-stored frame instead of tracing it, and computes the same bits; a damaged
-file is traced and stored again; the stored name follows everything the
-lowering depends on.
+stored MPM frame instead of tracing it, and computes the same bits; a
+damaged file is traced and stored again, one that does not compile is
+traced instead; the stored name follows everything the lowering depends
+on; the MPDP network, stored the same way, gives the same field.
 """
 
 import os
@@ -15,7 +16,7 @@ from absl.testing import absltest
 
 import mpm_blocks
 from physsplat_jax import mpm
-from physsplat_jax.mpm import frame_store
+from physsplat_jax import program_store
 from physsplat_jax.mpm import solver
 
 
@@ -46,18 +47,20 @@ class FrameStoreTest(absltest.TestCase):
 
     solver._COMPILED.clear()
     solver._jitted.cache_clear()
+    program_store._COMPILED.clear()
     try:
       with mock.patch.object(solver, 'make_frame', counting), \
-          mock.patch.object(frame_store, '_folder', lambda: folder):
+          mock.patch.object(program_store, 'folder', lambda: folder):
         s, mat, forces, cfg = self.blocks
         res = mpm.run(s, mat, forces, cfg, 3)
     finally:
       solver._COMPILED.clear()
       solver._jitted.cache_clear()
+      program_store._COMPILED.clear()
     return res.state, len(traced)
 
   def _stored(self):
-    sub = os.path.join(self.folder, frame_store.FOLDER)
+    sub = os.path.join(self.folder, program_store.FOLDER)
     return sorted(os.listdir(sub)) if os.path.isdir(sub) else []
 
   def _assert_same(self, got, want):
@@ -80,7 +83,7 @@ class FrameStoreTest(absltest.TestCase):
   def test_a_damaged_file_is_traced_and_stored_again(self):
     want, _ = self._run(self.folder)
     (name,) = self._stored()
-    path = os.path.join(self.folder, frame_store.FOLDER, name)
+    path = os.path.join(self.folder, program_store.FOLDER, name)
     with open(path, 'wb') as f:
       f.write(b'not a stored frame')
     with self.assertLogs(level='WARNING') as logs:
@@ -116,10 +119,10 @@ class FrameStoreTest(absltest.TestCase):
     import jax
 
     s, mat, forces, cfg = self.blocks
-    with mock.patch.object(frame_store, '_folder', lambda: self.folder):
+    with mock.patch.object(program_store, 'folder', lambda: self.folder):
       def name(s, mat, forces, cfg):
         leaves, tree = jax.tree.flatten((s, mat, forces))
-        return frame_store._path(cfg, tree, leaves)
+        return program_store.path_for('mpm_frame', repr(cfg), tree, leaves)
 
       base = name(s, mat, forces, cfg)
       self.assertEqual(name(s, mat, forces, cfg), base)
@@ -127,9 +130,51 @@ class FrameStoreTest(absltest.TestCase):
         name(s, mat, forces, dataclasses.replace(cfg, dt=cfg.dt / 2)), base)
       longer = s.replace(x=np.zeros((s.x.shape[0] + 1, 3), np.float32))
       self.assertNotEqual(name(longer, mat, forces, cfg), base)
-    with mock.patch.object(frame_store, '_folder', lambda: None):
+    with mock.patch.object(program_store, 'folder', lambda: None):
       self.assertIsNone(name(s, mat, forces, cfg))
 
 
 if __name__ == '__main__':
   absltest.main()
+
+
+class MPDPStoreTest(absltest.TestCase):
+
+  def test_the_stored_network_gives_the_same_field(self):
+    """The MPDP field at preparation, traced then read back from the
+    store, equals the field without a store (a second process: the
+    in-process caches cleared)."""
+    import jax
+    import jax.numpy as jnp
+
+    from physsplat_jax import mpdp
+    from physsplat_jax.pipeline import prepare
+
+    tmp = tempfile.TemporaryDirectory()
+    self.addCleanup(tmp.cleanup)
+    rng = np.random.default_rng(1)
+    x0 = rng.normal(size=(300, 3)).astype(np.float32)
+    counts = np.array([200, 100])
+    dobj = np.repeat([0, 1], counts).astype(np.int32)
+    import types
+    mats = [types.SimpleNamespace(E=1e5, nu=0.3, rho=1e3, model='neo_hookean',
+                                  rigid=False),
+            types.SimpleNamespace(E=1e6, nu=0.25, rho=2e3,
+                                  model='fixed_corotated', rigid=False)]
+    fields, traced = [], []
+    real = mpdp.predict
+    for folder in (None, tmp.name, tmp.name):
+      program_store._COMPILED.clear()
+      jax.clear_caches()
+      with mock.patch.object(program_store, 'folder', lambda: folder), \
+          mock.patch.object(prepare, '_predict_jit', jax.jit(
+            lambda *a: traced.append(1) or real(*a))):
+        fields.append(prepare.mpdp_stage(x0, dobj, counts, mats, True,
+                                         None)[3])
+    program_store._COMPILED.clear()
+    self.assertEqual(len(traced), 2)  # no store, then stored; then read
+    self.assertLen(os.listdir(os.path.join(tmp.name, program_store.FOLDER)),
+                   1)
+    for f in fields[1:]:
+      np.testing.assert_array_equal(f, fields[0])
+    self.assertTrue(np.all(np.isfinite(jnp.asarray(fields[0]))))
