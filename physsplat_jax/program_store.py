@@ -31,6 +31,7 @@ from typing import Any, Callable, Sequence
 
 from absl import logging
 import jax
+import numpy as np
 
 FOLDER = 'physsplat_programs'
 # Pallas (Triton) kernels: JAX does not promise that a stored kernel loads
@@ -65,7 +66,7 @@ def folder() -> str | None:
 
 
 def _avals(leaves) -> str:
-  return repr([(tuple(a.shape), str(a.dtype),
+  return repr([(tuple(np.shape(a)), str(getattr(a, 'dtype', type(a).__name__)),
                 bool(getattr(a, 'weak_type', False))) for a in leaves])
 
 
@@ -169,7 +170,12 @@ def _lower(jitted, args, leaves, tree, name, static_key, out_tree):
     exported = _export(export, jitted, tree, leaves, out_tree, path)
     if exported is None:
       return jitted.lower(*args), None
-  return jax.jit(exported.call).lower(*leaves), wrap
+  try:
+    return jax.jit(exported.call).lower(*leaves), wrap
+  except Exception as e:  # noqa: BLE001 - e.g. not these arguments' program
+    logging.warning('program store: %s does not take these arguments (%s: '
+                    '%s); tracing the program.', path, type(e).__name__, e)
+    return jitted.lower(*args), None
 
 
 def _export(export, jitted, tree, leaves, out_tree, path):

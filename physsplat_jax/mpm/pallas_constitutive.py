@@ -248,11 +248,12 @@ def start_probe(dtype: str = 'float32') -> None:
 def probe_record(dtype: str, folder: str | None = None) -> str | None:
   """Where a passed check is recorded, or None (no compilation cache).
 
-  In ``folder`` (default the persistent compilation cache's), named by what decides the
-  check's outcome: JAX and jaxlib's versions, the GPU's kind, the dtype and
-  the kernel's source (this module, ``constitutive``, ``linalg``). A later
-  process with all of these equal skips the check (two programs traced,
-  loaded and run: seconds of host work at the start of every run)."""
+  In ``folder`` (default the persistent compilation cache's), named by
+  what decides the check's outcome: JAX and jaxlib's versions, the GPU's
+  kind, the dtype and the kernel's source (this module, ``constitutive``,
+  ``linalg``). A later process with all of these equal skips the check (two
+  programs traced, loaded and run: seconds of host work at the start of
+  every run)."""
   if folder is None:
     folder = jax.config.jax_compilation_cache_dir
   if not folder:
