@@ -38,6 +38,9 @@ FOLDER = 'physsplat_programs'
 # in another JAX version; the name holds JAX's and jaxlib's versions, so a
 # stored program is only read back by the JAX that wrote it.
 _TRITON = '__gpu$xla.gpu.triton'
+# Stored programs kept per name (the oldest go first): each code change,
+# scene size or config is a new file (0.1-1 MB).
+KEEP = 32
 # Programs compiled in this process, by name and arguments.
 _COMPILED: dict = {}
 
@@ -200,8 +203,21 @@ def _export(export, jitted, tree, leaves, out_tree, path):
     with os.fdopen(fd, 'wb') as f:
       f.write(blob)
     os.replace(tmp, path)
+    _prune(os.path.dirname(path), os.path.basename(path).rsplit('_', 1)[0])
   except Exception as e:  # noqa: BLE001 - any failure: the usual path
     logging.info('program store: %s not stored (%s: %s)', path,
                  type(e).__name__, e)
     return None
   return exported
+
+
+def _prune(where: str, name: str) -> None:
+  """Keeps the :data:`KEEP` newest stored programs of ``name``."""
+  files = [os.path.join(where, f) for f in os.listdir(where)
+           if f.startswith(name + '_') and f.endswith('.jaxexport')]
+  files.sort(key=os.path.getmtime)
+  for old in files[:-KEEP]:
+    try:
+      os.remove(old)
+    except OSError:  # another process removed it
+      pass

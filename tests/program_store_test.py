@@ -178,3 +178,24 @@ class MPDPStoreTest(absltest.TestCase):
     for f in fields[1:]:
       np.testing.assert_array_equal(f, fields[0])
     self.assertTrue(np.all(np.isfinite(jnp.asarray(fields[0]))))
+
+
+class PruneTest(absltest.TestCase):
+
+  def test_only_the_newest_programs_of_a_name_are_kept(self):
+    import time
+
+    tmp = tempfile.TemporaryDirectory()
+    self.addCleanup(tmp.cleanup)
+    names = [f'mpm_frame_{i:02d}.jaxexport' for i in range(5)]
+    names += ['mpdp_predict_00.jaxexport', 'other.txt']
+    for i, n in enumerate(names):
+      path = os.path.join(tmp.name, n)
+      with open(path, 'w') as f:
+        f.write('x')
+      os.utime(path, (time.time() + i, time.time() + i))
+    with mock.patch.object(program_store, 'KEEP', 2):
+      program_store._prune(tmp.name, 'mpm_frame')
+    self.assertEqual(sorted(os.listdir(tmp.name)), [
+      'mpdp_predict_00.jaxexport', 'mpm_frame_03.jaxexport',
+      'mpm_frame_04.jaxexport', 'other.txt'])
