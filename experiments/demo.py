@@ -11,7 +11,6 @@ where the video is and where the time went. ``make demo`` runs it.
 """
 
 import os
-import time
 
 from absl import flags
 
@@ -33,15 +32,13 @@ _PIPELINED = flags.DEFINE_bool(
 
 def main(argv):
   del argv
-  started = cli.process_age()
-  cli.start_backend()
-  t0 = time.perf_counter()
+  process = cli.start_run()
   config = lib.build_config(_SCENE.value, _CONFIG.value,
                             motions=lib.load_config_file()[1])
   report = lib.run_scene(_SCENE.value, config, _OUT.value,
                          extra_report=dict(command='make demo'),
                          pipelined=_PIPELINED.value,
-                         process=dict(start_s=started, main_t0=t0))
+                         process=process)
   print(pl.summary(report))
   print(f'\nvideo: {report["files"].get("video")}')
 

@@ -18,7 +18,6 @@ PhysGaussian does. Any error ends in one line ``error: ...`` (exit 1;
 
 import os
 import sys
-import time
 
 from absl import flags
 from absl import logging
@@ -82,10 +81,7 @@ perception.define_flags()
 
 def main(argv):
   del argv
-  # Python's and the imports' time, before anything of this run.
-  started = cli.process_age()
-  cli.start_backend()
-  t0 = time.perf_counter()
+  process = cli.start_run()  # before anything of this run
   sha = lib.git_sha()
   motion = lib.motion_from_flags(_VELOCITY.value, _IMPULSE.value, _POKE.value)
   config = lib.build_config(_SCENE.value, _CONFIG.value, motion=motion,
@@ -106,7 +102,7 @@ def main(argv):
       scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
       mpdp_checkpoint=_MPDP.value, pipelined=_PIPELINED.value,
       extra_report=dict(command=' '.join(sys.argv), git=sha),
-      process=dict(start_s=started, main_t0=t0), on_frame=window)
+      process=process, on_frame=window)
   finally:
     if window is not None:
       window.close()

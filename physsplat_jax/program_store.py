@@ -46,7 +46,7 @@ _COMPILED: dict = {}
 
 
 @functools.lru_cache(maxsize=1)
-def _source_digest() -> str:
+def source_digest() -> str:
   """The package's source (every module): any change to the code names
   new files."""
   h = hashlib.sha256()
@@ -86,7 +86,7 @@ def path_for(name: str, static_key: str, tree, leaves) -> str | None:
     name, static_key, jax.__version__, jaxlib.__version__, device.platform,
     getattr(device, 'device_kind', ''), str(tree), _avals(leaves),
     str(jax.config.jax_enable_x64),
-    str(jax.config.jax_default_matmul_precision), _source_digest()]
+    str(jax.config.jax_default_matmul_precision), source_digest()]
   h = hashlib.sha256('\0'.join(parts).encode())
   return os.path.join(base, FOLDER, f'{name}_{h.hexdigest()[:40]}.jaxexport')
 

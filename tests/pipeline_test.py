@@ -430,7 +430,7 @@ class RunTest(absltest.TestCase):
 
   def test_other_frame_counts_and_seeds_reuse_the_compiled_programs(self):
     # pylint: disable=protected-access
-    from physsplat_jax.mpm import solver
+    from physsplat_jax import program_store
     from physsplat_jax.pipeline import host
     scene = _scene()
     programs = (host._deform_jit, host._assemble_jit, host._camera_jit,
@@ -442,7 +442,8 @@ class RunTest(absltest.TestCase):
                                  [_RUBBER, _WOOD], cfg)
       out = pl.run(pl.init_params(prep, cfg), prep, cfg)
       sizes = tuple(p._cache_size() for p in programs)
-      return out, prep.spec.substeps_per_frame, len(solver._COMPILED), sizes
+      frames = sum(k[1] == 'mpm_frame' for k in program_store._COMPILED)
+      return out, prep.spec.substeps_per_frame, frames, sizes
 
     a, n_a, frames_a, sizes_a = go(num_frames=2)
     b, n_b, frames_b, sizes_b = go(num_frames=4, seed=3,

@@ -45,7 +45,6 @@ class FrameStoreTest(absltest.TestCase):
 
       return traced_frame
 
-    solver._COMPILED.clear()
     solver._jitted.cache_clear()
     program_store._COMPILED.clear()
     try:
@@ -54,7 +53,6 @@ class FrameStoreTest(absltest.TestCase):
         s, mat, forces, cfg = self.blocks
         res = mpm.run(s, mat, forces, cfg, 3)
     finally:
-      solver._COMPILED.clear()
       solver._jitted.cache_clear()
       program_store._COMPILED.clear()
     return res.state, len(traced)

@@ -19,6 +19,7 @@ import json
 import os
 import sys
 import threading
+import time
 
 import jax
 from absl import app
@@ -223,6 +224,17 @@ def start_backend() -> threading.Thread:
 
 
 _BACKEND: threading.Thread | None = None
+
+
+def start_run() -> dict:
+  """What a pipeline script calls first in ``main``: the process's age so
+  far (:func:`process_age`: Python and the imports), JAX's backend started
+  (:func:`start_backend`) and the clock; pass it to
+  ``experiments.lib.simulate.run_scene(process=...)`` for the report's
+  ``process_seconds``."""
+  started = process_age()
+  start_backend()
+  return dict(start_s=started, main_t0=time.perf_counter())
 
 
 def _join_backend() -> None:

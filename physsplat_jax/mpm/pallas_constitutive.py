@@ -33,6 +33,7 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plgpu
 
+from physsplat_jax import program_store
 from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import linalg as la
 
@@ -250,24 +251,19 @@ def probe_record(dtype: str, folder: str | None = None) -> str | None:
 
   In ``folder`` (default the persistent compilation cache's), named by
   what decides the check's outcome: JAX and jaxlib's versions, the GPU's
-  kind, the dtype and the kernel's source (this module, ``constitutive``,
-  ``linalg``). A later process with all of these equal skips the check (two
-  programs traced, loaded and run: seconds of host work at the start of
-  every run)."""
+  kind, the dtype and the package's source (``program_store``'s digest). A
+  later process with all of these equal skips the check (two programs
+  traced, loaded and run: seconds of host work at the start of every
+  run)."""
   if folder is None:
-    folder = jax.config.jax_compilation_cache_dir
+    folder = program_store.folder()
   if not folder:
     return None
   import jaxlib  # noqa: PLC0415
 
-  h = hashlib.sha256()
-  kind = jax.devices()[0].device_kind
-  for part in (jax.__version__, jaxlib.__version__, kind,
-               str(jnp.dtype(dtype))):
-    h.update(part.encode() + b'\0')
-  for module in (__file__, constitutive.__file__, la.__file__):
-    with open(module, 'rb') as f:
-      h.update(f.read())
+  parts = (jax.__version__, jaxlib.__version__, jax.devices()[0].device_kind,
+           str(jnp.dtype(dtype)), program_store.source_digest())
+  h = hashlib.sha256('\0'.join(parts).encode())
   return os.path.join(folder, 'physsplat_checks',
                       f'stress_kernel_{h.hexdigest()[:32]}')
 

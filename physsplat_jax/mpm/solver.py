@@ -593,10 +593,6 @@ def check_state(config: base.SimConfig, stats: dict, frame: int,
       f'particles are crushed or torn apart. {fix}', frame, 'J')
 
 
-# Compiled frame executables by (config, argument shapes and dtypes).
-_COMPILED: dict = {}
-
-
 @functools.lru_cache(maxsize=32)
 def _jitted(config: base.SimConfig):
   """Jitted frame and stats functions per (hashable) config, reused by run.
@@ -651,21 +647,14 @@ class FrameLoop:
                                       remat_frames=False)
     frame_jit, self._stats = _jitted(self.config)
     t0 = time.perf_counter()
-    leaves, tree = jax.tree.flatten((state, materials, self.forces))
-    key = (self.config, tree,
-           tuple((np.shape(a), str(getattr(a, 'dtype', type(a))))
-                 for a in leaves))
-    compiled = _COMPILED.get(key)
-    if compiled is None:
-      # Traced once across processes when a compilation cache is on.
-      compiled = program_store.compile_stored(
-        frame_jit, (state, materials, self.forces), name='mpm_frame',
-        out_tree=jax.tree.structure(state), static_key=repr(self.config),
-        compile_fn=lambda lowered: graphs.compile_frame(
-          lowered, self.config.gpu_graphs))
-      if len(_COMPILED) >= 32:
-        _COMPILED.pop(next(iter(_COMPILED)))
-      _COMPILED[key] = compiled
+    # Compiled once per config and argument shapes in a process
+    # (program_store keeps them), traced once across processes when a
+    # compilation cache is on.
+    compiled = program_store.compile_stored(
+      frame_jit, (state, materials, self.forces), name='mpm_frame',
+      out_tree=jax.tree.structure(state), static_key=repr(self.config),
+      compile_fn=lambda lowered: graphs.compile_frame(
+        lowered, self.config.gpu_graphs))
     self._compiled = compiled
     self.compile_s = time.perf_counter() - t0
     self.state, self.materials = state, materials
