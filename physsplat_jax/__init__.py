@@ -78,7 +78,6 @@ from physsplat_jax.io.splat import save_splat as save_splat
 from physsplat_jax.io.video import VideoWriter as VideoWriter
 from physsplat_jax.io.video import write_png_frames as write_png_frames
 from physsplat_jax.io.video import write_video as write_video
-from physsplat_jax.scenes import gaussians_from_mesh as gaussians_from_mesh
 from physsplat_jax.scenes import list_scenes as list_scenes
 from physsplat_jax.scenes import load_scene as load_scene
 from physsplat_jax.scenes import make_scene as make_scene
@@ -137,6 +136,8 @@ _LAZY = {
   'make_simulate_batch': ('physsplat_jax.distributed', 'make_simulate_batch'),
   'simulate_sharded': ('physsplat_jax.distributed', 'simulate_sharded'),
   'sweep_params': ('physsplat_jax.distributed', 'sweep_params'),
+  # trimesh, imported when a mesh is converted or a scene built.
+  'gaussians_from_mesh': ('physsplat_jax.scenes.mesh', 'gaussians_from_mesh'),
 }
 
 __version__ = '0.2.0'

@@ -67,9 +67,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from scipy import spatial
 
+from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
 from physsplat_jax.types import Gaussians

@@ -203,7 +203,7 @@ def _export(export, jitted, tree, leaves, out_tree, path):
     with os.fdopen(fd, 'wb') as f:
       f.write(blob)
     os.replace(tmp, path)
-    _prune(os.path.dirname(path), os.path.basename(path).rsplit('_', 1)[0])
+    prune(os.path.dirname(path), os.path.basename(path).rsplit('_', 1)[0])
   except Exception as e:  # noqa: BLE001 - any failure: the usual path
     logging.info('program store: %s not stored (%s: %s)', path,
                  type(e).__name__, e)
@@ -211,10 +211,11 @@ def _export(export, jitted, tree, leaves, out_tree, path):
   return exported
 
 
-def _prune(where: str, name: str) -> None:
-  """Keeps the :data:`KEEP` newest stored programs of ``name``."""
+def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:
+  """Keeps the :data:`KEEP` newest files ``{name}_*{suffix}`` of ``where``
+  (stored programs, or what else is stored beside them)."""
   files = [os.path.join(where, f) for f in os.listdir(where)
-           if f.startswith(name + '_') and f.endswith('.jaxexport')]
+           if f.startswith(name + '_') and f.endswith(suffix)]
   files.sort(key=os.path.getmtime)
   for old in files[:-KEEP]:
     try:

@@ -23,8 +23,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
+from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
 
 

@@ -13,7 +13,7 @@ from absl.testing import absltest
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent / 'physsplat_jax'
 
-CORE = {'types', 'gaussians', 'cameras', 'sh_rotation', 'errors',
+CORE = {'types', 'struct', 'gaussians', 'cameras', 'sh_rotation', 'errors',
         'compile_cache', 'program_store', 'sorting', 'test_util'}
 LAYER = {
   **{m: 0 for m in CORE},

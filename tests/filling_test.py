@@ -251,6 +251,30 @@ class FillingTest(absltest.TestCase):
       filling.enclosed_cells_host(occ, 2),
       np.asarray(jax.jit(filling.enclosed_cells, static_argnums=1)(occ, 2)))
 
+  def test_host_grid_matches_jit_at_the_faces(self):
+    # The host splat (a matrix product of the quadratic forms, no per-cell
+    # test for windows inside the grid) against the jitted one, with
+    # Gaussians whose windows cross the grid's faces and some outside it.
+    rng = np.random.default_rng(3)
+    cfg = filling.FillConfig(grid_res=12, margin_cells=2, footprint=3,
+                             max_sigma_cells=3.0)
+    n = 300
+    origin, dx = np.array([0.1, -0.2, 0.05]), 0.1
+    means = origin + rng.uniform(-0.3, 1.5, (n, 3))  # the grid: [0, 1.2)
+    ls = np.log(rng.uniform(0.02, 0.4, (n, 3)))
+    q = rng.normal(size=(n, 4))
+    op = rng.uniform(0.0, 1.0, n)
+    d_host, occ_host = filling.occupancy_grid_host(means, ls, q, op, origin,
+                                                   dx, cfg)
+    d_jit, occ_jit = jax.jit(filling.occupancy_grid, static_argnums=6)(
+      jnp.asarray(means, jnp.float32), jnp.asarray(ls, jnp.float32),
+      jnp.asarray(q, jnp.float32), jnp.asarray(op, jnp.float32),
+      jnp.asarray(origin, jnp.float32), jnp.float32(dx), cfg)
+    self.assertGreater(d_host[0].sum() + d_host[-1].sum(), 1.0)  # faces hit
+    np.testing.assert_allclose(d_host, np.asarray(d_jit), rtol=2e-4,
+                               atol=2e-5)
+    np.testing.assert_array_equal(occ_host, np.asarray(occ_jit))
+
   def test_host_pathological_covariances_and_speed(self):
     g = _shell(n=20000)
     rng = np.random.default_rng(1)

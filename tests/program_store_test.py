@@ -193,7 +193,7 @@ class PruneTest(absltest.TestCase):
         f.write('x')
       os.utime(path, (time.time() + i, time.time() + i))
     with mock.patch.object(program_store, 'KEEP', 2):
-      program_store._prune(tmp.name, 'mpm_frame')
+      program_store.prune(tmp.name, 'mpm_frame')
     self.assertEqual(sorted(os.listdir(tmp.name)), [
       'mpdp_predict_00.jaxexport', 'mpm_frame_03.jaxexport',
       'mpm_frame_04.jaxexport', 'other.txt'])

@@ -209,6 +209,56 @@ class BuiltinScenesTest(parameterized.TestCase):
     self.assertLess(small.gaussians.num, 0.4 * _scene('tabletop').gaussians.num)
 
 
+class SceneStoreTest(absltest.TestCase):
+  """With a cache folder, a built scene is stored and read back as built."""
+
+  def test_stored_scene_is_read_back_without_building(self):
+    from unittest import mock  # noqa: PLC0415
+    import os  # noqa: PLC0415
+    import tempfile  # noqa: PLC0415
+    from physsplat_jax import program_store  # noqa: PLC0415
+    from physsplat_jax.scenes import registry  # noqa: PLC0415
+
+    tmp = tempfile.TemporaryDirectory()
+    self.addCleanup(tmp.cleanup)
+    with mock.patch.object(program_store, 'folder', lambda: tmp.name):
+      a = scenes.make_scene('tabletop', detail=0.4, num_cameras=2,
+                            seed=jax.random.key(3))
+      stored = os.listdir(os.path.join(tmp.name, registry.FOLDER))
+      self.assertLen(stored, 1)
+      with mock.patch.object(registry, '_builder',
+                             side_effect=AssertionError('built again')):
+        b = scenes.make_scene('tabletop', detail=0.4, num_cameras=2,
+                              seed=jax.random.key(3))
+      self.assertEqual(a.objects, b.objects)
+      self.assertEqual((a.up_axis, a.name), (b.up_axis, b.name))
+      self.assertLen(b.cameras, 2)
+      self.assertEqual(b.cameras[1].width, a.cameras[1].width)
+      for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        self.assertEqual(type(x), type(y))  # JAX arrays, as built
+        np.testing.assert_array_equal(x, y)
+        self.assertEqual(x.dtype, y.dtype)
+      # Another option is another scene (built, stored beside it).
+      c = scenes.make_scene('tabletop', detail=0.4, num_cameras=0,
+                            seed=jax.random.key(3))
+      self.assertEmpty(c.cameras)
+      self.assertLen(os.listdir(os.path.join(tmp.name, registry.FOLDER)), 2)
+      # An unreadable file is built again (and stored anew).
+      path = os.path.join(tmp.name, registry.FOLDER, stored[0])
+      with open(path, 'wb') as f:
+        f.write(b'not a scene')
+      with self.assertLogs(level='WARNING') as logs:
+        d = scenes.make_scene('tabletop', detail=0.4, num_cameras=2,
+                              seed=jax.random.key(3))
+      self.assertIn('building the scene again', logs.output[0])
+      np.testing.assert_array_equal(d.gaussians.means, a.gaussians.means)
+      # An option that cannot name a file (an array of Gaussians) is not
+      # stored; a bad option still names the options.
+      self.assertIsNone(registry._stored_path('donut', {'donut': a.gaussians}))
+      with self.assertRaisesRegex(TypeError, 'detail'):
+        scenes.make_scene('tabletop', resolution=3)
+
+
 class GaussiansFromMeshTest(parameterized.TestCase):
 
   def _check_surface(self, mesh, g, surf, normals_fn):

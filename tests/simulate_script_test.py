@@ -144,7 +144,11 @@ class ScriptProcessTest(absltest.TestCase):
       self.assertEqual(traj['x'].shape[0], 3)
     proc = subprocess.run(
       [sys.executable, '-c', 'import sys, physsplat_jax as ps; '
-       'print(sorted(m for m in ("optax", "orbax.checkpoint") '
-       'if m in sys.modules)); ps.training; print("optax" in sys.modules)'],
+       'import experiments.simulate; '
+       'print(sorted(m for m in ("optax", "orbax.checkpoint", "flax") '
+       'if m in sys.modules)); ps.training; print("optax" in sys.modules); '
+       'ps.mpdp.PointNet; print("flax.linen" in sys.modules)'],
       capture_output=True, text=True, check=True, timeout=120, cwd=repo)
-    self.assertEqual(proc.stdout.split(), ['[]', 'True'])
+    # A simulation imports neither the training libraries nor Flax (the
+    # network is imported when it is first traced).
+    self.assertEqual(proc.stdout.split(), ['[]', 'True', 'True'])

@@ -10,7 +10,6 @@ from physsplat_jax.mpdp.model import MODEL_NAMES as MODEL_NAMES
 from physsplat_jax.mpdp.model import NU_MAX as NU_MAX
 from physsplat_jax.mpdp.model import MPDPError as MPDPError
 from physsplat_jax.mpdp.model import ModelConfig as ModelConfig
-from physsplat_jax.mpdp.model import PointNet as PointNet
 from physsplat_jax.mpdp.model import encode_means as encode_means
 from physsplat_jax.mpdp.model import init_params as init_params
 from physsplat_jax.mpdp.model import make_predict as make_predict
@@ -19,3 +18,11 @@ from physsplat_jax.mpdp.model import predict as predict
 from physsplat_jax.mpdp.pretrained import load_params as load_params
 from physsplat_jax.mpdp.pretrained import load_pretrained as load_pretrained
 from physsplat_jax.mpdp.pretrained import save_params as save_params
+
+
+def __getattr__(name):
+  # PointNet lives in mpdp.network, which imports Flax: loaded on first use.
+  if name == 'PointNet':
+    from physsplat_jax.mpdp.network import PointNet  # noqa: PLC0415
+    return PointNet
+  raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

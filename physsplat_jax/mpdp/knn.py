@@ -78,7 +78,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
+
+from physsplat_jax import struct
 
 Array = jax.Array
 

@@ -20,8 +20,10 @@ farthest valid point is at radius 1, so the field is invariant to
 translation and scale. The kNN is static-shaped and exact, padded points are
 never chosen (:mod:`physsplat_jax.mpdp.knn`: brute force on small objects,
 sorted cell lists with O(N k) memory on large ones; the same neighbours
-either way), and above :data:`EDGE_CHUNK` points the EdgeConv runs in chunks,
-so memory grows linearly with N.
+either way), and above ``network.EDGE_CHUNK`` points the EdgeConv runs in
+chunks, so memory grows linearly with N. The network itself
+(:class:`PointNet`) is in :mod:`physsplat_jax.mpdp.network`, imported when
+it is first traced (Flax is not imported with the package).
 The last layer is zero-initialised, so an untrained network gives the
 mean-only baseline ``m = 1`` exactly.
 
@@ -41,11 +43,7 @@ means, mask)``.
 from __future__ import annotations
 
 import dataclasses
-import functools
-from typing import Sequence
 
-import flax.linen as nn
-from flax.linen.dtypes import promote_dtype
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -197,108 +195,6 @@ def normalize_points(points, mask):
   return p / r
 
 
-def _mlp(x, features: Sequence[int]):
-  for f in features:
-    x = nn.gelu(nn.Dense(f)(x))
-  return x
-
-
-# Points per chunk of the EdgeConv above this size (static): the edge
-# tensors are (chunk, k, 2 F + 3) instead of (N, k, 2 F + 3).
-EDGE_CHUNK = 16384
-
-
-def _edge_conv(dense_a, dense_b, h, points, idx, rows=None):
-  """EdgeConv of the points ``rows`` (default all; ``idx`` their (R, k)
-  neighbours): ``gelu(max_j dense_b(gelu(dense_a([h_i, h_j - h_i, p_j -
-  p_i]))))``."""
-  hr, pr = (h, points) if rows is None else (h[rows], points[rows])
-  hj = h[idx]
-  hi = jnp.broadcast_to(hr[:, None, :], hj.shape)
-  rel = points[idx] - pr[:, None, :]
-  e = jnp.concatenate([hi, hj - hi, rel], axis=-1)
-  e = nn.gelu(dense_a(e))
-  e = dense_b(e)
-  return nn.gelu(jnp.max(e, axis=1))
-
-
-def _dense(p, x):
-  """``nn.Dense`` with params ``p``, as a pure function (same ops)."""
-  x, kernel, bias = promote_dtype(x, p['kernel'], p['bias'])
-  y = jax.lax.dot_general(x, kernel, (((x.ndim - 1,), (0,)), ((), ())))
-  return y + jnp.reshape(bias, (1,) * (y.ndim - 1) + (-1,))
-
-
-def _chunked_edge_conv(pa, pb, h, points, idx):
-  """:func:`_edge_conv` of all points, :data:`EDGE_CHUNK` at a time."""
-  n = points.shape[0]
-  nb = -(-n // EDGE_CHUNK)
-  size = -(-n // nb)
-  rows = jnp.arange(nb * size).reshape(nb, size) % n  # pad: repeat rows
-
-  def chunk(pa, pb, r):
-    return _edge_conv(functools.partial(_dense, pa),
-                      functools.partial(_dense, pb), h, points, idx[r], r)
-
-  # Rematerialised: the backward pass keeps one chunk's edges at a time.
-  chunk = jax.checkpoint(chunk)
-  out = jax.lax.map(lambda r: chunk(pa, pb, r), rows)
-  return out.reshape(nb * size, -1)[:n]
-
-
-class PointNet(nn.Module):
-  """PointNet/DGCNN-lite producing per-point logits (see module docstring)."""
-
-  config: ModelConfig = ModelConfig()
-  # Neighbour search (not part of the weights): 'auto', 'grid' or 'brute'
-  # (see physsplat_jax.mpdp.knn); all give the same neighbours.
-  knn_method: str = 'auto'
-
-  @nn.compact
-  def __call__(self, points, means, mask):
-    """Per-point bounded logits.
-
-    Args:
-      points: (N, 3) normalised points.
-      means: (MEANS_DIM,) encoded mean properties.
-      mask: (N,) bool validity.
-
-    Returns:
-      (N, 3) logits in [-r, r] per channel (E, nu, rho).
-    """
-    cfg = self.config
-    n = points.shape[0]
-    h = _mlp(points, cfg.features)
-    feats = [h]
-    if cfg.edge_features > 0 and cfg.k_neighbors > 0:
-      idx = knn_lib.knn_indices(points, mask, cfg.k_neighbors,
-                                 self.knn_method)
-      dense_a = nn.Dense(cfg.edge_features)
-      dense_b = nn.Dense(cfg.edge_features)
-      if n <= EDGE_CHUNK:
-        feats.append(_edge_conv(dense_a, dense_b, h, points, idx))
-      else:
-        # One point binds the two layers (and creates them at init); then
-        # the same ops run over chunks of points, so the (N, k, F) edge
-        # tensors never exist at once.
-        _edge_conv(dense_a, dense_b, h, points, idx[:1], jnp.arange(1))
-        pa, pb = dense_a.variables['params'], dense_b.variables['params']
-        feats.append(_chunked_edge_conv(pa, pb, h, points, idx))
-    local = jnp.concatenate(feats, axis=-1)
-    g = nn.Dense(cfg.global_features)(local)
-    g = jnp.max(jnp.where(mask[:, None], g, -jnp.inf), axis=0)
-    g = jnp.where(jnp.isfinite(g), g, 0.0)
-    c = _mlp(means, (cfg.cond_features, cfg.cond_features))
-    z = jnp.concatenate([
-      local, jnp.broadcast_to(g, (n, g.shape[-1])),
-      jnp.broadcast_to(c, (n, c.shape[-1])), points,
-    ], axis=-1)
-    z = _mlp(z, cfg.head_features)
-    raw = nn.Dense(3, kernel_init=nn.initializers.zeros)(z)
-    r = jnp.asarray(cfg.log_range, raw.dtype)
-    return r * jnp.tanh(raw / r)
-
-
 def normalize_field(logits, mask):
   """Turns logits into a positive field with masked mean exactly 1.
 
@@ -352,9 +248,13 @@ def make_predict(config: ModelConfig = ModelConfig(),
   if knn_method not in knn_lib.METHODS:
     raise MPDPError(f'make_predict: knn_method={knn_method!r}; use one of '
                     f'{knn_lib.METHODS}')
-  net = PointNet(config, knn_method=knn_method)
 
   def single(params, points, means, mask):
+    # Flax is imported when the network is first traced, not with the
+    # package (a run whose MPDP program is stored never traces it).
+    from physsplat_jax.mpdp import network  # noqa: PLC0415
+
+    net = network.PointNet(config, knn_method=knn_method)
     p = normalize_points(points, mask)
     logits = net.apply({'params': params}, p, means.astype(p.dtype), mask)
     return normalize_field(logits, mask)
@@ -378,8 +278,10 @@ def init_params(key, config: ModelConfig = ModelConfig(),
   """Initial params pytree (the field is exactly 1 until trained)."""
   p = jnp.zeros((num_points, 3))
   m = jnp.zeros((MEANS_DIM,))
+  from physsplat_jax.mpdp import network  # noqa: PLC0415
+
   # Jitted: linen's eager init of this network takes seconds on a CPU.
-  init_fn = jax.jit(PointNet(config).init)
+  init_fn = jax.jit(network.PointNet(config).init)
   return init_fn(key, p, m, jnp.ones((num_points,), bool))['params']
 
 

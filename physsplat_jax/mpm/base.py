@@ -22,8 +22,8 @@ from typing import Any, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
+from physsplat_jax import struct
 from physsplat_jax.mpm.errors import MPMInputError as MPMInputError
 from physsplat_jax.mpm.errors import SimulationError as SimulationError
 from physsplat_jax.mpm.models import CANONICAL_MODELS

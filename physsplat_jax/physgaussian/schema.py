@@ -51,8 +51,8 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 from absl import logging
-from flax import struct
 
+from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.mpm.models import MATERIAL_ALIASES

@@ -28,10 +28,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 from absl import logging
-from flax import struct
 from scipy import spatial
 
 from physsplat_jax import cameras as cam_lib
+from physsplat_jax import struct
 from physsplat_jax.pipeline.config import CameraPath
 from physsplat_jax.pipeline.config import PipelineError
 from physsplat_jax.pipeline.config import PrepareConfig

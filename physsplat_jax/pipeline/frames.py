@@ -11,10 +11,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from physsplat_jax import cameras as cam_lib
 from physsplat_jax import gaussians as gs
+from physsplat_jax import struct
 from physsplat_jax.pipeline.config import PipelineError
 from physsplat_jax.pipeline.config import PrepareConfig
 from physsplat_jax.types import Array

@@ -27,12 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from absl import logging
-from flax import struct
 
 from physsplat_jax import deform as deform_lib
 from physsplat_jax import mpdp
 from physsplat_jax import program_store
 from physsplat_jax import sampling
+from physsplat_jax import struct
 from physsplat_jax.mpm import timestep
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline import frames as frames_lib

@@ -25,11 +25,11 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from physsplat_jax import deform as deform_lib
 from physsplat_jax import mpdp
 from physsplat_jax import mpm
+from physsplat_jax import struct
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import ForceKind
 from physsplat_jax.pipeline.config import Ground

@@ -6,8 +6,8 @@ import dataclasses
 import math
 
 import jax
-from flax import struct
 
+from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
 

@@ -36,8 +36,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from flax import struct
 
+from physsplat_jax import struct
 from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 

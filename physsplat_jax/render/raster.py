@@ -75,11 +75,11 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from jax import lax
 
 from physsplat_jax import gaussians as gs
 from physsplat_jax import sorting
+from physsplat_jax import struct
 from physsplat_jax.render.config import RenderConfig as RenderConfig
 from physsplat_jax.render.config import RenderConfigError
 from physsplat_jax.render.config import RenderInputError

@@ -27,9 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from absl import logging
-from flax import struct
 from scipy import spatial
 
+from physsplat_jax import struct
 from physsplat_jax.sampling import centroidal
 from physsplat_jax.sampling import clustering
 from physsplat_jax.sampling import filling

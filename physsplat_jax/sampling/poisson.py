@@ -54,9 +54,9 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 from scipy import spatial
 
+from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
 

@@ -10,14 +10,33 @@
 See docs/scenes.md for sizes, materials and pictures.
 """
 
-from physsplat_jax.scenes.build import assemble_scene as assemble_scene
-from physsplat_jax.scenes.build import orbit_rig as orbit_rig
-from physsplat_jax.scenes.build import tube_mesh as tube_mesh
-from physsplat_jax.scenes.mesh import MeshError as MeshError
-from physsplat_jax.scenes.mesh import gaussians_from_mesh as gaussians_from_mesh
-from physsplat_jax.scenes.mesh import interior_lattice as interior_lattice
 from physsplat_jax.scenes.registry import DEFAULT_SCENE as DEFAULT_SCENE
 from physsplat_jax.scenes.registry import list_scenes as list_scenes
 from physsplat_jax.scenes.registry import load_scene as load_scene
 from physsplat_jax.scenes.registry import make_scene as make_scene
 from physsplat_jax.scenes.registry import scene_options as scene_options
+
+import importlib as _importlib
+
+# The mesh tools import trimesh (0.1 s): loaded on first use, so that a run
+# whose built-in scene is read back from the scene store never imports it.
+_LAZY = {
+  'assemble_scene': 'physsplat_jax.scenes.build',
+  'orbit_rig': 'physsplat_jax.scenes.build',
+  'tube_mesh': 'physsplat_jax.scenes.build',
+  'MeshError': 'physsplat_jax.scenes.mesh',
+  'gaussians_from_mesh': 'physsplat_jax.scenes.mesh',
+  'interior_lattice': 'physsplat_jax.scenes.mesh',
+}
+
+
+def __getattr__(name):
+  if name in _LAZY:
+    value = getattr(_importlib.import_module(_LAZY[name]), name)
+    globals()[name] = value
+    return value
+  raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+
+
+def __dir__():
+  return sorted(set(globals()) | set(_LAZY))
