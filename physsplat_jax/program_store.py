@@ -19,13 +19,20 @@ export fails; a stored file that cannot be read is traced and stored again,
 and one that does not compile is compiled from a new trace, with a warning.
 Deviceless, for an H100 (jax 0.10.2), the tabletop's stored frame compiles
 to the same 20 kernels per substep, its Pallas stress kernel included.
+
+:func:`stored_jit` is ``jax.jit`` with the same storage, for the smaller
+programs a run calls on concrete arrays (the host loop's deformation and
+render): called inside a trace, or without a cache folder, it is the plain
+``jax.jit``.
 """
 
 from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 import os
+import pickle
 import tempfile
 from typing import Any, Callable, Sequence
 
@@ -91,12 +98,25 @@ def path_for(name: str, static_key: str, tree, leaves) -> str | None:
   return os.path.join(base, FOLDER, f'{name}_{h.hexdigest()[:40]}.jaxexport')
 
 
-def _single_device(leaves) -> bool:
+def _devices(leaves) -> tuple:
+  """The devices of the arguments' JAX arrays (a compiled program is bound
+  to them)."""
   devices = set()
   for a in leaves:
-    if not isinstance(a, jax.Array):
+    if isinstance(a, jax.Array):
+      devices |= a.sharding.device_set
+  return tuple(sorted(d.id for d in devices))
+
+
+def _single_device(leaves) -> bool:
+  """Arrays on one device at most, and no tracers (host values are put
+  where the arrays are)."""
+  devices = set()
+  for a in leaves:
+    if isinstance(a, jax.core.Tracer):
       return False
-    devices |= set(a.sharding.device_set)
+    if isinstance(a, jax.Array):
+      devices |= set(a.sharding.device_set)
   return len(devices) <= 1
 
 
@@ -110,9 +130,10 @@ def compile_stored(jitted, args: Sequence[Any], *, name: str, out_tree,
     jitted: a ``jax.jit`` function of positional arguments.
     args: its arguments (their shapes, dtypes and tree name the program).
     name: the program's name (the file's prefix).
-    out_tree: the tree of its result (``jax.tree.structure``), known
-      without tracing it (e.g. the input state's for a frame); a program
-      whose result has another tree is not stored.
+    out_tree: the tree of its result (``jax.tree.structure``) if known
+      without tracing it (e.g. the input state's for a frame; a program
+      whose result has another tree is not stored), or None: the tree
+      found when the program is traced, stored with it.
     static_key: what else its trace depends on (e.g. ``repr`` of a static
       config); the package's source, JAX's version and the device are in
       the name already.
@@ -120,7 +141,8 @@ def compile_stored(jitted, args: Sequence[Any], *, name: str, out_tree,
   """
   compile_fn = compile_fn or (lambda lowered: lowered.compile())
   leaves, tree = jax.tree.flatten(tuple(args))
-  memo = (jitted, name, static_key, tree, _avals(leaves))
+  memo = (jitted, name, static_key, tree, _avals(leaves), _devices(leaves),
+          str(jax.config.jax_default_device))
   if memo in _COMPILED:
     return _COMPILED[memo]
   lowered, wrap = _lower(jitted, args, leaves, tree, name, static_key,
@@ -155,24 +177,29 @@ def _lower(jitted, args, leaves, tree, name, static_key, out_tree):
     logging.log_first_n(logging.INFO, 'program store off: %s', 1, e)
     return jitted.lower(*args), None
 
-  def wrap(compiled):
-    def call(*args):
-      return jax.tree.unflatten(out_tree, compiled(*jax.tree.leaves(args)))
-    return call
-
   exported = None
   if os.path.exists(path):
     try:
       with open(path, 'rb') as f:
-        exported = export.deserialize(bytearray(f.read()))
+        stored = pickle.load(f)
+      exported = export.deserialize(bytearray(stored['exported']))
+      if out_tree is not None and stored['out_tree'] != out_tree:
+        raise ValueError('its result is not of the expected tree')
+      out_tree = stored['out_tree']
     except Exception as e:  # noqa: BLE001 - unreadable: trace it again
       logging.warning('program store: cannot read %s (%s: %s); tracing the '
                       'program again.', path, type(e).__name__, e)
       exported = None
   if exported is None:
-    exported = _export(export, jitted, tree, leaves, out_tree, path)
+    exported, out_tree = _export(export, jitted, tree, leaves, out_tree, path)
     if exported is None:
       return jitted.lower(*args), None
+
+  def wrap(compiled):
+    def call(*args):
+      return jax.tree.unflatten(out_tree, compiled(*jax.tree.leaves(args)))
+    return call
+
   try:
     return jax.jit(exported.call).lower(*leaves), wrap
   except Exception as e:  # noqa: BLE001 - e.g. not these arguments' program
@@ -182,8 +209,9 @@ def _lower(jitted, args, leaves, tree, name, static_key, out_tree):
 
 
 def _export(export, jitted, tree, leaves, out_tree, path):
-  """Exports and stores the program (None when it cannot be: then the
-  caller lowers it as before)."""
+  """Exports and stores the program with its result's tree: ``(exported,
+  out_tree)``, or ``(None, None)`` when it cannot be (then the caller
+  lowers it as before)."""
   got = []
 
   def flat(*leaves):  # on flat leaves: no pytree types to store
@@ -195,9 +223,13 @@ def _export(export, jitted, tree, leaves, out_tree, path):
     exported = export.export(
       jax.jit(flat), disabled_checks=[
         export.DisabledSafetyCheck.custom_call(_TRITON)])(*leaves)
-    if got[-1] != out_tree:  # the caller's result tree is not this one
-      return None
-    blob = exported.serialize()
+    if out_tree is None:
+      out_tree = got[-1]
+    elif got[-1] != out_tree:  # the caller's result tree is not this one
+      return None, None
+    blob = pickle.dumps(dict(exported=bytes(exported.serialize()),
+                             out_tree=out_tree),
+                        protocol=pickle.HIGHEST_PROTOCOL)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix='.tmp')
     with os.fdopen(fd, 'wb') as f:
@@ -207,8 +239,8 @@ def _export(export, jitted, tree, leaves, out_tree, path):
   except Exception as e:  # noqa: BLE001 - any failure: the usual path
     logging.info('program store: %s not stored (%s: %s)', path,
                  type(e).__name__, e)
-    return None
-  return exported
+    return None, None
+  return exported, out_tree
 
 
 def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:
@@ -222,3 +254,69 @@ def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:
       os.remove(old)
     except OSError:  # another process removed it
       pass
+
+
+class StoredJit:
+  """``jax.jit(fun, static_argnames=...)`` whose programs are stored
+  traced (:func:`compile_stored`, named ``name``).
+
+  Called on concrete arrays with a cache folder, it compiles (once per
+  static values and argument shapes) from the stored program; inside a
+  trace (``jit``, ``grad``, ``vmap``) or without a cache folder it is the
+  plain ``jax.jit`` (the same program).
+  """
+
+  def __init__(self, fun: Callable, name: str,
+               static_argnames: Sequence[str] = ()):
+    self._fun = fun
+    self._name = name
+    self._static = tuple(static_argnames)
+    self._jit = jax.jit(fun, static_argnames=self._static)
+    self._by_static: dict = {}
+    self._signature = inspect.signature(fun) if self._static else None
+    functools.update_wrapper(self, fun)
+
+  def __call__(self, *args, **kwargs):
+    if self._signature is not None:  # static values, given by name or not
+      bound = self._signature.bind(*args, **kwargs).arguments
+      static = {k: bound.pop(k) for k in self._static if k in bound}
+      args, kwargs = (), bound
+    else:
+      static = {}
+    dynamic = (args, kwargs)
+    if folder() is None or not _single_device(jax.tree.leaves(dynamic)):
+      return self._jit(*args, **kwargs, **static)
+    key = repr(sorted(static.items()))
+    jitted = self._by_static.get(key)
+    if jitted is None:
+      fun = self._fun
+      jitted = jax.jit(lambda args, kwargs: fun(*args, **kwargs, **static))
+      self._by_static[key] = jitted
+    compiled = compile_stored(jitted, dynamic, name=self._name,
+                              out_tree=None, static_key=key)
+    return compiled(*dynamic)
+
+  def lower(self, *args, **kwargs):
+    return self._jit.lower(*args, **kwargs)
+
+  def clear_cache(self) -> None:
+    """Forgets the compiled programs (this process's; the stored files
+    stay)."""
+    self._jit.clear_cache()
+    for memo in [m for m in _COMPILED
+                 if m[0] in self._by_static.values()]:
+      del _COMPILED[memo]
+    self._by_static.clear()
+
+  def __getattr__(self, name):  # e.g. _cache_size: the plain jit's
+    return getattr(self.__dict__['_jit'], name)
+
+
+def stored_jit(fun: Callable | None = None, *, name: str | None = None,
+               static_argnames: Sequence[str] = ()):
+  """:class:`StoredJit` of ``fun`` (a decorator without ``fun``); ``name``
+  defaults to the function's."""
+  if fun is None:
+    return lambda f: stored_jit(f, name=name, static_argnames=static_argnames)
+  return StoredJit(fun, name or getattr(fun, '__name__', 'program'),
+                   static_argnames)

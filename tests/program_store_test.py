@@ -132,9 +132,6 @@ class FrameStoreTest(absltest.TestCase):
       self.assertIsNone(name(s, mat, forces, cfg))
 
 
-if __name__ == '__main__':
-  absltest.main()
-
 
 class MPDPStoreTest(absltest.TestCase):
 
@@ -197,3 +194,124 @@ class PruneTest(absltest.TestCase):
     self.assertEqual(sorted(os.listdir(tmp.name)), [
       'mpdp_predict_00.jaxexport', 'mpm_frame_03.jaxexport',
       'mpm_frame_04.jaxexport', 'other.txt'])
+
+
+class StoredJitTest(absltest.TestCase):
+  """``stored_jit``: jax.jit whose programs a later process reads back."""
+
+  def setUp(self):
+    super().setUp()
+    tmp = tempfile.TemporaryDirectory()
+    self.addCleanup(tmp.cleanup)
+    self.folder = tmp.name
+    self.traced = []
+
+  def _fresh(self):
+    """The function as a new process has it (nothing compiled yet)."""
+    import jax.numpy as jnp
+
+    traced = self.traced
+
+    def fun(state, scale, mode='a', *, extra=None):
+      traced.append(mode)
+      out = {'y': state['x'] * scale + (0.0 if extra is None else extra),
+             'n': jnp.sum(state['x'])}
+      return (out, state['x'].shape[0]) if mode == 'a' else (out, -1)
+
+    program_store._COMPILED.clear()
+    return program_store.stored_jit(fun, name='test_fun',
+                                    static_argnames=('mode',))
+
+  def test_read_back_untraced_with_the_same_bits_and_tree(self):
+    import jax
+    import jax.numpy as jnp
+
+    state = {'x': jnp.arange(6.0).reshape(3, 2)}
+    with mock.patch.object(program_store, 'folder', lambda: None):
+      want = self._fresh()(state, 2.0, 'a', extra=jnp.ones(()))
+    self.assertEqual(self.traced, ['a'])
+    with mock.patch.object(program_store, 'folder', lambda: self.folder):
+      first = self._fresh()(state, 2.0, 'a', extra=jnp.ones(()))
+      self.assertEqual(self.traced, ['a', 'a'])  # traced and stored
+      got = self._fresh()(state, 2.0, mode='a', extra=jnp.ones(()))
+      self.assertEqual(self.traced, ['a', 'a'])  # read back, not traced
+      # Another static value, or shape, is another program.
+      other = self._fresh()(state, 2.0, 'b')
+      self.assertEqual(self.traced[-1], 'b')
+      self._fresh()({'x': jnp.zeros((4, 2))}, 2.0, 'a')
+      stored = os.listdir(os.path.join(self.folder, program_store.FOLDER))
+    self.assertLen(stored, 3)
+    for out in (first, got):
+      self.assertEqual(jax.tree.structure(out), jax.tree.structure(want))
+      for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(want)):
+        np.testing.assert_array_equal(a, b)
+    self.assertEqual(got[1], 3)  # a Python value of the result, kept
+    self.assertEqual(other[1], -1)
+
+  def test_inside_a_trace_it_is_the_plain_jit(self):
+    import jax
+    import jax.numpy as jnp
+
+    state = {'x': jnp.arange(4.0).reshape(2, 2)}
+    with mock.patch.object(program_store, 'folder', lambda: self.folder):
+      f = self._fresh()
+      g = jax.grad(lambda x: f({'x': x}, 3.0, 'a')[0]['n'] * 2.0)(
+        state['x'])
+      y = jax.jit(lambda x: f({'x': x}, 3.0, 'a')[0]['y'])(state['x'])
+    np.testing.assert_array_equal(g, np.full((2, 2), 2.0))
+    np.testing.assert_array_equal(y, 3.0 * np.asarray(state['x']))
+    self.assertFalse(os.path.isdir(os.path.join(self.folder,
+                                                program_store.FOLDER)))
+
+  def test_the_host_loop_reads_its_programs_back(self):
+    # The pipeline's deformation, render and initial state are stored by a
+    # first run and read back by a second (a new process: the in-process
+    # caches cleared), untraced, with the same frames.
+    import jax
+
+    import pipeline_test
+    from physsplat_jax import pipeline as pl
+    from physsplat_jax.pipeline import simulation
+
+    scene = pipeline_test._scene()
+    cfg = pipeline_test._config(render='fast', num_frames=2)
+    prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene,
+                               [pipeline_test._RUBBER, pipeline_test._WOOD],
+                               cfg)
+    params = pl.init_params(prep, cfg)
+    traced = []
+    real = simulation.deformed_gaussians
+
+    def counting(*a, **k):
+      traced.append(1)
+      return real(*a, **k)
+
+    outs = []
+    for folder in (None, self.folder, self.folder):
+      program_store._COMPILED.clear()
+      jax.clear_caches()
+      images = []
+      with mock.patch.object(program_store, 'folder', lambda: folder), \
+          mock.patch('physsplat_jax.pipeline.host.deformed_gaussians',
+                     counting):
+        outs.append(pl.run(params, prep, cfg, pipelined=False,
+                           on_frame=lambda f, x, im: images.append(im)))
+      outs[-1].traced = len(traced)
+      outs[-1].images = images
+    program_store._COMPILED.clear()
+    self.assertEqual([o.traced for o in outs], [1, 2, 2])
+    names = os.listdir(os.path.join(self.folder, program_store.FOLDER))
+    for name in ('host_deform', 'render', 'initial_state'):
+      self.assertTrue(any(n.startswith(name + '_') for n in names), name)
+    for out in outs[1:]:
+      np.testing.assert_array_equal(out.gaussian_positions,
+                                    outs[0].gaussian_positions)
+      np.testing.assert_array_equal(out.particle_positions,
+                                    outs[0].particle_positions)
+      self.assertLen(out.images, 3)
+      for a, b in zip(out.images, outs[0].images):
+        np.testing.assert_array_equal(a, b)
+
+
+if __name__ == '__main__':
+  absltest.main()

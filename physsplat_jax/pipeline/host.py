@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from concurrent import futures
 import dataclasses
-import functools
 import os
 import time
 from typing import Callable, Sequence
@@ -22,6 +21,7 @@ import numpy as np
 from absl import logging
 
 from physsplat_jax import mpm
+from physsplat_jax import program_store
 from physsplat_jax.io import outputs as out_lib
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import PipelineConfig
@@ -93,19 +93,25 @@ def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
 
 # The per-frame host programs, compiled once per process and shape (not per
 # run): the frame index, frame count and driver-F switch are their only
-# non-array inputs.
-@functools.partial(jax.jit, static_argnames='use_driver_F')
+# non-array inputs. Stored traced with a cache folder (program_store), so
+# that a later process neither traces nor lowers them.
+@program_store.stored_jit(name='host_deform', static_argnames=('use_driver_F',))
 def _deform_jit(view, x, F, use_driver_F: bool):
   return deformed_gaussians(view, SimulateConfig(use_driver_F=use_driver_F),
                             x, F)
 
 
-_assemble_jit = jax.jit(assemble_scene)
-_to_scene_jit = jax.jit(lambda fr, x: fr.to_scene(x))
-_camera_jit = jax.jit(capture_lib.frame_camera)
+def _to_scene(fr, x):
+  return fr.to_scene(x)
 
 
-@functools.partial(jax.jit, static_argnames='config')
+_assemble_jit = program_store.stored_jit(assemble_scene, name='host_assemble')
+_to_scene_jit = program_store.stored_jit(_to_scene, name='host_to_scene')
+_camera_jit = program_store.stored_jit(capture_lib.frame_camera,
+                                       name='host_camera')
+
+
+@program_store.stored_jit(name='initial_state', static_argnames=('config',))
 def _initial_state_jit(params, prepared, config, field):
   return initial_state(params, prepared, config, field)[:3]
 

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax import program_store
 from physsplat_jax.render import raster
 from physsplat_jax.render.config import RenderCapacityError
 from physsplat_jax.render.config import RenderConfig
@@ -117,7 +118,11 @@ IMAGE_FIELDS = ('image', 'alpha', 'depth')
 
 # On the device: the image clipped to [0, 1] (the host's clip of a large
 # frame took longer than the render on a GPU).
-_clip_jit = jax.jit(lambda image: jnp.clip(image, 0.0, 1.0))
+def _clip(image):
+  return jnp.clip(image, 0.0, 1.0)
+
+
+_clip_jit = program_store.stored_jit(_clip, name='render_clip')
 
 
 class PendingRender:

@@ -78,6 +78,7 @@ import numpy as np
 from jax import lax
 
 from physsplat_jax import gaussians as gs
+from physsplat_jax import program_store
 from physsplat_jax import sorting
 from physsplat_jax import struct
 from physsplat_jax.render.config import RenderConfig as RenderConfig
@@ -629,7 +630,10 @@ def render_differentiable(
                  colors, config, differentiable=True)
 
 
-_render_jit = jax.jit(render, static_argnames=('config',))
+# Stored traced with a cache folder (program_store): a later process neither
+# traces nor lowers the render (the host loop's frames, a video).
+_render_jit = program_store.stored_jit(render, name='render',
+                                       static_argnames=('config',))
 _render_diff_jit = jax.jit(render_differentiable, static_argnames=('config',))
 
 
@@ -643,4 +647,6 @@ def _count_intersections(gaussians, camera, covariances, config):
   return jnp.sum(n)
 
 
-_count_jit = jax.jit(_count_intersections, static_argnames=('config',))
+_count_jit = program_store.stored_jit(_count_intersections,
+                                      name='render_count',
+                                      static_argnames=('config',))
