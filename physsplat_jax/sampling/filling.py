@@ -540,7 +540,7 @@ def _knn_dist(means, k: int) -> np.ndarray:
   k = min(k, len(x) - 1)
   if k < 1:
     return np.zeros((len(x), 1))
-  r, _ = spatial.cKDTree(x).query(x, k + 1)
+  r, _ = spatial.cKDTree(x).query(x, k + 1, workers=-1)
   return r[:, 1:]
 
 
