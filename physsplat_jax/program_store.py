@@ -262,8 +262,9 @@ class StoredJit:
 
   Called on concrete arrays with a cache folder, it compiles (once per
   static values and argument shapes) from the stored program; inside a
-  trace (``jit``, ``grad``, ``vmap``) or without a cache folder it is the
-  plain ``jax.jit`` (the same program).
+  trace (``jit``, ``grad``, ``vmap``), under ``jax.disable_jit``, for
+  arrays on several devices, or without a cache folder it is the plain
+  ``jax.jit`` (the same program).
   """
 
   def __init__(self, fun: Callable, name: str,
@@ -284,7 +285,8 @@ class StoredJit:
     else:
       static = {}
     dynamic = (args, kwargs)
-    if folder() is None or not _single_device(jax.tree.leaves(dynamic)):
+    if (folder() is None or jax.config.jax_disable_jit
+        or not _single_device(jax.tree.leaves(dynamic))):
       return self._jit(*args, **kwargs, **static)
     key = repr(sorted(static.items()))
     jitted = self._by_static.get(key)
