@@ -177,6 +177,8 @@ def _lower(jitted, args, leaves, tree, name, static_key, out_tree):
     logging.log_first_n(logging.INFO, 'program store off: %s', 1, e)
     return jitted.lower(*args), None
 
+  if os.path.exists(_not_stored(path)):
+    return jitted.lower(*args), None
   exported = None
   if os.path.exists(path):
     try:
@@ -230,17 +232,40 @@ def _export(export, jitted, tree, leaves, out_tree, path):
     blob = pickle.dumps(dict(exported=bytes(exported.serialize()),
                              out_tree=out_tree),
                         protocol=pickle.HIGHEST_PROTOCOL)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix='.tmp')
+  except Exception as e:  # noqa: BLE001 - cannot be stored: the usual path
+    logging.info('program store: %s cannot be stored (%s: %s); it is traced '
+                 'in every process.', path, type(e).__name__, e)
+    # Recorded, so that later processes trace it at once instead of
+    # trying again (a new code or JAX version is a new name).
+    write_file(_not_stored(path), f'{type(e).__name__}: {e}'.encode())
+    return None, None
+  write_file(path, blob)
+  return exported, out_tree
+
+
+def _not_stored(path: str) -> str:
+  """The record that the program of ``path`` cannot be stored."""
+  return path[:-len('.jaxexport')] + '.notstored'
+
+
+def write_file(path: str, blob: bytes) -> bool:
+  """Writes ``blob`` to ``path`` whole (a temporary file renamed) and keeps
+  the :data:`KEEP` newest files of its name (``{name}_{hash}{suffix}``); a
+  failure (a full disk, a read-only folder) is logged and returns False:
+  it costs only the next process a trace or a build."""
+  try:
+    where = os.path.dirname(path)
+    os.makedirs(where, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=where, suffix='.tmp')
     with os.fdopen(fd, 'wb') as f:
       f.write(blob)
     os.replace(tmp, path)
-    prune(os.path.dirname(path), os.path.basename(path).rsplit('_', 1)[0])
-  except Exception as e:  # noqa: BLE001 - any failure: the usual path
-    logging.info('program store: %s not stored (%s: %s)', path,
-                 type(e).__name__, e)
-    return None, None
-  return exported, out_tree
+    name, suffix = os.path.splitext(os.path.basename(path))
+    prune(where, name.rsplit('_', 1)[0], suffix)
+  except OSError as e:
+    logging.info('program store: cannot write %s (%s)', path, e)
+    return False
+  return True
 
 
 def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:

@@ -263,6 +263,28 @@ class StoredJitTest(absltest.TestCase):
     self.assertFalse(os.path.isdir(os.path.join(self.folder,
                                                 program_store.FOLDER)))
 
+  def test_a_program_that_cannot_be_stored_is_traced_at_once_later(self):
+    import jax.numpy as jnp
+    from jax import export
+
+    state = {'x': jnp.arange(4.0).reshape(2, 2)}
+    tries = []
+
+    def refusing(*a, **k):
+      tries.append(1)
+      raise ValueError('custom call not guaranteed stable (test)')
+
+    with mock.patch.object(program_store, 'folder', lambda: self.folder), \
+        mock.patch.object(export, 'export', refusing):
+      a = self._fresh()(state, 2.0, 'a')
+      b = self._fresh()(state, 2.0, 'a')  # a new process: no second try
+    self.assertEqual((len(tries), len(self.traced)), (1, 2))
+    names = os.listdir(os.path.join(self.folder, program_store.FOLDER))
+    self.assertLen(names, 1)
+    self.assertTrue(names[0].endswith('.notstored'))
+    for out in (a, b):
+      np.testing.assert_array_equal(out[0]['y'], 2.0 * np.asarray(state['x']))
+
   def test_the_host_loop_reads_its_programs_back(self):
     # The pipeline's deformation, render and initial state are stored by a
     # first run and read back by a second (a new process: the in-process

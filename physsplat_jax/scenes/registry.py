@@ -17,7 +17,6 @@ import importlib
 import inspect
 import os
 import pickle
-import tempfile
 from typing import Callable
 
 from absl import logging
@@ -158,16 +157,12 @@ def _write(path: str, scene: Scene) -> None:
   try:
     host = jax.tree.map(
       lambda a: np.asarray(a) if isinstance(a, jax.Array) else a, scene)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix='.tmp')
-    with os.fdopen(fd, 'wb') as f:
-      pickle.dump(host, f, protocol=pickle.HIGHEST_PROTOCOL)
-    os.replace(tmp, path)
-    program_store.prune(os.path.dirname(path),
-                        os.path.basename(path).rsplit('_', 1)[0], '.pkl')
+    blob = pickle.dumps(host, protocol=pickle.HIGHEST_PROTOCOL)
   except Exception as e:  # noqa: BLE001 - the scene is built each time
     logging.info('scene store: %s not stored (%s: %s)', path,
                  type(e).__name__, e)
+    return
+  program_store.write_file(path, blob)
 
 
 def _read(path: str) -> Scene | None:
