@@ -20,6 +20,10 @@ and one that does not compile is compiled from a new trace, with a warning.
 Deviceless, for an H100 (jax 0.10.2), the tabletop's stored frame compiles
 to the same 20 kernels per substep, its Pallas stress kernel included.
 
+The stored files are pickles (the program and its result's tree): the
+cache folder must be the user's own, as JAX's compilation cache, whose
+compiled programs run as they are read, must be.
+
 :func:`stored_jit` is ``jax.jit`` with the same storage, for the smaller
 programs a run calls on concrete arrays (the host loop's deformation and
 render): called inside a trace, or without a cache folder, it is the plain
@@ -33,7 +37,9 @@ import hashlib
 import inspect
 import os
 import pickle
+import re
 import tempfile
+import threading
 from typing import Any, Callable, Sequence
 
 from absl import logging
@@ -48,8 +54,10 @@ _TRITON = '__gpu$xla.gpu.triton'
 # Stored programs kept per name (the oldest go first): each code change,
 # scene size or config is a new file (0.1-1 MB).
 KEEP = 32
-# Programs compiled in this process, by name and arguments.
+# Programs compiled in this process, by name and arguments (the host loop
+# compiles on two threads at once: the lock guards the dict).
 _COMPILED: dict = {}
+_LOCK = threading.Lock()
 
 
 @functools.lru_cache(maxsize=1)
@@ -87,8 +95,7 @@ def path_for(name: str, static_key: str, tree, leaves) -> str | None:
     return None
   import jaxlib  # noqa: PLC0415
 
-  device = next(iter(leaves[0].devices())) if leaves and hasattr(
-    leaves[0], 'devices') else jax.devices()[0]
+  device = _device(leaves)
   parts = [
     name, static_key, jax.__version__, jaxlib.__version__, device.platform,
     getattr(device, 'device_kind', ''), str(tree), _avals(leaves),
@@ -98,14 +105,26 @@ def path_for(name: str, static_key: str, tree, leaves) -> str | None:
   return os.path.join(base, FOLDER, f'{name}_{h.hexdigest()[:40]}.jaxexport')
 
 
-def _devices(leaves) -> tuple:
-  """The devices of the arguments' JAX arrays (a compiled program is bound
-  to them)."""
-  devices = set()
+def _device(leaves):
+  """The device a program of these arguments runs on: the first committed
+  array's, else the default device."""
   for a in leaves:
-    if isinstance(a, jax.Array):
-      devices |= a.sharding.device_set
-  return tuple(sorted(d.id for d in devices))
+    if isinstance(a, jax.Array) and getattr(a, 'committed', True):
+      return next(iter(a.devices()))
+  return jax.config.jax_default_device or jax.devices()[0]
+
+
+def _memo_key(leaves) -> tuple:
+  """What a compiled program depends on beyond the trace: the devices of
+  the committed arrays (a compiled program is bound to them), the default
+  device (where uncommitted ones go), and the settings a trace reads."""
+  committed = set()
+  for a in leaves:
+    if isinstance(a, jax.Array) and getattr(a, 'committed', True):
+      committed |= {d.id for d in a.sharding.device_set}
+  return (tuple(sorted(committed)), str(jax.config.jax_default_device),
+          bool(jax.config.jax_enable_x64),
+          str(jax.config.jax_default_matmul_precision))
 
 
 def _single_device(leaves) -> bool:
@@ -141,10 +160,10 @@ def compile_stored(jitted, args: Sequence[Any], *, name: str, out_tree,
   """
   compile_fn = compile_fn or (lambda lowered: lowered.compile())
   leaves, tree = jax.tree.flatten(tuple(args))
-  memo = (jitted, name, static_key, tree, _avals(leaves), _devices(leaves),
-          str(jax.config.jax_default_device))
-  if memo in _COMPILED:
-    return _COMPILED[memo]
+  memo = (jitted, name, static_key, tree, _avals(leaves), _memo_key(leaves))
+  with _LOCK:
+    if memo in _COMPILED:
+      return _COMPILED[memo]
   lowered, wrap = _lower(jitted, args, leaves, tree, name, static_key,
                          out_tree)
   if wrap is None:
@@ -157,9 +176,10 @@ def compile_stored(jitted, args: Sequence[Any], *, name: str, out_tree,
                       ' compiling it from a new trace.', name,
                       type(e).__name__, e)
       compiled = compile_fn(jitted.lower(*args))
-  if len(_COMPILED) >= 32:
-    _COMPILED.pop(next(iter(_COMPILED)))
-  _COMPILED[memo] = compiled
+  with _LOCK:
+    while len(_COMPILED) >= 32:
+      _COMPILED.pop(next(iter(_COMPILED)), None)
+    _COMPILED[memo] = compiled
   return compiled
 
 
@@ -218,21 +238,35 @@ def _export(export, jitted, tree, leaves, out_tree, path):
 
   def flat(*leaves):  # on flat leaves: no pytree types to store
     out = jitted(*jax.tree.unflatten(tree, leaves))
-    got.append(jax.tree.structure(out))
-    return tuple(jax.tree.leaves(out))
+    outs = jax.tree.leaves(out)
+    got.append((jax.tree.structure(out),
+                any(getattr(getattr(x, 'aval', None), 'weak_type', False)
+                    for x in outs)))
+    return tuple(outs)
 
+  # Arrays on the CPU of a GPU host (a render device of its own): a CPU
+  # program, not one for the default backend.
+  platform = _device(leaves).platform
+  platforms = (['cpu'] if platform == 'cpu' and jax.default_backend() != 'cpu'
+               else None)
   try:
     exported = export.export(
-      jax.jit(flat), disabled_checks=[
+      jax.jit(flat), platforms=platforms, disabled_checks=[
         export.DisabledSafetyCheck.custom_call(_TRITON)])(*leaves)
+    tree_out, weak = got[-1]
+    if weak:  # a stored program's results would lose their weak types
+      raise TypeError('a result is weakly typed (computed from Python '
+                      'scalars only)')
     if out_tree is None:
-      out_tree = got[-1]
-    elif got[-1] != out_tree:  # the caller's result tree is not this one
+      out_tree = tree_out
+    elif tree_out != out_tree:  # the caller's result tree is not this one
       return None, None
     blob = pickle.dumps(dict(exported=bytes(exported.serialize()),
                              out_tree=out_tree),
                         protocol=pickle.HIGHEST_PROTOCOL)
   except Exception as e:  # noqa: BLE001 - cannot be stored: the usual path
+    if not got:  # the function itself failed: its error comes from the
+      return None, None  # caller's own trace, and nothing is recorded
     logging.info('program store: %s cannot be stored (%s: %s); it is traced '
                  'in every process.', path, type(e).__name__, e)
     # Recorded, so that later processes trace it at once instead of
@@ -271,8 +305,10 @@ def write_file(path: str, blob: bytes) -> bool:
 def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:
   """Keeps the :data:`KEEP` newest files ``{name}_*{suffix}`` of ``where``
   (stored programs, or what else is stored beside them)."""
+  family = re.compile(re.escape(name) + r'_[0-9a-f]{40}' + re.escape(suffix)
+                      + '$')
   files = [os.path.join(where, f) for f in os.listdir(where)
-           if f.startswith(name + '_') and f.endswith(suffix)]
+           if family.match(f)]
   files.sort(key=os.path.getmtime)
   for old in files[:-KEEP]:
     try:
@@ -288,8 +324,15 @@ class StoredJit:
   Called on concrete arrays with a cache folder, it compiles (once per
   static values and argument shapes) from the stored program; inside a
   trace (``jit``, ``grad``, ``vmap``), under ``jax.disable_jit``, for
-  arrays on several devices, or without a cache folder it is the plain
-  ``jax.jit`` (the same program).
+  arrays on several devices, with unhashable static values, or without a
+  cache folder it is the plain ``jax.jit`` (the same program). The stored
+  program computes the same values; unlike ``jax.jit``'s, its results are
+  committed to the device it ran on, and a program with weakly typed
+  results is not stored. The stored name holds the function's module,
+  name and code and the static values' ``repr``, not values the function
+  closes over: give each program its own ``name``. Static arguments are
+  bound by name (no ``*args`` or positional-only parameters with
+  ``static_argnames``).
   """
 
   def __init__(self, fun: Callable, name: str,
@@ -300,6 +343,7 @@ class StoredJit:
     self._jit = jax.jit(fun, static_argnames=self._static)
     self._by_static: dict = {}
     self._signature = inspect.signature(fun) if self._static else None
+    self._identity = _code_identity(fun)
     functools.update_wrapper(self, fun)
 
   def __call__(self, *args, **kwargs):
@@ -310,17 +354,24 @@ class StoredJit:
     else:
       static = {}
     dynamic = (args, kwargs)
-    if (folder() is None or jax.config.jax_disable_jit
+    try:  # static values are hashed, as jax.jit does
+      statics = tuple(sorted(static.items()))
+      hash(statics)
+    except TypeError:
+      statics = None
+    if (statics is None or folder() is None or jax.config.jax_disable_jit
+        or not _trace_state_clean()
         or not _single_device(jax.tree.leaves(dynamic))):
       return self._jit(*args, **kwargs, **static)
-    key = repr(sorted(static.items()))
-    jitted = self._by_static.get(key)
+    jitted = self._by_static.get(statics)
     if jitted is None:
       fun = self._fun
       jitted = jax.jit(lambda args, kwargs: fun(*args, **kwargs, **static))
-      self._by_static[key] = jitted
+      with _LOCK:
+        jitted = self._by_static.setdefault(statics, jitted)
     compiled = compile_stored(jitted, dynamic, name=self._name,
-                              out_tree=None, static_key=key)
+                              out_tree=None,
+                              static_key=self._identity + repr(statics))
     return compiled(*dynamic)
 
   def lower(self, *args, **kwargs):
@@ -330,13 +381,47 @@ class StoredJit:
     """Forgets the compiled programs (this process's; the stored files
     stay)."""
     self._jit.clear_cache()
-    for memo in [m for m in _COMPILED
-                 if m[0] in self._by_static.values()]:
-      del _COMPILED[memo]
-    self._by_static.clear()
+    with _LOCK:
+      mine = set(map(id, self._by_static.values()))
+      for memo in [m for m in _COMPILED if id(m[0]) in mine]:
+        _COMPILED.pop(memo, None)
+      self._by_static.clear()
 
   def __getattr__(self, name):  # e.g. _cache_size: the plain jit's
-    return getattr(self.__dict__['_jit'], name)
+    if name == '_jit':
+      raise AttributeError(name)
+    return getattr(self._jit, name)
+
+
+def _trace_state_clean() -> bool:
+  """No transformation is tracing (then a call with concrete arguments is
+  staged into the trace, as ``jax.jit``'s is, not run at once)."""
+  try:
+    from jax._src import core  # noqa: PLC0415
+    return core.trace_state_clean()
+  except (ImportError, AttributeError):  # another JAX: trust the tracers
+    return True
+
+
+def _code_identity(fun) -> str:
+  """The function in the stored program's name: its module, qualified name
+  and code (two functions of one name, or an edited function outside the
+  package, are other programs; values it closes over are not seen)."""
+  code = getattr(fun, '__code__', None)
+  digest = ''
+  if code is not None:
+    h = hashlib.sha256()
+    stack = [code]
+    while stack:
+      c = stack.pop()
+      h.update(c.co_code)
+      h.update(repr([k for k in c.co_consts if not hasattr(k, 'co_code')]
+                    ).encode())
+      h.update(repr(c.co_names).encode())
+      stack += [k for k in c.co_consts if hasattr(k, 'co_code')]
+    digest = h.hexdigest()[:16]
+  return (f'{getattr(fun, "__module__", "")}.'
+          f'{getattr(fun, "__qualname__", repr(fun))}:{digest}:')
 
 
 def stored_jit(fun: Callable | None = None, *, name: str | None = None,

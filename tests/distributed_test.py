@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 from absl import flags
 from absl.testing import absltest
-from flax import struct
 
 from physsplat_jax import distributed as dist
 from physsplat_jax import mpm
 from physsplat_jax import pipeline as pl
+from physsplat_jax import struct
 from physsplat_jax.distributed import runtime
 
 _REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -182,18 +182,22 @@ class PruneTest(absltest.TestCase):
 
     tmp = tempfile.TemporaryDirectory()
     self.addCleanup(tmp.cleanup)
-    names = [f'mpm_frame_{i:02d}.jaxexport' for i in range(5)]
-    names += ['mpdp_predict_00.jaxexport', 'other.txt']
+    h = lambda i: f'{i:040x}'  # noqa: E731 - a 40-digit hash
+    names = [f'render_{h(i)}.jaxexport' for i in range(5)]
+    # Another family whose name starts alike, another suffix, other files.
+    names += [f'render_count_{h(9)}.jaxexport', f'render_{h(8)}.notstored',
+              'other.txt']
     for i, n in enumerate(names):
       path = os.path.join(tmp.name, n)
       with open(path, 'w') as f:
         f.write('x')
       os.utime(path, (time.time() + i, time.time() + i))
     with mock.patch.object(program_store, 'KEEP', 2):
-      program_store.prune(tmp.name, 'mpm_frame')
-    self.assertEqual(sorted(os.listdir(tmp.name)), [
-      'mpdp_predict_00.jaxexport', 'mpm_frame_03.jaxexport',
-      'mpm_frame_04.jaxexport', 'other.txt'])
+      program_store.prune(tmp.name, 'render')
+    self.assertEqual(sorted(os.listdir(tmp.name)), sorted([
+      f'render_{h(3)}.jaxexport', f'render_{h(4)}.jaxexport',
+      f'render_count_{h(9)}.jaxexport', f'render_{h(8)}.notstored',
+      'other.txt']))
 
 
 class StoredJitTest(absltest.TestCase):
@@ -216,7 +220,8 @@ class StoredJitTest(absltest.TestCase):
       traced.append(mode)
       out = {'y': state['x'] * scale + (0.0 if extra is None else extra),
              'n': jnp.sum(state['x'])}
-      return (out, state['x'].shape[0]) if mode == 'a' else (out, -1)
+      n = jnp.int32(state['x'].shape[0])  # not weakly typed: stored
+      return (out, n) if mode == 'a' else (out, jnp.int32(-1))
 
     program_store._COMPILED.clear()
     return program_store.stored_jit(fun, name='test_fun',
@@ -264,15 +269,19 @@ class StoredJitTest(absltest.TestCase):
                                                 program_store.FOLDER)))
 
   def test_a_program_that_cannot_be_stored_is_traced_at_once_later(self):
+    import jax
     import jax.numpy as jnp
     from jax import export
 
     state = {'x': jnp.arange(4.0).reshape(2, 2)}
     tries = []
 
-    def refusing(*a, **k):
-      tries.append(1)
-      raise ValueError('custom call not guaranteed stable (test)')
+    def refusing(fn, **k):  # traces, then refuses (as for a custom call)
+      def exporting(*args):
+        tries.append(1)
+        jax.make_jaxpr(fn)(*args)
+        raise ValueError('custom call not guaranteed stable (test)')
+      return exporting
 
     with mock.patch.object(program_store, 'folder', lambda: self.folder), \
         mock.patch.object(export, 'export', refusing):
@@ -284,6 +293,46 @@ class StoredJitTest(absltest.TestCase):
     self.assertTrue(names[0].endswith('.notstored'))
     for out in (a, b):
       np.testing.assert_array_equal(out[0]['y'], 2.0 * np.asarray(state['x']))
+
+  def test_what_names_a_stored_program(self):
+    import jax
+    import jax.numpy as jnp
+
+    x = jnp.arange(3.0)
+    with mock.patch.object(program_store, 'folder', lambda: self.folder):
+      # Two functions of one name are two programs.
+      add = program_store.stored_jit(lambda x: x + 1.0, name='same')
+      dbl = program_store.stored_jit(lambda x: x * 2.0, name='same')
+      np.testing.assert_array_equal(add(x), np.arange(3.0) + 1)
+      np.testing.assert_array_equal(dbl(x), np.arange(3.0) * 2)
+      # Under another matmul precision, another program (as jax.jit).
+      mm = program_store.stored_jit(lambda a: a @ a, name='mm')
+      mm(jnp.eye(2))
+      with jax.default_matmul_precision('highest'):
+        mm(jnp.eye(2))
+      self.assertEqual(sum(k[1] == 'mm' for k in program_store._COMPILED),
+                       2)
+      # Unhashable static values: jax.jit's own error, nothing stored.
+      f = program_store.stored_jit(lambda x, s: x, name='unhashable',
+                                   static_argnames=('s',))
+      with self.assertRaisesRegex(ValueError, 'hashable'):
+        f(x, s=np.ones(3))
+      # Weakly typed results (from Python scalars only) are not stored.
+      w = program_store.stored_jit(lambda x, s: (x, s * 2), name='weak')
+      _, r = w(x, 2.0)
+      self.assertTrue(r.weak_type)
+      # Called inside a trace, it is staged like jax.jit: nothing runs or
+      # is stored while tracing.
+      c = program_store.stored_jit(lambda x: x * 3.0, name='staged')
+      jaxpr = jax.make_jaxpr(lambda y: c(x) + y)(1.0)
+      self.assertIn('jit[', str(jaxpr))
+    stored = os.listdir(os.path.join(self.folder, program_store.FOLDER))
+    self.assertLen([n for n in stored if n.startswith('same_')], 2)
+    self.assertEqual([n.rsplit('.', 1)[1] for n in stored
+                      if n.startswith('weak_')], ['notstored'])
+    self.assertFalse([n for n in stored if n.startswith(('unhashable_',
+                                                          'staged_'))])
+    program_store._COMPILED.clear()
 
   def test_the_host_loop_reads_its_programs_back(self):
     # The pipeline's deformation, render and initial state are stored by a

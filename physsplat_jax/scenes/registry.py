@@ -14,6 +14,7 @@ from __future__ import annotations
 import difflib
 import hashlib
 import importlib
+import importlib.metadata
 import inspect
 import os
 import pickle
@@ -123,16 +124,22 @@ def _option_key(value):
 
 
 def _data_digest() -> str:
-  """The shipped scene files (sizes and times): a new file names new
-  stored scenes."""
+  """The shipped scene files (their contents, 3 ms) and the libraries the
+  builders use: a new file or version names new stored scenes."""
   here = os.path.join(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__))), 'data', 'scenes')
-  parts = []
+  h = hashlib.sha256()
   if os.path.isdir(here):
     for f in sorted(os.listdir(here)):
-      st = os.stat(os.path.join(here, f))
-      parts.append(f'{f}:{st.st_size}:{st.st_mtime_ns}')
-  return ';'.join(parts)
+      h.update(f.encode() + b'\0')
+      with open(os.path.join(here, f), 'rb') as fh:
+        h.update(fh.read())
+  for lib in ('trimesh', 'scipy', 'numpy'):
+    try:
+      h.update(f'{lib}={importlib.metadata.version(lib)}'.encode())
+    except importlib.metadata.PackageNotFoundError:
+      pass
+  return h.hexdigest()
 
 
 def _stored_path(name: str, options: dict) -> str | None:
@@ -146,7 +153,7 @@ def _stored_path(name: str, options: dict) -> str | None:
     return None
   h = hashlib.sha256('\0'.join(
     [name, *(f'{k}={v}' for k, v in keys.items()),
-     program_store.source_digest(), _data_digest(), np.__version__,
+     program_store.source_digest(), _data_digest(),
      str(jax.config.jax_enable_x64)]).encode())
   return os.path.join(base, FOLDER, f'{name}_{h.hexdigest()[:40]}.pkl')
 
