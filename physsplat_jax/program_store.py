@@ -374,9 +374,6 @@ class StoredJit:
                               static_key=self._identity + repr(statics))
     return compiled(*dynamic)
 
-  def lower(self, *args, **kwargs):
-    return self._jit.lower(*args, **kwargs)
-
   def clear_cache(self) -> None:
     """Forgets the compiled programs (this process's; the stored files
     stay)."""
@@ -387,7 +384,7 @@ class StoredJit:
         _COMPILED.pop(memo, None)
       self._by_static.clear()
 
-  def __getattr__(self, name):  # e.g. _cache_size: the plain jit's
+  def __getattr__(self, name):  # lower, _cache_size...: the plain jit's
     if name == '_jit':
       raise AttributeError(name)
     return getattr(self._jit, name)

@@ -12,6 +12,7 @@ files) and a later process reads it back in milliseconds: the same arrays.
 from __future__ import annotations
 
 import difflib
+import functools
 import hashlib
 import importlib
 import importlib.metadata
@@ -123,9 +124,11 @@ def _option_key(value):
   return None
 
 
+@functools.lru_cache(maxsize=1)
 def _data_digest() -> str:
   """The shipped scene files (their contents, 3 ms) and the libraries the
-  builders use: a new file or version names new stored scenes."""
+  builders use: a new file or version names new stored scenes (read once
+  per process, as the package's source digest is)."""
   here = os.path.join(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__))), 'data', 'scenes')
   h = hashlib.sha256()
