@@ -9,8 +9,10 @@ For every (shape, size, method) a fresh subprocess builds the object, jits
 the compile time (``lower().compile()``) apart from the run (minimum wall
 and process CPU time over ``--repeats`` runs, ``block_until_ready``), then
 times the neighbour search alone, and reports its peak resident memory
-(``ru_maxrss``, the whole process: Python, JAX and the data included) as
-one JSON line. ``brute`` (the O(N^2) search) is skipped where its
+(``ru_maxrss``, the whole process: Python, JAX and the data included) and,
+on a GPU, the device allocator's peak (``device_peak_mib``; set
+``XLA_PYTHON_CLIENT_PREALLOCATE=false`` so that it is what the case
+needed) as one JSON line. ``brute`` (the O(N^2) search) is skipped where its
 distance matrix alone would exceed ``--brute_max_gib``.
 
 Shapes (all valid points, scaled to about 0.1 m):
@@ -103,6 +105,18 @@ def _rss_mib() -> float:
   return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _device_peak_mib() -> float | None:
+  """Peak bytes the device's allocator held (MiB), where it reports them
+  (a GPU; the CPU client reports none)."""
+  try:
+    stats = jax.devices()[0].memory_stats()
+  except Exception:  # noqa: BLE001 -- a backend without statistics
+    return None
+  if not stats or 'peak_bytes_in_use' not in stats:
+    return None
+  return round(stats['peak_bytes_in_use'] / 2**20, 1)
+
+
 def run_case(shape: str, n: int, method: str, k: int, repeats: int) -> dict:
   """One measurement, in this process (see module docstring)."""
   pts = jnp.asarray(make_points(shape, n))
@@ -127,7 +141,8 @@ def run_case(shape: str, n: int, method: str, k: int, repeats: int) -> dict:
     out = compiled(pts, mask)
     res.update(num_repaired=int(out.num_repaired),
                num_brute=int(out.num_brute))
-  res.update(rss_before_mib=round(rss0), peak_rss_mib=round(_rss_mib()))
+  res.update(rss_before_mib=round(rss0), peak_rss_mib=round(_rss_mib()),
+             device_peak_mib=_device_peak_mib())
   return res
 
 

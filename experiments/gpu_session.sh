@@ -32,6 +32,10 @@
 #             per substep and none, the same bits; and the 50k-particle
 #             gradient of issue 17 (grad_finite_test's slow ScaleTest)
 #   mpm       benchmark_mpm block at 10k / 100k / 1M (no naive reference)
+#   mpdp      benchmark_mpdp: MPDP's field (grid neighbour search and the
+#             shipped network) on 200k and 1M points, a torus and the
+#             repeated donut: time, compile and the device's peak memory
+#             (issue 17: a 1M-point object on the GPU)
 #   render    benchmark_render at 1024^2, 100k and 1M Gaussians on a sphere:
 #             the JAX compositor, the compiled Pallas kernels (image PSNR
 #             and gradient differences against JAX) and gsplat, forward and
@@ -76,7 +80,7 @@ NO_GSPLAT=${NO_GSPLAT:-}
 GS=${NO_GSPLAT:+--nogsplat}
 SWEEPS="sweep_default sweep_pallas_block16 sweep_pallas_block64 \
 sweep_num_warps1 sweep_num_warps4"
-ORDER="env mpm_kernel mpm render donut video video_scene substep \
+ORDER="env mpm_kernel mpm mpdp render donut video video_scene substep \
 substep_graphs sorts pipeline pipeline_scenes pipeline_noautotune \
 $SWEEPS tests"
 STEPS=
@@ -165,6 +169,10 @@ $PY -m pip list 2>/dev/null | grep -i -E 'jax|flax|torch|gsplat|triton'"
 run_mpm() {
   step mpm 90 $PY -m experiments.benchmark_mpm \
     --sizes=10000,100000,1000000 --naive=false --grad=false
+}
+run_mpdp() {
+  step mpdp 150 $PY -m experiments.benchmark_mpdp --sizes=200000,1000000 \
+    --methods=grid --shapes=torus,donut --repeats=2 --out="$WORK/mpdp.json"
 }
 run_render() {
   gsplat_wait
