@@ -34,14 +34,9 @@ import time
 from absl import flags
 
 from experiments.lib import cli
+from experiments.lib.presets import PRESETS
 from physsplat_jax.pipeline import PipelineError
 
-PRESETS = {
-  'paper': dict(grid_res=64, num_frames=150, fps=30.0, substeps_per_frame=768,
-                width=800, height=800, max_particles=200_000),
-  'cpu': dict(grid_res=32, num_frames=36, fps=24.0, width=480, height=360,
-              max_particles=6_000),
-}
 
 _OUT = flags.DEFINE_string('out', 'out/bench_pipeline', 'output folder')
 _SCENES = flags.DEFINE_list('scenes', ['tabletop', 'ficus', 'donut'],

@@ -2,9 +2,11 @@
 
   python -m experiments.benchmark_substep                  # tabletop, demo
   python -m experiments.benchmark_substep --scene=ficus --out=sub.json
+  python -m experiments.benchmark_substep --scene=donut --preset=paper
 
 Prepares the scene with the `make demo` settings (experiments/configs/
-demo.py), then times one frame of ``--substeps`` substeps from the initial
+demo.py; ``--preset=paper``: the paper's, 64^3 and up to 200k particles, as
+``benchmark_pipeline --preset=paper`` simulates it), then times one frame of ``--substeps`` substeps from the initial
 state for each variant of the static MPM config (experiments/lib/
 substep.py: ``scene``, the pipeline's grouped substep; ``split``, the
 same with a constitutive slice per model on a GPU too; ``masked``;
@@ -42,6 +44,10 @@ from physsplat_jax import mpm
 from physsplat_jax.mpm import graphs
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
+_PRESET = flags.DEFINE_enum(
+  'preset', 'demo', substep_lib.PRESETS, 'settings the scene is prepared '
+  'with: demo (the `make demo` ones) or a benchmark_pipeline preset (paper: '
+  '64^3, 768 substeps/frame at 30 fps, up to 200k particles)')
 _SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
 _ROUNDS = flags.DEFINE_integer('rounds', 5, 'timed calls per variant')
 _VARIANTS = flags.DEFINE_list(
@@ -86,7 +92,7 @@ def _profile(name, fn, args, substeps):
 def main(argv):
   del argv
   prepared, state, mats, forces, sim_config = (
-    substep_lib.demo_scene_state(_SCENE.value))
+    substep_lib.demo_scene_state(_SCENE.value, _PRESET.value))
   if _START_FRAME.value > 0:
     advance = jax.jit(mpm.make_frame(sim_config))
     for _ in range(_START_FRAME.value):

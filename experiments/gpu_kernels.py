@@ -8,7 +8,8 @@ On a GPU a substep of a few thousand particles is bound by the number of
 kernels it launches, not by arithmetic (docs/benchmarks.md). XLA can compile
 for a GPU it does not see ("deviceless" compilation, a ``target_config``
 topology): this script prepares the scene with the `make demo` settings
-(experiments/configs/demo.py), compiles one frame of the MPM for the GPU
+(experiments/configs/demo.py; ``--preset=paper``: the paper's, as
+``benchmark_pipeline --preset=paper`` runs it), compiles one frame of the MPM for the GPU
 described by ``--spec`` (an XLA ``GpuTargetConfigProto``; default an H100
 SXM, experiments/configs/gpu_specs/), and counts in the optimised program
 the kernels of the substep: every instruction of the scan's body that XLA
@@ -65,6 +66,10 @@ from physsplat_jax.render.config import RenderConfig
 SPECS = pathlib.Path(__file__).parent / 'configs' / 'gpu_specs'
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
+_PRESET = flags.DEFINE_enum(
+  'preset', 'demo', substep_lib.PRESETS, 'settings the scene is prepared '
+  'with: demo (the `make demo` ones) or a benchmark_pipeline preset (paper: '
+  '64^3, 768 substeps/frame at 30 fps, up to 200k particles)')
 _SPEC = flags.DEFINE_string(
   'spec', str(SPECS / 'h100_sxm.txtpb'),
   'XLA GpuTargetConfigProto (text) of the GPU to compile for')
@@ -160,10 +165,10 @@ def compile_render(sharding, size: int, slots: int,
 
 def compile_simulate(sharding, scene_name: str, frames: int) -> list[dict]:
   """Compiles the whole differentiable ``simulate`` (MPDP field, MPM,
-  deformation, the render-only rasterizer) of a scene with the `make demo`
+  deformation, the render-only rasterizer) of a scene with ``--preset``'s
   settings for ``frames`` frames, and the gradient of a loss on the final
   Gaussian means (rendering off) with respect to every parameter."""
-  config, prepared, params = substep_lib.demo_scene(scene_name)
+  config, prepared, params = substep_lib.demo_scene(scene_name, _PRESET.value)
   config = dataclasses.replace(config, num_frames=frames,
                                constitutive_kernel=_KERNEL.value)
   sim = config.simulate
@@ -240,7 +245,7 @@ def main(argv):
     cli.write_json(_OUT.value, dict(info, rows=rows))
     return
   prepared, state, mats, forces, sim_config = (
-    substep_lib.demo_scene_state(_SCENE.value))
+    substep_lib.demo_scene_state(_SCENE.value, _PRESET.value))
   sim_config = dataclasses.replace(sim_config,
                                    substeps_per_frame=_SUBSTEPS.value)
   for name in _VARIANTS.value:

@@ -39,7 +39,8 @@ def _ops(fn, args, platform):
   text = jax.jit(fn).trace(*args).lower(
     lowering_platforms=(platform,)).as_text()
   ops = {op: len(re.findall(rf'stablehlo\.{op}\b', text))
-         for op in ('while', 'dot_general', 'scatter', 'reduce', 'gather')}
+         for op in ('while', 'dot_general', 'scatter', 'reduce', 'gather',
+                    'concatenate')}
   ops['triton'] = text.count('__gpu$xla.gpu.triton')
   return ops
 
@@ -58,6 +59,40 @@ class FormsAgreeTest(absltest.TestCase):
       d, s = (transfer.g2p(_GRID, st, gv, form=f) for f in ('dot', 'sum'))
       for p, q in zip(jax.tree.leaves(d), jax.tree.leaves(s)):
         np.testing.assert_allclose(p, q, rtol=1e-12, atol=1e-12)
+
+  def test_channels_select_equals_stack(self):
+    """P2G's per-particle channel blocks and the stencil's base indices:
+    the selects (GPU) give exactly the stacked arrays (CPU), scalars
+    (Python zeros) and integers included."""
+    rng = np.random.default_rng(4)
+    cols = [jnp.asarray(rng.normal(size=7)), 0.0,
+            jnp.asarray(rng.normal(size=7)), 2.5]
+    stack, select = (transfer._channels(cols, f) for f in ('stack', 'select'))
+    self.assertEqual(select.shape, (7, 4))
+    np.testing.assert_array_equal(stack, select)
+    ints = [jnp.asarray(rng.integers(0, 9, size=5), jnp.int32)
+            for _ in range(3)]
+    np.testing.assert_array_equal(transfer._channels(ints, 'select'),
+                                  np.stack(ints, axis=-1))
+    self.assertEqual(transfer._channels(ints, 'select').dtype, jnp.int32)
+
+  def test_block_weights_select_equals_stack(self):
+    """The stencil's weights as one (N, 3, 3) array of selects (GPU) and
+    as three stacks (CPU): the same bits; a partition of unity."""
+    rng = np.random.default_rng(5)
+    f = tuple(jnp.asarray(0.5 + rng.random(50), jnp.float32)
+              for _ in range(3))
+    stack, select = (transfer.block_weights(f, form)
+                     for form in ('stack', 'select'))
+    self.assertEqual(select.shape, (50, 3, 3, 3))
+    np.testing.assert_array_equal(stack, select)
+    np.testing.assert_allclose(jnp.sum(select, (1, 2, 3)), 1.0, rtol=1e-6)
+
+  def test_channel_forms_reject_an_unknown_form(self):
+    with self.assertRaisesRegex(ValueError, "'auto', 'stack' or 'select'"):
+      transfer._channels([jnp.zeros(3)], form='concat')
+    with self.assertRaisesRegex(ValueError, "'auto', 'stack' or 'select'"):
+      transfer.block_weights((jnp.zeros(3),) * 3, form='concat')
 
   def test_g2p_rejects_an_unknown_form(self):
     st = transfer.Stencil(_GRID, tuple(jnp.full((3, 2), 0.5)))
@@ -237,6 +272,27 @@ class PlatformFormsTest(absltest.TestCase):
     self.assertGreaterEqual(cpu['dot_general'], 1)
     self.assertEqual(cuda['dot_general'], 0)
     self.assertGreaterEqual(cuda['reduce'], 1)
+
+  def test_p2g_operands_are_not_concatenated_on_cuda(self):
+    """P2G and G2P (the stencil's weights, the per-particle channels, the
+    base indices): concatenations on the CPU, none on CUDA, where each was
+    a kernel of its own at the paper's sizes (docs/benchmarks.md)."""
+    x = jnp.full((3, 8), 0.3)
+    v = tuple(jnp.zeros(8) for _ in range(3))
+    A = tuple(tuple(jnp.zeros(8) for _ in range(3)) for _ in range(3))
+    gv = tuple(jnp.zeros((16,) * 3) for _ in range(3))
+
+    def transfers(x, v, A, gv):
+      st = transfer.Stencil(_GRID, tuple(x))
+      grid = transfer.p2g(_GRID, st, v, jnp.ones(8), A, jnp.ones(8))
+      return grid, transfer.g2p(_GRID, st, gv)
+
+    args = (x, v, A, gv)
+    cpu, cuda = (_ops(transfers, args, p) for p in ('cpu', 'cuda'))
+    self.assertGreaterEqual(cpu['concatenate'], 4)
+    # G2P's grid velocity (G, G, G, 3) is the one left: a grid-sized
+    # array, materialised before its gather on every platform.
+    self.assertEqual(cuda['concatenate'], 1)
 
   def test_render_ranges_have_no_loop_on_cuda(self):
     ids = jnp.zeros((64,), jnp.int32)

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 
 from experiments.configs import demo as demo_config
 from experiments.lib import cli
+from experiments.lib import presets
 from experiments.lib import simulate as lib
 from physsplat_jax import mpm
 from physsplat_jax import perception
@@ -35,24 +36,38 @@ VARIANTS = ('scene', 'split', 'masked', 'no_plane', 'no_plane_no_body',
             'bare')
 
 
-def demo_scene_state(scene_name: str):
+def demo_scene_state(scene_name: str, preset: str = 'demo'):
   """A scene prepared with the `make demo` settings (experiments/configs/
-  demo.py) and its initial MPM state.
+  demo.py; or a benchmark preset, :func:`demo_scene`) and its initial MPM
+  state.
 
   Returns:
     ``(prepared, state, materials, forces, sim_config)``.
   """
-  config, prepared, params = demo_scene(scene_name)
+  config, prepared, params = demo_scene(scene_name, preset)
   state, mats, forces, sim_config = simulation.initial_state(
     params, prepared, config, field=prepared.field)
   return prepared, state, mats, forces, sim_config
 
 
-def demo_scene(scene_name: str):
+PRESETS = ('demo',) + tuple(sorted(presets.PRESETS))
+
+
+def demo_scene(scene_name: str, preset: str = 'demo'):
   """``(config, prepared, params)`` of a scene with the `make demo`
-  settings."""
-  config = lib.build_config(scene_name, demo_config.get_config(),
-                            motions=demo_config.SCENE_MOTIONS)
+  settings (``preset='demo'``), or with a benchmark preset's
+  (experiments/lib/presets.py: ``'paper'`` is what ``benchmark_pipeline
+  --preset=paper`` simulates: experiments/configs/simulate.py's defaults
+  and scene motions under the preset's fields)."""
+  if preset == 'demo':
+    config = lib.build_config(scene_name, demo_config.get_config(),
+                              motions=demo_config.SCENE_MOTIONS)
+  elif preset in presets.PRESETS:
+    config = lib.build_config(scene_name, None,
+                              overrides=presets.PRESETS[preset])
+  else:
+    raise cli.usage_error(f'--preset: unknown {preset!r}; use one of '
+                          f'{", ".join(PRESETS)}')
   scene = scenes.load_scene(scene_name)
   materials = perception.perceive_scene(scene, None)
   prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,

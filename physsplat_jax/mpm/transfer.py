@@ -35,6 +35,87 @@ from physsplat_jax.mpm.base import GridSpec
 OFFSETS = tuple(itertools.product(range(3), repeat=3))
 
 
+_FORMS = ('auto', 'stack', 'select')
+
+
+def _check_form(form: str) -> None:
+  if form not in _FORMS:
+    raise ValueError(f"form={form!r}; use 'auto', 'stack' or 'select'")
+
+
+def _channels(cols, form: str = 'auto'):
+  """(N, C) array whose column ``c`` is ``cols[c]`` ((N,) arrays or
+  scalars).
+
+  ``form``: 'stack' (a concatenation), 'select' (selects on a constant
+  channel mask) or 'auto' (the stack on the CPU, the selects elsewhere,
+  chosen at lowering). The values are the same; the programs are not.
+  XLA:GPU emits a concatenation as a kernel of its own (an "input
+  fusion"): at the paper's sizes each of P2G's per-particle channel blocks
+  and the stencil's base indices became a kernel, where selects fuse into
+  the kernels that use them. On the CPU the selects made the substep
+  ~6-10 % slower (docs/benchmarks.md).
+  """
+  _check_form(form)
+  shape = next(jnp.shape(a) for a in cols if jnp.ndim(a))
+  cols = [jnp.broadcast_to(a, shape) for a in cols]
+
+  def stack(*cols):
+    return jnp.stack(cols, axis=-1)
+
+  def select(*cols):
+    ch = np.arange(len(cols))[None, :]
+    out = cols[-1][:, None]
+    for c in reversed(range(len(cols) - 1)):
+      out = jnp.where(ch == c, cols[c][:, None], out)
+    return jnp.broadcast_to(out, shape + (len(cols),))
+
+  if form == 'stack':
+    return stack(*cols)
+  if form == 'select':
+    return select(*cols)
+  return jax.lax.platform_dependent(*cols, cpu=stack, default=select)
+
+
+def _w1d(f):
+  """The quadratic B-spline's three 1D weights at fractional positions
+  ``f`` (offsets 0, 1, 2)."""
+  return 0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2
+
+
+def block_weights(f, form: str = 'auto'):
+  """(N, 3, 3, 3) weights ``w_x w_y w_z`` of fractional positions ``f`` (a
+  3-tuple of (N,) arrays), particle-major.
+
+  ``form`` as in :func:`_channels`: each axis's three weights stacked,
+  three (N, 3) arrays ('stack', the CPU's), or the three axes' weights as
+  one (N, 3, 3) array of selects ('select', elsewhere: at the paper's
+  sizes XLA:GPU made each of the three stacks a kernel of its own). The
+  same values either way.
+  """
+  _check_form(form)
+
+  def outer(w):
+    return (w[0][:, :, None, None] * w[1][:, None, :, None]
+            * w[2][:, None, None, :])
+
+  def stack(*f):
+    return outer([jnp.stack(_w1d(a), axis=-1) for a in f])      # 3 x (N, 3)
+
+  def select(*f):
+    fa = _channels(f, 'select')[:, :, None]                      # (N, 3, 1)
+    o = np.arange(3).reshape(1, 1, 3)
+    w0, w1, w2 = _w1d(fa)
+    w = jnp.where(o == 0, w0, jnp.where(o == 1, w1, w2))         # (N, 3, 3)
+    return outer([w[:, d] for d in range(3)])
+
+  if form == 'stack':
+    return stack(*f)
+  if form == 'select':
+    return select(*f)
+  return jax.lax.platform_dependent(*f, cpu=stack, default=select)
+
+
 def _offset_axis(e: int, dtype):
   """Stencil offsets 0, 1, 2 along axis e, shaped to broadcast with (3,3,3,N)."""
   shape = [1, 1, 1, 1]
@@ -75,20 +156,22 @@ class Stencil:
     return (w[0][:, None, None] * w[1][None, :, None]
             * w[2][None, None, :])
 
+  def block_weights(self):
+    """(N, 3, 3, 3) weights ``w_x w_y w_z``, particle-major
+    (:func:`block_weights`; computed once per stencil: P2G and G2P share
+    them)."""
+    if self._weights is None:
+      self._weights = block_weights(self.f)
+    return self._weights
+
   def weights(self):
     """(N, 27) weights ``w_x w_y w_z``, particle-major, offsets in
     :data:`OFFSETS` order."""
-    if self._weights is None:
-      w = [jnp.stack(self.w1d(d), axis=-1) for d in range(3)]     # (N, 3)
-      w = (w[0][:, :, None, None] * w[1][:, None, :, None]
-           * w[2][:, None, None, :]).reshape(-1, 27)
-      self._weights = w
-    return self._weights
+    return self.block_weights().reshape(-1, 27)
 
   def w1d(self, d: int):
     """The three 1D weights along axis d, each (N,)."""
-    f = self.f[d]
-    return (0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2)
+    return _w1d(self.f[d])
 
   def indices(self):
     """(27 N,) flat node indices, neighbour-major."""
@@ -167,14 +250,13 @@ def p2g(grid: GridSpec, st: Stencil, v, mass, A, extra=None):
   # paired plane: 4.29 ms per substep, against 6.69 with five channels,
   # 5.00 with two scatters and 4.01 without the channel).
   tail = [] if extra is None else [extra] + [z] * 3
-  Q = col(jnp.stack([mass] + q + tail, axis=-1))
-  Ae = [col(jnp.stack([z] + [dx * A[d][e] for d in range(3)] + [z] * len(tail),
-                      axis=-1))
+  Q = col(_channels([mass] + q + tail))
+  Ae = [col(_channels([z] + [dx * A[d][e] for d in range(3)]
+                      + [z] * len(tail)))
         for e in range(3)]
   o = [jnp.arange(3, dtype=mass.dtype).reshape(s)
        for s in ((1, 3, 1, 1, 1), (1, 1, 3, 1, 1), (1, 1, 1, 3, 1))]
-  w = [jnp.stack(st.w1d(d), axis=-1) for d in range(3)]          # (N, 3)
-  W = w[0][:, :, None, None] * w[1][:, None, :, None] * w[2][:, None, None, :]
+  W = st.block_weights()                                      # (N, 3, 3, 3)
   U = W[..., None] * (Q + o[0] * Ae[0] + o[1] * Ae[1] + o[2] * Ae[2])
   out = _scatter(st, U)
   return out if extra is None else out[..., :5]
@@ -184,7 +266,7 @@ def _scatter(st: Stencil, U):
   """Adds the (N, 3, 3, 3, C) window ``U`` of each particle into a
   (G, G, G, C) grid at its stencil base."""
   G = st.res
-  base = jnp.stack(st.base, axis=-1)                              # (N, 3)
+  base = _channels(st.base)                                       # (N, 3)
   dn = jax.lax.ScatterDimensionNumbers(
     update_window_dims=(1, 2, 3, 4), inserted_window_dims=(),
     scatter_dims_to_operand_dims=(0, 1, 2))
@@ -288,7 +370,7 @@ def g2p(grid: GridSpec, st: Stencil, gv, form: str = 'auto'):
   G = st.res
   g4 = jnp.stack([a.reshape(G, G, G) for a in gv], axis=-1)      # (G,G,G,3)
   g4 = materialize(g4)
-  base = jnp.stack(st.base, axis=-1)                              # (N, 3)
+  base = _channels(st.base)                                       # (N, 3)
   g = jax.lax.platform_dependent(g4, base, st.lin, cpu=_window_rows,
                                  default=_window_block)           # (N,27,3)
   R = window_moments(st.weights(), _o4(g.dtype), g, form)         # (N, 4, 3)
