@@ -87,6 +87,17 @@ class FormsAgreeTest(absltest.TestCase):
     self.assertEqual(select.shape, (50, 3, 3, 3))
     np.testing.assert_array_equal(stack, select)
     np.testing.assert_allclose(jnp.sum(select, (1, 2, 3)), 1.0, rtol=1e-6)
+    # and the same derivatives (the GPU form is differentiated there)
+    grads = [jax.grad(lambda f, form=form: jnp.sum(
+      transfer.block_weights(f, form) ** 2))(f) for form in ('stack', 'select')]
+    for p, q in zip(*grads):
+      np.testing.assert_allclose(p, q, rtol=1e-6, atol=1e-7)
+    cols = [jnp.asarray(rng.normal(size=6)) for _ in range(3)]
+    gs = [jax.grad(lambda c, form=form: jnp.sum(
+      transfer._channels(c, form) * jnp.arange(3.0)))(cols)
+      for form in ('stack', 'select')]
+    for p, q in zip(*gs):
+      np.testing.assert_array_equal(p, q)
 
   def test_channel_forms_reject_an_unknown_form(self):
     with self.assertRaisesRegex(ValueError, "'auto', 'stack' or 'select'"):
