@@ -49,6 +49,9 @@
 #             with a profile (device-busy time and the costliest kernels
 #             per substep), each with the stress update as one Pallas
 #             kernel (auto) and as XLA's fusion (jax)
+#   substep_paper  benchmark_substep at the paper preset (64^3, up to 200k
+#             particles: the donut's 58.9k, the tabletop's 10k) with a
+#             profile: where a paper-scale substep's time goes
 #   substep_graphs  the grouped and bare substeps with the frame launched
 #             as one CUDA graph per substep (SimConfig.gpu_graphs=
 #             'substep', XLA's default), one for the whole loop ('frame')
@@ -62,7 +65,8 @@
 #             (constitutive_kernel=jax) (issue 17); PIPELINE_RUNS replaces
 #             the list of runs (e.g. add warm@gpu_graphs=frame)
 #   pipeline_scenes  the same preset on ficus and the donut (up to 200k
-#             particles): cold and warm (issue 17's other scenes)
+#             particles): cold and warm (issue 17's other scenes);
+#             SCENES_RUNS replaces the list of runs (e.g. cold,warm,profile)
 #   pipeline_noautotune  the cold run with XLA's GPU autotuning off
 #   sweep_*   Pallas block and warps around the defaults (sweep_default),
 #             1M at 1024^2
@@ -81,7 +85,7 @@ GS=${NO_GSPLAT:+--nogsplat}
 SWEEPS="sweep_default sweep_pallas_block16 sweep_pallas_block64 \
 sweep_num_warps1 sweep_num_warps4"
 ORDER="env mpm_kernel mpm mpdp render donut video video_scene substep \
-substep_graphs sorts pipeline pipeline_scenes pipeline_noautotune \
+substep_paper substep_graphs sorts pipeline pipeline_scenes pipeline_noautotune \
 $SWEEPS tests"
 STEPS=
 for s in ${*:-all}; do
@@ -208,6 +212,13 @@ run_substep() {
     --variants=scene,split,masked,no_plane_no_body,bare --profile \
     --constitutive_kernels=auto,jax --out="$WORK/substep.json"
 }
+run_substep_paper() {
+  gsplat_wait
+  step substep_paper 150 bash -c "for s in donut tabletop; do $PY -m \
+experiments.benchmark_substep --preset=paper --scene=\$s \
+--variants=scene,bare --profile --out=$WORK/substep_paper_\$s.json || exit; \
+done"
+}
 # How the frame is launched (SimConfig.gpu_graphs), in one process: one
 # CUDA graph per substep (XLA's default, ours), the substep loop as one
 # graph (XLA's command buffers with WHILE) and no graphs.
@@ -243,7 +254,7 @@ warm@constitutive_kernel=jax} \
 run_pipeline_scenes() {
   gsplat_wait
   step pipeline_scenes 240 $PY -m experiments.benchmark_pipeline \
-    --preset=paper --scenes=ficus,donut --runs=cold,warm \
+    --preset=paper --scenes=ficus,donut --runs=${SCENES_RUNS:-cold,warm} \
     --out="$WORK/pipeline_scenes" --set="${PIPELINE_SET:-}"
 }
 # The cold run again with XLA's GPU autotuning off: how much of the cold
