@@ -26,6 +26,7 @@ from physsplat_jax.scenes import load_scene
 from physsplat_jax.render import RenderConfig
 from physsplat_jax.render import views
 from physsplat_jax.render.config import RASTERIZE_MODES
+from physsplat_jax.render.config import RenderInputError
 
 _SCENE = flags.DEFINE_string('scene', None, 'Built-in name or 3DGS path.')
 _OUT = flags.DEFINE_string('out', None, 'Output PNG.')
@@ -49,6 +50,14 @@ def main(argv):
   out = _OUT.value
   if os.path.isdir(out) or not out.lower().endswith('.png'):
     raise cli.usage_error(f'--out={out}: give the path of a .png file')
+  cli.check_output_file('out', out)  # (else it failed after rendering)
+  try:
+    background = views.parse_background(_BACKGROUND.value)
+  except RenderInputError:
+    raise cli.usage_error(
+      f'--background={_BACKGROUND.value}: give a name '
+      f'({", ".join(views.BACKGROUNDS)}) or three numbers in [0, 1] such as '
+      '"1,1,1"') from None
   logging.info('devices %s', jax.devices())
   scene = load_scene(_SCENE.value)
   camera = _CAMERA_INDEX.value
@@ -62,7 +71,7 @@ def main(argv):
   t0 = time.perf_counter()
   config = RenderConfig(rasterize_mode=_RASTERIZE_MODE.value)
   image = views.render_scene(scene, camera, _WIDTH.value, _HEIGHT.value,
-                             _BACKGROUND.value, sh_degree=_SH_DEGREE.value,
+                             background, sh_degree=_SH_DEGREE.value,
                              config=config)
   video.save_png(_OUT.value, image)
   logging.info('%s: %dx%d, %d Gaussians, %.2f s (incl. compile) -> %s',

@@ -89,6 +89,11 @@ def main(argv):
   logging.info('git %s, config %s', sha, config)
   if _PHYSGAUSSIAN.value:
     _check_physgaussian_flags()
+    if not os.path.isfile(_PHYSGAUSSIAN.value):
+      raise cli.usage_error(
+        f'--physgaussian={_PHYSGAUSSIAN.value}: no such file; give the path '
+        'of a PhysGaussian .json config (e.g. '
+        'experiments/configs/jelly_drop.json)')
     lib.run_physgaussian(_SCENE.value, _PHYSGAUSSIAN.value, _OUT.value,
                          config, ply=_PLY.value, auto_substeps=_AUTO.value)
     print(f'wrote {_OUT.value}')

@@ -486,9 +486,25 @@ def contact(res, ground=0.2537, seconds=1.0, surface='separate'):
     max_penetration_cells=pen, rigid_distance_change_m=drift)
 
 
+def friction_angles(values) -> list[float]:
+  """``--phis`` as angles in (0, 90) deg, or a usage error naming the flag
+  (``--phis=abc`` was a ValueError traceback)."""
+  try:
+    phis = [float(v) for v in values]
+  except ValueError:
+    phis = []
+  if not phis or not all(0.0 < p < 90.0 for p in phis):
+    raise cli.usage_error(f'--phis={",".join(map(str, values))}: give '
+                          'friction angles in (0, 90) deg separated by '
+                          'commas, such as --phis=20,30,40')
+  return phis
+
+
 def main(argv):
   del argv
   quick = _QUICK.value
+  phis = friction_angles(_PHIS.value)
+  cli.check_output_file('out', _OUT.value)  # before the cases run
   plan = {
     'free_fall': [(free_fall, dict(res=r)) for r in ((16,) if quick
                                                      else (16, 32))],
@@ -511,10 +527,10 @@ def main(argv):
     'contact': [(contact, dict(res=r, surface=f))
                 for r in ((24,) if quick else (24, 40))
                 for f in ('separate', 'sticky')],
-    'repose': [(angle_of_repose, dict(res=r, phi=float(p),
+    'repose': [(angle_of_repose, dict(res=r, phi=p,
                                       seconds=_REPOSE_SECONDS.value))
                for r in ((32,) if quick else (32, 48))
-               for p in _PHIS.value],
+               for p in phis],
   }
   unknown = [c for c in _CASES.value if c not in plan]
   if unknown:

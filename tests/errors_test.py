@@ -47,6 +47,20 @@ def _block_scene(n=6, spread=0.05):
                objects=(ObjectInfo('block'),), name='block')
 
 
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _script(module, *args):
+  """``python -m module args`` from the repository root: (exit code, its
+  ``error:`` line or the last line of stderr, stderr)."""
+  proc = subprocess.run([sys.executable, '-m', module, *args],
+                        capture_output=True, text=True, check=False,
+                        timeout=120, cwd=_ROOT)
+  lines = [ln for ln in proc.stderr.splitlines() if ln.strip()] or ['']
+  error = [ln for ln in lines if ln.startswith('error:')] or lines[-1:]
+  return proc.returncode, error[-1], proc.stderr
+
+
 def _run_guarded(exc):
   def main(argv):
     del argv
@@ -183,6 +197,77 @@ class ErrorPathTest(absltest.TestCase):
         self.assertIn('cli.run(', main)
         self.assertNotIn('app.run(', main)
 
+  def test_missing_config_file_with_overrides_is_one_line(self):
+    # With a --config.X override ml_collections raised from deep inside
+    # itself (a long traceback); without one it was already one line.
+    for args in (['--config=/no/such.py', '--config.num_frames=2'],
+                 ['--config=/no/such.py']):
+      code, error, stderr = _script('experiments.simulate',
+                                    '--out=/nonexistent', *args)
+      with self.subTest(len(args)):
+        self.assertEqual(code, 2, stderr)
+        self.assertNotIn('Traceback', stderr)
+        self.assertEqual(
+          error, "error: --config='/no/such.py': no such .py config file")
+
+  def test_render_checks_out_and_background_before_rendering(self):
+    # Each failed only after rendering (a raw errno message), or, for the
+    # background, was accepted.
+    with tempfile.TemporaryDirectory() as d:
+      blocker = os.path.join(d, 'somefile')
+      open(blocker, 'w').close()
+      cases = [([f'--out={blocker}/x.png'], 1,
+                f'error: --out={blocker}/x.png: output folder '
+                f"'{blocker}' is a file; give a folder name"),
+               ([f'--out={d}/x.png', '--background=2,0,0'], 2,
+                'error: --background=2,0,0: give a name (black, white, '
+                'grey, gray) or three numbers in [0, 1]')]
+      if os.path.isdir('/proc'):
+        cases.append((['--out=/proc/x.png'], 1,
+                      "error: --out=/proc/x.png: output folder '/proc' "
+                      'cannot be written'))
+      for args, want_code, want in cases:
+        code, error, stderr = _script('experiments.render', '--scene=donut',
+                                      *args)
+        with self.subTest(args[-1]):
+          self.assertEqual(code, want_code, stderr)
+          self.assertNotIn('Traceback', stderr)
+          self.assertTrue(error.startswith(want), error)
+      self.assertEqual(os.listdir(d), ['somefile'])  # nothing rendered
+
+  def test_validate_physics_checks_its_flags_before_the_cases(self):
+    # --phis=abc was float('abc') in a traceback; a bad --out failed after
+    # every case had run.
+    code, error, stderr = _script('experiments.validate_physics',
+                                  '--cases=repose', '--quick', '--phis=abc')
+    self.assertEqual(code, 2, stderr)
+    self.assertNotIn('Traceback', stderr)
+    self.assertEqual(error, 'error: --phis=abc: give friction angles in '
+                     '(0, 90) deg separated by commas, such as '
+                     '--phis=20,30,40')
+    with tempfile.TemporaryDirectory() as d:
+      blocker = os.path.join(d, 'somefile')
+      open(blocker, 'w').close()
+      out = os.path.join(blocker, 'x.json')
+      code, error, stderr = _script('experiments.validate_physics',
+                                    '--cases=free_fall', '--quick',
+                                    f'--out={out}')
+    self.assertEqual(code, 1, stderr)
+    self.assertTrue(error.startswith(f'error: --out={out}: output folder'),
+                    error)
+    self.assertNotIn('free_fall', stderr.replace('--cases=free_fall', ''))
+
+  def test_physgaussian_missing_file_names_its_flag(self):
+    # It said 'pass --config=PATH.json': --config is the .py config.
+    code, error, stderr = _script(
+      'experiments.simulate', '--out=/nonexistent',
+      '--physgaussian=/no/such.json')
+    self.assertEqual(code, 2, stderr)
+    self.assertEqual(
+      error, 'error: --physgaussian=/no/such.json: no such file; give the '
+      'path of a PhysGaussian .json config (e.g. '
+      'experiments/configs/jelly_drop.json)')
+
   def test_unexpected_errors_keep_their_traceback(self):
     with self.assertRaises(ZeroDivisionError):
       _run_guarded(ZeroDivisionError('bug'))
@@ -279,6 +364,18 @@ class ValidationTest(absltest.TestCase):
         outputs.check_output_dir(f)
       self.assertEqual(outputs.check_output_dir(os.path.join(d, 'a', 'b')),
                        os.path.join(d, 'a', 'b'))
+
+  def test_output_file_folder_checked_first(self):
+    with tempfile.TemporaryDirectory() as d:
+      f = os.path.join(d, 'file')
+      open(f, 'w').close()
+      with self.assertRaisesRegex(
+          outputs.OutputError, f'--out={f}/x.png: output folder .* is a '
+          'file; give a folder name'):
+        cli.check_output_file('out', os.path.join(f, 'x.png'))
+      cli.check_output_file('out', os.path.join(d, 'new', 'x.json'))
+      self.assertTrue(os.path.isdir(os.path.join(d, 'new')))
+      cli.check_output_file('out', None)
 
   def test_scene_problems_are_named(self):
     scene = _block_scene()
@@ -487,6 +584,23 @@ class ValidationTest(absltest.TestCase):
       self.assertEqual(code, 1)
     with self.assertRaisesRegex(PhysSplatError, 'expected name=key'):
       perception.parse_overrides('noequals')
+
+  def test_override_without_material_names_the_fix(self):
+    """A mapping without "material" for an object whose name matches no
+    library entry says to add one and which keys there are (it said only
+    what was missing)."""
+    from physsplat_jax import perception
+
+    scene = _block_scene().replace(objects=(ObjectInfo('OBJ'),))
+    opts = perception.PerceptionOptions(
+      overrides=perception.parse_overrides('OBJ={"E": 1e5, "nu": 0.5}'))
+    with self.assertRaisesRegex(
+        perception.MaterialChoiceError,
+        r'override for object \'OBJ\': no "material" given .*; add '
+        r'"material": KEY to the mapping, KEY a library key such as '
+        r"'\w+'.* \(all \d+: physsplat_jax\.perception\."
+        r'default_library\(\)\.keys, docs/materials\.md\)'):
+      perception.perceive_scene(scene, opts)
 
   def test_library_checks_are_package_errors(self):
     """The solver's, cameras' and samplers' own argument checks raise

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import tempfile
 
 import jax
@@ -130,6 +131,11 @@ class ErrorTest(parameterized.TestCase):
     ('_bool_E', {'E': True}, "'E'"),
     ('_n_grid_float', {'n_grid': 50.5}, "'n_grid'"),
     ('_nu_range', {'nu': 0.6}, "'nu'"),
+    # nu = 0.5 (incompressible: lambda infinite) passed the check before.
+    ('_nu_half', {'nu': 0.5}, r"'nu' = 0\.5 is outside \[0, 0\.5\)"),
+    ('_box_nu_half', {'additional_material_params': [
+      {'point': [1, 1, 1], 'size': [0.1, 0.1, 0.1], 'nu': 0.5}]},
+     r"additional_material_params\[0\]\.nu' = 0\.5 is outside \[0, 0\.5\)"),
     ('_negative_density', {'density': -1}, "'density'"),
     ('_g_len', {'g': [0, -9.8]}, "'g'"),
     ('_bc_type', {'boundary_conditions': [{'type': 'wall'}]}, 'wall'),
@@ -165,6 +171,22 @@ class ErrorTest(parameterized.TestCase):
     with self.assertRaisesRegex(pg.ConfigError, needle):
       pg.parse_config(raw, warn=False)
 
+  def test_incompressible_nu_names_file_and_field(self):
+    with tempfile.TemporaryDirectory() as d:
+      path = os.path.join(d, 'half.json')
+      for raw, field in (({'nu': 0.5}, "'nu'"),
+                         ({'additional_material_params': [
+                           {'point': [1, 1, 1], 'size': [0.1, 0.1, 0.1],
+                            'nu': 0.5}]},
+                          "'additional_material_params[0].nu'")):
+        with open(path, 'w') as f:
+          json.dump(raw, f)
+        want = (f'{re.escape(path)}: field {re.escape(field)} = 0.5 is '
+                r'outside \[0, 0\.5\); use a Poisson ratio')
+        with self.subTest(field), self.assertRaisesRegex(pg.ConfigError,
+                                                         want):
+          pg.load_config(path, warn=False)
+
   def test_type_error_names_value_and_type(self):
     with self.assertRaises(pg.ConfigError) as cm:
       pg.parse_config({'density': 'heavy'}, source='x.json', warn=False)
@@ -175,6 +197,11 @@ class ErrorTest(parameterized.TestCase):
   def test_missing_file_and_bad_json(self):
     with self.assertRaisesRegex(pg.ConfigError, 'does not exist'):
       pg.load_config('/nonexistent/cfg.json')
+    # A library call names no command-line flag (it said --config=, while
+    # experiments.simulate takes the file as --physgaussian).
+    with self.assertRaises(pg.ConfigError) as cm:
+      pg.load_config('/nonexistent/cfg.json')
+    self.assertNotIn('--config', str(cm.exception))
     with tempfile.TemporaryDirectory() as d:
       path = os.path.join(d, 'bad.json')
       with open(path, 'w') as f:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import sys
 import threading
 import time
@@ -29,6 +30,7 @@ from ml_collections import config_flags
 
 from physsplat_jax import compile_cache
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.io import outputs
 
 _DEBUG = flags.DEFINE_bool('debug', False,
                            'print the full traceback of an error')
@@ -69,7 +71,9 @@ def _unknown_field(e: Exception, argv) -> str | None:
 @contextlib.contextmanager
 def _flag_errors(argv):
   """A bad flag or config override raised inside as one ``error:`` line
-  and exit code 2: absl's errors, and ml_collections' AttributeError /
+  and exit code 2: absl's errors, ml_collections' OSError for a config
+  file that does not exist (raised while an override is applied, as
+  ``--config=/no/such.py --config.num_frames=2``), and its AttributeError /
   KeyError for a field that does not exist (re-raised when no argument
   names that field: then it is not a usage error)."""
   try:
@@ -77,6 +81,16 @@ def _flag_errors(argv):
   except flags.Error as e:
     print(f'error: {" ".join(str(e).split())}; --helpfull lists the flags',
           file=sys.stderr)
+    sys.exit(2)
+  except OSError as e:  # ml_collections: a config .py that does not exist
+    match = re.search(r'Failed loading config file (\w+)_config', str(e))
+    if match is None:
+      raise
+    name = match.group(1)
+    given = [a.split('=', 1)[1] for a in argv[1:]
+             if a.startswith(f'--{name}=')]
+    flag = f'--{name}={given[-1]!r}' if given else f'--{name}'
+    print(f'error: {flag}: no such .py config file', file=sys.stderr)
     sys.exit(2)
   except SyntaxError as e:  # a config .py that does not parse
     print(f'error: config file {e.filename}, line {e.lineno}: {e.msg}; fix '
@@ -106,6 +120,24 @@ def define_config_file(name: str, default: str | None, help_text: str,
   with _flag_errors(sys.argv):
     return config_flags.DEFINE_config_file(name, default, help_text,
                                            **kwargs)
+
+
+def check_output_file(flag: str, path: str | None) -> None:
+  """Checks up front that the folder of the output file ``path`` (given
+  as ``--flag``) exists or can be created and is writable
+  (:func:`physsplat_jax.io.outputs.check_output_dir`), so that a bad
+  ``--out`` fails before the work, not after it with a bare OS error.
+  Nothing when ``path`` is None or empty.
+
+  Raises:
+    OutputError: naming the flag, the folder and the fix.
+  """
+  if not path:
+    return
+  try:
+    outputs.check_output_dir(os.path.dirname(os.path.abspath(path)))
+  except outputs.OutputError as e:
+    raise outputs.OutputError(f'--{flag}={path}: {e}') from None
 
 
 def write_json(path: str | None, result) -> None:

@@ -265,9 +265,13 @@ def apply_spec(
   elif base is not None:
     entry, how = base, f'values over {base.key}'
   else:
+    keys = library.suggest(object_name) or list(library.keys[::11])
     raise MaterialChoiceError(
       f'{where}: no "material" given and the object name '
-      'matches no library material')
+      'matches no library material; add "material": KEY to the mapping, '
+      f'KEY a library key such as {", ".join(map(repr, keys))} (all '
+      f'{len(library)}: physsplat_jax.perception.default_library().keys, '
+      'docs/materials.md)')
   fields = {'E': entry.E_sim, 'nu': entry.nu_sim, 'rho': entry.rho_sim}
   for k_spec, k in (('E', 'E'), ('nu', 'nu'), ('rho', 'rho'),
                     ('density', 'rho')):

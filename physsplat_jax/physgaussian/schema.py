@@ -613,10 +613,10 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
   s = c.source
   if c.material not in CANONICAL_MODELS:
     material_name(c.material, s)
-  if not 0.0 <= c.nu <= 0.5:
+  if not 0.0 <= c.nu < 0.5:  # (0.5: incompressible, lambda infinite)
     raise ConfigError(
-      f'{_where(s, "nu")} = {c.nu!r} is outside [0, 0.5] (PhysGaussian '
-      'raises the same error); use a Poisson ratio in [0, 0.5).'
+      f'{_where(s, "nu")} = {c.nu!r} is outside [0, 0.5); use a Poisson '
+      'ratio in [0, 0.5) (0.3 for most solids, 0.45-0.49 for rubber).'
     )
   for name in ('E', 'density', 'grid_lim', 'substep_dt', 'frame_dt',
                'scale'):
@@ -654,10 +654,10 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
       raise ConfigError(f'{_where(s, "sim_area")} = {c.sim_area}: each min '
                         'must be below its max (xmin, xmax, ymin, ...).')
   for i, b in enumerate(c.additional_material_params):
-    if b.nu is not None and not 0.0 <= b.nu <= 0.5:
+    if b.nu is not None and not 0.0 <= b.nu < 0.5:
       raise ConfigError(
         f'{_where(s, f"additional_material_params[{i}].nu")} = {b.nu} is '
-        'outside [0, 0.5].'
+        'outside [0, 0.5); use a Poisson ratio in [0, 0.5).'
       )
     for name in ('E', 'density'):
       v = getattr(b, name)
@@ -685,8 +685,9 @@ def load_config(path: str | os.PathLike, warn: bool = True
   """
   path = os.fspath(path)
   if not os.path.isfile(path):
-    raise ConfigError(f'config file {path!r} does not exist; pass --config='
-                      'PATH.json pointing to a PhysGaussian config.')
+    raise ConfigError(f'PhysGaussian config file {path!r} does not exist; '
+                      'give the path of an existing PhysGaussian .json '
+                      'config.')
   with open(path) as f:
     try:
       raw = json.load(f)

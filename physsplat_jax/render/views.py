@@ -34,7 +34,12 @@ BACKGROUNDS = {
 
 
 def parse_background(value) -> tuple[float, float, float]:
-  """'white', 'black', 'grey', '0.1,0.2,0.3' or a 3-sequence -> RGB tuple."""
+  """'white', 'black', 'grey', '0.1,0.2,0.3' or a 3-sequence -> RGB tuple.
+
+  Raises:
+    RenderInputError: not a name nor three numbers in [0, 1] (NaN fails
+      the range check too).
+  """
   if isinstance(value, str):
     key = value.strip().lower()
     if key in BACKGROUNDS:
@@ -46,7 +51,7 @@ def parse_background(value) -> tuple[float, float, float]:
     rgb = tuple(float(p) for p in parts)
   except ValueError:
     rgb = ()
-  if len(rgb) != 3 or not all(np.isfinite(rgb)):
+  if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
     raise RenderInputError(
       f'background {value!r}: use a name ({", ".join(BACKGROUNDS)}) or three '
       'numbers in [0, 1] such as "1,1,1"'
