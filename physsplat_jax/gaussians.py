@@ -235,8 +235,15 @@ def eval_sh(sh: Array, dirs: Array, degree: int | None = None) -> Array:
   Returns:
     (..., 3) RGB, >= 0 (not clamped above, as in INRIA).
   """
+  have = int(round(np.sqrt(sh.shape[-2]))) - 1
   if degree is None:
-    degree = int(round(np.sqrt(sh.shape[-2]))) - 1
+    degree = have
+  if not 0 <= degree <= have:
+    # (Else the einsum below broadcast a size-1 SH axis: wrong colours.)
+    raise DataError(
+      f'eval_sh: degree {degree} asked of SH coefficients of degree {have} '
+      f'({sh.shape[-2]} per channel); use a degree in 0..{have}, or pad '
+      'the coefficients with zeros (Gaussians.with_sh_degree)')
   n = jnp.sqrt(jnp.maximum(jnp.sum(dirs * dirs, -1, keepdims=True), 1e-24))
   basis = sh_basis(degree, dirs / n)
   nb = (degree + 1) ** 2

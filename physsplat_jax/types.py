@@ -84,7 +84,10 @@ def sh_degree_from_bases(num_bases: int) -> int:
 
 def _nonfinite_rows(a) -> np.ndarray:
   """Indices of the rows of a concrete (K, ...) array holding a non-finite
-  value (the test runs where the array lives; K booleans come back)."""
+  value (the test runs where the array lives; K booleans come back).
+  Empty for K = 0 (the callers say what an empty set means to them)."""
+  if np.shape(a)[0] == 0:
+    return np.zeros(0, np.int64)
   if _in_host_memory(a):
     x = np.asarray(a)
     return np.flatnonzero(~np.isfinite(x.reshape(len(x), -1)).all(axis=1))

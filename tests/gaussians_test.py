@@ -73,6 +73,15 @@ class GaussiansTest(absltest.TestCase):
     rgb = G.eval_sh(g.sh, dirs, degree=0)
     np.testing.assert_allclose(rgb, jnp.maximum(g.rgb_dc, 0), atol=1e-6)
 
+  def test_sh_degree_above_the_coefficients_is_refused(self):
+    # The einsum broadcast the size-1 SH axis: wrong colours, no error.
+    g = test_util.random_gaussians(jax.random.PRNGKey(0), 3, sh_degree=0)
+    dirs = jnp.ones((3, 3))
+    with self.assertRaisesRegex(ps.types.DataError,
+                                r'degree 3 asked of SH coefficients of '
+                                r'degree 0 \(1 per channel\)'):
+      G.eval_sh(g.sh, dirs, degree=3)
+
   def test_sh_basis_orthonormal(self):
     # Monte-Carlo orthonormality of the real SH basis on the sphere
     # (each basis has norm 1/(4 pi) ... times 4 pi).

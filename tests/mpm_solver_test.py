@@ -173,6 +173,42 @@ class StepTest(absltest.TestCase):
                                           forces)
       self.assertGreater(float(jnp.abs(free.x - got.x).max()), 1e-6)
 
+  def test_eager_rollout_and_substep_check_their_inputs(self):
+    """Concrete bad inputs get mpm.run's messages (rollout returned NaN, or
+    ran with nu = 0.5); traced ones are not read."""
+    cfg = mpm.SimConfig(grid=mpm.GridSpec(res=8, size=1.0), dt=1e-3,
+                        substeps_per_frame=1)
+    x = _block(2, (0.45, 0.45, 0.45), 0.02)
+    mat = mpm.make_materials('fixed_corotated', 1e4, 0.3, 1000.0, num=8)
+    s = mpm.init_state(x, np.zeros(3), 1e-5, mat, cfg)
+    v = np.zeros((8, 3))
+    v[4, 1] = np.nan
+    cases = (
+      (s, mat.replace(nu=mat.nu.at[2].set(0.5)),
+       r'nu outside \(-1, 0\.5\) for 1 of 8 particles \(2\)'),
+      (s, mat.replace(E=mat.E.at[1].set(jnp.nan)),
+       r'material field E is not finite for 1 of 8 particles \(1\)'),
+      (s, mat.replace(E=0.0 * mat.E), 'E <= 0 for 8 of 8 particles'),
+      (s, mat.replace(rho=mat.rho.at[0].set(0.0)),
+       r'rho <= 0 for 1 of 8 particles \(0\)'),
+      (mpm.init_state(x, v, 1e-5, mat, cfg), mat,
+       r'the initial state has non-finite v for 1 of 8 particles \(4\)'))
+    substep_fn = mpm.make_substep(cfg)
+    for state, m, want in cases:
+      with self.subTest(want):
+        with self.assertRaisesRegex(mpm.MPMInputError, '^mpm: ' + want):
+          mpm.rollout(state, m, None, cfg, 1)
+        with self.assertRaisesRegex(mpm.MPMInputError, want):
+          substep_fn(state, m)
+        # Under tracing nothing is read (no error, no concretization).
+        out = jax.eval_shape(lambda a, b: mpm.rollout(a, b, None, cfg, 1)[1],
+                             state, m)
+        self.assertEqual(out.shape, (2, 8, 3))
+        # mpm.run's own check says 'mpm.run:'; check=False skips it.
+        with self.assertRaisesRegex(mpm.MPMInputError, '^mpm.run: ' + want):
+          mpm.FrameLoop(state, m, None, cfg, 1)
+        mpm.FrameLoop(state, m, None, cfg, 1, check=False)
+
 
 if __name__ == '__main__':
   absltest.main()

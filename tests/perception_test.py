@@ -415,6 +415,24 @@ class OfflineTest(parameterized.TestCase):
     self.assertEqual((c.source, c.material_key, c.E), ('config', 'jelly',
                                                        2e4))
 
+  def test_keys_naming_no_object_are_refused(self):
+    # A misspelt name was ignored: the object silently got another
+    # material. Names, indices as strings and '*' all match.
+    scene = _scene(('metal can', 'cube'))
+    for field in ('overrides', 'config_materials'):
+      for key in ('metal cam', 2, '2'):
+        opts = perception.PerceptionOptions(**{field: {key: 'rubber'}})
+        with self.subTest(field=field, key=key), self.assertRaisesRegex(
+            perception.MaterialChoiceError,
+            rf"PerceptionOptions\.{field} names \[{key!r}\] but scene .* has "
+            r"no such object; its objects are \['metal can', 'cube'\]"):
+          perception.perceive_scene(scene, opts)
+    a, b = perception.perceive_scene(scene, perception.PerceptionOptions(
+      overrides={'1': 'wood'}, config_materials={'*': 'jelly',
+                                                 'metal can': 'rubber'}))
+    self.assertEqual((a.source, a.material_key), ('config', 'rubber'))
+    self.assertEqual((b.source, b.material_key), ('override', 'wood'))
+
   def test_physgaussian_config(self):
     from physsplat_jax.physgaussian import parse_config
     cfg = parse_config({'material': 'metal', 'E': 1e5, 'nu': 0.3,

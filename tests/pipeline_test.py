@@ -159,6 +159,23 @@ class PrepareTest(absltest.TestCase):
         initial_velocity=(('table', (0.0, 0.0, 1.0)),)))
 
 
+  def test_movable_object_without_gaussians_is_refused(self):
+    # An empty box, an all -1 mask or an ObjectInfo no Gaussian points to:
+    # the object was dropped without a word (Params rows shifted).
+    scene = _scene()
+    ghost = scene.replace(objects=scene.objects + (ObjectInfo('ghost'),))
+    with self.assertRaisesRegex(
+        pl.PipelineError, r"movable object 'ghost' \(scene 'tiny'\) has no "
+        'Gaussians; remove it and its material, mark it fixed, or fix its '
+        'segmentation'):
+      pl.prepare_scene(0, ghost, [_RUBBER, _WOOD, _RUBBER], _config())
+    # An empty fixed object is harmless (nothing to collide with).
+    prep, _ = pl.prepare_scene(
+      0, scene.replace(objects=scene.objects + (ObjectInfo('shelf',
+                                                           fixed=True),)),
+      [_RUBBER, _WOOD, _WOOD], _config())
+    self.assertEqual(prep.spec.object_names, ('cube',))
+
   def test_the_stress_kernel_check_starts_with_the_preparation(self):
     """On a GPU with constitutive_kernel='auto', preparing a scene starts
     the stress kernel's build check in the background; not with 'jax', and
@@ -211,6 +228,47 @@ class SimulateTest(absltest.TestCase):
     np.testing.assert_allclose(traj.covariances[-1], traj.covariances[0],
                                atol=1e-3 * float(np.max(np.abs(
                                  traj.covariances[0]))))
+
+  def test_arguments_of_the_wrong_type_are_named(self):
+    # Swapped or missing arguments: AttributeError: ... no attribute 'spec'.
+    cfg = _config(num_frames=1)
+    prep, _ = pl.prepare_scene(0, _scene(), [_RUBBER, _WOOD], cfg)
+    params = pl.init_params(prep, cfg)
+    for args, want in (
+        ((prep, params), 'params must be a pipeline.Params, got '
+         'PreparedScene; the arguments are \\(params, prepared, config\\)'),
+        ((params, None), 'prepared must be a pipeline.PreparedScene, got '
+         'NoneType')):
+      for fn in (pl.simulate_jit, pl.simulate):
+        with self.subTest(want=want, fn=fn.__name__), \
+            self.assertRaisesRegex(pl.PipelineError, want):
+          fn(*args, cfg)
+
+  def test_check_finite_names_bad_inputs_before_the_time_step(self):
+    # A NaN initial velocity was blamed on the time step ("raise
+    # substeps_per_frame ... lower E").
+    cfg = _config(num_frames=1)
+    prep, _ = pl.prepare_scene(0, _scene(), [_RUBBER, _WOOD], cfg)
+    params = pl.init_params(prep, cfg)
+    traj = pl.simulate_jit(params, prep, cfg)
+    self.assertIs(pl.check_finite(traj, prep), traj)
+    bad = params.replace(velocity=params.velocity.at[0, 2].set(jnp.nan))
+    traj = pl.simulate_jit(bad, prep, cfg)
+    with self.assertRaisesRegex(
+        mpm.SimulationError, r"frame 1 \(objects \['cube'\]\), caused by "
+        r"the inputs, not the time step: Params\.velocity is not finite for "
+        r"objects \['cube'\]; give every movable object a finite initial "
+        r'velocity') as cm:
+      pl.check_finite(traj, prep)
+    self.assertNotIn('substeps_per_frame', str(cm.exception))
+    # Non-finite materials (here from the field).
+    field = jnp.ones((prep.num_particles, 3)).at[3, 0].set(jnp.nan)
+    traj = pl.simulate_jit(params, prep, cfg, field)
+    with self.assertRaisesRegex(mpm.SimulationError,
+                                r"inputs, not the time step: material E is "
+                                r"not finite for 1 of \d+ drivers \(objects "
+                                r"\['cube'\]\); check Params\.log_scale"):
+      pl.check_finite(traj, prep)
 
   def test_velocity_gradient_is_elapsed_time(self):
     scene = _scene(with_table=False)

@@ -306,6 +306,51 @@ class CapacityTest(parameterized.TestCase):
       self.assertTrue(issubclass(cls, PhysSplatError))
       self.assertTrue(issubclass(cls, ValueError))
 
+  def test_render_image_refuses_silently_wrong_inputs(self):
+    g = _scene(num=5)
+    cam = _camera(16, 16)
+    # No Gaussians: the package's message, not NumPy's reshape error.
+    with self.assertRaisesRegex(RenderInputError, r'no Gaussians \(K = 0\)'):
+      images.render_image(g.subset(np.zeros(5, bool)), cam)
+    # Non-finite covariances or rotations dropped the Gaussian without a
+    # word; covariances that are not symmetric positive definite drew it
+    # wrong.
+    covs = np.asarray(g.covariances)
+    nan = covs.copy()
+    nan[1, 0, 0] = np.nan
+    rots = np.tile(np.eye(3, dtype=np.float32), (5, 1, 1))
+    rots[3, 2, 2] = np.inf
+    asym = covs.copy()
+    asym[2, 0, 1] += 0.5
+    for kw, want in (
+        (dict(covariances=nan), r'covariances has non-finite values in 1 of '
+         r'5 rows \(rows 1\)'),
+        (dict(view_rotations=rots), r'view_rotations has non-finite values '
+         r'in 1 of 5 rows \(rows 3\)'),
+        (dict(covariances=-1e-3 * np.tile(np.eye(3, dtype=np.float32),
+                                          (5, 1, 1))),
+         r'covariances rows 0, 1, 2, 3, 4 \(5 of 5\) are not positive '
+         r'definite .*pass symmetric positive definite'),
+        (dict(covariances=asym), r'covariances rows 2 \(1 of 5\) are not '
+         'symmetric')):
+      with self.subTest(want), self.assertRaisesRegex(RenderInputError, want):
+        images.render_image(g, cam, **kw)
+    # Rounding is not refused: a flat Gaussian's smallest eigenvalue (1e-14
+    # of the largest) rounds to about zero in float32, and F Sigma F^T is
+    # symmetric only up to rounding.
+    flat = g.replace(log_scales=g.log_scales.at[:, 2].set(-16.0))
+    F = 0.3 * jax.random.normal(jax.random.PRNGKey(1), (5, 3, 3)) + jnp.eye(3)
+    for c in (g.covariances, flat.covariances,
+              F @ flat.covariances @ jnp.swapaxes(F, 1, 2)):
+      self.assertEqual([r.size for r in images._not_spd_rows(c)], [0, 0])
+    # An SH degree above the Gaussians' broadcast their one coefficient.
+    with self.assertRaisesRegex(
+        RenderConfigError, r'RenderConfig\.sh_degree=3, but the Gaussians '
+        r'have SH degree 0 .*Gaussians\.with_sh_degree\(3\)'):
+      images.render_image(g, cam, config=raster.RenderConfig(sh_degree=3))
+    with self.assertRaisesRegex(RenderConfigError, 'sh_degree=1'):
+      raster.render(g, cam, config=raster.RenderConfig(sh_degree=1))
+
 
 def gs_single(s, o):
   from physsplat_jax.types import Gaussians
@@ -564,6 +609,16 @@ class ShRotationTest(absltest.TestCase):
 
 
 class ViewsTest(absltest.TestCase):
+
+  def test_background_outside_unit_range_is_refused(self):
+    # '2,0,0' was accepted though the message (and --background's help)
+    # says three numbers in [0, 1].
+    for bad in ('2,0,0', '0,-0.1,0', (0.0, 0.0, 1.5), 'nan,0,0'):
+      with self.subTest(bad), self.assertRaisesRegex(
+          RenderInputError, r'three numbers in \[0, 1\]'):
+        views.parse_background(bad)
+    self.assertEqual(views.parse_background('0,1,0.5'), (0.0, 1.0, 0.5))
+    self.assertEqual(views.parse_background((1, 1, 1)), (1.0, 1.0, 1.0))
 
   def test_render_scene_fitted_camera_and_helpers(self):
     g = _scene(seed=31, num=60)

@@ -210,6 +210,18 @@ class SceneIOTest(parameterized.TestCase):
     self.assertEqual(sc.gaussians.num, 10)
     self.assertEqual(sc.objects[0].name, 'x')
 
+  def test_zero_image_size_is_refused(self):
+    # width=0 was taken for "unset": a 384-pixel-wide camera, no word.
+    ply = str(DATA / 'train_1000.ply')
+    for kw, want in ((dict(width=0, height=10), 'width=0'),
+                     (dict(width=10, height=0), 'height=0'),
+                     (dict(width=-3), 'width=-3')):
+      with self.subTest(want), self.assertRaisesRegex(
+          SceneFileError, want + r'; the image size must be >= 1 pixel'):
+        load_scene(ply, num_cameras=1, **kw)
+    cam = load_scene(ply, num_cameras=1, width=10, height=8).cameras[0]
+    self.assertEqual((cam.width, cam.height), (10, 8))
+
   def test_errors(self):
     with self.assertRaisesRegex(SceneFileError,
                                 'built-in scene .donut, ficus, tabletop'):

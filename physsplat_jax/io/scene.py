@@ -220,6 +220,13 @@ def load_scene_file(
 ) -> Scene:
   """Loads a ``.ply`` / ``.splat`` file as a scene; see :func:`load_scene`."""
   path = os.fspath(path)
+  for field, v in (('width', width), ('height', height)):
+    # (0 was taken for "unset" below and silently gave the default size.)
+    if v is not None and not v >= 1:
+      raise SceneFileError(
+        f'load_scene({path!r}): {field}={v!r}; the image size must be >= 1 '
+        f'pixel, or None (cameras from a file keep theirs, fitted ones get '
+        f'{DEFAULT_WIDTH}x{DEFAULT_HEIGHT})')
   ext = os.path.splitext(path)[1].lower()
   if ext == '.ply':
     g = load_ply(path, dtype=dtype)
@@ -307,12 +314,14 @@ def load_scene_file(
     details.update(guess.to_dict())
   if cams and (width is not None or height is not None):
     cams = tuple(
-      c.resized(width or c.width, height or c.height) for c in cams
+      c.resized(c.width if width is None else width,
+                c.height if height is None else height) for c in cams
     )
   if not cams and not exact:
     cams = fitted_orbit(
       np.asarray(g.means), up_axis, num_cameras,
-      width or DEFAULT_WIDTH, height or DEFAULT_HEIGHT, fov_deg,
+      DEFAULT_WIDTH if width is None else width,
+      DEFAULT_HEIGHT if height is None else height, fov_deg,
     )
   if meters_per_unit is None:
     meters_per_unit = side.get('meters_per_unit', 1.0) if side else 1.0

@@ -40,9 +40,11 @@ def _per_particle(a, n: int) -> np.ndarray:
   return a.reshape(n, -1) if a.ndim and a.shape[0] == n else a.reshape(1, -1)
 
 
-def check_run_inputs(state, materials, forces, config) -> None:
+def check_run_inputs(state, materials, forces, config,
+                     caller: str = 'mpm.run') -> None:
   """Raises :class:`MPMInputError` for an initial state, materials or
-  forces that no time step can simulate (names field, count, particles).
+  forces that no time step can simulate (names field, count, particles;
+  each message starts with ``caller``).
 
   Checked: at least one particle; finite material fields, density > 0,
   and for particles with a stress (every model but 'rigid') E > 0 and
@@ -52,7 +54,7 @@ def check_run_inputs(state, materials, forces, config) -> None:
   """
   n = int(np.shape(state.x)[0])
   if n == 0:
-    raise MPMInputError('mpm.run: the state has no particles; build it with '
+    raise MPMInputError(f'{caller}: the state has no particles; build it with '
                         'mpm.init_state from at least one position.')
   models = np.asarray(config.models)[np.asarray(materials.model_id)]
   stressed = models != 'rigid'
@@ -63,7 +65,7 @@ def check_run_inputs(state, materials, forces, config) -> None:
     bad = ~np.isfinite(a).all(axis=1)
     if bad.any():
       raise MPMInputError(
-        f'mpm.run: material field {name} is not finite for {int(bad.sum())} '
+        f'{caller}: material field {name} is not finite for {int(bad.sum())} '
         f'of {n} particles ({_rows(bad)}); check the materials (and the '
         'MPDP field or params they came from).')
   fault = material_fault(
@@ -72,7 +74,7 @@ def check_run_inputs(state, materials, forces, config) -> None:
   if fault:
     label, bad, fix = fault
     raise MPMInputError(
-      f'mpm.run: {label} for {int(bad.sum())} of {n} particles '
+      f'{caller}: {label} for {int(bad.sum())} of {n} particles '
       f'({_rows(bad)}); give each {fix}.')
   for name in ('x', 'v', 'F', 'C', 'mass', 'vol0'):
     a = getattr(state, name, None)
@@ -81,7 +83,7 @@ def check_run_inputs(state, materials, forces, config) -> None:
     bad = ~np.isfinite(_per_particle(a, n)).all(axis=1)
     if bad.any():
       raise MPMInputError(
-        f'mpm.run: the initial state has non-finite {name} for '
+        f'{caller}: the initial state has non-finite {name} for '
         f'{int(bad.sum())} of {n} particles ({_rows(bad)}); the inputs it '
         'was built from (positions, velocities, materials, params) are not '
         'finite.')
@@ -92,16 +94,16 @@ def check_run_inputs(state, materials, forces, config) -> None:
       low = ~(a >= 0).all(axis=1)
       if low.any():
         raise MPMInputError(
-          f'mpm.run: {name} < 0 for {int(low.sum())} of {n} particles '
+          f'{caller}: {name} < 0 for {int(low.sum())} of {n} particles '
           f'({_rows(low)}); give every particle a volume >= 0 and a '
           'density > 0.')
       if not (a > 0).any():
         raise MPMInputError(
-          f'mpm.run: {name} is 0 for all {n} particles, so nothing would '
+          f'{caller}: {name} is 0 for all {n} particles, so nothing would '
           'move; give the particles their volumes (init_state\'s volume, '
           '[m^3]).')
   for value, bc in zip(forces.values, config.boundary_conditions):
     if not np.all(np.isfinite(np.asarray(value))):
       raise MPMInputError(
-        f'mpm.run: the value of {type(bc).__name__} is not finite: '
+        f'{caller}: the value of {type(bc).__name__} is not finite: '
         f'{np.asarray(value).tolist()}')

@@ -349,7 +349,13 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   return substep
 
 
-def _check_inputs(state, materials, forces, config):
+def _check_inputs(state, materials, forces, config, values: bool = True):
+  """Types and sizes of a step's inputs; returns ``forces`` (the defaults
+  for None). With ``values``, concrete inputs (an eager ``rollout`` or
+  ``substep_fn`` call) also get :func:`inputs.check_run_inputs`, as
+  ``mpm.run`` does: a NaN velocity or ``nu = 0.5`` then fails with a
+  message naming the field, not as NaN positions. Traced inputs (under
+  ``jit``, ``grad``, ``vmap``) are not read."""
   if not isinstance(state, base.MPMState):
     raise TypeError('expected an MPMState (mpm.init_state) as the state.')
   if not isinstance(materials, base.Materials):
@@ -361,6 +367,9 @@ def _check_inputs(state, materials, forces, config):
       f'forces has {len(forces.values)} entries but the config has '
       f'{len(config.boundary_conditions)} boundary conditions; build it with '
       'mpm.make_forces(config).')
+  if values and not any(isinstance(a, jax.core.Tracer)
+                        for a in jax.tree.leaves((state, materials, forces))):
+    inputs.check_run_inputs(state, materials, forces, config, caller='mpm')
   return forces
 
 
@@ -637,7 +646,8 @@ class FrameLoop:
     num_frames = config.num_frames if num_frames is None else num_frames
     if num_frames is None:
       raise MPMInputError('run: pass num_frames (or set config.num_frames).')
-    self.forces = _check_inputs(state, materials, forces, config)
+    self.forces = _check_inputs(state, materials, forces, config,
+                                values=False)
     if check:
       inputs.check_run_inputs(state, materials, self.forces, config)
     # The frame program depends on neither the frame count nor

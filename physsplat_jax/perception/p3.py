@@ -387,6 +387,21 @@ def _lookup_spec(specs: Mapping[str, Any], info: ObjectInfo, index: int):
   return specs.get('*')
 
 
+def _check_spec_keys(scene: Scene, options: PerceptionOptions) -> None:
+  """Refuses override / config keys that match no object of ``scene`` (a
+  misspelt name was silently ignored: the object got another material)."""
+  names = scene.object_names
+  known = set(names) | {str(i) for i in range(len(names))} | {'*'}
+  for field in ('overrides', 'config_materials'):
+    bad = [k for k in getattr(options, field) if k not in known]
+    if bad:
+      raise choice_lib.MaterialChoiceError(
+        f'PerceptionOptions.{field} names {bad} but scene {scene.name!r} '
+        f'has no such object; its objects are {list(names)}. Use an '
+        f"object's name, its index as a string ('0'..'{len(names) - 1}') "
+        "or '*' (every object)")
+
+
 def _short(text: str, n: int = 80) -> str:
   t = ' '.join(text.split())
   return t if len(t) <= n else t[:n - 3] + '...'
@@ -598,6 +613,11 @@ def perceive_scene(
     One :class:`MaterialChoice` per object, in ``scene.objects`` order.
     Each is logged in one absl line naming its path and reason (WARNING
     level when something fell back, INFO otherwise).
+
+  Raises:
+    MaterialChoiceError: a bad override/config value, or a key of
+      ``options.overrides`` / ``config_materials`` that names no object of
+      the scene (the message lists the scene's objects).
   """
   options = (options or PerceptionOptions()).validate()
   library = library or default_library()
@@ -605,6 +625,7 @@ def perceive_scene(
     library[options.default_material]  # fail early on a bad default
   # Every override and config value is checked before any question is
   # asked: a bad one fails at once, not after the MLLM answered others.
+  _check_spec_keys(scene, options)
   given = [_given_choice(info, i, options, library)
            for i, info in enumerate(scene.objects)]
   if client is None and options.mllm.enabled:

@@ -216,8 +216,7 @@ def check_inputs(scene: Scene, materials: Sequence[Any]
                  ) -> tuple[list[int], list[int]]:
   """(movable, fixed) object indices; raises on anything unusable."""
   names = [o.name for o in scene.objects]
-  if isinstance(materials, (dict, str)) or not hasattr(materials,
-                                                       '__len__'):
+  if isinstance(materials, (dict, str)) or not hasattr(materials, '__len__'):
     raise PipelineError(
       f'materials must be a sequence with one material per object, in '
       f'scene.objects order (e.g. perception.perceive_scene(scene)); got '
@@ -256,10 +255,14 @@ def check_inputs(scene: Scene, materials: Sequence[Any]
   for o, info in enumerate(scene.objects):
     if np.any(ids == o):
       (fixed if info.fixed else movable).append(o)
+    elif not info.fixed:  # (was dropped silently: Params rows shifted)
+      raise PipelineError(
+        f'movable object {info.name!r} (scene {scene.name!r}) has no '
+        'Gaussians; remove it and its material, mark it fixed, or fix its '
+        'segmentation (an empty box, a mask that selects no Gaussian).')
   if not movable:
-    raise PipelineError(
-      f'scene {scene.name!r} has no movable object (all are fixed or '
-      'empty); clear ObjectInfo.fixed on the objects that should move.')
+    raise PipelineError(f'scene {scene.name!r} has no movable object; clear '
+                        'ObjectInfo.fixed on the objects that should move.')
   means = np.asarray(scene.gaussians.means)
   for o in movable:
     _check_material(names[o], materials[o])
@@ -656,9 +659,9 @@ def prepare_scene(
     (prepared scene, report).
 
   Raises:
-    PipelineError: nothing to simulate, a bad material or key, an object
-      too small for the grid, too few driving particles, or a run that would
-      need more than ``max_substeps_per_frame`` substeps per frame.
+    PipelineError: nothing to simulate, an empty movable object, a bad
+      material or key, an object too small for the grid, too few driving
+      particles, or over ``max_substeps_per_frame`` substeps per frame.
     DataError: Gaussians, object ids or ``meters_per_unit`` of the wrong
       shape or value (non-finite included), naming the field.
   """
@@ -763,7 +766,6 @@ def _report(scene, materials, movable, counts, fr, cand, x0, spec, c_max,
 
 
 def _prepare_old_order(scene, materials, config, mpdp_params):
-
   warnings.warn(
     'prepare_scene(scene, materials, config) is deprecated: pass the PRNG '
     'key first, prepare_scene(key, scene, materials, config) (the old order '
@@ -781,10 +783,9 @@ def init_params(prepared: PreparedScene,
   initial velocities and force vectors."""
   if use_mpdp is None:
     use_mpdp = getattr(config, 'use_mpdp', True)
+  mp = None
   if use_mpdp:
     mp = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
-  else:
-    mp = None
   names = prepared.spec.object_names
   vel = np.zeros((len(names), 3), np.float32)
   for name, v in config.initial_velocity:

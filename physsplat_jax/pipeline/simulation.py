@@ -30,6 +30,7 @@ from physsplat_jax import deform as deform_lib
 from physsplat_jax import mpdp
 from physsplat_jax import mpm
 from physsplat_jax import struct
+from physsplat_jax.mpm import inputs as mpm_inputs
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import ForceKind
 from physsplat_jax.pipeline.config import Ground
@@ -60,6 +61,9 @@ class Trajectory(struct.PyTreeNode):
     finite: (T+1,) bool, False from the first frame whose particle
       positions are not finite (the run went unstable; nothing inside jit
       can raise: :func:`check_finite` turns it into an error on the host).
+    params_finite: ``'velocity'`` and ``'log_scale'`` -> (O,) bool,
+      ``'forces'`` -> (len(config.forces),) bool: whether each row of those
+      :class:`Params` was finite (:func:`check_finite` names a bad one).
   """
 
   x: Array
@@ -70,6 +74,7 @@ class Trajectory(struct.PyTreeNode):
   render_overflow: Array | None
   materials: tuple[Array, Array, Array]
   finite: Array | None = None
+  params_finite: dict[str, Array] | None = None
 
 
 def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
@@ -166,10 +171,17 @@ def _mpm_materials(E, nu, rho, prepared: PreparedScene,
 
 
 def _check_params(params, prepared: PreparedScene, config) -> None:
-  """Shapes of :class:`Params` (static: safe under ``jit``)."""
+  """Types of the arguments, shapes of :class:`Params` (static: safe under
+  ``jit``)."""
+  order = ('the arguments are (params, prepared, config): '
+           'pipeline.init_params(prepared, config) makes params, '
+           'pipeline.prepare_scene(key, scene, materials, config) prepared')
   if not isinstance(params, Params):
-    raise PipelineError(f'params must be a pipeline.Params (init_params), got '
-                        f'{type(params).__name__}')
+    raise PipelineError(f'params must be a pipeline.Params, got '
+                        f'{type(params).__name__}; {order}')
+  if not isinstance(prepared, PreparedScene):
+    raise PipelineError(f'prepared must be a pipeline.PreparedScene, got '
+                        f'{type(prepared).__name__}; {order}')
   O = len(prepared.spec.object_names)
   for name, want in (('log_scale', (O, 3)), ('velocity', (O, 3)),
                      ('forces', (len(config.forces), 3))):
@@ -186,8 +198,8 @@ def initial_state(params: Params, prepared: PreparedScene,
   """``(state, materials, forces, sim_config)`` at frame 0 (pure);
   ``field`` as in :func:`driver_materials`."""
   config = as_simulate_config(config)
-  spec = prepared.spec
   _check_params(params, prepared, config)
+  spec = prepared.spec
   sim_config = make_sim_config(spec, config, prepared.x0.dtype)
   E, nu, rho = driver_materials(params, prepared, config, field)
   materials = _mpm_materials(E, nu, rho, prepared, sim_config)
@@ -300,10 +312,13 @@ def simulate(params: Params, prepared: PreparedScene,
     images, overflow = outs.image, outs.overflow
   x_scene = prepared.frame.to_scene(xs)
   ok = jnp.all(jnp.isfinite(xs), axis=(1, 2))
+  rows_ok = lambda a: jnp.all(jnp.isfinite(a), axis=1)  # noqa: E731
   return Trajectory(x=x_scene, means=means, covariances=covs, rotations=rots,
                     images=images, render_overflow=overflow,
                     materials=(materials.E, materials.nu, materials.rho),
-                    finite=jnp.cumprod(ok.astype(jnp.int32)).astype(bool))
+                    finite=jnp.cumprod(ok.astype(jnp.int32)).astype(bool),
+                    params_finite={k: rows_ok(getattr(params, k)) for k in
+                                   ('velocity', 'log_scale', 'forces')})
 
 
 _simulate_jit = jax.jit(simulate, static_argnames=('config', 'rollout_fn'))
@@ -315,32 +330,79 @@ def simulate_jit(params: Params, prepared: PreparedScene,
                  rollout_fn: Callable | None = None) -> Trajectory:
   """:func:`simulate`, jitted; compiles once per :class:`SimulateConfig`
   and prepared-scene spec (host-side settings never recompile it)."""
+  _check_params(params, prepared, as_simulate_config(config))
   return _simulate_jit(params, prepared, as_simulate_config(config), field,
                        rollout_fn=rollout_fn)
 
 
 def check_finite(traj: Trajectory, prepared: PreparedScene) -> Trajectory:
   """Returns ``traj`` or raises ``SimulationError`` naming the first frame
-  whose positions are not finite, the object and the likely fix (host
-  side, after a jitted :func:`simulate`)."""
+  whose positions are not finite, the objects and the likely fix (host
+  side, after a jitted :func:`simulate`).
+
+  Bad inputs are named before the time step is blamed: non-finite
+  ``Params`` rows (velocity, log_scale, forces), materials that no time
+  step can simulate (the checks of ``mpm.run``: finite, rho > 0, E > 0 and
+  -1 < nu < 0.5 but for rigid objects), non-finite initial positions.
+  """
   finite = np.asarray(traj.finite)
   if finite.all():
     return traj
   f = int(np.argmin(finite))
   x = np.asarray(traj.x[f])
   bad = ~np.all(np.isfinite(x), axis=1)
-  objs = sorted({prepared.spec.object_names[i] for i in
-                 np.asarray(prepared.driver_object)[bad]})
-  E = np.asarray(traj.materials[0])
-  inputs_bad = not np.all(np.isfinite(E))
-  cause = ('non-finite materials or params (check Params and the field)'
-           if inputs_bad else
-           'the time step is too large for the stiffest material or the '
-           'speeds reached: raise substeps_per_frame (or lower cfl), lower E '
-           'or the initial velocities and forces')
+  spec = prepared.spec
+  dobj = np.asarray(prepared.driver_object)
+  objs = sorted({spec.object_names[i] for i in dobj[bad]})
+  fault = _input_fault(traj, spec, dobj)
+  if fault is not None:
+    raise mpm.SimulationError(
+      f'non-finite particle positions from frame {f} (objects {objs}), '
+      f'caused by the inputs, not the time step: {fault}.')
   raise mpm.SimulationError(
     f'the simulation went unstable at frame {f} (first non-finite particle '
-    f'positions, objects {objs}): {cause}.')
+    f'positions, objects {objs}): the time step is too large for the '
+    'stiffest material or the speeds reached: raise substeps_per_frame (or '
+    'lower cfl), lower E or the initial velocities and forces.')
+
+
+def _input_fault(traj: Trajectory, spec: SimSpec, dobj: np.ndarray
+                 ) -> str | None:
+  """What is wrong with the inputs of ``traj``'s run, or None."""
+  names = spec.object_names
+
+  def rows_of(ok):
+    return [int(i) for i in np.flatnonzero(~np.asarray(ok))]
+
+  fixes = dict(
+    velocity='give every movable object a finite initial velocity [m/s]',
+    log_scale='give finite log-multipliers of (E, nu, rho)',
+    forces='give every ForceSpec a finite vector')
+  for k, ok in (traj.params_finite or {}).items():
+    rows = rows_of(ok)
+    if rows:
+      which = (f'forces {rows}' if k == 'forces' else
+               f'objects {[names[i] for i in rows]}')
+      return f'Params.{k} is not finite for {which}; {fixes[k]}'
+  E, nu, rho = (np.asarray(a, np.float64) for a in traj.materials)
+  for label, v in (('E', E), ('nu', nu), ('rho', rho)):
+    nonfinite = ~np.isfinite(v)
+    if nonfinite.any():
+      objs = sorted({names[i] for i in dobj[nonfinite]})
+      return (f'material {label} is not finite for {int(nonfinite.sum())} '
+              f'of {v.size} drivers (objects {objs}); check Params.log_scale, '
+              'the MPDP params and the field')
+  stressed = np.asarray(spec.models)[dobj] != 'rigid'
+  fault = mpm_inputs.material_fault(E, nu, rho, stressed)
+  if fault is not None:
+    label, mask, fix = fault
+    objs = sorted({names[i] for i in dobj[mask]})
+    return (f'{label} for {int(mask.sum())} of {mask.size} drivers (objects '
+            f'{objs}); give each {fix}')
+  x0 = np.asarray(traj.x[0])
+  if not np.isfinite(x0).all():
+    return 'the initial particle positions are not finite; prepare again'
+  return None
 
 
 def assemble_scene(prepared: PreparedScene, means, covs, rots):

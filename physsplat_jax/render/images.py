@@ -29,8 +29,10 @@ from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import DataError
 from physsplat_jax.types import Gaussians
+from physsplat_jax.types import _nonfinite_rows
 from physsplat_jax.types import check_camera
 from physsplat_jax.types import check_gaussians
+from physsplat_jax.types import rows_text
 
 # pylint: disable=protected-access
 
@@ -263,6 +265,69 @@ def render_image_async(
     config, K, differentiable, max_retries, fetch, clip, headroom)
 
 
+# Relative tolerance, in units of the dtype's eps, of the symmetry and
+# positive-definiteness checks of covariances: F Sigma F^T computed in
+# float32 is symmetric only up to rounding, and the smallest eigenvalue of a
+# flat Gaussian's covariance can round to slightly below zero.
+_COV_EPS_UNITS = 64
+
+
+def _not_spd_rows(covariances) -> tuple[np.ndarray, np.ndarray]:
+  """Rows of a concrete (K, 3, 3) array that are not symmetric, and rows
+  (of the symmetric ones) that are not positive definite, up to rounding.
+
+  Positive definite by Sylvester's criterion (leading minors > 0) of
+  ``C + tol |C|_max I``: a matrix positive semi-definite up to rounding
+  passes, a negative, zero or indefinite one does not.
+  """
+  c = np.asarray(covariances)
+  tol = _COV_EPS_UNITS * np.finfo(np.result_type(c.dtype, np.float32)).eps
+  c = c.astype(np.float64)
+  size = np.abs(c).max(axis=(1, 2))
+  asym = np.abs(c - np.swapaxes(c, 1, 2)).max(axis=(1, 2)) > tol * size
+  s = 0.5 * (c + np.swapaxes(c, 1, 2)) + (tol * size)[:, None, None] * \
+    np.eye(3)
+  a, b, c2 = s[:, 0, 0], s[:, 0, 1], s[:, 0, 2]
+  d, e, f = s[:, 1, 1], s[:, 1, 2], s[:, 2, 2]
+  m2 = a * d - b * b
+  m3 = a * (d * f - e * e) - b * (b * f - e * c2) + c2 * (b * e - d * c2)
+  not_pd = ~asym & ~((a > 0) & (m2 > 0) & (m3 > 0))
+  return np.flatnonzero(asym), np.flatnonzero(not_pd)
+
+
+def _check_covariances(K: int, covariances, view_rotations) -> None:
+  """Refuses concrete non-finite ``covariances`` or ``view_rotations``
+  (the Gaussian was dropped from the image without a word) and
+  covariances that are not symmetric positive definite (drawn wrong
+  without a word). Tracers are left alone."""
+  for name, a in (('covariances', covariances),
+                  ('view_rotations', view_rotations)):
+    if a is None or isinstance(a, jax.core.Tracer):
+      continue
+    if np.shape(a) != (K, 3, 3):
+      continue  # the renderer's shape check says what is expected
+    rows = _nonfinite_rows(a)
+    if rows.size:
+      raise RenderInputError(
+        f'render_image: {name} has non-finite values in {rows.size} of {K} '
+        f'rows (rows {rows_text(rows)}); each row must be a finite 3x3 '
+        'matrix (check the deformation gradients F that built them)')
+  if covariances is None or isinstance(covariances, jax.core.Tracer) or \
+      np.shape(covariances) != (K, 3, 3):
+    return
+  asym, not_pd = _not_spd_rows(covariances)
+  for rows, what in ((asym, 'not symmetric'),
+                     (not_pd, 'not positive definite')):
+    if rows.size:
+      first = np.asarray(covariances)[rows[0]]
+      raise RenderInputError(
+        f'render_image: covariances rows {rows_text(rows)} ({rows.size} of '
+        f'{K}) are {what} (row {int(rows[0])}: '
+        f'{np.round(first.astype(np.float64), 6).tolist()}); pass '
+        'symmetric positive definite 3x3 covariances, e.g. '
+        'Gaussians.covariances, or F Sigma F^T with an invertible F')
+
+
 def render_image(
   gaussians: Gaussians,
   camera: Camera,
@@ -294,9 +359,10 @@ def render_image(
     :class:`RenderOutput` of NumPy arrays (``overflow`` is False).
 
   Raises:
-    RenderInputError: non-finite values in the Gaussians, ``colors`` or
-      ``background`` (which may also be a name: 'white', 'black', 'grey');
-      wrong shapes.
+    RenderInputError: non-finite values in the Gaussians, ``colors``,
+      ``covariances``, ``view_rotations`` or ``background`` (which may also
+      be a name: 'white', 'black', 'grey'); covariances that are not
+      symmetric positive definite; wrong shapes.
     RenderCapacityError: (a RuntimeError) still overflowing after
       ``max_retries`` re-runs.
   """
@@ -314,6 +380,7 @@ def render_image(
   for name, a in (('colors', colors), ('background', background)):
     if a is not None and not np.all(np.isfinite(np.asarray(a))):
       raise RenderInputError(f'render_image: {name} has non-finite values')
+  _check_covariances(gaussians.means.shape[0], covariances, view_rotations)
   return render_image_async(
     gaussians, camera, background=background, covariances=covariances,
     view_rotations=view_rotations, colors=colors, config=config,

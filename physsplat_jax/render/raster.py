@@ -138,6 +138,18 @@ def _check_inputs(gaussians, camera, background, covariances, view_rotations,
     raise RenderInputError(
       f'render: colors has shape {colors.shape}; expected ({K}, 3) RGB'
     )
+  if colors is None and config.sh_degree is not None:
+    # A degree above the coefficients given was silently wrong: eval_sh's
+    # einsum broadcast a size-1 SH axis over the higher bands.
+    have = gaussians.sh_degree
+    if not 0 <= config.sh_degree <= have:
+      raise RenderConfigError(
+        f'RenderConfig.sh_degree={config.sh_degree}, but the Gaussians have '
+        f'SH degree {have} (Gaussians.sh has shape {gaussians.sh.shape}); '
+        f'use sh_degree=None (all they have) or a degree in 0..{have}, or '
+        f'pad them with Gaussians.with_sh_degree({config.sh_degree}) (zero '
+        'higher bands)'
+      )
   if np.shape(background) != (3,):
     raise RenderInputError(
       f'render: background has shape {np.shape(background)}; expected (3,) '
