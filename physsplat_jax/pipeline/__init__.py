@@ -48,7 +48,6 @@ from physsplat_jax.pipeline.prepare import Params as Params
 from physsplat_jax.pipeline.prepare import PrepareReport as PrepareReport
 from physsplat_jax.pipeline.prepare import PreparedScene as PreparedScene
 from physsplat_jax.pipeline.prepare import SimSpec as SimSpec
-from physsplat_jax.pipeline.prepare import init_params as init_params
 from physsplat_jax.pipeline.prepare import prepare_scene as prepare_scene
 from physsplat_jax.pipeline.simulation import Trajectory as Trajectory
 from physsplat_jax.pipeline.simulation import assemble_scene as assemble_scene
@@ -59,6 +58,7 @@ from physsplat_jax.pipeline.simulation import (
 from physsplat_jax.pipeline.simulation import (
   driver_materials as driver_materials,
 )
+from physsplat_jax.pipeline.simulation import init_params as init_params
 from physsplat_jax.pipeline.simulation import initial_state as initial_state
 from physsplat_jax.pipeline.simulation import make_sim_config as make_sim_config
 from physsplat_jax.pipeline.simulation import render_frame as render_frame

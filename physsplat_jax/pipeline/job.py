@@ -23,8 +23,8 @@ from physsplat_jax.pipeline.config import PipelineConfig
 from physsplat_jax.pipeline.config import PipelineError
 from physsplat_jax.pipeline.host import RunOutput
 from physsplat_jax.pipeline.host import run
-from physsplat_jax.pipeline.prepare import init_params
 from physsplat_jax.pipeline.prepare import prepare_scene
+from physsplat_jax.pipeline.simulation import init_params
 from physsplat_jax.types import Scene
 
 

@@ -773,28 +773,3 @@ def _prepare_old_order(scene, materials, config, mpdp_params):
     DeprecationWarning, stacklevel=3)
   key = jax.random.PRNGKey(getattr(config, 'seed', 0))
   return prepare_scene(key, scene, materials, config, mpdp_params)
-
-
-def init_params(prepared: PreparedScene,
-                config: PrepareConfig | PipelineConfig,
-                mpdp_params: Any = None, use_mpdp: bool | None = None
-                ) -> Params:
-  """Default :class:`Params`: pretrained MPDP, perceived means, the config's
-  initial velocities and force vectors."""
-  if use_mpdp is None:
-    use_mpdp = getattr(config, 'use_mpdp', True)
-  mp = None
-  if use_mpdp:
-    mp = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
-  names = prepared.spec.object_names
-  vel = np.zeros((len(names), 3), np.float32)
-  for name, v in config.initial_velocity:
-    if name:
-      vel[names.index(name)] = v
-    else:
-      vel[:] = v
-  forces = np.array([f.vector for f in config.forces], np.float32).reshape(
-    len(config.forces), 3)
-  return Params(mpdp=mp,
-                log_scale=device_array(np.zeros((len(names), 3), np.float32)),
-                velocity=device_array(vel), forces=device_array(forces))

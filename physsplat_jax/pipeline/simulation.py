@@ -1,4 +1,5 @@
-"""The pure part: ``simulate(params, prepared, config)``.
+"""The pure part: ``simulate(params, prepared, config)``, and its default
+parameters (:func:`init_params`).
 
 ``simulate`` is a pure function of the differentiable ``params``
 (:class:`~physsplat_jax.pipeline.Params`: MPDP weights, per-object
@@ -20,7 +21,7 @@ particle-sharded one.
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,7 @@ from physsplat_jax.pipeline.config import ForceKind
 from physsplat_jax.pipeline.config import Ground
 from physsplat_jax.pipeline.config import PipelineConfig
 from physsplat_jax.pipeline.config import PipelineError
+from physsplat_jax.pipeline.config import PrepareConfig
 from physsplat_jax.pipeline.config import RenderMode
 from physsplat_jax.pipeline.config import SimulateConfig
 from physsplat_jax.pipeline.config import as_simulate_config
@@ -44,6 +46,7 @@ from physsplat_jax.pipeline.prepare import PreparedScene
 from physsplat_jax.pipeline.prepare import SimSpec
 from physsplat_jax.render import raster
 from physsplat_jax.types import Array
+from physsplat_jax.types import device_array
 
 
 class Trajectory(struct.PyTreeNode):
@@ -75,6 +78,31 @@ class Trajectory(struct.PyTreeNode):
   materials: tuple[Array, Array, Array]
   finite: Array | None = None
   params_finite: dict[str, Array] | None = None
+
+
+def init_params(prepared: PreparedScene,
+                config: PrepareConfig | PipelineConfig,
+                mpdp_params: Any = None, use_mpdp: bool | None = None
+                ) -> Params:
+  """Default :class:`Params`: pretrained MPDP, perceived means, the config's
+  initial velocities and force vectors."""
+  if use_mpdp is None:
+    use_mpdp = getattr(config, 'use_mpdp', True)
+  mp = None
+  if use_mpdp:
+    mp = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
+  names = prepared.spec.object_names
+  vel = np.zeros((len(names), 3), np.float32)
+  for name, v in config.initial_velocity:
+    if name:
+      vel[names.index(name)] = v
+    else:
+      vel[:] = v
+  forces = np.array([f.vector for f in config.forces], np.float32).reshape(
+    len(config.forces), 3)
+  return Params(mpdp=mp,
+                log_scale=device_array(np.zeros((len(names), 3), np.float32)),
+                velocity=device_array(vel), forces=device_array(forces))
 
 
 def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
