@@ -269,6 +269,15 @@ class SimulateTest(absltest.TestCase):
                                 r"not finite for 1 of \d+ drivers \(objects "
                                 r"\['cube'\]\); check Params\.log_scale"):
       pl.check_finite(traj, prep)
+    # A NaN density leaves every position finite (the particle's NaN mass
+    # is masked out of the grid; it stands still): still refused.
+    field = jnp.ones((prep.num_particles, 3)).at[3, 2].set(jnp.nan)
+    traj = pl.simulate_jit(params, prep, cfg, field)
+    self.assertTrue(np.asarray(traj.finite).all())
+    with self.assertRaisesRegex(mpm.SimulationError,
+                                r"positions stayed finite but the inputs are "
+                                r"not: material rho is not finite for 1 of "):
+      pl.check_finite(traj, prep)
 
   def test_velocity_gradient_is_elapsed_time(self):
     scene = _scene(with_table=False)

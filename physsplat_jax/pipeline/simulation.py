@@ -372,15 +372,22 @@ def check_finite(traj: Trajectory, prepared: PreparedScene) -> Trajectory:
   ``Params`` rows (velocity, log_scale, forces), materials that no time
   step can simulate (the checks of ``mpm.run``: finite, rho > 0, E > 0 and
   -1 < nu < 0.5 but for rigid objects), non-finite initial positions.
+  Non-finite ``Params`` rows or materials raise even when every position
+  stayed finite: a particle of NaN mass drops out of the grid and stands
+  still (its NaN is masked out), which is no simulation either.
   """
   finite = np.asarray(traj.finite)
+  spec = prepared.spec
+  dobj = np.asarray(prepared.driver_object)
   if finite.all():
+    fault = _input_fault(traj, spec, dobj, nonfinite_only=True)
+    if fault is not None:
+      raise mpm.SimulationError(
+        f'the positions stayed finite but the inputs are not: {fault}.')
     return traj
   f = int(np.argmin(finite))
   x = np.asarray(traj.x[f])
   bad = ~np.all(np.isfinite(x), axis=1)
-  spec = prepared.spec
-  dobj = np.asarray(prepared.driver_object)
   objs = sorted({spec.object_names[i] for i in dobj[bad]})
   fault = _input_fault(traj, spec, dobj)
   if fault is not None:
@@ -394,9 +401,10 @@ def check_finite(traj: Trajectory, prepared: PreparedScene) -> Trajectory:
     'lower cfl), lower E or the initial velocities and forces.')
 
 
-def _input_fault(traj: Trajectory, spec: SimSpec, dobj: np.ndarray
-                 ) -> str | None:
-  """What is wrong with the inputs of ``traj``'s run, or None."""
+def _input_fault(traj: Trajectory, spec: SimSpec, dobj: np.ndarray,
+                 nonfinite_only: bool = False) -> str | None:
+  """What is wrong with the inputs of ``traj``'s run, or None
+  (``nonfinite_only``: only non-finite ``Params`` rows and materials)."""
   names = spec.object_names
 
   def rows_of(ok):
@@ -420,6 +428,8 @@ def _input_fault(traj: Trajectory, spec: SimSpec, dobj: np.ndarray
       return (f'material {label} is not finite for {int(nonfinite.sum())} '
               f'of {v.size} drivers (objects {objs}); check Params.log_scale, '
               'the MPDP params and the field')
+  if nonfinite_only:
+    return None
   stressed = np.asarray(spec.models)[dobj] != 'rigid'
   fault = mpm_inputs.material_fault(E, nu, rho, stressed)
   if fault is not None:
