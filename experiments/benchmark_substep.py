@@ -44,10 +44,7 @@ from physsplat_jax import mpm
 from physsplat_jax.mpm import graphs
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
-_PRESET = flags.DEFINE_enum(
-  'preset', 'demo', substep_lib.PRESETS, 'settings the scene is prepared '
-  'with: demo (the `make demo` ones) or a benchmark_pipeline preset (paper: '
-  '64^3, 768 substeps/frame at 30 fps, up to 200k particles)')
+_PRESET = substep_lib.define_preset()
 _SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
 _ROUNDS = flags.DEFINE_integer('rounds', 5, 'timed calls per variant')
 _VARIANTS = flags.DEFINE_list(

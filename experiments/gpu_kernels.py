@@ -66,10 +66,7 @@ from physsplat_jax.render.config import RenderConfig
 SPECS = pathlib.Path(__file__).parent / 'configs' / 'gpu_specs'
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
-_PRESET = flags.DEFINE_enum(
-  'preset', 'demo', substep_lib.PRESETS, 'settings the scene is prepared '
-  'with: demo (the `make demo` ones) or a benchmark_pipeline preset (paper: '
-  '64^3, 768 substeps/frame at 30 fps, up to 200k particles)')
+_PRESET = substep_lib.define_preset()
 _SPEC = flags.DEFINE_string(
   'spec', str(SPECS / 'h100_sxm.txtpb'),
   'XLA GpuTargetConfigProto (text) of the GPU to compile for')

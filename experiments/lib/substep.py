@@ -20,6 +20,7 @@ from unittest import mock
 
 import jax
 import jax.numpy as jnp
+from absl import flags
 
 from experiments.configs import demo as demo_config
 from experiments.lib import cli
@@ -51,6 +52,19 @@ def demo_scene_state(scene_name: str, preset: str = 'demo'):
 
 
 PRESETS = ('demo',) + tuple(sorted(presets.PRESETS))
+
+
+def define_preset() -> flags.FlagHolder:
+  """``--preset`` (one of :data:`PRESETS`, default 'demo'), for the
+  scripts that prepare a scene's substep (``benchmark_substep``,
+  ``gpu_kernels``); the holder of the one already defined when both are
+  imported into one process."""
+  if 'preset' in flags.FLAGS:
+    return flags.FlagHolder(flags.FLAGS, flags.FLAGS['preset'])
+  return flags.DEFINE_enum(
+    'preset', 'demo', PRESETS, 'settings the scene is prepared with: demo '
+    '(the `make demo` ones) or a benchmark_pipeline preset (paper: 64^3, 768 '
+    'substeps/frame at 30 fps, up to 200k particles)')
 
 
 def demo_scene(scene_name: str, preset: str = 'demo'):

@@ -300,20 +300,20 @@ def _check_covariances(K: int, covariances, view_rotations) -> None:
   (the Gaussian was dropped from the image without a word) and
   covariances that are not symmetric positive definite (drawn wrong
   without a word). Tracers are left alone."""
-  for name, a in (('covariances', covariances),
-                  ('view_rotations', view_rotations)):
-    if a is None or isinstance(a, jax.core.Tracer):
-      continue
-    if np.shape(a) != (K, 3, 3):
-      continue  # the renderer's shape check says what is expected
+  given = {name: a for name, a in (('covariances', covariances),
+                                    ('view_rotations', view_rotations))
+           # (a wrong shape: the renderer's shape check says what is
+           # expected)
+           if a is not None and not isinstance(a, jax.core.Tracer)
+           and np.shape(a) == (K, 3, 3)}
+  for name, a in given.items():
     rows = _nonfinite_rows(a)
     if rows.size:
       raise RenderInputError(
         f'render_image: {name} has non-finite values in {rows.size} of {K} '
         f'rows (rows {rows_text(rows)}); each row must be a finite 3x3 '
         'matrix (check the deformation gradients F that built them)')
-  if covariances is None or isinstance(covariances, jax.core.Tracer) or \
-      np.shape(covariances) != (K, 3, 3):
+  if 'covariances' not in given:
     return
   asym, not_pd = _not_spd_rows(covariances)
   for rows, what in ((asym, 'not symmetric'),
