@@ -82,7 +82,7 @@ def sh_degree_from_bases(num_bases: int) -> int:
   return d
 
 
-def _nonfinite_rows(a) -> np.ndarray:
+def nonfinite_rows(a) -> np.ndarray:
   """Indices of the rows of a concrete (K, ...) array holding a non-finite
   value (the test runs where the array lives; K booleans come back).
   Empty for K = 0 (the callers say what an empty set means to them)."""
@@ -151,7 +151,7 @@ def check_gaussians(g: Gaussians, where: str = 'gaussians', *,
       a = getattr(g, name)
       if name == 'normals' or isinstance(a, jax.core.Tracer):
         continue
-      rows = _nonfinite_rows(a)
+      rows = nonfinite_rows(a)
       if rows.size:
         raise DataError(
           f'{where}: {rows.size} of {K} Gaussians have non-finite {name} '

@@ -255,19 +255,23 @@ class TrainTest(absltest.TestCase):
       mcfg = model_lib.ModelConfig.from_dict(config.model.to_dict())
       predict = jax.jit(model_lib.make_predict(mcfg))
       tx = train_lib.make_optimizer(config.train)
-      abstract = {'step': jnp.asarray(0, jnp.int32), 'params': r1['params'],
-                  'opt_state': tx.init(r1['params'])}
-      abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
+      fresh = model_lib.init_params(jax.random.key(1), mcfg)
+      template = {'step': jnp.asarray(0, jnp.int32), 'params': fresh,
+                  'opt_state': tx.init(fresh)}
       with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints')) as m:
         self.assertEqual(m.latest_step(), config.train.num_steps)
-        restored = m.restore(m.latest_step(), args=ocp.args.StandardRestore(
-          abstract))
+        restored = train_lib.restore_latest(m, template)
       self.assertEqual(int(restored['step']), config.train.num_steps)
+      # Placed as a new run's state is (uncommitted), so a jitted step
+      # reuses the program compiled for the new run.
+      self.assertFalse(any(a.committed for a in jax.tree.leaves(restored)))
       restored = restored['params']
       _, pts, means, mask = _object(n=32)
       np.testing.assert_array_equal(
         np.asarray(predict(restored, pts, means, mask)),
         np.asarray(predict(r1['params'], pts, means, mask)))
+      predict(fresh, pts, means, mask)
+      self.assertEqual(predict._cache_size(), 1)  # noqa: SLF001
       # Resume: a longer run continues from the saved step.
       config.unlock()
       config.train.num_steps = config.train.num_steps + 2

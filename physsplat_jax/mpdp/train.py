@@ -174,7 +174,7 @@ def restore_latest(mngr: ocp.CheckpointManager, state):
   if latest is None:
     return state
   try:
-    state = mngr.restore(latest, args=ocp.args.StandardRestore(
+    restored = mngr.restore(latest, args=ocp.args.StandardRestore(
       jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
   except Exception as e:  # noqa: BLE001 (orbax raises many kinds)
     raise MPDPError(
@@ -184,7 +184,20 @@ def restore_latest(mngr: ocp.CheckpointManager, state):
       f'{" ".join(str(e).split())[:200]}); train in a new --workdir, or '
       'with the config that wrote it.') from None
   logging.info('resumed from step %d', latest)
-  return state
+  return jax.tree.map(_placed_like, restored, state)
+
+
+def _placed_like(restored, template):
+  """``restored`` placed the way a new run's ``template`` leaf is.
+
+  Orbax hands back arrays committed to a device, where a new run's state is
+  uncommitted: jitted steps would compile a second program for the resumed
+  run (same shapes, other argument placement). Leaves the template placed
+  on purpose (committed, or sharded) keep the placement orbax restored.
+  """
+  if isinstance(template, jax.Array) and not template.committed:
+    return jnp.asarray(np.asarray(restored))
+  return restored
 
 
 def _finite(loss, params) -> bool:

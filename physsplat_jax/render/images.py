@@ -29,9 +29,9 @@ from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import DataError
 from physsplat_jax.types import Gaussians
-from physsplat_jax.types import _nonfinite_rows
 from physsplat_jax.types import check_camera
 from physsplat_jax.types import check_gaussians
+from physsplat_jax.types import nonfinite_rows
 from physsplat_jax.types import rows_text
 
 # pylint: disable=protected-access
@@ -307,7 +307,7 @@ def _check_covariances(K: int, covariances, view_rotations) -> None:
            if a is not None and not isinstance(a, jax.core.Tracer)
            and np.shape(a) == (K, 3, 3)}
   for name, a in given.items():
-    rows = _nonfinite_rows(a)
+    rows = nonfinite_rows(a)
     if rows.size:
       raise RenderInputError(
         f'render_image: {name} has non-finite values in {rows.size} of {K} '

@@ -29,7 +29,7 @@ import trimesh
 
 from physsplat_jax.scenes import build
 from physsplat_jax.scenes.mesh import gaussians_from_mesh, rng_from_key
-from physsplat_jax.scenes.mesh import smooth_noise
+from physsplat_jax.scenes.mesh import wood_grain
 from physsplat_jax.types import Gaussians, ObjectInfo, Scene
 
 DONUT_PLY = os.path.join(
@@ -39,19 +39,6 @@ DONUT_PLY = os.path.join(
 METERS_PER_UNIT = 0.45
 BOARD_RADIUS, BOARD_THICKNESS = 0.16, 0.025  # [scene units]
 GAP = 0.001  # [scene units] between the board and the donut's lowest centre
-
-
-def _board_color(rng):
-  field_rng = np.random.default_rng(rng.integers(1 << 62))
-  light = np.array([0.72, 0.53, 0.33])
-  dark = np.array([0.55, 0.37, 0.21])
-
-  def color(p, n):
-    streak = smooth_noise(p * np.array([0.1, 1.0, 1.0]), field_rng, 0.02)
-    t = np.clip(0.5 + 0.25 * streak, 0.0, 1.0)[:, None]
-    return light * (1 - t) + dark * t
-
-  return color
 
 
 def make_donut(
@@ -95,7 +82,8 @@ def make_donut(
   board_g = gaussians_from_mesh(
     board, keys[0], surface_spacing=0.005 / d, interior_spacing=0.014 / d,
     face_mask=np.asarray(board.face_normals)[:, 2] > -0.5,  # no bottom
-    color=_board_color(np.random.default_rng(keys[1])), color_noise=0.05,
+    color=wood_grain(np.random.default_rng(keys[1]), (0.72, 0.53, 0.33),
+                     (0.55, 0.37, 0.21), 0.25), color_noise=0.05,
     opacity=0.98, shading=0.15, interior_scale=0.3, tangent_scale=0.75,
   )
   board_g = board_g.astype(donut.means.dtype)

@@ -120,6 +120,28 @@ def smooth_noise(
   return math.sqrt(2.0 / num_features) * np.cos(points @ w.T + b).sum(-1)
 
 
+def wood_grain(rng: np.random.Generator, light, dark, contrast: float):
+  """A colour function ``color(points, normals)`` for wood grain along x.
+
+  Streaks are :func:`smooth_noise` stretched 10x along x, mixing ``light``
+  and ``dark`` RGB by ``0.5 + contrast * streak`` (clipped to [0, 1]).
+
+  Args:
+    rng: the generator; one integer is drawn to seed the grain's own.
+    light, dark: (3,) RGB in [0, 1].
+    contrast: how far the streaks move the mix from half-way.
+  """
+  field_rng = np.random.default_rng(rng.integers(1 << 62))
+  light, dark = np.asarray(light), np.asarray(dark)
+
+  def color(p, n):
+    streak = smooth_noise(p * np.array([0.1, 1.0, 1.0]), field_rng, 0.02)
+    t = np.clip(0.5 + contrast * streak, 0.0, 1.0)[:, None]
+    return light * (1 - t) + dark * t
+
+  return color
+
+
 def _as_trimesh(mesh) -> trimesh.Trimesh:
   if not isinstance(mesh, trimesh.Trimesh):
     raise MeshError(

@@ -26,7 +26,7 @@ import trimesh
 
 from physsplat_jax.scenes import build
 from physsplat_jax.scenes.mesh import gaussians_from_mesh, rng_from_key
-from physsplat_jax.scenes.mesh import smooth_noise
+from physsplat_jax.scenes.mesh import smooth_noise, wood_grain
 from physsplat_jax.types import ObjectInfo, Scene
 
 TABLE_SIZE = (0.60, 0.40, 0.03)  # [m]
@@ -43,20 +43,6 @@ BALL_RADIUS = 0.03
 SAND_RADIUS, SAND_HEIGHT = 0.05, 0.035
 CAN_RADIUS, CAN_HEIGHT = 0.033, 0.122
 
-
-def _wood(rng):
-  """Wood grain along x: dark rings modulated by a smooth field."""
-  field_rng = np.random.default_rng(rng.integers(1 << 62))
-  base = np.array([0.66, 0.45, 0.27])
-  dark = np.array([0.50, 0.31, 0.17])
-
-  def color(p, n):
-    # Streaks: a field stretched 10x along the grain (x).
-    streak = smooth_noise(p * np.array([0.1, 1.0, 1.0]), field_rng, 0.02)
-    t = np.clip(0.5 + 0.35 * streak, 0.0, 1.0)[:, None]
-    return base * (1 - t) + dark * t
-
-  return color
 
 
 def _ball_color(center):
@@ -150,7 +136,8 @@ def make_tabletop(
   table_g = gaussians_from_mesh(
     table, keys[0], surface_spacing=0.007 / d, interior_spacing=0.02 / d,
     face_mask=np.asarray(table.face_normals)[:, 2] > -0.5,  # no bottom
-    color=_wood(np.random.default_rng(keys[1])), color_noise=0.05,
+    color=wood_grain(np.random.default_rng(keys[1]), (0.66, 0.45, 0.27),
+                     (0.50, 0.31, 0.17), 0.35), color_noise=0.05,
     opacity=0.98, shading=0.15, interior_scale=0.3, tangent_scale=0.75,
   )
 
