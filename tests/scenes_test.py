@@ -381,6 +381,22 @@ class GaussiansFromMeshTest(parameterized.TestCase):
       gaussians_from_mesh(box, 'seed', surface_spacing=0.1)
     with self.assertRaisesRegex(MeshError, 'Trimesh'):
       gaussians_from_mesh(trimesh.Scene(), 0, surface_spacing=0.1)
+    # Options that used to give -inf / NaN scales or colours silently.
+    for name, value in (('thickness', 0.0), ('thickness', -0.1),
+                        ('tangent_scale', 0.0), ('interior_scale', 0.0),
+                        ('noise_scale', 0.0), ('scale_jitter', float('nan')),
+                        ('color_noise', float('nan')),
+                        ('light_dir', (0.0, 0.0, 0.0))):
+      with self.subTest(name=name, value=value), \
+          self.assertRaisesRegex(MeshError, name):
+        gaussians_from_mesh(box, 0, surface_spacing=0.2, **{name: value})
+    # No surface sample: an empty set (interior=False) or a KD-tree
+    # IndexError (interior=True) before.
+    for interior in (False, True):
+      with self.subTest(interior=interior), \
+          self.assertRaisesRegex(MeshError, 'no surface Gaussians'):
+        gaussians_from_mesh(box, 0, surface_spacing=0.2, interior=interior,
+                            face_mask=np.zeros(12, bool))
 
 
 class BuildHelpersTest(absltest.TestCase):

@@ -111,6 +111,33 @@ class BoxesTest(absltest.TestCase):
     with self.assertRaisesRegex(ValueError, 'box 0 .* has a max below'):
       seg.segment_by_boxes(g, [(1, 0, 0, 1, 0, 1)])
 
+  def test_bad_boxes_and_rotations_are_named(self):
+    g = _gaussians(np.array([[0.5, 0.5, 0.5], [0.2, 0.2, 0.2]]))
+    box = [(0, 1, 0, 1, 0, 1)]
+    with self.assertRaisesRegex(seg.SegmentationError, 'must be numbers'):
+      seg.segment_by_boxes(g, [('a', 1, 0, 1, 0, 1)])
+    for r in (np.eye(2), np.full((3, 3), np.nan), np.zeros((3, 3)),
+              2 * np.eye(3)):
+      with self.subTest(rotation=r.tolist()), self.assertRaisesRegex(
+          seg.SegmentationError, 'rotation must be a finite 3x3 rotation'):
+        seg.segment_by_boxes(g, box, rotation=r)
+    # A box that holds no centre still names an object, with a warning
+    # naming the box and the centres' span.
+    with self.assertLogs(level='WARNING') as logs:
+      s = seg.segment_by_boxes(g, [(0, 0, 0, 1, 1, 1)] + box,
+                               names=('swapped', 'pot'))
+    np.testing.assert_array_equal(s.counts(), [0, 2])
+    self.assertRegex(logs.output[0], r'box 0 \(swapped\).*no Gaussian')
+
+  def test_auto_prefers_the_boxes_given_over_a_ply_label(self):
+    x = np.array([[0.5, 0.5, 0.5], [0.2, 0.2, 3.0]])
+    g = _gaussians(x)
+    g = g.replace(extras={'label': jnp.asarray([1, 1], jnp.int32)})
+    self.assertEqual(seg.segment(g).method, 'attribute')
+    s = seg.segment(g, boxes=[(0, 1, 0, 1, 0, 1)], rotation=np.eye(3))
+    self.assertEqual(s.method, 'boxes')
+    np.testing.assert_array_equal(s.object_ids, [0, -1])
+
   def test_rotation_and_physgaussian(self):
     x = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
     g = _gaussians(x)
@@ -193,6 +220,23 @@ class GeometricTest(parameterized.TestCase):
     geo = seg.cluster_points(x, 0.05, None)
     self.assertEqual(set(geo.tolist()), {0})
 
+  def test_bad_points_are_named(self):
+    x = np.random.default_rng(0).uniform(-1, 1, (50, 3))
+    with self.assertRaisesRegex(seg.SegmentationError, 'too small'):
+      seg.cluster_points(x, 1e-30)  # overflowed int64 silently before
+    bad = x.copy()
+    bad[3] = np.nan
+    for fn in (lambda: seg.cluster_points(bad, 0.1),
+               lambda: seg.fit_plane_ransac(bad),
+               lambda: seg.segment_geometric(_gaussians(bad))):
+      with self.assertRaisesRegex(seg.SegmentationError,
+                                  '1 of 50 points are not finite'):
+        fn()
+    with self.assertRaisesRegex(seg.SegmentationError, r'\(50, 3\)'):
+      seg.cluster_points(x, 0.5, colors=np.zeros((10, 3)))
+    with self.assertRaisesRegex(seg.SegmentationError, 'must be .K, 3.'):
+      seg.cluster_points(x[:, :2], 0.5)
+
   def test_noise_and_small_clusters(self):
     rng = np.random.default_rng(3)
     x = np.r_[_blob(rng, (0, 0, 0), 300), [[5, 5, 5], [5.01, 5, 5]]]
@@ -244,6 +288,29 @@ class MaskLiftingTest(absltest.TestCase):
       want.append(img[..., 0][mask < 0].sum())
       np.testing.assert_allclose(W[k], want, rtol=1e-4, atol=1e-6,
                                  err_msg=f'Gaussian {k}')
+
+  def test_bad_masks_and_cameras_are_named(self):
+    mask = self.masks[0]
+    with self.assertRaisesRegex(seg.SegmentationError,
+                                r'cameras\[0\] is a str'):
+      seg.lift_masks(self.g, ['cam0'], [mask])
+    # A uint8 mask with 255 as "void" made 256 objects before.
+    void = np.where(mask < 0, 255, mask).astype(np.uint8)
+    with self.assertRaisesRegex(seg.SegmentationError, 'num_labels'):
+      seg.lift_masks(self.g, self.cams[:1], [void])
+    s = seg.lift_masks(self.g, self.cams[:1], [void], num_labels=3)
+    np.testing.assert_array_equal(
+      s.object_ids, seg.lift_masks(self.g, self.cams[:1], [mask]).object_ids)
+    # A camera looking away sees nothing: warned, and an error when no
+    # camera sees anything (everything was background, silently).
+    away = make_camera(look_at(np.array([0.0, 0.0, 5.0]),
+                               np.array([0.0, 0.0, 10.0]), (0, 1, 0)),
+                       40.0, 40.0, 48, 48)
+    with self.assertRaisesRegex(seg.SegmentationError, 'none of the 1 '):
+      seg.lift_masks(self.g, [away], [mask])
+    with self.assertLogs(level='WARNING') as logs:
+      seg.lift_masks(self.g, [away, self.cams[0]], [mask, mask])
+    self.assertRegex(logs.output[0], 'camera 0 sees none')
 
   def test_recovers_ground_truth(self):
     s = seg.lift_masks(self.g, self.cams, self.masks,

@@ -366,6 +366,22 @@ def _logit(p: float) -> float:
   return math.log(p / (1.0 - p))
 
 
+def _check_mesh_options(positive, non_negative, light_dir):
+  """Raises MeshError on a non-finite option, a non-positive scale
+  (``positive``; None skipped), a negative amplitude (``non_negative``) or a
+  zero / non-finite light direction."""
+  for name, val in positive.items():
+    if val is not None and not (math.isfinite(float(val)) and val > 0):
+      raise MeshError(f'{name} must be finite and > 0, got {val}')
+  for name, val in non_negative.items():
+    if not (math.isfinite(float(val)) and val >= 0):
+      raise MeshError(f'{name} must be finite and >= 0, got {val}')
+  l = np.asarray(light_dir, np.float64)
+  if l.shape != (3,) or not np.all(np.isfinite(l)) or not np.any(l):
+    raise MeshError(f'light_dir must be a finite, non-zero 3-vector, got '
+                    f'{np.asarray(light_dir).tolist()}')
+
+
 def gaussians_from_mesh(
   mesh: trimesh.Trimesh,
   key,
@@ -452,6 +468,12 @@ def gaussians_from_mesh(
       raise MeshError(f'{name} must be in (0, 1), got {val}')
   if not 0.0 <= shading <= 1.0:
     raise MeshError(f'shading must be in [0, 1], got {shading}')
+  _check_mesh_options(
+    positive=dict(tangent_scale=tangent_scale, thickness=thickness,
+                  interior_scale=interior_scale, noise_scale=noise_scale),
+    non_negative=dict(scale_jitter=scale_jitter, color_noise=color_noise,
+                      interior_shade=interior_shade),
+    light_dir=light_dir)
   expected = float(mesh.area) / s**2
   if interior:
     if not mesh.is_watertight:
@@ -473,6 +495,11 @@ def gaussians_from_mesh(
 
   # Surface.
   points, face, bary = sample_surface(mesh, s, rng, face_mask)
+  if not len(points):
+    raise MeshError(
+      f'no surface Gaussians at surface_spacing={s:g}: the mesh (area '
+      f'{float(mesh.area):.3g}) is smaller than the spacing, degenerate, or '
+      'face_mask selects no face; lower surface_spacing or check the mesh')
   cn = corner_normals(mesh, smooth_angle_deg)
   normals = np.einsum('pc,pcx->px', bary, cn[face])
   normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True),

@@ -29,8 +29,9 @@ def segment(
 ) -> Segmentation:
   """Segments with the given method, or the best available one.
 
-  'auto' uses, in order: an object-id PLY property if present, ``boxes`` if
-  given, ``masks`` (with ``cameras``) if given, else the geometric method.
+  'auto' uses, in order: ``boxes`` if given, ``masks`` (with ``cameras``)
+  if given, an object-id PLY property if present, else the geometric
+  method (what the caller passes wins over what the file carries).
 
   Args:
     gaussians: the scene's Gaussians.
@@ -48,12 +49,12 @@ def segment(
     raise SegmentationError(f'segmentation method {method!r} is not one of '
                             f'{METHODS}')
   if method == 'auto':
-    if find_attribute(gaussians) is not None:
-      method = 'attribute'
-    elif boxes is not None:
+    if boxes is not None:
       method = 'boxes'
     elif masks is not None:
       method = 'masks'
+    elif find_attribute(gaussians) is not None:
+      method = 'attribute'
     else:
       method = 'geometric'
   if method == 'attribute':

@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from absl import logging
 
 from physsplat_jax.segmentation.base import Segmentation
 from physsplat_jax.segmentation.base import SegmentationError
@@ -19,7 +20,12 @@ from physsplat_jax.types import Gaussians
 
 
 def _as_boxes(boxes) -> np.ndarray:
-  b = np.asarray(boxes, np.float64)
+  try:
+    b = np.asarray(boxes, np.float64)
+  except (TypeError, ValueError) as e:
+    raise SegmentationError(
+      f'boxes must be numbers, (n, 6) as (xmin, xmax, ymin, ymax, zmin, '
+      f'zmax), got {boxes!r} ({e})') from None
   if b.ndim == 1:
     b = b[None]
   if b.ndim != 2 or b.shape[1] != 6:
@@ -36,14 +42,32 @@ def _as_boxes(boxes) -> np.ndarray:
   return b
 
 
+def _rotated(means, rotation) -> np.ndarray:
+  """(K, 3) float64 centres, times ``rotation``^T when one is given (a
+  finite 3x3 orthonormal matrix, checked)."""
+  x = np.asarray(means, np.float64)
+  if rotation is None:
+    return x
+  try:
+    r = np.asarray(rotation, np.float64)
+  except (TypeError, ValueError) as e:
+    raise SegmentationError(f'rotation must be a 3x3 matrix of numbers ({e})'
+                            ) from None
+  if r.shape != (3, 3) or not np.all(np.isfinite(r)) or not np.allclose(
+      r @ r.T, np.eye(3), atol=1e-4):
+    raise SegmentationError(
+      f'rotation must be a finite 3x3 rotation matrix (R R^T = I), got '
+      f'{np.round(r, 6).tolist()}; build it with '
+      'scipy.spatial.transform.Rotation(...).as_matrix()')
+  return x @ r.T
+
+
 def inside_box(means, box, rotation=None, strict: bool = False
                ) -> np.ndarray:
   """(K,) bool: centres inside ``box`` = (xmin, xmax, ymin, ymax, zmin,
   zmax), after ``rotation`` (3, 3) when given; ``strict`` excludes the
   faces (PhysGaussian's ``sim_area`` test), else they are inside."""
-  x = np.asarray(means, np.float64)
-  if rotation is not None:
-    x = x @ np.asarray(rotation, np.float64).T
+  x = _rotated(means, rotation)
   b = _as_boxes(box)[0]
   if strict:
     return np.all((x > b[0::2]) & (x < b[1::2]), axis=1)
@@ -52,9 +76,7 @@ def inside_box(means, box, rotation=None, strict: bool = False
 
 def box_labels(means, boxes, rotation=None) -> np.ndarray:
   """(K,) index of the smallest containing box (inclusive), -1 for none."""
-  x = np.asarray(means, np.float64)
-  if rotation is not None:
-    x = x @ np.asarray(rotation, np.float64).T
+  x = _rotated(means, rotation)
   b = _as_boxes(boxes)
   vol = np.prod(b[:, 1::2] - b[:, 0::2], axis=1)
   out = np.full(x.shape[0], -1, np.int32)
@@ -86,7 +108,7 @@ def segment_by_boxes(
 
   Returns:
     A :class:`Segmentation` (method 'boxes'); empty boxes still name an
-    object (with no Gaussians).
+    object (with no Gaussians), and a warning names each one.
   """
   b = _as_boxes(boxes)
   n = b.shape[0]
@@ -95,4 +117,19 @@ def segment_by_boxes(
   if len(names) != n:
     raise SegmentationError(f'{len(names)} names for {n} boxes')
   ids = box_labels(gaussians.means, b, rotation)
+  counts = np.bincount(ids[ids >= 0], minlength=n)
+  for i in np.flatnonzero(counts == 0):
+    logging.warning(
+      'segment_by_boxes: box %d (%s) = %s holds no Gaussian centre (they '
+      'span %s); its object is empty. Order is (xmin, xmax, ymin, ymax, '
+      'zmin, zmax)%s.', i, names[i], b[i].tolist(),
+      _span(gaussians.means, rotation),
+      ', after the rotation' if rotation is not None else '')
   return Segmentation(ids, names, tuple(fixed or ()), method='boxes')
+
+
+def _span(means, rotation) -> list:
+  x = _rotated(means, rotation)
+  if not len(x):
+    return []
+  return np.round(np.stack([x.min(0), x.max(0)], 1).ravel(), 4).tolist()

@@ -69,8 +69,8 @@ def fit_plane_ransac(
   Raises:
     ValueError: fewer than 3 points, or no acceptable plane.
   """
-  x = np.asarray(points, np.float64)
-  if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
+  x = _as_points(points, 'fit_plane_ransac')
+  if x.shape[0] < 3:
     raise SegmentationError(f'fit_plane_ransac: need (K >= 3, 3) points, got '
                             f'{x.shape}')
   if threshold is None:
@@ -126,6 +126,21 @@ def fit_plane_ransac(
   return nb, float(db), inliers
 
 
+def _as_points(points, where: str) -> np.ndarray:
+  """(K, 3) finite float64 points, or a SegmentationError naming them."""
+  x = np.asarray(points, np.float64)
+  if x.ndim != 2 or x.shape[1] != 3:
+    raise SegmentationError(f'{where}: points must be (K, 3), got shape '
+                            f'{x.shape}')
+  bad = np.flatnonzero(~np.isfinite(x).all(1))
+  if bad.size:
+    raise SegmentationError(
+      f'{where}: {bad.size} of {len(x)} points are not finite (first: row '
+      f'{int(bad[0])}, {x[bad[0]].tolist()}); drop them (Gaussians.subset) '
+      'or fix the scene')
+  return x
+
+
 def cluster_points(
   points,
   eps: float,
@@ -148,17 +163,24 @@ def cluster_points(
   Returns:
     (K,) int32 labels, 0..n-1 by decreasing size, -1 for noise.
   """
-  x = np.asarray(points, np.float64)
+  x = _as_points(points, 'cluster_points')
   K = x.shape[0]
+  if colors is not None and np.shape(colors) != (K, 3):
+    raise SegmentationError(
+      f'cluster_points: colors must be ({K}, 3) RGB like the points, got '
+      f'shape {np.shape(colors)}')
   if K == 0:
     return np.zeros(0, np.int32)
   if not eps > 0:
     raise SegmentationError(f'cluster_points: eps must be > 0, got {eps}')
-  cell = np.floor((x - x.min(0)) / eps).astype(np.int64)
-  dims = cell.max(0) + 3  # +1 margin on each side for neighbour offsets
-  if float(np.prod(dims.astype(np.float64))) > 2.0 ** 62:
+  cells = np.floor((x - x.min(0)) / eps)
+  # +1 margin on each side for the neighbour offsets; checked in floats
+  # before the integer cast (a tiny eps overflowed int64 silently).
+  if float(np.prod(cells.max(0) + 3)) > 2.0 ** 62:
     raise SegmentationError(f'cluster_points: eps={eps} is too small for the '
-                            f'extent {x.max(0) - x.min(0)} (grid {dims})')
+                            f'extent {x.max(0) - x.min(0)}; raise eps')
+  cell = cells.astype(np.int64)
+  dims = cell.max(0) + 3
   cell += 1
   keys = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
   vkeys, inv, counts = np.unique(keys, return_inverse=True,
@@ -238,7 +260,7 @@ def segment_geometric(
     A :class:`Segmentation` (method 'geometric'): object 0 is 'support'
     (fixed) when a plane was found, then 'object_1', ... by size.
   """
-  x = np.asarray(gaussians.means, np.float64)
+  x = _as_points(gaussians.means, 'segment_geometric (Gaussians.means)')
   K = x.shape[0]
   colors_all = np.clip(np.asarray(gaussians.rgb_dc, np.float64), 0, 1)
   support = np.zeros(K, bool)

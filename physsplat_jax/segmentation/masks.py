@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.spatial
+from absl import logging
 
 from physsplat_jax.render import RenderConfig
 from physsplat_jax.render import fit_render_config
@@ -160,6 +161,11 @@ def lift_masks(
     raise SegmentationError(
       f"fill_unseen must be 'nearest' or 'background', got "
       f'{fill_unseen!r}')
+  for i, cam in enumerate(cameras):
+    if not isinstance(cam, Camera):
+      raise SegmentationError(
+        f'lift_masks: cameras[{i}] is a {type(cam).__name__}, not a Camera; '
+        'pass scene.cameras entries (or types.make_camera)')
   masks = [np.asarray(m) for m in masks]
   for i, m in enumerate(masks):
     if m.ndim != 2 or not np.issubdtype(m.dtype, np.integer):
@@ -167,6 +173,14 @@ def lift_masks(
         f'mask {i} must be an (H, W) integer label image, got '
         f'{m.dtype} {m.shape}')
   if num_labels is None:
+    for i, m in enumerate(masks):
+      if (np.issubdtype(m.dtype, np.unsignedinteger)
+          and m.max() == np.iinfo(m.dtype).max):
+        raise SegmentationError(
+          f'mask {i} ({m.dtype}) holds {int(m.max())}, its largest value: '
+          'a "void" marker would make that many objects. Pass '
+          'num_labels=L (labels >= L count as unlabelled), or mark '
+          'unlabelled pixels -1 in a signed integer mask')
     num_labels = max(int(m.max()) for m in masks) + 1
   L = max(int(num_labels), 1)
   cameras = [
@@ -174,8 +188,18 @@ def lift_masks(
       m.shape[1], m.shape[0]) for cam, m in zip(cameras, masks)]
   config = shared_render_config(gaussians, cameras, config)
   total = np.zeros((gaussians.num, L + 1))
-  for cam, m in zip(cameras, masks):
-    total += contribution_weights(gaussians, cam, m, L, config)
+  for i, (cam, m) in enumerate(zip(cameras, masks)):
+    w = contribution_weights(gaussians, cam, m, L, config)
+    if not w.sum() > 0:
+      logging.warning('lift_masks: camera %d sees none of the %d Gaussians '
+                      '(its mask is ignored); check its pose', i,
+                      gaussians.num)
+    total += w
+  if gaussians.num and not total.sum() > 0:
+    raise SegmentationError(
+      f'lift_masks: none of the {len(cameras)} cameras sees any of the '
+      f'{gaussians.num} Gaussians; check the cameras\' poses (world-to-'
+      'camera viewmat) and near/far against the scene')
   obj = np.argmax(total[:, :L], axis=1)
   best = total[np.arange(gaussians.num), obj]
   seen = total.sum(1) >= min_weight
