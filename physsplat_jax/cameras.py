@@ -27,6 +27,7 @@ which are built on the host.
 from __future__ import annotations
 
 import math
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -87,22 +88,28 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Array:
     (4, 4) world-to-camera ``viewmat`` (+x right, +y down, +z forward).
 
   Raises:
-    ValueError: ``eye == target`` or a zero ``up`` (when the inputs are
-      concrete; under ``jit`` the result is then undefined).
+    ValueError: non-numeric or non-finite inputs, ``eye == target`` or a
+      zero ``up`` (when the inputs are concrete; under ``jit`` the result is
+      then undefined).
   """
   if not isinstance(eye, (jax.Array, jax.core.Tracer)):
-    eye = np.asarray(eye)
+    eye = _numeric('eye', eye)
   # float64 stays float64 only with x64 on (canonicalised, as jnp.asarray).
   dtype = jnp.result_type(jax.dtypes.canonicalize_dtype(eye.dtype),
                           jnp.float32)
   eye = device_array(eye, dtype)
-  target = device_array(target, dtype)
-  up = device_array(up, dtype)
+  target = device_array(_numeric('target', target), dtype)
+  up = device_array(_numeric('up', up), dtype)
   for name, v in (('eye', eye), ('target', target), ('up', up)):
     if v.shape != (3,):
       raise CameraError(f'look_at: {name} has shape {v.shape}; expected (3,)')
   if _is_concrete(eye, target, up):
     # Checked in NumPy (exact zeros): no eager JAX operation to compile.
+    for name, v in (('eye', eye), ('target', target), ('up', up)):
+      if not np.all(np.isfinite(np.asarray(v))):
+        raise CameraError(
+          f'look_at: {name} {np.asarray(v).tolist()} has non-finite values; '
+          'pass finite coordinates')
     if not np.any(np.asarray(target) - np.asarray(eye)):
       raise CameraError(
         f'look_at: eye and target are the same point {np.asarray(eye)}; '
@@ -111,6 +118,21 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Array:
     if not np.any(np.asarray(up)):
       raise CameraError('look_at: up is the zero vector; pass e.g. (0, 0, 1)')
   return _look_at(eye, target, up)
+
+
+def _numeric(name, v):
+  """``v`` unchanged if a JAX array or tracer, else as a numeric NumPy
+  array (strings and ragged lists refused by name)."""
+  if isinstance(v, (jax.Array, jax.core.Tracer)):
+    return v
+  try:
+    a = np.asarray(v)
+  except ValueError:
+    a = np.asarray(None)
+  if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+    raise CameraError(
+      f'look_at: {name} is not numeric: {v!r}; pass 3 numbers (x, y, z)')
+  return a
 
 
 @jax.jit
@@ -274,6 +296,22 @@ def orbit_cameras(
   return cams
 
 
+def _image_size(where, width, height) -> tuple[int, int]:
+  """``(width, height)`` as ints, refusing anything but whole numbers >= 1."""
+  out = []
+  for label, v in (('width', width), ('height', height)):
+    try:
+      ok = float(v) >= 1 and int(v) == float(v)
+    except (TypeError, ValueError, OverflowError):
+      ok = False
+    if not ok:
+      raise CameraError(
+        f'{where}: image {label}={v!r} must be a whole number of pixels '
+        f'>= 1 (got {width!r}x{height!r})')
+    out.append(int(v))
+  return out[0], out[1]
+
+
 def _check_image(width, height, fov_deg):
   if int(width) < 1 or int(height) < 1:
     raise CameraError(f'image size must be positive, got {width}x{height}')
@@ -352,9 +390,23 @@ def scene_camera(scene, width: int, height: int, index: int = 0) -> Camera:
   only there compile once.
 
   Raises:
-    ValueError: ``index`` out of range (the message gives the range).
+    ValueError: ``width``/``height`` not whole numbers >= 1, or ``index``
+      not an integer in ``-1 .. len(scene.cameras) - 1`` (the message gives
+      the range).
   """
-  w, h = int(width), int(height)
+  w, h = _image_size('scene_camera', width, height)
+  try:
+    index = operator.index(index)
+  except TypeError:
+    raise CameraError(
+      f'scene_camera: camera_index={index!r} is not an integer; use '
+      '0..N-1 for a scene camera or -1 for a fitted camera') from None
+  if index < -1:
+    n = len(scene.cameras)
+    raise CameraError(
+      f'camera_index={index}: negative indices other than -1 are not '
+      f'supported; use 0..{n - 1} for one of scene {scene.name!r}\'s {n} '
+      'cameras or -1 for a fitted camera')
   if index >= 0 and scene.cameras:
     if index >= len(scene.cameras):
       raise CameraError(

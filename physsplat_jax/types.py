@@ -410,11 +410,12 @@ def check_camera(camera: Camera) -> None:
   """:func:`make_camera`'s checks on a camera built otherwise (e.g. by
   ``Camera.replace``), on its concrete values; raises :class:`DataError`."""
   _check_camera_values(camera.viewmat, camera.fx, camera.fy, camera.width,
-                       camera.height, camera.near, camera.far, camera.name)
+                       camera.height, camera.near, camera.far, camera.name,
+                       cx=camera.cx, cy=camera.cy)
 
 
 def _check_camera_values(viewmat, fx, fy, width, height, near, far,
-                         name='') -> None:
+                         name='', cx=0.0, cy=0.0) -> None:
   """:func:`make_camera`'s checks, on the values that are concrete."""
   what = f'camera {name!r}' if name else 'camera'
   if int(width) < 1 or int(height) < 1 or int(width) != width or \
@@ -429,6 +430,10 @@ def _check_camera_values(viewmat, fx, fy, width, height, near, far,
     if concrete(v) and not (np.isfinite(v) and float(v) > 0):
       raise DataError(f'{what}: focal length {label}={float(v)!r} must be a '
                       'positive number of pixels')
+  for label, v in (('cx', cx), ('cy', cy)):
+    if concrete(v) and not np.all(np.isfinite(v)):
+      raise DataError(f'{what}: principal point {label}={v!r} must be a '
+                      'finite number of pixels (default: the image centre)')
   if concrete(near) and concrete(far) and not (
       np.isfinite(near) and 0 < float(near) < float(far)):
     raise DataError(f'{what}: near={float(near)!r}, far={float(far)!r}; '
@@ -464,12 +469,14 @@ def make_camera(
 
   Raises:
     DataError: a size below 1 pixel, a focal length that is not positive, a
-      ``viewmat`` that is not a finite 4x4 rigid transform, or
+      non-finite principal point, a ``viewmat`` that is not a finite 4x4
+      rigid transform, or
       ``0 < near < far`` broken (values given as tracers are not checked).
   """
   cx = width / 2.0 if cx is None else cx
   cy = height / 2.0 if cy is None else cy
-  _check_camera_values(viewmat, fx, fy, width, height, near, far, name)
+  _check_camera_values(viewmat, fx, fy, width, height, near, far, name,
+                       cx=cx, cy=cy)
   f = lambda v: device_array(v, dtype)
   return Camera(
     viewmat=f(viewmat),

@@ -211,6 +211,52 @@ class CameraUtilTest(parameterized.TestCase):
     np.testing.assert_array_equal(images[0], images[1])
     self.assertGreater(np.abs(images[0] - images[2]).max(), 0.05)
 
+  def test_look_at_refuses_non_finite_input(self):
+    for kwargs, name in (
+        (dict(eye=[np.nan, 0.0, 0.0], target=[0.0, 0.0, 1.0]), 'eye'),
+        (dict(eye=[0.0, 0.0, 0.0], target=[np.inf, 0.0, 1.0]), 'target'),
+        (dict(eye=[0.0, -2.0, 0.0], target=[0.0, 0.0, 0.0],
+              up=[0.0, np.nan, 1.0]), 'up')):
+      with self.assertRaisesRegex(cameras.CameraError,
+                                  f'look_at: {name} .*non-finite'):
+        cameras.look_at(**kwargs)
+    with self.assertRaisesRegex(cameras.CameraError, 'eye is not numeric'):
+      cameras.look_at(['a', 'b', 'c'], [0.0, 0.0, 0.0])
+    # Traced inputs are not checked (no host sync), and still compile.
+    vm = jax.jit(cameras.look_at)(jnp.array([0.0, -2.0, 0.5]),
+                                  jnp.zeros(3), jnp.array([0.0, 0.0, 1.0]))
+    self.assertTrue(np.all(np.isfinite(np.asarray(vm))))
+
+  def test_scene_camera_refuses_bad_size_and_index(self):
+    from physsplat_jax.types import Gaussians, Scene
+    rng = np.random.default_rng(0)
+    n = 20
+    g = Gaussians(
+      means=jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3)), jnp.float32),
+      log_scales=jnp.full((n, 3), -3.0), quats=jnp.tile(
+        jnp.array([1.0, 0, 0, 0]), (n, 1)),
+      opacity_logits=jnp.full((n,), 2.0), sh=jnp.zeros((n, 1, 3)))
+    cam = make_camera(cameras.look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0]),
+                      40.0, 40.0, 32, 24)
+    sc = Scene(gaussians=g, object_ids=jnp.zeros(n, jnp.int32),
+               cameras=(cam,), name='s')
+    got = cameras.scene_camera(sc, 64, 48)
+    self.assertEqual((got.width, got.height), (64, 48))
+    np.testing.assert_allclose(got.fx, 80.0)
+    for w, h, word in ((64, 0, 'height=0'), (0, 48, 'width=0'),
+                       (64.5, 48, 'width=64.5'), (-3, 48, 'width=-3')):
+      with self.assertRaisesRegex(cameras.CameraError, word):
+        cameras.scene_camera(sc, w, h)
+    with self.assertRaisesRegex(cameras.CameraError,
+                                r'camera_index=-2.*-1 for a fitted'):
+      cameras.scene_camera(sc, 64, 48, index=-2)
+    with self.assertRaisesRegex(cameras.CameraError, 'camera_index=1.5'):
+      cameras.scene_camera(sc, 64, 48, index=1.5)
+    with self.assertRaisesRegex(cameras.CameraError, 'has 1 cameras'):
+      cameras.scene_camera(sc, 64, 48, index=1)
+    fitted = cameras.scene_camera(sc, 64, 48, index=-1)
+    self.assertEqual((fitted.width, fitted.height), (64, 48))
+
 
 class CameraFileTest(parameterized.TestCase):
 
@@ -339,6 +385,76 @@ class CameraFileTest(parameterized.TestCase):
       cam_io.load_cameras(self._json('k.json', {
         'fl_x': 1, 'w': 4, 'h': 4, 'k1': 0.1, 'frames': [frame]}))
     self.assertTrue(any('distortion' in str(w.message) for w in caught))
+
+
+  def _frame_file(self, name='t.json', matrix=None, **top):
+    m = np.eye(4) if matrix is None else matrix
+    data = {'camera_angle_x': 0.7, 'w': 64, 'h': 48, **top,
+            'frames': [{'file_path': 'x', 'transform_matrix': m.tolist()}]}
+    return self._json(name, data)
+
+  @parameterized.parameters(40.0, 3.14159, 4.0, -1.0, 0.0)
+  def test_camera_angle_out_of_range(self, angle):
+    with self.assertRaisesRegex(
+        cam_io.CameraFileError,
+        r"t\.json: frame 0 field 'camera_angle_x'=.*must be in \(0, pi\) "
+        r'radians \(degrees given\?\)'):
+      cam_io.load_cameras(self._frame_file(camera_angle_x=angle))
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                "field 'camera_angle_y'=.*in \\(0, pi\\)"):
+      cam_io.load_cameras(self._frame_file(camera_angle_y=angle))
+
+  def test_transform_matrix_last_row(self):
+    m = np.eye(4)
+    m[3] = [1, 2, 3, 1]
+    with self.assertRaisesRegex(
+        cam_io.CameraFileError,
+        r'frame 0 transform_matrix last row \[1, 2, 3, 1\] must be '
+        r'\[0, 0, 0, 1\] \(transposed\?\)'):
+      cam_io.load_cameras(self._frame_file(matrix=m))
+    # 3x4 matrices and a last row off by rounding still load, unchanged.
+    m = _opengl_c2w()
+    ref = cam_io.load_cameras(self._frame_file(matrix=m))[0]
+    m34 = cam_io.load_cameras(self._frame_file(matrix=m[:3]))[0]
+    m[3, 3] += 1e-9
+    near = cam_io.load_cameras(self._frame_file(matrix=m))[0]
+    for c in (m34, near):
+      np.testing.assert_array_equal(c.viewmat, ref.viewmat)
+
+  def test_malformed_camera_files(self):
+    for frames in (5, {}, 'abc'):
+      with self.assertRaisesRegex(cam_io.CameraFileError,
+                                  r'u\.json: "frames" must be a list.*got '):
+        cam_io.load_cameras(self._json('u.json', {'frames': frames}))
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                'applied_transform .*singular'):
+      cam_io.load_cameras(
+        self._frame_file(applied_transform=np.zeros((3, 4)).tolist()),
+        undo_applied_transform=True)
+    with self.assertRaisesRegex(
+        cam_io.CameraFileError,
+        r"t\.json: frame 0 field 'k1' is not a number: 'abc'"):
+      cam_io.load_cameras(self._frame_file(k1='abc'))
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                'is a directory.*cameras.json'):
+      cam_io.load_cameras(self.tmp)
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                r'e\.json: .*empty.*no cameras'):
+      cam_io.load_cameras(self._json('e.json', []))
+    with self.assertRaisesRegex(cam_io.CameraFileError, 'no cameras'):
+      cam_io.inria_cameras_from_json([])
+    entry = {'id': 0, 'img_name': 'a', 'width': W, 'height': H,
+             'position': [0, 0, 0], 'rotation': np.eye(3).tolist(),
+             'fy': 1.0, 'fx': 1.0}
+    for key in ('width', 'height'):
+      with self.assertRaisesRegex(cam_io.CameraFileError,
+                                  f"camera 0 field '{key}' = 1e\\+300 .*at "
+                                  'most'):
+        cam_io.load_cameras(self._json('c.json', [dict(entry,
+                                                       **{key: 1e300})]))
+    with self.assertRaisesRegex(cam_io.CameraFileError,
+                                r"camera 0: 'fx'=1e\+300 .*float32"):
+      cam_io.load_cameras(self._json('c.json', [dict(entry, fx=1e300)]))
 
 
 if __name__ == '__main__':

@@ -542,7 +542,9 @@ class ValidationTest(absltest.TestCase):
                          (dict(width=0), 'image size 0x24'),
                          (dict(viewmat=np.eye(3)), r'shape \(3, 3\)'),
                          (dict(viewmat=scaled), 'not a rigid transform'),
-                         (dict(near=5.0, far=1.0), 'need 0 < near < far')):
+                         (dict(near=5.0, far=1.0), 'need 0 < near < far'),
+                         (dict(cx=np.nan), 'principal point cx=nan'),
+                         (dict(cy=np.inf), 'principal point cy=inf')):
       with self.subTest(want), self.assertRaisesRegex(DataError, want):
         make_camera(**{**good, **change})
     with self.assertRaisesRegex(DataError, 'image size 0x0'):

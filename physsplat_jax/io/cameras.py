@@ -51,12 +51,40 @@ class CameraFileError(PhysSplatError, ValueError):
   """A camera file that cannot be read."""
 
 
-def _file_camera(path, what, *args, **kwargs) -> Camera:
-  """``types.make_camera``, its errors naming the file and the camera."""
+# Largest image side accepted from a file [pixels]: a bigger "width" is a
+# corrupt field (1e300 gave an infinite principal point), not a camera.
+_MAX_SIZE = 1 << 16
+
+
+def _file_camera(path, what, vm, fx, fy, w, h, cx=None, cy=None, *,
+                 dtype=jnp.float32, **kwargs) -> Camera:
+  """``types.make_camera``, its errors naming the file and the camera.
+
+  The intrinsics are float64 here; one that overflows ``dtype`` (1e300 in
+  float32) would turn into inf in the camera, so it is refused first.
+  """
+  big = float(jnp.finfo(dtype).max)
+  values = {'fx': fx, 'fy': fy, 'cx': w / 2 if cx is None else cx,
+            'cy': h / 2 if cy is None else cy}
+  for key, v in values.items():
+    if not abs(v) <= big:
+      raise CameraFileError(
+        f'{path}: {what}: {key!r}={v:g} does not fit the camera dtype '
+        f'{np.dtype(dtype).name} (at most {big:g}); check the file\'s '
+        'intrinsics and image size')
   try:
-    return make_camera(*args, **kwargs)
+    return make_camera(vm, fx, fy, w, h, cx, cy, dtype=dtype, **kwargs)
   except DataError as e:
     raise CameraFileError(f'{path}: {what}: {e}') from None
+
+
+def _camera_files_in(folder) -> list[str]:
+  try:
+    names = sorted(os.listdir(folder))
+  except OSError:
+    return []
+  return [n for n in names if n == 'cameras.json' or (
+    n.startswith('transforms') and n.endswith('.json'))]
 
 
 def _read_json(path):
@@ -65,6 +93,13 @@ def _read_json(path):
       return json.load(f)
   except FileNotFoundError:
     raise FileNotFoundError(f'camera file not found: {path}') from None
+  except IsADirectoryError:
+    found = _camera_files_in(path)
+    hint = (f'it holds {found}' if found else 'it holds no cameras.json or '
+            'transforms*.json')
+    raise CameraFileError(
+      f'{path}: is a directory, not a camera file ({hint}); pass the file '
+      'itself, e.g. <dir>/cameras.json or <dir>/transforms.json') from None
   except (json.JSONDecodeError, UnicodeDecodeError) as e:
     raise CameraFileError(f'{path}: not valid JSON ({e})') from None
 
@@ -106,7 +141,25 @@ def _size(d, key, path, what) -> int:
   v = _number(d, key, path, what)
   if v != int(v):
     raise CameraFileError(f'{path}: {what} field {key!r} = {v} is not whole')
+  if v > _MAX_SIZE:
+    raise CameraFileError(
+      f'{path}: {what} field {key!r} = {v:g} pixels is not an image size '
+      f'(at most {_MAX_SIZE}); fix the field')
   return int(v)
+
+
+def _angle(d, key, path, what) -> float:
+  """A field of view [radians] in (0, pi): 40 is degrees given by mistake
+  (fx = 14 for 800 px), pi a degenerate tan (fx ~ 0)."""
+  v = _number(d, key, path, what, positive=False)
+  # Within 1e-3 of pi the focal length is below W / 4000 pixels.
+  if not 0.0 < v < math.pi - 1e-3:
+    hint = (f'; if {v:g} is degrees, that is {math.radians(v):.6g} rad'
+            if math.pi <= v < 180.0 else '')
+    raise CameraFileError(
+      f'{path}: {what} field {key!r}={v:g} must be in (0, pi) radians '
+      f'(degrees given?){hint}')
+  return v
 
 
 # ----------------------------------------------------------------------------
@@ -128,14 +181,19 @@ def inria_cameras_from_json(
     One :class:`~physsplat_jax.types.Camera` per entry, named ``img_name``.
 
   Raises:
-    CameraFileError: not a list, or an entry missing ``width``, ``height``,
-      ``position``, ``rotation``, ``fx`` or ``fy``.
+    CameraFileError: not a list, an empty list, or an entry missing
+      ``width``, ``height``, ``position``, ``rotation``, ``fx`` or ``fy``
+      or holding a bad value (the field is named).
   """
   if not isinstance(data, list):
     raise CameraFileError(
       f'{path}: an INRIA cameras.json is a JSON list of cameras, got '
       f'{type(data).__name__}'
     )
+  if not data:
+    raise CameraFileError(
+      f'{path}: the JSON list is empty: the file holds no cameras (an INRIA '
+      'cameras.json lists one entry per training image)')
   cams = []
   for i, d in enumerate(data):
     what = f'camera {i}'
@@ -278,13 +336,17 @@ def transforms_cameras_from_json(
     One :class:`~physsplat_jax.types.Camera` per frame, named ``file_path``.
 
   Raises:
-    CameraFileError: no frames, missing ``transform_matrix``, no focal
-      length, no image size, or an unsupported camera model.
+    CameraFileError: no frames, missing ``transform_matrix`` or one whose
+      last row is not ``[0, 0, 0, 1]`` (transposed), no focal length, a
+      ``camera_angle_x/y`` outside (0, pi) radians, no image size, a
+      non-numeric field, a singular ``applied_transform`` to undo, or an
+      unsupported camera model.
   """
-  if not isinstance(data, dict) or not isinstance(data.get('frames'), list):
+  if not isinstance(data, dict) or 'frames' not in data:
     raise CameraFileError(
       f'{path}: a transforms.json is a JSON object with a "frames" list'
     )
+  _check_frames(data['frames'], path)
   model = str(data.get('camera_model', 'OPENCV')).upper()
   if model in _UNSUPPORTED_MODELS:
     raise CameraFileError(
@@ -302,6 +364,13 @@ def transforms_cameras_from_json(
     A[:3] = _matrix(
       data['applied_transform'], [(3, 4)], path, 'applied_transform'
     )
+    sv = np.linalg.svd(A[:3, :3], compute_uv=False)
+    if not sv[-1] > 1e-9 * max(sv[0], 1.0):
+      raise CameraFileError(
+        f'{path}: applied_transform {A[:3].tolist()} is singular (its 3x3 '
+        'block cannot be inverted) so undo_applied_transform=True cannot '
+        'map the poses back; fix the field or load with '
+        'undo_applied_transform=False')
     A = np.linalg.inv(A)
   distorted = False
   cams = []
@@ -319,11 +388,21 @@ def transforms_cameras_from_json(
       fr['transform_matrix'], [(4, 4), (3, 4)], path,
       f'{what} transform_matrix'
     )  # fmt: skip
+    if len(c2w) == 4 and not np.allclose(c2w[3], (0, 0, 0, 1), rtol=0,
+                                         atol=1e-6):
+      row = ', '.join(f'{x:g}' for x in c2w[3])
+      raise CameraFileError(
+        f'{path}: {what} transform_matrix last row [{row}] must be '
+        '[0, 0, 0, 1] (transposed?); the translation belongs in the last '
+        'column of the row-major camera-to-world matrix')
     c2w = np.concatenate([c2w[:3], [[0.0, 0.0, 0.0, 1.0]]])
     if A is not None:
       c2w = A @ c2w
     merged = {**data, **fr}
-    distorted |= any(float(merged.get(k, 0.0) or 0.0) for k in _DISTORTION)
+    distorted |= any(
+      merged.get(k) is not None
+      and _number(merged, k, path, what, positive=False) != 0.0
+      for k in _DISTORTION)
     name = str(fr.get('file_path', i))
     if 'w' in merged and 'h' in merged:
       w, h = _size(merged, 'w', path, what), _size(merged, 'h', path, what)
@@ -343,10 +422,10 @@ def transforms_cameras_from_json(
       fx = _number(merged, 'fl_x', path, what)
       fy = _number(merged, 'fl_y', path, what) if 'fl_y' in merged else fx
     elif 'camera_angle_x' in merged:
-      ax = _number(merged, 'camera_angle_x', path, what)
+      ax = _angle(merged, 'camera_angle_x', path, what)
       fx = 0.5 * w / math.tan(0.5 * ax)
       if 'camera_angle_y' in merged:
-        ay = _number(merged, 'camera_angle_y', path, what)
+        ay = _angle(merged, 'camera_angle_y', path, what)
         fy = 0.5 * h / math.tan(0.5 * ay)
       else:
         fy = fx
@@ -387,6 +466,16 @@ load_nerf_synthetic_cameras = load_transforms_cameras
 load_nerfstudio_cameras = load_transforms_cameras
 
 
+def _check_frames(frames, path=None) -> None:
+  """A transforms file's ``frames`` must be a list (of frame objects)."""
+  if not isinstance(frames, list):
+    where = f'{path}: ' if path is not None else ''
+    raise CameraFileError(
+      f'{where}"frames" must be a list of frame objects '
+      '({"file_path": ..., "transform_matrix": [[4x4]]}), got '
+      f'{type(frames).__name__} {str(frames)[:40]}')
+
+
 def camera_format(data) -> str:
   """``'inria'``, ``'nerf_synthetic'`` or ``'nerfstudio'`` for decoded JSON.
 
@@ -394,13 +483,18 @@ def camera_format(data) -> str:
     CameraFileError: for anything else.
   """
   if isinstance(data, list):
-    if data and isinstance(data[0], dict) and 'rotation' in data[0]:
+    if not data:
+      raise CameraFileError(
+        'the JSON list is empty: the file holds no cameras (an INRIA '
+        'cameras.json lists one entry per training image)')
+    if isinstance(data[0], dict) and 'rotation' in data[0]:
       return 'inria'
     raise CameraFileError(
       'a JSON list of cameras must hold INRIA entries with "position" and '
       '"rotation"'
     )
   if isinstance(data, dict) and 'frames' in data:
+    _check_frames(data['frames'])
     has_fl = 'fl_x' in data or any(
       isinstance(f, dict) and 'fl_x' in f for f in data['frames'][:1]
     )
