@@ -267,5 +267,91 @@ class FilesTest(absltest.TestCase):
       export.DeformedFrameWriter(d, g, format='glb')
 
 
+class BadInputTest(absltest.TestCase):
+  """Inputs export cannot honour are errors naming the field and the fix,
+  raised before any file is written (never floored or -inf scales)."""
+
+  def setUp(self):
+    super().setUp()
+    self.dir = tempfile.mkdtemp()
+    self.addCleanup(shutil.rmtree, self.dir, ignore_errors=True)
+    self.g = _scene(num=6, degree=1, seed=6)
+    self.covs = np.asarray(self.g.covariances)
+
+  def test_covariances_that_are_not_psd(self):
+    g = self.g
+    with self.assertRaisesRegex(
+        export.ExportError, r'covariances of 6 Gaussians are not positive '
+        r'semi-definite \(first: \[0, 1, 2, 3, 4\]'):
+      export.deformed_gaussians(g, g.means, -self.covs)
+    covs = self.covs.copy()
+    covs[3] = np.diag([1e-3, 1e-3, -1e-3])
+    with self.assertRaisesRegex(export.ExportError, r'\(first: \[3\];'):
+      export.decompose_aligned(covs)
+    # Round-off negatives of a flattened Gaussian are floored as before.
+    covs[3] = np.diag([1e-3, 1e-3, -1e-12])
+    log_s, _ = export.decompose_aligned(covs)
+    self.assertEqual(log_s[3].min(), 0.5 * np.log(export.MIN_VARIANCE))
+
+  def test_min_variance_must_be_positive(self):
+    g = self.g
+    for v in (0.0, -1.0, np.nan):
+      with self.assertRaisesRegex(export.ExportError,
+                                  'min_variance must be a positive number'):
+        export.deformed_gaussians(g, g.means, 0.0 * self.covs,
+                                  min_variance=v)
+      with self.assertRaisesRegex(export.ExportError, 'min_variance'):
+        export.deformed_gaussians(g, g.means, None, min_variance=v,
+                                  deformation=np.zeros((g.num, 3, 3)))
+
+  def test_sequence_lengths_checked_before_writing(self):
+    g = self.g
+    means = np.stack([np.asarray(g.means)] * 3)
+    d = os.path.join(self.dir, 'seq')
+    with self.assertRaisesRegex(
+        export.ExportError, r'covariances has shape \(2, 6, 3, 3\); '
+        r'expected \(3, 6, 3, 3\)'):
+      export.save_deformed_sequence(d, g, means, np.stack([self.covs] * 2))
+    with self.assertRaisesRegex(export.ExportError, r'rotations has shape'):
+      export.save_deformed_sequence(d, g, means, np.stack([self.covs] * 3),
+                                    np.zeros((3, 5, 3, 3)))
+    with self.assertRaisesRegex(export.ExportError,
+                                r'means has shape \(6, 3\); expected'):
+      export.save_deformed_sequence(d, g, g.means, self.covs)
+    self.assertFalse(os.path.exists(d))
+
+  def test_sh_degree_must_be_0_to_3(self):
+    g = self.g
+    path = os.path.join(self.dir, 'a.ply')
+    for degree in (5, -1, 2.0):
+      with self.assertRaisesRegex(export.ExportError,
+                                  'sh_degree must be 0..3'):
+        export.save_deformed_ply(path, g, g.means, self.covs,
+                                 sh_degree=degree)
+    with self.assertRaisesRegex(export.ExportError, 'sh_degree must be'):
+      export.DeformedFrameWriter(self.dir, g, sh_degree=4)
+    self.assertFalse(os.path.exists(path))
+
+  def test_output_paths_that_cannot_be_written(self):
+    g = self.g
+    folder = os.path.join(self.dir, 'd.ply')
+    os.makedirs(folder)
+    with self.assertRaisesRegex(export.ExportError,
+                                'd.ply\' is a folder; give a file'):
+      export.save_deformed_ply(folder, g, g.means, self.covs)
+    file = os.path.join(self.dir, 'file')
+    with open(file, 'w') as fh:
+      fh.write('not a folder')
+    in_the_way = f"'{file}' is a file, not a folder; choose another"
+    for write in (
+        lambda: export.save_deformed_ply(os.path.join(file, 'a.ply'), g,
+                                         g.means, self.covs),
+        lambda: export.save_deformed_splat(os.path.join(file, 'a.splat'),
+                                           g, g.means, self.covs),
+        lambda: export.DeformedFrameWriter(os.path.join(file, 'ply'), g)):
+      with self.assertRaisesRegex(export.ExportError, in_the_way):
+        write()
+
+
 if __name__ == '__main__':
   absltest.main()

@@ -6,6 +6,7 @@ import shutil
 import tempfile
 import threading
 import time
+from unittest import mock
 
 import jax.numpy as jnp
 import numpy as np
@@ -164,6 +165,98 @@ class FallbackAndPngTest(absltest.TestCase):
     np.testing.assert_array_equal(back, np.round(frames[2] * 255))
     with self.assertRaisesRegex(video.VideoError, 'integer field'):
       video.PngFrameWriter(d, pattern='frame.png')
+
+
+class BadInputTest(absltest.TestCase):
+  """Output that cannot be written is an error naming the file and the
+  fix, never a raw OS error or a video that silently is not there."""
+
+  def setUp(self):
+    super().setUp()
+    self.dir = tempfile.mkdtemp()
+    self.addCleanup(shutil.rmtree, self.dir, ignore_errors=True)
+    self.file = os.path.join(self.dir, 'file')
+    with open(self.file, 'w') as fh:
+      fh.write('not a folder')
+
+  def test_ffmpeg_failure_is_raised_not_lost(self):
+    frames = np.zeros((3, 8, 8, 3))
+    path = os.path.join(self.dir, 'c.mp4')
+    with self.assertRaisesRegex(
+        video.VideoError, "c.mp4: ffmpeg failed .*Unknown encoder 'nope'.*"
+        'nothing was written'):
+      video.write_video(path, frames, codec='nope')
+    self.assertFalse(os.path.exists(path))
+    # Frames larger than the pipe: the error comes at append.
+    w = video.VideoWriter(path, codec='nope')
+    with self.assertRaisesRegex(video.VideoError, 'Unknown encoder'):
+      for _ in range(50):
+        w.append(np.zeros((256, 256, 3), np.uint8))
+      w.close()
+    w.close()  # closed: nothing more to report
+    self.assertFalse(os.path.exists(path))
+    # A path ffmpeg cannot open (were it not checked first): its reason.
+    path = os.path.join(self.dir, 'isdir.mp4')
+    os.makedirs(path)
+    with mock.patch.object(video, '_check_output',
+                           lambda p, create=False: os.fspath(p)):
+      with self.assertRaisesRegex(
+          video.VideoError, 'isdir.mp4: ffmpeg failed .*Is a directory.*'
+          'nothing was written'):
+        video.write_video(path, frames)
+    self.assertEqual(os.listdir(path), [])
+    # Checked up front: the path is a folder.
+    with self.assertRaisesRegex(video.VideoError,
+                                "'.*isdir.mp4' is a folder; give a file"):
+      video.VideoWriter(path)
+
+  def test_float_frames_in_0_255_are_refused(self):
+    path = os.path.join(self.dir, 'o.mp4')
+    with self.assertRaisesRegex(video.VideoError,
+                                r'frame 0: float values up to 200.*/ 255'):
+      video.write_video(path, np.full((2, 8, 8, 3), 200.0))
+    self.assertFalse(os.path.exists(path))
+    with self.assertRaisesRegex(video.VideoError, 'frame / 255'):
+      video.save_png(os.path.join(self.dir, 'o.png'),
+                     np.full((8, 8, 3), 255.0, np.float32))
+    # Overshoot of a render in [0, 1] is still clipped.
+    np.testing.assert_array_equal(video.to_uint8(np.full((2, 2, 3), 1.5)),
+                                  255)
+
+  def test_output_paths_that_cannot_be_written(self):
+    frame = np.zeros((8, 8, 3), np.float32)
+    folder = os.path.join(self.dir, 'folder.png')
+    os.makedirs(folder)
+    with self.assertRaisesRegex(video.VideoError,
+                                'folder.png\' is a folder; give a file'):
+      video.save_png(folder, frame)
+    gif = os.path.join(self.dir, 'g.gif')
+    os.makedirs(gif)
+    with self.assertRaisesRegex(video.VideoError, 'g.gif\' is a folder'):
+      video.write_video(gif, frame[None])
+    under = lambda name: os.path.join(self.file, name)
+    in_the_way = f"'{self.file}' is a file, not a folder; choose another"
+    for write in (lambda: video.save_png(under('x.png'), frame),
+                  lambda: video.write_video(under('x.gif'), frame[None]),
+                  lambda: video.write_video(under('x.mp4'), frame[None]),
+                  lambda: video.write_png_frames(under('f'), frame[None])):
+      with self.assertRaisesRegex(video.VideoError, in_the_way):
+        write()
+    # The run's writers check their files when made, before any frame.
+    with self.assertRaisesRegex(outputs.OutputError, in_the_way):
+      outputs.PngOutput(under('frames'))
+    with self.assertRaisesRegex(outputs.OutputError, in_the_way):
+      outputs.TrajectoryOutput(under('trajectory.npz'), [0])
+    os.makedirs(os.path.join(self.dir, 'video.mp4'))
+    with self.assertRaisesRegex(outputs.OutputError, 'video.mp4\' is a '
+                                'folder'):
+      outputs.VideoOutput(os.path.join(self.dir, 'video.mp4'), fps=10)
+    # A missing folder is made (only when a file is written).
+    new = os.path.join(self.dir, 'a', 'b', 'x.png')
+    self.assertEqual(outputs.check_output_file(new), new)
+    self.assertFalse(os.path.exists(os.path.dirname(new)))
+    video.save_png(new, frame)
+    self.assertTrue(os.path.isfile(new))
 
 
 class _Recorder:

@@ -56,6 +56,10 @@ PathLike = str | os.PathLike
 # Variance floor [scene units^2]: exp(0.5 log(1e-20)) = 1e-10, a flat but
 # finite Gaussian.
 MIN_VARIANCE = 1e-20
+# Eigenvalues of a covariance below -NEGATIVE_RTOL times its largest are not
+# round-off (a float32 F Sigma F^T is off by ~1e-7 of its largest entry):
+# such a matrix is not a covariance, and is refused instead of floored.
+NEGATIVE_RTOL = 1e-4
 # Relative tolerance under which a covariance counts as the rigidly moved
 # rest covariance (~32 float32 ulps of its largest entry; a float32
 # R S^2 R^T of the tabletop's Gaussians is off by up to 1.2e-6).
@@ -87,6 +91,42 @@ def _as_f64(a, shape, name) -> np.ndarray:
       'are wrong'
     )
   return a
+
+
+def _check_min_variance(min_variance) -> float:
+  v = float(min_variance)
+  if not (np.isfinite(v) and v > 0):
+    raise ExportError(
+      f'export: min_variance must be a positive number (the variance floor '
+      f'[scene units^2], default {MIN_VARIANCE:g}), got {min_variance!r}'
+    )
+  return v
+
+
+def _check_sh_degree(sh_degree) -> None:
+  if sh_degree is None:
+    return
+  if (isinstance(sh_degree, (bool, np.bool_))
+      or not isinstance(sh_degree, (int, np.integer))
+      or not 0 <= sh_degree <= 3):
+    raise ExportError(
+      f'export: sh_degree must be 0..3 (3: the INRIA layout of 62 '
+      f'properties) or None (the scene\'s), got {sh_degree!r}'
+    )
+
+
+def _check_psd(w) -> None:
+  """Refuses covariances with clearly negative eigenvalues ``w`` (K, 3)."""
+  bad = w[:, 0] < -NEGATIVE_RTOL * np.abs(w).max(axis=1)
+  if bad.any():
+    rows = np.nonzero(bad)[0]
+    i = rows[0]
+    raise ExportError(
+      f'export: covariances of {rows.size} Gaussians are not positive '
+      f'semi-definite (first: {rows[:5].tolist()}; Gaussian {i} has '
+      f'eigenvalues {np.round(w[i], 12).tolist()}); pass the deformed '
+      'covariances F Sigma F^T (symmetric positive semi-definite)'
+    )
 
 
 def _align(w, V, reference, min_variance):
@@ -130,10 +170,16 @@ def decompose_aligned(
     (log_scales (K, 3), rotations (K, 3, 3)) float64 with
     ``rot diag(exp(2 log_scales)) rot^T == covariance`` (up to the floor) and
     ``det(rot) == +1``.
+
+  Raises:
+    ExportError: ``min_variance`` not positive, or a covariance with an
+      eigenvalue below ``-NEGATIVE_RTOL`` times its largest (not PSD).
   """
+  min_variance = _check_min_variance(min_variance)
   C = np.asarray(covariances, np.float64)
   C = 0.5 * (C + np.swapaxes(C, -1, -2))
   w, V = np.linalg.eigh(C)
+  _check_psd(w)
   return _align(w, V, reference, min_variance)
 
 
@@ -159,6 +205,7 @@ def decompose_deformed(
   Returns:
     As :func:`decompose_aligned`.
   """
+  min_variance = _check_min_variance(min_variance)
   F = np.asarray(deformation, np.float64)
   s0 = np.exp(np.asarray(rest_log_scales, np.float64))
   L = F @ np.asarray(rest_rotations, np.float64) * s0[:, None, :]
@@ -275,9 +322,10 @@ def deformed_gaussians(
     SH; opacity and extras unchanged; normals cleared.
 
   Raises:
-    ExportError: shapes that do not match ``gaussians`` or non-finite
-      inputs.
+    ExportError: shapes that do not match ``gaussians``, non-finite inputs,
+      covariances that are not PSD, or ``min_variance`` not positive.
   """
+  min_variance = _check_min_variance(min_variance)
   K = gaussians.num
   x = _as_f64(means, (K, 3), 'means')
   R = None if rotations is None else _as_f64(rotations, (K, 3, 3),
@@ -315,6 +363,13 @@ def deformed_gaussians(
   )
 
 
+def _check_output(path) -> str:
+  """:func:`physsplat_jax.io.outputs.check_output_file`, as ExportError."""
+  from physsplat_jax.io import outputs  # outputs imports this module
+
+  return outputs.check_output_file(path, ExportError)
+
+
 def _for_viewers(g: Gaussians, sh_degree: int | None,
                  keep_extras: bool) -> Gaussians:
   if sh_degree is not None:
@@ -347,7 +402,13 @@ def save_deformed_ply(
 
   Returns:
     The Gaussians written.
+
+  Raises:
+    ExportError: bad inputs (see :func:`deformed_gaussians`), ``sh_degree``
+      outside 0..3, or a path that cannot be written (checked first).
   """
+  _check_sh_degree(sh_degree)
+  _check_output(path)
   g = deformed_gaussians(gaussians, means, covariances, rotations,
                          deformation=deformation,
                          rotate_colors=rotate_colors)
@@ -365,6 +426,7 @@ def save_deformed_splat(
   Only the DC colour survives in ``.splat``, so the SH are not rotated.
   Returns the Gaussians written (before 8-bit quantisation).
   """
+  _check_output(path)
   g = deformed_gaussians(gaussians, means, covariances, rotations,
                          deformation=deformation, rotate_colors=False)
   save_splat(path, g.replace(extras={}), sort=sort)
@@ -417,7 +479,10 @@ class DeformedFrameWriter:
       raise ExportError(
         f'pattern {pattern!r} needs one integer field such as %04d'
       ) from e
+    if format == 'ply':
+      _check_sh_degree(kwargs.get('sh_degree'))
     self.directory = os.fspath(directory)
+    _check_output(os.path.join(self.directory, pattern % int(start)))
     self.format = format
     self.pattern = pattern
     self._gaussians = gaussians
@@ -462,8 +527,25 @@ def save_deformed_sequence(
 
   Returns:
     The paths written.
+
+  Raises:
+    ExportError: shapes or frame counts that do not match (checked before
+      any file is written), or as :class:`DeformedFrameWriter`.
   """
-  T = np.shape(means)[0]
+  K = gaussians.num
+  shape = np.shape(means)
+  if len(shape) != 3 or shape[1:] != (K, 3):
+    raise ExportError(
+      f'save_deformed_sequence: means has shape {shape}; expected (T, {K}, '
+      '3), one row per Gaussian and frame'
+    )
+  T = shape[0]
+  for name, a in (('covariances', covariances), ('rotations', rotations)):
+    if a is not None and np.shape(a) != (T, K, 3, 3):
+      raise ExportError(
+        f'save_deformed_sequence: {name} has shape {np.shape(a)}; expected '
+        f'({T}, {K}, 3, 3), one (K, 3, 3) per frame of means (T = {T})'
+      )
   with DeformedFrameWriter(directory, gaussians, **kwargs) as w:
     for t in range(T):
       w.append(means[t], covariances[t],

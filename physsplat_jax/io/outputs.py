@@ -11,7 +11,9 @@ Writers: :class:`VideoOutput` (MP4, GIF fallback), :class:`PngOutput`
 (``frames/frame_%04d.png``), :class:`PlyOutput` (``ply/frame_%04d.ply``,
 deformed INRIA PLY), :class:`TrajectoryOutput` (``trajectory.npz``).
 :func:`write_json` writes a report atomically. :class:`BackgroundWriters`
-runs a list of writers off the host loop's thread.
+runs a list of writers off the host loop's thread. :func:`check_output_dir`
+and :func:`check_output_file` check an output path before the work (the
+writers here and in ``io.video`` / ``io.export`` check theirs).
 """
 
 from __future__ import annotations
@@ -98,6 +100,49 @@ def check_output_dir(path: str) -> str:
   return path
 
 
+def check_output_file(path, error: type[Exception] = OutputError, *,
+                      create: bool = False) -> str:
+  """Checks that the file ``path`` can be written, before the work.
+
+  ``path`` must not be a folder, and its folder must exist or be creatable
+  (no file in the way) and be writable. Cheap (a few ``stat`` calls), so
+  writers call it up front and again before each file.
+
+  Args:
+    path: the output file.
+    error: the exception class raised (a module's own error class).
+    create: also create the missing folders.
+
+  Returns:
+    ``path`` as a string.
+
+  Raises:
+    error: naming the path, what is in the way and the fix.
+  """
+  path = os.fspath(path)
+  if os.path.isdir(path):
+    raise error(f'output file {path!r} is a folder; give a file name (not '
+                'an existing folder).')
+  folder = os.path.dirname(os.path.abspath(path))
+  existing = folder
+  while not os.path.exists(existing):  # the part of the folder that exists
+    existing = os.path.dirname(existing)
+  if not os.path.isdir(existing):
+    raise error(f'output file {path!r}: {existing!r} is a file, not a '
+                'folder; choose another output folder or move that file.')
+  if not os.access(existing, os.W_OK | os.X_OK):
+    raise error(f'output file {path!r}: folder {existing!r} is not '
+                'writable; choose a writable folder.')
+  if create:
+    try:
+      os.makedirs(folder, exist_ok=True)
+    except OSError as e:
+      raise error(f'output file {path!r}: its folder cannot be created '
+                  f'({e.strerror or e}); choose a writable folder.'
+                  ) from None
+  return path
+
+
 def _partial(path: str) -> str:
   head, tail = os.path.split(path)
   stem, ext = os.path.splitext(tail)
@@ -136,8 +181,12 @@ class VideoOutput:
   """``video.mp4`` (GIF when no ffmpeg) from the frames' images."""
 
   def __init__(self, path: str, fps: float):
-    self.path = os.fspath(path)
+    self.path = check_output_file(path)
     self._writer = video_lib.VideoWriter(_partial(self.path), fps=fps)
+    self._final = self.path
+    if self._writer.format == 'gif':
+      self._final = check_output_file(
+        os.path.splitext(self.path)[0] + '.gif')
 
   def write(self, frame: Frame) -> None:
     if frame.image is not None:
@@ -149,11 +198,8 @@ class VideoOutput:
       if os.path.exists(self._writer.path):
         os.remove(self._writer.path)
       return {}
-    final = self.path
-    if self._writer.format == 'gif':
-      final = os.path.splitext(self.path)[0] + '.gif'
-    os.replace(self._writer.path, final)
-    return {'video': final}
+    os.replace(self._writer.path, self._final)
+    return {'video': self._final}
 
 
 def _clear_frames(directory: str, ext: str) -> None:
@@ -177,6 +223,7 @@ class PngOutput:
 
   def __init__(self, directory: str):
     self.directory = os.fspath(directory)
+    check_output_file(os.path.join(self.directory, 'frame_0000.png'))
     self._count = 0
     _clear_frames(self.directory, 'png')
 
@@ -201,6 +248,7 @@ class PlyOutput:
 
   def __init__(self, directory: str, base: Gaussians):
     self.directory = os.fspath(directory)
+    check_output_file(os.path.join(self.directory, 'frame_0000.ply'))
     self._base = base
     self._count = 0
     _clear_frames(self.directory, 'ply')
@@ -230,7 +278,7 @@ class TrajectoryOutput:
   every run, after the last frame."""
 
   def __init__(self, path: str, ids):
-    self.path = os.fspath(path)
+    self.path = check_output_file(path)
     self._ids = np.asarray(ids, np.int64)
     self.positions: list[np.ndarray] = []
     self.particles: list[np.ndarray] = []

@@ -1,18 +1,22 @@
 """Video and image outputs: streaming MP4, GIF fallback, PNG frames.
 
 MP4 is H.264 (``libx264``) in ``yuv420p``, the combination every browser and
-player decodes, written through ``imageio_ffmpeg.write_frames``: frames go to
-an ffmpeg process one at a time, so a simulation can stream its renders
-without keeping them in memory. ``yuv420p`` stores colour at half resolution,
-so widths and heights must be even: odd sizes are padded by repeating the last
-row/column (never rescaled). The ffmpeg binary ships inside the
-``imageio-ffmpeg`` wheel; ``IMAGEIO_FFMPEG_EXE`` overrides it. When no ffmpeg
-can be found, :class:`VideoWriter` logs a warning and writes an animated GIF
-(Pillow) next to the requested path instead.
+player decodes, written by an ffmpeg process (the command of
+``imageio_ffmpeg.write_frames``) that gets the frames one at a time, so a
+simulation can stream its renders without keeping them in memory; ffmpeg's
+failure (an output it cannot open, an unknown codec) is raised as a
+:class:`VideoError` quoting its reason, never lost. ``yuv420p`` stores
+colour at half resolution, so widths and heights must be even: odd sizes
+are padded by repeating the last row/column (never rescaled). The ffmpeg
+binary ships inside the ``imageio-ffmpeg`` wheel; ``IMAGEIO_FFMPEG_EXE``
+overrides it. When no ffmpeg can be found, :class:`VideoWriter` logs a
+warning and writes an animated GIF (Pillow) next to the requested path
+instead.
 
 Frames are ``(H, W, 3)`` arrays (NumPy or JAX), either float in ``[0, 1]``
-(clipped, then rounded to 8 bits) or ``uint8``; NaNs and other shapes or
-dtypes are rejected with a message naming the frame.
+(clipped, then rounded to 8 bits) or ``uint8``; NaNs, float frames in
+0..255, other shapes or dtypes, and output paths that cannot be written
+are rejected with a message naming the frame or the file.
 
 Example::
 
@@ -24,9 +28,13 @@ Example::
 from __future__ import annotations
 
 import contextlib
+import fractions
 import logging
 import os
+import re
 import shutil
+import subprocess
+import tempfile
 import warnings
 
 import numpy as np
@@ -41,6 +49,9 @@ DEFAULT_FPS = 30.0
 # imageio-ffmpeg quality in [0, 10] (10 = best); 8 looks clean on renders.
 DEFAULT_QUALITY = 8.0
 PNG_PATTERN = 'frame_%04d.png'
+# A float frame whose maximum is above this is taken for 0..255 values (it
+# would come out white): refused. Renders in [0, 1] overshoot by far less.
+FLOAT_FRAME_MAX = 2.0
 
 
 class VideoError(PhysSplatError, ValueError):
@@ -63,7 +74,8 @@ def to_uint8(frame, what: str = 'frame') -> np.ndarray:
     (H, W, 3) C-contiguous ``uint8`` array.
 
   Raises:
-    VideoError: wrong shape or dtype, or non-finite values.
+    VideoError: wrong shape or dtype, non-finite values, or float values
+      far above 1 (0..255 given as float).
   """
   a = np.asarray(frame)
   if a.ndim != 3 or a.shape[2] != 3 or a.shape[0] < 1 or a.shape[1] < 1:
@@ -88,12 +100,19 @@ def to_uint8(frame, what: str = 'frame') -> np.ndarray:
     )
   # NaN propagates through min and max, and an inf is one of them: two
   # reductions instead of a boolean frame (a frame per video frame).
-  if not (np.isfinite(a.min()) and np.isfinite(a.max())):
+  hi = a.max()
+  if not (np.isfinite(a.min()) and np.isfinite(hi)):
     bad = ~np.isfinite(a)
     i, j, _ = np.argwhere(bad)[0]
     raise VideoError(
       f'{what}: {int(bad.sum())} non-finite values (first at pixel row {i}, '
       f'column {j}); the render produced NaN/inf'
+    )
+  if hi > FLOAT_FRAME_MAX:
+    raise VideoError(
+      f'{what}: float values up to {float(hi):g}; expected [0, 1] (values '
+      'above 1 come out white). For 0..255 values pass frame / 255.0, or '
+      'frame.astype(np.uint8)'
     )
   # In place after the one copy: clip, scale, round half to even (as
   # np.round), then the cast (C-contiguous, as astype makes it).
@@ -152,10 +171,19 @@ def _quiet_fork():
     yield
 
 
-def _makedirs_for(path) -> None:
-  parent = os.path.dirname(os.fspath(path))
-  if parent:
-    os.makedirs(parent, exist_ok=True)
+def _check_output(path, create: bool = False) -> str:
+  """:func:`physsplat_jax.io.outputs.check_output_file`, as VideoError."""
+  from physsplat_jax.io import outputs  # outputs imports this module
+
+  return outputs.check_output_file(path, VideoError, create=create)
+
+
+def _ffmpeg_reason(log: str) -> str:
+  """ffmpeg's error lines, without their ``[muxer @ 0x...]`` prefixes."""
+  lines = [re.sub(r'^\[[^\]]*\]\s*', '', ln).strip().rstrip('.')
+           for ln in log.splitlines()]
+  reason = '; '.join(ln for ln in lines if ln)[-600:]
+  return reason or 'no message'
 
 
 # -----------------------------------------------------------------------------
@@ -202,7 +230,8 @@ class VideoWriter:
       allow_gif_fallback: write a GIF when ffmpeg is missing (else raise).
 
     Raises:
-      VideoError: unknown extension, bad fps, or no ffmpeg and no fallback.
+      VideoError: unknown extension, bad fps, no ffmpeg and no fallback, or
+        a path that cannot be written (a folder, a file in the way).
     """
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
@@ -232,11 +261,13 @@ class VideoWriter:
       raise VideoError(
         f'{path}: unknown video extension {ext!r}; use .mp4 (H.264) or .gif'
       )
-    self.path = path
+    self.path = _check_output(path)
     self.num_frames = 0
     self.size: tuple[int, int] | None = None
     self._input_size: tuple[int, int] | None = None
-    self._gen = None
+    self._proc: subprocess.Popen | None = None
+    self._log = None  # ffmpeg's stderr (a temporary file)
+    self._existed = True
     self._gif_frames: list[np.ndarray] = []
     self._closed = False
 
@@ -244,20 +275,63 @@ class VideoWriter:
     return self
 
   def __exit__(self, exc_type, exc, tb) -> None:
-    self.close()
+    if exc_type is None:
+      self.close()
+      return
+    try:  # the error in the with-block is the one to report
+      self.close()
+    except VideoError as e:
+      logger.warning('VideoWriter: %s', e)
 
   def _open_ffmpeg(self, width: int, height: int) -> None:
-    import imageio_ffmpeg
+    """Starts ffmpeg as ``imageio_ffmpeg.write_frames`` does (same command),
+    with its error output kept, so that a failure is raised, not lost."""
+    _check_output(self.path, create=True)
+    # 1 - quality / 10 as crf 0..51 (libx264) or q:v 1..31 (others).
+    q = 1.0 - self._quality / 10.0
+    rate = (['-crf', str(int(q * 51))] if self._codec == 'libx264'
+            else ['-qscale:v', str(int(q * 30) + 1)])
+    fps = fractions.Fraction(self.fps).limit_denominator()
+    cmd = [self._ffmpeg, '-y', '-f', 'rawvideo', '-vcodec', 'rawvideo',
+           '-s', f'{width}x{height}', '-pix_fmt', 'rgb24', '-r', str(fps),
+           '-i', '-', '-an', '-vcodec', self._codec, '-pix_fmt', 'yuv420p',
+           *rate, '-v', 'error', self.path]
+    self._existed = os.path.lexists(self.path)
+    self._log = tempfile.TemporaryFile()  # a file: a pipe could fill up
+    try:
+      with _quiet_fork():
+        self._proc = subprocess.Popen(  # own session: Ctrl-C ends the file
+          cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+          stderr=self._log, start_new_session=True)
+    except OSError as e:
+      self._log.close()
+      raise VideoError(f'{self.path}: cannot start ffmpeg {self._ffmpeg!r} '
+                       f'({e.strerror or e}); set IMAGEIO_FFMPEG_EXE to a '
+                       'working ffmpeg, or write a .gif') from None
 
-    _makedirs_for(self.path)
-    self._gen = imageio_ffmpeg.write_frames(
-      self.path, (width, height), pix_fmt_in='rgb24', pix_fmt_out='yuv420p',
-      fps=self.fps, quality=self._quality, codec=self._codec,
-      macro_block_size=2,  # sizes are already even: never rescale
-      ffmpeg_log_level='error',
+  def _finish_ffmpeg(self) -> None:
+    """Ends ffmpeg's input, waits; raises its error (removing a partial
+    file it made) if it failed."""
+    proc, self._proc = self._proc, None
+    try:
+      proc.stdin.close()
+    except OSError:  # ffmpeg has gone: its exit status says why
+      pass
+    rc = proc.wait()
+    self._log.seek(0)
+    log = self._log.read().decode('utf-8', 'replace')
+    self._log.close()
+    if rc == 0:
+      if log.strip():
+        logger.warning('ffmpeg (%s): %s', self.path, _ffmpeg_reason(log))
+      return
+    if not self._existed and os.path.isfile(self.path):
+      os.remove(self.path)
+    raise VideoError(
+      f'{self.path}: ffmpeg failed (exit status {rc}): {_ffmpeg_reason(log)}'
+      f'; nothing was written. Check the output path and the codec '
+      f'({self._codec!r})'
     )
-    with _quiet_fork():
-      self._gen.send(None)
 
   def append(self, frame) -> None:
     """Adds one frame.
@@ -267,7 +341,8 @@ class VideoWriter:
         size of the first.
 
     Raises:
-      VideoError: bad frame, a size change, or a closed writer.
+      VideoError: bad frame, a size change, a closed writer, or ffmpeg
+        failed (its reason quoted).
     """
     if self._closed:
       raise VideoError(f'{self.path}: append() after close()')
@@ -284,23 +359,35 @@ class VideoWriter:
       )
     if self.format == 'mp4':
       img = pad_to_even(img)
-      if self._gen is None:
+      if self._proc is None:
         self._open_ffmpeg(img.shape[1], img.shape[0])
-      self._gen.send(img)
+      try:
+        self._proc.stdin.write(img)
+        stopped = self._proc.poll() is not None  # it ends only at close
+      except OSError:  # a broken pipe: ffmpeg stopped
+        stopped = True
+      if stopped:
+        self._closed = True
+        self._finish_ffmpeg()
+        raise VideoError(f'{self.path}: ffmpeg stopped at {what}; nothing '
+                         'was written')
     else:
       self._gif_frames.append(img)
     self.size = (img.shape[1], img.shape[0])
     self.num_frames += 1
 
   def close(self) -> None:
-    """Finishes the file (idempotent). A writer with no frames writes none."""
+    """Finishes the file (idempotent). A writer with no frames writes none.
+
+    Raises:
+      VideoError: ffmpeg failed (its reason quoted); nothing was written.
+    """
     if self._closed:
       return
     self._closed = True
     if self.format == 'mp4':
-      if self._gen is not None:
-        self._gen.close()
-        self._gen = None
+      if self._proc is not None:
+        self._finish_ffmpeg()
       return
     if self._gif_frames:
       _write_gif(self.path, self._gif_frames, self.fps)
@@ -310,12 +397,16 @@ class VideoWriter:
 def _write_gif(path: str, frames: list[np.ndarray], fps: float) -> None:
   from PIL import Image
 
-  _makedirs_for(path)
+  _check_output(path, create=True)
   images = [Image.fromarray(f) for f in frames]
   # GIF delays are in 1/100 s; Pillow takes milliseconds.
   duration = max(int(round(1000.0 / fps)), 10)
-  images[0].save(path, save_all=True, append_images=images[1:],
-                 duration=duration, loop=0, optimize=False)
+  try:
+    images[0].save(path, save_all=True, append_images=images[1:],
+                   duration=duration, loop=0, optimize=False)
+  except OSError as e:
+    raise VideoError(f'{path}: cannot write the GIF ({e.strerror or e}); '
+                     'choose a writable file') from None
 
 
 # -----------------------------------------------------------------------------
@@ -404,8 +495,13 @@ def save_png(path: PathLike, image, compress_level: int = 1) -> None:
     img = np.concatenate([rgb, alpha], axis=2)
   else:
     img = to_uint8(a, path)
-  _makedirs_for(path)
-  Image.fromarray(img).save(path, format='PNG', compress_level=compress_level)
+  _check_output(path, create=True)
+  try:
+    Image.fromarray(img).save(path, format='PNG',
+                              compress_level=compress_level)
+  except OSError as e:
+    raise VideoError(f'{path}: cannot write the PNG ({e.strerror or e}); '
+                     'choose a writable file') from None
 
 
 def load_png(path: PathLike) -> np.ndarray:
@@ -437,6 +533,7 @@ class PngFrameWriter:
     self.directory = os.fspath(directory)
     self.pattern = pattern
     self._next = int(start)
+    _check_output(os.path.join(self.directory, pattern % self._next))
     self.num_frames = 0
     self.paths: list[str] = []
 
@@ -450,8 +547,7 @@ class PngFrameWriter:
     """Writes the next frame; returns its path."""
     path = os.path.join(self.directory, self.pattern % self._next)
     img = to_uint8(frame, f'{path}')
-    os.makedirs(self.directory, exist_ok=True)
-    save_png(path, img)
+    save_png(path, img)  # creates the folder
     self._next += 1
     self.num_frames += 1
     self.paths.append(path)
