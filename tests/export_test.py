@@ -337,12 +337,12 @@ class BadInputTest(absltest.TestCase):
     folder = os.path.join(self.dir, 'd.ply')
     os.makedirs(folder)
     with self.assertRaisesRegex(export.ExportError,
-                                'd.ply\' is a folder; give a file'):
+                                'd.ply: is a directory; give the export'):
       export.save_deformed_ply(folder, g, g.means, self.covs)
     file = os.path.join(self.dir, 'file')
     with open(file, 'w') as fh:
       fh.write('not a folder')
-    in_the_way = f"'{file}' is a file, not a folder; choose another"
+    in_the_way = f"{file} is a file, not a folder; choose another"
     for write in (
         lambda: export.save_deformed_ply(os.path.join(file, 'a.ply'), g,
                                          g.means, self.covs),

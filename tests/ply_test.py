@@ -4,6 +4,7 @@ import os
 import pathlib
 import struct
 import tempfile
+import warnings
 
 import jax
 import numpy as np
@@ -546,8 +547,15 @@ class PlyTest(parameterized.TestCase):
       ply.save_ply(self.tmp / 'w.ply', bad)
 
   def test_wrong_counts(self):
-    data = self._udon_bytes().replace(b'property float f_rest_44\n', b'')
+    _, el = ply.read_ply(SHIPPED['udon_crop'])
+    v = {k: a for k, a in el['vertex'].items() if k != 'f_rest_44'}
+    ply.write_ply(self.tmp / 'r.ply', {'vertex': v})
     with self.assertRaisesRegex(ply.PlyError, r'44 f_rest_\* properties'):
+      ply.load_ply(self.tmp / 'r.ply')
+    # Dropping the header line alone leaves 4 bytes a row unaccounted for
+    # (every later value was read shifted by one property).
+    data = self._udon_bytes().replace(b'property float f_rest_44\n', b'')
+    with self.assertRaisesRegex(ply.PlyError, r'8612 bytes after the'):
       ply.load_ply(self._write('r.ply', data))
     data = self._udon_bytes().replace(b'element vertex 2153',
                                       b'element vertex 2154')
@@ -567,6 +575,135 @@ class PlyTest(parameterized.TestCase):
     with self.assertRaisesRegex(ply.PlyError, 'clashes'):
       ply.save_ply(self.tmp / 'a.ply',
                    g.replace(extras={'opacity': np.zeros(4)}))
+
+  # Rule breaks from review: shifted rows, dropped data, silent inf, raw
+  # OS errors.
+
+  def _ascii(self, rows, count=None, extra_head=''):
+    head = (f'ply\nformat ascii 1.0\nelement vertex '
+            f'{len(rows) if count is None else count}\n'
+            + ''.join(f'property float {n}\n' for n in ply.REQUIRED)
+            + extra_head + 'end_header\n')
+    return (head + ''.join(f'{r}\n' for r in rows)).encode()
+
+  def test_ascii_rows_are_lines(self):
+    vals = ' '.join(['0'] * 14)
+    # One value missing on row 0, one extra on row 1: was read shifted.
+    short, long = ' '.join(['1'] * 13), ' '.join(['2'] * 15)
+    path = self._write('s.ply', self._ascii([short, long]))
+    with self.assertRaisesRegex(
+        ply.PlyError, r's\.ply: ASCII row 0 has 13 values, the header '
+        r"declares 14 properties \(element 'vertex', line 19\)"):
+      ply.load_ply(path)
+    # Data after the declared rows: was ignored.
+    path = self._write('t.ply', self._ascii([vals, vals, vals], count=2))
+    with self.assertRaisesRegex(
+        ply.PlyError, r't\.ply: 1 line\(s\) of data \(from line 21.*after '
+        r'the declared 2 vertex rows.*header count wrong'):
+      ply.load_ply(path)
+    # Blank lines and a list element still read.
+    face = 'element face 1\nproperty list uchar int vertex_indices\n'
+    text = self._ascii([vals, '', vals, '3 0 1 1'], count=2, extra_head=face)
+    header, el = ply.read_ply(self._write('f.ply', text))
+    self.assertEqual(el['face']['vertex_indices'][0].tolist(), [0, 1, 1])
+    self.assertEqual(ply.load_ply(self.tmp / 'f.ply').num, 2)
+    bad = self._ascii([vals, '3 0 1 1 1'], count=1, extra_head=face)
+    with self.assertRaisesRegex(ply.PlyError, r'row 0 of element .face. '
+                                r'\(line 22\) has 5 values'):
+      ply.read_ply(self._write('g.ply', bad))
+
+  def test_binary_data_after_the_declared_elements(self):
+    rows = np.zeros((5, 14), np.float32)
+    data = _inria_bytes(rows, ply.REQUIRED).replace(
+      b'element vertex 5', b'element vertex 3')
+    with self.assertRaisesRegex(
+        ply.PlyError, r'b\.ply: 112 bytes after the declared 3 vertex rows.*'
+        r"2 more vertex rows than the header's 3.*header count wrong"):
+      ply.load_ply(self._write('b.ply', data))
+    # Further declared elements (faces) account for their bytes.
+    data = _inria_bytes(rows[:3], ply.REQUIRED).replace(
+      b'end_header\n', b'element face 1\nproperty list uchar int '
+      b'vertex_indices\nend_header\n')
+    data += struct.pack('<B3i', 3, 0, 1, 2)
+    _, el = ply.read_ply(self._write('f.ply', data))
+    self.assertEqual(el['face']['vertex_indices'][0].tolist(), [0, 1, 2])
+    self.assertEqual(ply.load_ply(self.tmp / 'f.ply').num, 3)
+    with self.assertRaisesRegex(ply.PlyError, r'3 bytes after the declared '
+                                r'3 vertex, 1 face rows'):
+      ply.load_ply(self._write('g.ply', data + b'abc'))
+
+  def test_double_beyond_float32_is_an_error(self):
+    rows = np.zeros((3, 14))
+    rows[1, 0] = 1e300
+    types = ['double'] + ['float'] * 13
+    path = self._write('d.ply', _inria_bytes(rows, ply.REQUIRED, types=types))
+    with warnings.catch_warnings():
+      warnings.simplefilter('error')  # no RuntimeWarning on the way
+      with self.assertRaisesRegex(
+          ply.PlyError, r"d\.ply: vertex property 'x' holds 1e\+300 in row "
+          r'1 .*float32'):
+        ply.load_ply(path)
+      vals = ['0'] * 14
+      path = self._write('a.ply', self._ascii([' '.join(vals),
+                                               ' '.join(['1e300'] + vals[1:])]))
+      with self.assertRaisesRegex(
+          ply.PlyError, r'a\.ply: ASCII value 1e300 in vertex\.x \(value 1\) '
+          r'is out of range for the declared type float'):
+        ply.load_ply(path)
+    with self.assertRaisesRegex(ply.PlyError, r'dtype=.*int32.*float dtype'):
+      ply.load_ply(SHIPPED['train_1000'], dtype=np.int32)
+
+  def test_duplicate_element(self):
+    data = _inria_bytes(np.zeros((1, 14)), ply.REQUIRED)
+    head, body = data.split(b'end_header\n')
+    data = head + b'element vertex 1\nproperty float x\nend_header\n' + body
+    with self.assertRaisesRegex(ply.PlyError, r"duplicate element 'vertex'"):
+      ply.load_ply(self._write('dup.ply', data))
+
+  def test_directories_and_missing_files(self):
+    with self.assertRaisesRegex(splat.SplatError, 'is a directory'):
+      splat.load_splat(self.tmp)
+    with self.assertRaisesRegex(FileNotFoundError, r'\.splat file not found'):
+      splat.load_splat(self.tmp / 'missing.splat')
+    with self.assertRaisesRegex(ply.PlyError, 'is a directory'):
+      ply.read_ply_header(self.tmp)
+    with self.assertRaisesRegex(FileNotFoundError, 'PLY file not found'):
+      ply.read_ply_header(self.tmp / 'missing.ply')
+    with self.assertRaisesRegex(ply.PlyError, 'expected a PLY file path'):
+      ply.load_ply(0)  # not file descriptor 0
+
+  def test_output_paths_that_cannot_be_files(self):
+    g = _random(3, 0)
+    (self.tmp / 'dir.ply').mkdir()
+    (self.tmp / 'dir.splat').mkdir()
+    (self.tmp / 'file').write_text('x')
+    for save, error, ext in (
+        (ply.save_ply, ply.PlyError, 'ply'),
+        (lambda p, g: ply.save_ply(p, g, binary=False), ply.PlyError, 'ply'),
+        (ply.save_compressed_ply, ply.PlyError, 'ply'),
+        (lambda p, g: ply.write_ply(p, {'vertex': {'x': np.zeros(3)}}),
+         ply.PlyError, 'ply'),
+        (splat.save_splat, splat.SplatError, 'splat')):
+      with self.subTest(ext):
+        with self.assertRaisesRegex(error, rf'dir\.{ext}: is a directory'):
+          save(self.tmp / f'dir.{ext}', g)
+        with self.assertRaisesRegex(error, r'cannot create the folder.*file '
+                                    r'is a file, not a folder'):
+          save(self.tmp / 'file' / 'sub' / f'a.{ext}', g)
+    ply.save_ply(self.tmp / 'new' / 'sub' / 'a.ply', g)  # parents created
+    self.assertEqual(ply.load_ply(self.tmp / 'new' / 'sub' / 'a.ply').num, 3)
+
+  def test_splat_refuses_scales_beyond_float32(self):
+    g = _random(4, 0)
+    for value, word in ((100.0, 'inf'), (-200.0, '0')):
+      bad = g.replace(log_scales=np.asarray(g.log_scales).copy())
+      bad.log_scales[2, 1] = value
+      with self.assertRaisesRegex(
+          splat.SplatError, rf'log_scales row 2 = .*{value}.*inf or 0'):
+        with warnings.catch_warnings():
+          warnings.simplefilter('error')
+          splat.save_splat(self.tmp / f'{word}.splat', bad, sort=False)
+      self.assertFalse((self.tmp / f'{word}.splat').exists())
 
 
 if __name__ == '__main__':

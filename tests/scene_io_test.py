@@ -294,6 +294,125 @@ class SceneIOTest(parameterized.TestCase):
     with self.assertRaisesRegex(SceneFileError, 'cannot read'):
       load_scene(path)
 
+  # Rule breaks from review: raw errors and silent wrong values.
+
+  def _saved(self, name='s.ply'):
+    cams = cam_lib.orbit_cameras((0, 0, 0), 3.0, 10.0, 2, width=40,
+                                 height=30)
+    path = os.path.join(self.dir, name)
+    save_scene(path, _tiny_scene([0, 1, 0], cams))
+    with open(sidecar_path(path)) as f:
+      return path, json.load(f)
+
+  @parameterized.named_parameters(
+    ('_version_text', ('version',), 'abc', r'version = "abc"; must be a '
+     'whole number'),
+    ('_version_null', ('version',), None, r'version = null'),
+    ('_mpu_text', ('meters_per_unit',), 'abc',
+     r'meters_per_unit = "abc"; must be a finite number > 0'),
+    ('_mpu_negative', ('meters_per_unit',), -1, r'meters_per_unit = -1;'),
+    ('_mpu_nan', ('meters_per_unit',), float('nan'), r'meters_per_unit = NaN'),
+    ('_up_number', ('up_axis',), 3, r'up_axis = 3; must be a string'),
+    ('_up_bad', ('up_axis',), 'w', r'up_axis = "w"; up axis .w. is not'),
+    ('_name', ('name',), 5, r'name = 5; must be a string'),
+    ('_id_property', ('id_property',), [1], r'id_property = \[1\]'),
+    ('_fixed', ('objects', 0, 'fixed'), 'false',
+     r'objects\[0\]\.fixed = "false"; must be true or false'),
+    ('_tags', ('objects', 0, 'tags'), 'abc',
+     r'objects\[0\]\.tags = "abc"; must be a list of strings'),
+    ('_fx', ('cameras', 0, 'fx'), 'abc', r'cameras\[0\]\.fx = "abc"; must '
+     'be a finite number > 0'),
+    ('_width_text', ('cameras', 1, 'width'), 'abc',
+     r'cameras\[1\]\.width = "abc"; must be a whole number >= 1'),
+    ('_width_fraction', ('cameras', 0, 'width'), 40.5,
+     r'cameras\[0\]\.width = 40.5'),
+    ('_dtype', ('cameras', 0, 'dtype'), 'banana',
+     r'cameras\[0\]\.dtype = "banana"; must be one of float32'),
+    ('_dtype_int', ('cameras', 0, 'dtype'), 'int32',
+     r'cameras\[0\]\.dtype = "int32"'),
+    ('_viewmat', ('cameras', 0, 'viewmat'), 'eye',
+     r'cameras\[0\]\.viewmat = "eye"; must be a 4x4'),
+    ('_viewmat_ragged', ('cameras', 0, 'viewmat'), [[1, 0], [0]],
+     r'cameras\[0\]\.viewmat = \[\[1, 0\], \[0\]\]'),
+    ('_near', ('cameras', 0, 'near'), 'abc', r'cameras\[0\]\.near = "abc"'),
+    ('_cx_nan', ('cameras', 0, 'cx'), float('nan'),
+     r'cameras\[0\]\.cx = NaN; must be a finite number'),
+    ('_near_far', ('cameras', 0, 'near'), 1e11,
+     r'cameras\[0\]: camera .* need 0 < near < far'),
+  )
+  def test_bad_sidecar_fields_are_named(self, keys, value, want):
+    path, side = self._saved()
+    d = side
+    for k in keys[:-1]:
+      d = d[k]
+    d[keys[-1]] = value
+    with open(sidecar_path(path), 'w') as f:
+      json.dump(side, f)
+    with self.assertRaisesRegex(
+        SceneFileError, r's\.scene\.json: ' + want + r'.*delete s\.scene'):
+      load_scene(path)
+
+  def test_save_scene_refuses_what_load_would_refuse(self):
+    sc = _tiny_scene([0, 1, 0])
+    path = os.path.join(self.dir, 'n.ply')
+    with self.assertRaisesRegex(
+        SceneFileError, r"save_scene\('.*n\.ply'\): scene\.meters_per_unit "
+        r'= NaN; must be a finite number > 0'):
+      save_scene(path, sc.replace(meters_per_unit=float('nan')))
+    with self.assertRaisesRegex(SceneFileError, r'scene\.up_axis = "w"'):
+      save_scene(path, sc.replace(up_axis='w'))
+    self.assertEqual(os.listdir(self.dir), [])  # nothing written
+
+  def test_save_scene_checks_both_outputs_first(self):
+    sc = _tiny_scene([0, 1, 0])
+    os.mkdir(os.path.join(self.dir, 'd.ply'))
+    with self.assertRaisesRegex(SceneFileError, r'd\.ply: is a directory'):
+      save_scene(os.path.join(self.dir, 'd.ply'), sc)
+    os.mkdir(os.path.join(self.dir, 'x.scene.json'))
+    with self.assertRaisesRegex(
+        SceneFileError, r'x\.scene\.json: is a directory; give the scene '
+        'sidecar file.s path'):
+      save_scene(os.path.join(self.dir, 'x.ply'), sc)
+    self.assertFalse(os.path.exists(os.path.join(self.dir, 'x.ply')))
+    pathlib.Path(self.dir, 'f').write_text('')
+    with self.assertRaisesRegex(SceneFileError, r'f is a file, not a folder'):
+      save_scene(os.path.join(self.dir, 'f', 'y.ply'), sc)
+
+  def test_found_camera_files_do_not_block_loading(self):
+    g = test_util.random_gaussians(jax.random.key(7), 20)
+    path = os.path.join(self.dir, 'c.ply')
+    save_ply(path, g)
+    # An unrelated transforms_*.json is not taken for cameras.
+    pathlib.Path(self.dir, 'transforms_config.json').write_text('{"a": 1}')
+    self.assertEqual(load_scene(path, num_cameras=2).cameras[0].name,
+                     'orbit_0000')
+    # A bad cameras.json found automatically: the error says so.
+    pathlib.Path(self.dir, 'cameras.json').write_text('{"a": 1}')
+    with self.assertRaisesRegex(
+        SceneFileError, r'cameras\.json was found next to it automatically '
+        r'.*unknown camera file.*cameras=False'):
+      load_scene(path)
+    self.assertLen(load_scene(path, cameras=False, num_cameras=2).cameras, 2)
+
+  @parameterized.named_parameters(
+    ('_width_text', dict(width='abc'), r"width='abc'; the image size"),
+    ('_width_fraction', dict(width=64.5), r'width=64\.5; the image size'),
+    ('_num_cameras_text', dict(num_cameras='abc'), r"num_cameras='abc'"),
+    ('_num_cameras_fraction', dict(num_cameras=2.7),
+     r'num_cameras=2\.7; must be a whole number >= 1'),
+    ('_mpu_text', dict(meters_per_unit='abc'),
+     r"meters_per_unit='abc'; must be a finite number > 0"),
+    ('_up_number', dict(up_axis=2), r'up_axis=2; must be a string'),
+    ('_dtype_int', dict(dtype=jnp.int32), r'dtype=.*int32.*float dtype'),
+    ('_cameras_fd', dict(cameras=5), r'cameras=5; give a camera file path'),
+    ('_fov', dict(fov_deg='wide'), r"fov_deg='wide'"),
+    ('_name', dict(name=3), r'name=3; must be a string'),
+  )
+  def test_bad_option_values_are_named(self, options, want):
+    with self.assertRaisesRegex(SceneFileError,
+                                r"load_scene\('.*train_1000\.ply'\): " + want):
+      load_scene(DATA / 'train_1000.ply', **options)
+
 
 if __name__ == '__main__':
   absltest.main()

@@ -207,7 +207,7 @@ class BadInputTest(absltest.TestCase):
     self.assertEqual(os.listdir(path), [])
     # Checked up front: the path is a folder.
     with self.assertRaisesRegex(video.VideoError,
-                                "'.*isdir.mp4' is a folder; give a file"):
+                                'isdir.mp4: is a directory; give the video'):
       video.VideoWriter(path)
 
   def test_float_frames_in_0_255_are_refused(self):
@@ -228,14 +228,14 @@ class BadInputTest(absltest.TestCase):
     folder = os.path.join(self.dir, 'folder.png')
     os.makedirs(folder)
     with self.assertRaisesRegex(video.VideoError,
-                                'folder.png\' is a folder; give a file'):
+                                'folder.png: is a directory; give the'):
       video.save_png(folder, frame)
     gif = os.path.join(self.dir, 'g.gif')
     os.makedirs(gif)
-    with self.assertRaisesRegex(video.VideoError, 'g.gif\' is a folder'):
+    with self.assertRaisesRegex(video.VideoError, 'g.gif: is a directory'):
       video.write_video(gif, frame[None])
     under = lambda name: os.path.join(self.file, name)
-    in_the_way = f"'{self.file}' is a file, not a folder; choose another"
+    in_the_way = f"{self.file} is a file, not a folder; choose another"
     for write in (lambda: video.save_png(under('x.png'), frame),
                   lambda: video.write_video(under('x.gif'), frame[None]),
                   lambda: video.write_video(under('x.mp4'), frame[None]),
@@ -248,8 +248,8 @@ class BadInputTest(absltest.TestCase):
     with self.assertRaisesRegex(outputs.OutputError, in_the_way):
       outputs.TrajectoryOutput(under('trajectory.npz'), [0])
     os.makedirs(os.path.join(self.dir, 'video.mp4'))
-    with self.assertRaisesRegex(outputs.OutputError, 'video.mp4\' is a '
-                                'folder'):
+    with self.assertRaisesRegex(outputs.OutputError,
+                                'video.mp4: is a directory'):
       outputs.VideoOutput(os.path.join(self.dir, 'video.mp4'), fps=10)
     # A missing folder is made (only when a file is written).
     new = os.path.join(self.dir, 'a', 'b', 'x.png')

@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.gaussians import quat_to_rotmat_np as quat_to_rotmat_np
+from physsplat_jax.io import paths
 from physsplat_jax.io.ply import PlyError
 from physsplat_jax.io.ply import save_ply
 from physsplat_jax.io.splat import save_splat
@@ -364,10 +365,8 @@ def deformed_gaussians(
 
 
 def _check_output(path) -> str:
-  """:func:`physsplat_jax.io.outputs.check_output_file`, as ExportError."""
-  from physsplat_jax.io import outputs  # outputs imports this module
-
-  return outputs.check_output_file(path, ExportError)
+  """:func:`physsplat_jax.io.paths.check_output_file`, as ExportError."""
+  return paths.check_output_file(path, ExportError, what='export')
 
 
 def _for_viewers(g: Gaussians, sh_degree: int | None,

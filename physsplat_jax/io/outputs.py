@@ -33,6 +33,7 @@ from absl import logging
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io import export as export_lib
+from physsplat_jax.io import paths
 from physsplat_jax.io import video as video_lib
 from physsplat_jax.types import Gaussians
 
@@ -102,45 +103,9 @@ def check_output_dir(path: str) -> str:
 
 def check_output_file(path, error: type[Exception] = OutputError, *,
                       create: bool = False) -> str:
-  """Checks that the file ``path`` can be written, before the work.
-
-  ``path`` must not be a folder, and its folder must exist or be creatable
-  (no file in the way) and be writable. Cheap (a few ``stat`` calls), so
-  writers call it up front and again before each file.
-
-  Args:
-    path: the output file.
-    error: the exception class raised (a module's own error class).
-    create: also create the missing folders.
-
-  Returns:
-    ``path`` as a string.
-
-  Raises:
-    error: naming the path, what is in the way and the fix.
-  """
-  path = os.fspath(path)
-  if os.path.isdir(path):
-    raise error(f'output file {path!r} is a folder; give a file name (not '
-                'an existing folder).')
-  folder = os.path.dirname(os.path.abspath(path))
-  existing = folder
-  while not os.path.exists(existing):  # the part of the folder that exists
-    existing = os.path.dirname(existing)
-  if not os.path.isdir(existing):
-    raise error(f'output file {path!r}: {existing!r} is a file, not a '
-                'folder; choose another output folder or move that file.')
-  if not os.access(existing, os.W_OK | os.X_OK):
-    raise error(f'output file {path!r}: folder {existing!r} is not '
-                'writable; choose a writable folder.')
-  if create:
-    try:
-      os.makedirs(folder, exist_ok=True)
-    except OSError as e:
-      raise error(f'output file {path!r}: its folder cannot be created '
-                  f'({e.strerror or e}); choose a writable folder.'
-                  ) from None
-  return path
+  """:func:`physsplat_jax.io.paths.check_output_file`, as ``error``
+  (:class:`OutputError` by default)."""
+  return paths.check_output_file(path, error, create=create)
 
 
 def _partial(path: str) -> str:

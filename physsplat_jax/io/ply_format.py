@@ -17,6 +17,7 @@ import re
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.io import paths
 
 PathLike = str | os.PathLike
 
@@ -159,6 +160,11 @@ def _parse_header(data: bytes, path) -> PlyHeader:
     elif key == 'element':
       if len(words) != 3 or not words[2].isdigit():
         raise PlyError(f'{where}: expected "element <name> <count>"')
+      if words[1] in [e[0] for e in elements]:
+        raise PlyError(
+          f'{where}: duplicate element {words[1]!r} (each element is '
+          'declared once); merge the two declarations or re-export the file'
+        )
       elements.append((words[1], int(words[2]), []))
     elif key == 'property':
       if not elements:
@@ -200,14 +206,24 @@ def _parse_header(data: bytes, path) -> PlyHeader:
   )
 
 
-def _read_bytes(path) -> bytes:
+def _read_bytes(path, what='PLY', error=PlyError, size=-1) -> bytes:
+  """The file's bytes (the first ``size`` with size >= 0); OS errors named."""
+  if not isinstance(path, (str, bytes, os.PathLike)):
+    # (open() takes an int as a file descriptor: it would read another file.)
+    raise error(
+      f'expected a {what} file path, got {type(path).__name__} {path!r}'
+    )
   try:
     with open(path, 'rb') as f:
-      return f.read()
+      return f.read(size)
   except FileNotFoundError:
-    raise FileNotFoundError(f'PLY file not found: {path}') from None
+    raise FileNotFoundError(f'{what} file not found: {path}') from None
   except IsADirectoryError:
-    raise PlyError(f'{path}: is a directory, not a PLY file') from None
+    raise error(f'{path}: is a directory, not a {what} file') from None
+  except OSError as e:
+    raise error(
+      f'{path}: cannot read the {what} file ({e.strerror or e})'
+    ) from None
 
 
 def read_ply_header(path: PathLike) -> PlyHeader:
@@ -220,11 +236,20 @@ def read_ply_header(path: PathLike) -> PlyHeader:
     The parsed :class:`PlyHeader`.
 
   Raises:
-    PlyError: not a PLY file or a malformed header.
+    PlyError: not a PLY file, a directory or a malformed header.
+    FileNotFoundError: no such file (named).
   """
-  with open(path, 'rb') as f:
-    head = f.read(_MAX_HEADER_BYTES)
-  return _parse_header(head, path)
+  return _parse_header(_read_bytes(path, size=_MAX_HEADER_BYTES), path)
+
+
+def check_writable_file(path, what='PLY', error=PlyError) -> str:
+  """:func:`physsplat_jax.io.paths.check_output_file` for a PLY file."""
+  return paths.check_output_file(path, error, what=what)
+
+
+def open_output(path, what='PLY', error=PlyError):
+  """:func:`physsplat_jax.io.paths.open_output` for a PLY file."""
+  return paths.open_output(path, error, what=what)
 
 
 # ----------------------------------------------------------------------------
@@ -244,6 +269,24 @@ def _truncated(path, element, expected, actual):
   return PlyError(
     f'{path}: truncated PLY payload in element {element.name!r} '
     f'({element.count} rows): expected {expected} bytes, file has {actual}'
+  )
+
+
+def _trailing(path, header, extra, unit, row_size=None):
+  """Data after the last declared element: a wrong count, not to drop."""
+  declared = ', '.join(f'{e.count} {e.name}' for e in header.elements)
+  last = header.elements[-1] if header.elements else None
+  hint = ''
+  if last is not None and row_size and extra % row_size == 0:
+    hint = (
+      f', that is {extra // row_size} more {last.name} rows than the '
+      f'header\'s {last.count}'
+    )
+  return PlyError(
+    f'{path}: {extra} {unit} after the declared '
+    f'{declared or "(no elements)"} rows that no element of the header '
+    f'accounts for{hint} (header count wrong?); fix the "element" line(s) '
+    'of the header or re-export the file'
   )
 
 
@@ -297,6 +340,11 @@ def _read_binary(
           if offset + cdt.itemsize > len(data):
             raise _truncated(path, e, offset + cdt.itemsize, len(data))
           n = int(np.frombuffer(data, cdt, 1, offset)[0])
+          if n < 0:
+            raise PlyError(
+              f'{path}: negative list length {n} in {e.name}.{p.name} '
+              f'(byte {offset}); the file is corrupt'
+            )
           offset += cdt.itemsize
           idt = np.dtype(endian + p.dtype)
           if offset + n * idt.itemsize > len(data):
@@ -317,16 +365,44 @@ def _read_binary(
       )
       for p in e.properties
     }
+  if offset < len(data):
+    last = header.elements[-1] if header.elements else None
+    size = None
+    if last is not None and not last.has_lists:
+      size = _scalar_dtype(last, endian).itemsize
+    raise _trailing(path, header, len(data) - offset, 'bytes', size)
   return out
 
 
 def _parse_tokens(tokens, dtype: str, path, what):
+  """ASCII tokens -> values of one PLY type (row i of ``what`` is token i)."""
+  tokens = np.asarray(tokens, dtype=bytes)
   try:
-    if dtype.startswith('f'):
-      return np.asarray(tokens).astype(np.float64).astype(dtype)
-    vals = np.asarray(tokens).astype(np.float64)
-  except ValueError as e:
-    raise PlyError(f'{path}: bad ASCII value in {what}: {e}') from None
+    vals = tokens.astype(np.float64)
+  except ValueError:
+    i = 0
+    for i, t in enumerate(tokens.tolist()):
+      try:
+        float(t)
+      except ValueError:
+        break
+    raise PlyError(
+      f'{path}: bad ASCII value {tokens[i].decode(errors="replace")!r} in '
+      f'{what} (value {i}): not a number'
+    ) from None
+  if dtype.startswith('f'):
+    with np.errstate(over='ignore'):
+      out = vals.astype(dtype)
+    over = np.flatnonzero(np.isinf(out) & np.isfinite(vals))
+    if over.size:
+      i = over[0]
+      raise PlyError(
+        f'{path}: ASCII value {tokens[i].decode()} in {what} (value {i}) is '
+        f'out of range for the declared type {_WRITE_NAMES[dtype]} '
+        f'(|v| <= {np.finfo(dtype).max:.4g}); declare it "double" or fix '
+        'the value'
+      )
+    return out
   if np.any(vals != np.round(vals)):
     raise PlyError(
       f'{path}: non-integer ASCII value in integer property {what}'
@@ -338,51 +414,74 @@ def _parse_tokens(tokens, dtype: str, path, what):
 
 
 def _read_ascii(data: bytes, header: PlyHeader, path) -> dict:
-  tokens = data[header.size :].split()
+  """One line per row (PLY 1.0): a row with a value too many or too few is
+  an error, not a shift of every later value."""
+  lines = data[header.size :].splitlines()
+  first = data[: header.size].count(b'\n') + 1  # file line of lines[0]
+  rows = [(first + i, t) for i, line in enumerate(lines) if (t := line.split())]
   pos = 0
   out = {}
+
+  def row_error(e, r, line, got, want):
+    if pos + r == len(rows) - 1 and got < want:
+      return PlyError(
+        f'{path}: truncated ASCII PLY payload in element {e.name!r}: its '
+        f'last row {r} (line {line}) has {got} of {want} values'
+      )
+    return PlyError(
+      f'{path}: ASCII row {r} has {got} values, the header declares {want} '
+      f'properties (element {e.name!r}, line {line}); each row is one line '
+      'with one value per property: fix that line or the header'
+    )
+
   for e in header.elements:
+    # (Rows of an element without properties are empty lines.)
+    count = e.count if e.properties else 0
+    if pos + count > len(rows):
+      raise PlyError(
+        f'{path}: truncated ASCII PLY payload in element {e.name!r}: '
+        f'expected {e.count} rows (lines), found {len(rows) - pos}'
+      )
+    block = rows[pos : pos + count]
     if not e.has_lists:
-      n = e.count * len(e.properties)
-      if pos + n > len(tokens):
-        raise PlyError(
-          f'{path}: truncated ASCII PLY payload in element {e.name!r}: '
-          f'expected {e.count} rows x {len(e.properties)} values, found '
-          f'{(len(tokens) - pos) // max(len(e.properties), 1)} full rows'
-        )
-      block = np.asarray(tokens[pos : pos + n], dtype=bytes)
-      block = block.reshape(e.count, len(e.properties))
-      pos += n
+      n = len(e.properties)
+      for r, (line, t) in enumerate(block):
+        if len(t) != n:
+          raise row_error(e, r, line, len(t), n)
+      mat = np.asarray([t for _, t in block], dtype=bytes).reshape(count, n)
+      pos += count
       out[e.name] = {
-        p.name: _parse_tokens(block[:, i], p.dtype, path, f'{e.name}.{p.name}')
+        p.name: _parse_tokens(mat[:, i], p.dtype, path, f'{e.name}.{p.name}')
         for i, p in enumerate(e.properties)
       }
       continue
     cols = {p.name: [] for p in e.properties}
-    for row in range(e.count):
+    for r, (line, t) in enumerate(block):
+      k = 0
       for p in e.properties:
-        what = f'{e.name}.{p.name} (row {row})'
-        if pos >= len(tokens):
-          raise PlyError(
-            f'{path}: truncated ASCII PLY payload in element {e.name!r} at '
-            f'row {row} of {e.count}'
-          )
+        what = f'{e.name}.{p.name} (row {r}, line {line})'
+        if k >= len(t):
+          raise row_error(e, r, line, len(t), k + 1)
         if p.is_list:
-          n = int(_parse_tokens([tokens[pos]], p.count_dtype, path, what)[0])
-          pos += 1
-          if pos + n > len(tokens):
+          n = int(_parse_tokens([t[k]], p.count_dtype, path, what)[0])
+          if n < 0 or k + 1 + n > len(t):
             raise PlyError(
-              f'{path}: truncated ASCII PLY payload in {what}'
+              f'{path}: ASCII list {what} declares {n} items but the line '
+              f'has {len(t) - k - 1} values left; fix that line'
             )
           cols[p.name].append(
-            _parse_tokens(tokens[pos : pos + n], p.dtype, path, what)
+            _parse_tokens(t[k + 1 : k + 1 + n], p.dtype, path, what)
           )
-          pos += n
+          k += 1 + n
         else:
-          cols[p.name].append(
-            _parse_tokens([tokens[pos]], p.dtype, path, what)[0]
-          )
-          pos += 1
+          cols[p.name].append(_parse_tokens([t[k]], p.dtype, path, what)[0])
+          k += 1
+      if k != len(t):
+        raise PlyError(
+          f'{path}: ASCII row {r} of element {e.name!r} (line {line}) has '
+          f'{len(t)} values, its properties take {k}; fix that line'
+        )
+    pos += e.count
     out[e.name] = {
       p.name: (
         cols[p.name]
@@ -391,6 +490,12 @@ def _read_ascii(data: bytes, header: PlyHeader, path) -> dict:
       )
       for p in e.properties
     }
+  if pos < len(rows):
+    line, t = rows[pos]
+    raise _trailing(
+      path, header, len(rows) - pos,
+      f'line(s) of data (from line {line}: {b" ".join(t[:6]).decode()!r})',
+    )
   return out
 
 
@@ -408,7 +513,10 @@ def read_ply(
     a list of arrays for a list property.
 
   Raises:
-    PlyError: not a PLY file, malformed header or truncated payload.
+    PlyError: not a PLY file, a directory, malformed header, truncated
+      payload, data that no declared element accounts for, or an ASCII row
+      whose value count does not match the header.
+    FileNotFoundError: no such file (named).
   """
   header, elements, _ = _read(path)
   return header, elements
@@ -472,7 +580,8 @@ def write_ply(
     comments: header comment lines.
 
   Raises:
-    PlyError: unknown format, bad names, ragged columns or unsupported dtypes.
+    PlyError: unknown format, bad names, ragged columns, unsupported dtypes
+      or a path that cannot be written (parent folders are created).
   """
   if format not in FORMATS:
     raise PlyError(f'{path}: unknown PLY format {format!r}; use {FORMATS}')
@@ -509,7 +618,7 @@ def write_ply(
     blocks.append((count, cols))
   lines.append('end_header')
   head = ('\n'.join(lines) + '\n').encode('ascii')
-  with open(path, 'wb') as f:
+  with open_output(path) as f:
     f.write(head)
     for count, cols in blocks:
       if not cols:

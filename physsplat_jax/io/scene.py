@@ -24,9 +24,11 @@ For a file, the scene is assembled from what lies next to it, in this order:
    The property is removed from ``extras`` (it lives in ``object_ids``).
    Without such a property every Gaussian is object 0, named after the file.
 3. Cameras: the sidecar's; else ``cameras=`` (a camera file path); else an
-   INRIA ``cameras.json`` or a ``transforms*.json`` next to the file or in
-   the 3DGS output folder above ``point_cloud/iteration_<N>/`` (read with
-   :func:`~physsplat_jax.io.cameras.load_cameras`); else ``num_cameras``
+   INRIA ``cameras.json``, a ``transforms.json`` or ``transforms_train.json``
+   next to the file or in the 3DGS output folder above
+   ``point_cloud/iteration_<N>/`` (read with
+   :func:`~physsplat_jax.io.cameras.load_cameras`; one that cannot be read
+   is an error that suggests ``cameras=False``); else ``num_cameras``
    orbit cameras fitted to the scene (:func:`physsplat_jax.cameras.
    fit_camera` around the 1st-99th percentile box of the centres, so
    floaters do not shrink the object).
@@ -45,6 +47,7 @@ from __future__ import annotations
 import glob
 import json
 import math
+import numbers
 import os
 import re
 
@@ -56,6 +59,8 @@ from physsplat_jax.errors import PhysSplatError
 from physsplat_jax import cameras as _cameras
 from physsplat_jax.io.cameras import load_cameras
 from physsplat_jax.io.ply import PlyError, load_ply, save_ply
+from physsplat_jax.io.ply import check_writable_file, float_dtype
+from physsplat_jax.io.ply_format import open_output
 from physsplat_jax.io.splat import load_splat
 from physsplat_jax.io import up_axis as up_lib
 from physsplat_jax.types import Camera, DataError, Gaussians, ObjectInfo
@@ -89,6 +94,148 @@ def sidecar_path(path: PathLike) -> str:
   """``scene.ply`` -> ``scene.scene.json`` (the metadata next to a file)."""
   root, _ = os.path.splitext(os.fspath(path))
   return root + SIDECAR_SUFFIX
+
+
+# ----------------------------------------------------------------------------
+# Checks of option values and sidecar fields.
+
+
+def _shown(value, as_json) -> str:
+  try:
+    text = json.dumps(value) if as_json else repr(value)
+  except (TypeError, ValueError):
+    text = repr(value)
+  return text if len(text) <= 80 else text[:77] + '...'
+
+
+class _Fields:
+  """Checks values; errors name ``where``, the field, the value and a fix.
+
+  ``sidecar=True`` shows ``field = <JSON value>`` (sidecar fields), else
+  ``field=<repr>`` (keyword options).
+  """
+
+  def __init__(self, where: str, fix: str = '', sidecar: bool = True,
+               prefix: str = ''):
+    self.where, self.fix, self.sidecar, self.prefix = (
+      where, fix, sidecar, prefix)
+
+  def error(self, field, value, want) -> SceneFileError:
+    sep = ' = ' if self.sidecar else '='
+    fix = f'; {self.fix}' if self.fix else ''
+    return SceneFileError(
+      f'{self.where}: {self.prefix}{field}{sep}'
+      f'{_shown(value, self.sidecar)}; {want}{fix}')
+
+  def number(self, value, field, positive=False, default=None) -> float:
+    if value is None and default is not None:
+      return default
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if not (ok and math.isfinite(value) and (value > 0 or not positive)):
+      raise self.error(field, value, 'must be a finite number'
+                       + (' > 0' if positive else ''))
+    return float(value)
+
+  def whole(self, value, field, minimum=1, want='') -> int:
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if not (ok and math.isfinite(value) and float(value).is_integer()
+            and value >= minimum):
+      raise self.error(field, value,
+                       want or f'must be a whole number >= {minimum}')
+    return int(value)
+
+  def text(self, value, field, optional=False) -> str | None:
+    if not (isinstance(value, str) or (optional and value is None)):
+      raise self.error(field, value, 'must be a string'
+                       + (' or null' if optional else ''))
+    return value
+
+  def up_axis(self, value, field='up_axis') -> str:
+    if not isinstance(value, str):
+      raise self.error(field, value, "must be a string such as 'z', '-y' "
+                       "or 'x,y,z'")
+    try:
+      up_vector(value)
+    except DataError as e:
+      raise self.error(field, value, str(e)) from None
+    return value
+
+
+# Camera precisions a sidecar may name.
+_CAMERA_DTYPES = ('float32', 'float64', 'float16', 'bfloat16')
+
+
+def _sidecar_fields(data: dict, f: _Fields) -> dict:
+  """The sidecar's fields checked: {name: value} of those present, with
+  ``objects`` as ObjectInfo and ``cameras`` as make_camera arguments."""
+  out = {}
+  for key in ('name', 'id_property'):
+    if key in data:
+      out[key] = f.text(data[key], key, optional=key == 'id_property')
+  if 'up_axis' in data:
+    out['up_axis'] = f.up_axis(data['up_axis'])
+  if 'meters_per_unit' in data:
+    out['meters_per_unit'] = f.number(data['meters_per_unit'],
+                                      'meters_per_unit', positive=True)
+  for key, parse in (('objects', _object_fields),
+                     ('cameras', _camera_fields)):
+    if key in data:
+      if not isinstance(data[key], list):
+        raise f.error(key, data[key], 'must be a list')
+      out[key] = tuple(parse(x, f, f'{key}[{i}]')
+                       for i, x in enumerate(data[key]))
+  return out
+
+
+def _object_fields(o, f: _Fields, at: str) -> ObjectInfo:
+  if not isinstance(o, dict) or 'name' not in o:
+    raise f.error(at, o, 'must be an object with a "name"')
+  fixed = o.get('fixed', False)
+  if not isinstance(fixed, bool):
+    raise f.error(f'{at}.fixed', fixed, 'must be true or false')
+  tags = o.get('tags', [])
+  if not isinstance(tags, (list, tuple)) or not all(
+      isinstance(t, str) for t in tags):
+    raise f.error(f'{at}.tags', tags, 'must be a list of strings')
+  return ObjectInfo(
+    name=f.text(o['name'], f'{at}.name'),
+    material=f.text(o.get('material'), f'{at}.material', optional=True),
+    fixed=fixed, tags=tuple(tags))
+
+
+def _camera_fields(c, f: _Fields, at: str) -> dict:
+  need = ('width', 'height', 'fx', 'fy', 'cx', 'cy', 'viewmat')
+  if not isinstance(c, dict):
+    raise f.error(at, c, f'must be an object with {", ".join(need)}')
+  missing = [k for k in need if k not in c]
+  if missing:
+    raise SceneFileError(f'{f.where}: {f.prefix}{at} misses the field(s) '
+                         f'{missing}' + (f'; {f.fix}' if f.fix else ''))
+  kw = {k: f.whole(c[k], f'{at}.{k}') for k in ('width', 'height')}
+  for k in ('fx', 'fy', 'cx', 'cy'):
+    kw[k] = f.number(c[k], f'{at}.{k}', positive=k in ('fx', 'fy'))
+  for k, default in (('near', 0.01), ('far', 1e10)):
+    kw[k] = f.number(c.get(k, default), f'{at}.{k}', positive=True)
+  try:
+    vm = np.asarray(c['viewmat'], np.float64)
+  except (TypeError, ValueError):
+    vm = None
+  if vm is None or vm.shape != (4, 4) or not np.all(np.isfinite(vm)):
+    raise f.error(f'{at}.viewmat', c['viewmat'], 'must be a 4x4 list of '
+                  'finite numbers (world-to-camera)')
+  kw['viewmat'] = vm
+  kw['name'] = f.text(c.get('name', ''), f'{at}.name')
+  kw['dtype'] = c.get('dtype', 'float32')
+  if kw['dtype'] not in _CAMERA_DTYPES:
+    raise f.error(f'{at}.dtype', kw['dtype'], f'must be one of '
+                  f'{", ".join(_CAMERA_DTYPES)}')
+  return kw
+
+
+def _check_output_path(path) -> None:
+  """save_scene's two outputs, checked before either is written."""
+  check_writable_file(path, 'scene PLY', SceneFileError)
+  check_writable_file(sidecar_path(path), 'scene sidecar', SceneFileError)
 
 
 # ----------------------------------------------------------------------------
@@ -160,7 +307,9 @@ def load_scene(path: str | PathLike, **options) -> Scene:
     A :class:`~physsplat_jax.types.Scene`.
 
   Raises:
-    SceneFileError: missing path, unsupported file type, bad sidecar or ids.
+    SceneFileError: missing path, unsupported file type, bad option values
+      (named), bad sidecar fields (the file, field and value named), bad
+      ids, or an unreadable camera file found next to the scene.
     PlyError, SplatError, CameraFileError: unreadable files (named).
     TypeError: unknown options.
   """
@@ -220,13 +369,36 @@ def load_scene_file(
 ) -> Scene:
   """Loads a ``.ply`` / ``.splat`` file as a scene; see :func:`load_scene`."""
   path = os.fspath(path)
+  o = _Fields(f'load_scene({path!r})', sidecar=False)
+  # Every option checked before the (slow) file is read.
   for field, v in (('width', width), ('height', height)):
     # (0 was taken for "unset" below and silently gave the default size.)
-    if v is not None and not v >= 1:
-      raise SceneFileError(
-        f'load_scene({path!r}): {field}={v!r}; the image size must be >= 1 '
-        f'pixel, or None (cameras from a file keep theirs, fitted ones get '
-        f'{DEFAULT_WIDTH}x{DEFAULT_HEIGHT})')
+    if v is not None:
+      o.whole(v, field, 1, want=(
+        f'the image size must be >= 1 pixel (a whole number), or None '
+        f'(cameras from a file keep theirs, fitted ones get '
+        f'{DEFAULT_WIDTH}x{DEFAULT_HEIGHT})'))
+  width = None if width is None else int(width)
+  height = None if height is None else int(height)
+  num_cameras = o.whole(num_cameras, 'num_cameras', 1)
+  fov_deg = o.number(fov_deg, 'fov_deg', positive=True)
+  if fov_deg >= 180:
+    raise o.error('fov_deg', fov_deg, 'must be in (0, 180) degrees')
+  if up_axis is not None and up_axis != 'auto':
+    o.up_axis(up_axis)
+  if meters_per_unit is not None:
+    meters_per_unit = o.number(meters_per_unit, 'meters_per_unit',
+                               positive=True)
+  if not (cameras is None or isinstance(cameras, (bool, str, os.PathLike))):
+    raise o.error('cameras', cameras, 'give a camera file path, False '
+                  '(fit orbit cameras) or None (a camera file found next '
+                  'to the scene, if any)')
+  if name is not None:
+    o.text(name, 'name')
+  if details is not None and not isinstance(details, dict):
+    raise o.error('details', details, 'give a dict (it receives how the up '
+                  'axis was chosen) or None')
+  float_dtype(dtype, o.where, SceneFileError)
   ext = os.path.splitext(path)[1].lower()
   if ext == '.ply':
     g = load_ply(path, dtype=dtype)
@@ -238,17 +410,6 @@ def load_scene_file(
       '.ply (INRIA or compressed) or .splat'
     )
   check_gaussians(g, path)
-  if up_axis is not None and up_axis != 'auto':
-    try:
-      up_vector(up_axis)
-    except ValueError as e:
-      raise SceneFileError(f'up_axis: {e}') from None
-  if meters_per_unit is not None and not (
-    math.isfinite(float(meters_per_unit)) and float(meters_per_unit) > 0
-  ):
-    raise SceneFileError(
-      f'meters_per_unit must be a finite number > 0, got {meters_per_unit}'
-    )
   side = _read_sidecar(path)
   stem = os.path.splitext(os.path.basename(path))[0]
 
@@ -280,7 +441,7 @@ def load_scene_file(
     ids = np.zeros(g.num, np.int32)
     objects = None
   if side and 'objects' in side:
-    objects = _objects_from_json(side['objects'], path)
+    objects = side['objects']
     if ids.size and ids.max() >= len(objects):
       raise SceneFileError(
         f'{path}: object id {int(ids.max())} but the sidecar '
@@ -292,15 +453,19 @@ def load_scene_file(
   # Cameras and up axis.
   cams, from_file, exact = (), False, False
   if side and 'cameras' in side:
-    cams = _cameras_from_json(side['cameras'], path)
+    cams = _sidecar_cameras(side['cameras'], path)
     exact = True  # even an empty list is what was saved
   elif cameras is not None and cameras is not False and cameras is not True:
-    cams = tuple(load_cameras(cameras))
+    try:
+      cams = tuple(load_cameras(cameras))
+    except (IsADirectoryError, PermissionError) as e:
+      raise o.error('cameras', cameras, f'cannot be read ({e.strerror}); '
+                    'give a camera file path') from None
     from_file = True
   elif cameras is None or cameras is True:
     found = _find_camera_file(path)
     if found:
-      cams = tuple(load_cameras(found))
+      cams = _found_cameras(found, path)
       from_file = True
   guess = up_lib.guess_up(
     np.asarray(g.means), np.asarray(g.opacities),
@@ -359,6 +524,11 @@ def _ids_from_property(raw, prop, path, side):
   return ids, objects
 
 
+# Camera files looked for next to a scene file (not transforms*.json: an
+# unrelated transforms_config.json must not be taken for cameras).
+CAMERA_FILES = ('cameras.json', 'transforms.json', 'transforms_train.json')
+
+
 def _find_camera_file(path: str) -> str | None:
   folders = [os.path.dirname(os.path.abspath(path))]
   # INRIA output: <model>/point_cloud/iteration_N/point_cloud.ply
@@ -366,12 +536,24 @@ def _find_camera_file(path: str) -> str | None:
   if os.path.basename(os.path.dirname(folders[0])) == 'point_cloud':
     folders.append(up2)
   for folder in folders:
-    for pattern in ('cameras.json', 'transforms.json', 'transforms_train.json',
-                    'transforms*.json'):
-      hits = sorted(glob.glob(os.path.join(folder, pattern)))
-      if hits:
-        return hits[0]
+    for fname in CAMERA_FILES:
+      hit = os.path.join(folder, fname)
+      if os.path.isfile(hit):
+        return hit
   return None
+
+
+def _found_cameras(found: str, path: str) -> tuple[Camera, ...]:
+  """Cameras of a file found next to the scene; its errors say so."""
+  try:
+    return tuple(load_cameras(found))
+  except (PhysSplatError, OSError, ValueError) as e:
+    raise SceneFileError(
+      f'{path}: the camera file {found} was found next to it automatically '
+      f'but cannot be read ({e}); cameras are optional: pass cameras=False '
+      'to fit orbit cameras instead, or cameras=<path> to name the right '
+      'camera file (or move that file away)'
+    ) from None
 
 
 def fitted_orbit(
@@ -384,8 +566,8 @@ def fitted_orbit(
   The box is the 1st-99th percentile box of the centres (robust to
   floaters); see :func:`physsplat_jax.cameras.fit_camera`.
   """
-  if int(num_cameras) < 1:
-    raise SceneFileError(f'num_cameras must be >= 1, got {num_cameras}')
+  num_cameras = _Fields('fitted_orbit', sidecar=False).whole(
+    num_cameras, 'num_cameras', 1)
   m = np.asarray(means, np.float64)
   if m.size == 0:
     lo = hi = np.zeros(3)
@@ -411,7 +593,13 @@ def fitted_orbit(
 # The sidecar.
 
 
+def _sidecar_fix(sp) -> str:
+  return (f'fix that field (save_scene writes valid sidecars) or delete '
+          f'{os.path.basename(sp)} to load the file without it')
+
+
 def _read_sidecar(path: str) -> dict | None:
+  """The checked fields of the sidecar next to ``path``, or None."""
   sp = sidecar_path(path)
   if not os.path.exists(sp):
     return None
@@ -425,29 +613,28 @@ def _read_sidecar(path: str) -> dict | None:
       f'{sp}: not a physsplat_jax scene sidecar (expected a JSON object '
       f'with "format": "{SCENE_FORMAT}"); rename or delete it'
     )
-  if int(data.get('version', 0)) > SCENE_VERSION:
+  fields = _Fields(sp, _sidecar_fix(sp))
+  if 'version' in data:
+    fields.whole(data['version'], 'version', 0, f'must be a whole number '
+                 f'(this version writes {SCENE_VERSION})')
+  if data.get('version', 0) > SCENE_VERSION:
     raise SceneFileError(
       f'{sp}: sidecar version {data.get("version")} is newer than this '
       f'physsplat_jax reads ({SCENE_VERSION}); upgrade physsplat_jax'
     )
-  return data
+  return _sidecar_fields(data, fields)
 
 
-def _objects_from_json(items, path) -> tuple[ObjectInfo, ...]:
-  if not isinstance(items, list):
-    raise SceneFileError(f'{sidecar_path(path)}: "objects" must be a list')
+def _sidecar_cameras(items, path) -> tuple[Camera, ...]:
+  sp = sidecar_path(path)
   out = []
-  for i, o in enumerate(items):
-    if not isinstance(o, dict) or 'name' not in o:
+  for i, kw in enumerate(items):
+    kw = dict(kw, dtype=jnp.dtype(kw['dtype']))
+    try:
+      out.append(make_camera(**kw))
+    except DataError as e:
       raise SceneFileError(
-        f'{sidecar_path(path)}: object {i} must be an object with a "name"'
-      )
-    out.append(ObjectInfo(
-      name=str(o['name']),
-      material=o.get('material'),
-      fixed=bool(o.get('fixed', False)),
-      tags=tuple(str(t) for t in o.get('tags', ())),
-    ))
+        f'{sp}: cameras[{i}]: {e}; {_sidecar_fix(sp)}') from None
   return tuple(out)
 
 
@@ -462,31 +649,6 @@ def _camera_to_json(c: Camera) -> dict:
     'viewmat': np.asarray(c.viewmat, np.float64).tolist(),
     'dtype': str(np.asarray(c.viewmat).dtype),
   }  # fmt: skip
-
-
-def _cameras_from_json(items, path) -> tuple[Camera, ...]:
-  sp = sidecar_path(path)
-  if not isinstance(items, list):
-    raise SceneFileError(f'{sp}: "cameras" must be a list')
-  out = []
-  for i, c in enumerate(items):
-    need = ('width', 'height', 'fx', 'fy', 'cx', 'cy', 'viewmat')
-    missing = [k for k in need if not isinstance(c, dict) or k not in c]
-    if missing:
-      raise SceneFileError(f'{sp}: camera {i} is missing {missing}')
-    vm = np.asarray(c['viewmat'], np.float64)
-    if vm.shape != (4, 4) or not np.all(np.isfinite(vm)):
-      raise SceneFileError(f'{sp}: camera {i} viewmat must be a finite 4x4')
-    try:
-      out.append(make_camera(
-        vm, c['fx'], c['fy'], int(c['width']), int(c['height']),
-        cx=c['cx'], cy=c['cy'], near=float(c.get('near', 0.01)),
-        far=float(c.get('far', 1e10)), name=str(c.get('name', '')),
-        dtype=np.dtype(c.get('dtype', 'float32')),
-      ))
-    except DataError as e:
-      raise SceneFileError(f'{sp}: camera {i}: {e}') from None
-  return tuple(out)
 
 
 # ----------------------------------------------------------------------------
@@ -510,10 +672,15 @@ def save_scene(path: PathLike, scene: Scene, *, binary: bool = True) -> str:
     The sidecar path.
 
   Raises:
-    SceneFileError: not a ``.ply`` path, or object ids inconsistent with
-      the objects.
+    SceneFileError: not a ``.ply`` path, a PLY or sidecar path that cannot
+      be written (checked before either file is), object ids inconsistent
+      with the objects, or scene fields the sidecar cannot hold (a
+      non-finite ``meters_per_unit``, a bad up axis, camera values...).
     PlyError: Gaussians that cannot be written (non-finite values...).
   """
+  if not isinstance(path, (str, os.PathLike)):
+    raise SceneFileError(f'save_scene: expected a .ply path, got '
+                         f'{type(path).__name__} {path!r}')
   path = os.fspath(path)
   if os.path.splitext(path)[1].lower() != '.ply':
     raise SceneFileError(
@@ -533,10 +700,6 @@ def save_scene(path: PathLike, scene: Scene, *, binary: bool = True) -> str:
       f'save_scene: object ids span [{ids.min()}, {ids.max()}] but the '
       f'scene has {n} objects (ids must be -1 or 0..{n - 1})'
     )
-  up_vector(scene.up_axis)
-  extras = dict(g.extras)
-  extras['object_id'] = jnp.asarray(ids.astype(np.int32))
-  save_ply(path, g.replace(extras=extras), binary=binary)
   side = {
     'format': SCENE_FORMAT,
     'version': SCENE_VERSION,
@@ -545,16 +708,24 @@ def save_scene(path: PathLike, scene: Scene, *, binary: bool = True) -> str:
     'meters_per_unit': float(scene.meters_per_unit),
     'id_property': 'object_id',
     'objects': [
-      {'name': o.name, 'material': o.material, 'fixed': bool(o.fixed),
-       'tags': list(o.tags)}
+      {'name': o.name, 'material': o.material,
+       'fixed': bool(o.fixed) if isinstance(o.fixed, np.bool_) else o.fixed,
+       'tags': o.tags if isinstance(o.tags, str) else list(o.tags)}
       for o in scene.objects
     ],
     'cameras': [_camera_to_json(c) for c in scene.cameras],
   }
+  # What load_scene would refuse is refused now, before anything is written.
+  _sidecar_fields(side, _Fields(f'save_scene({path!r})', 'fix the scene '
+                                'before saving it', prefix='scene.'))
+  text = json.dumps(side, indent=1, allow_nan=False) + '\n'
+  _check_output_path(path)
+  extras = dict(g.extras)
+  extras['object_id'] = jnp.asarray(ids.astype(np.int32))
+  save_ply(path, g.replace(extras=extras), binary=binary)
   sp = sidecar_path(path)
-  with open(sp, 'w') as f:
-    json.dump(side, f, indent=1)
-    f.write('\n')
+  with open_output(sp, 'scene sidecar', SceneFileError) as f:
+    f.write(text.encode())
   return sp
 
 

@@ -30,6 +30,9 @@ import numpy as np
 
 from physsplat_jax.gaussians import SH_C0
 from physsplat_jax.io.ply import PlyError, gaussians_to_vertex
+from physsplat_jax.io.ply import float_dtype
+from physsplat_jax.io.ply_format import _read_bytes, check_writable_file
+from physsplat_jax.io.ply_format import open_output
 from physsplat_jax.types import Gaussians
 
 ROW_BYTES = 32
@@ -53,27 +56,48 @@ def _to_byte(x: np.ndarray) -> np.ndarray:
   return np.clip(np.round(x), 0, 255).astype(np.uint8)
 
 
-def encode_splat(gaussians: Gaussians, *, sort: bool = True) -> np.ndarray:
+def encode_splat(
+  gaussians: Gaussians, *, sort: bool = True, path='<gaussians>'
+) -> np.ndarray:
   """Gaussians -> structured ``(K,)`` array of :data:`SPLAT_DTYPE` rows.
 
   Args:
     gaussians: the Gaussians (SH degree > 0, normals and extras dropped).
     sort: order rows by decreasing ``exp(sum log_scale) * opacity``.
+    path: used in error messages only.
 
   Returns:
     (K,) structured array; ``.tobytes()`` is the file content.
+
+  Raises:
+    SplatError: inconsistent shapes, non-finite values, or log-scales whose
+      ``exp`` is not a positive finite float32 (the file stores scales).
   """
-  v = gaussians_to_vertex(gaussians.replace(normals=None, extras={}))
+  v = gaussians_to_vertex(
+    gaussians.replace(normals=None, extras={}), path
+  )
   k = len(v['x'])
   f64 = lambda names: np.stack([v[n] for n in names], -1).astype(np.float64)
   log_scales = f64(['scale_0', 'scale_1', 'scale_2'])
+  with np.errstate(over='ignore'):
+    scales = np.exp(log_scales).astype(np.float32)
+  bad = np.flatnonzero(~np.all(np.isfinite(scales) & (scales > 0), axis=-1))
+  if bad.size:
+    i = int(bad[0])
+    raise SplatError(
+      f'{path}: Gaussians.log_scales row {i} = '
+      f'{[float(f"{x:.6g}") for x in log_scales[i]]} '
+      f'({bad.size} row(s) in all): a .splat file stores exp(log_scale) as '
+      'float32, which is inf or 0 for these; the loadable range is about '
+      '[-103, 88]: clamp or drop those Gaussians before saving'
+    )
   opacity = 1.0 / (1.0 + np.exp(-v['opacity'].astype(np.float64)))
   q = f64(['rot_0', 'rot_1', 'rot_2', 'rot_3'])
   qn = np.linalg.norm(q, axis=-1, keepdims=True)
   q = np.where(qn > 0, q / np.where(qn > 0, qn, 1.0), [1.0, 0.0, 0.0, 0.0])
   rows = np.empty(k, SPLAT_DTYPE)
   rows['position'] = np.stack([v['x'], v['y'], v['z']], -1)
-  rows['scale'] = np.exp(log_scales).astype(np.float32)
+  rows['scale'] = scales
   rgb = 0.5 + SH_C0 * f64(['f_dc_0', 'f_dc_1', 'f_dc_2'])
   rows['rgba'] = _to_byte(np.concatenate([rgb, opacity[:, None]], -1) * 255)
   rows['rot'] = _to_byte(q * 128.0 + 128.0)
@@ -96,12 +120,12 @@ def save_splat(path, gaussians: Gaussians, *, sort: bool = True) -> None:
 
   Raises:
     PlyError: inconsistent shapes or non-finite values.
+    SplatError: scales out of float32 range, or a path that cannot be
+      written (a directory, or a file where a parent folder should be).
   """
-  rows = encode_splat(gaussians, sort=sort)
-  parent = os.path.dirname(os.fspath(path))
-  if parent:
-    os.makedirs(parent, exist_ok=True)
-  with open(path, 'wb') as f:
+  check_writable_file(path, '.splat', SplatError)
+  rows = encode_splat(gaussians, sort=sort, path=os.fspath(path))
+  with open_output(path, '.splat', SplatError) as f:
     f.write(rows.tobytes())
 
 
@@ -169,11 +193,9 @@ def load_splat(path, dtype=jnp.float32) -> Gaussians:
     :class:`~physsplat_jax.types.Gaussians` with SH degree 0, no normals.
 
   Raises:
-    SplatError: see :func:`decode_splat`.
+    SplatError: see :func:`decode_splat`; also a directory, or a non-float
+      ``dtype``.
+    FileNotFoundError: no such file (named).
   """
-  try:
-    with open(path, 'rb') as f:
-      data = f.read()
-  except FileNotFoundError:
-    raise FileNotFoundError(f'.splat file not found: {path}') from None
-  return decode_splat(data, path, dtype)
+  float_dtype(dtype, 'load_splat', SplatError)
+  return decode_splat(_read_bytes(path, '.splat', SplatError), path, dtype)

@@ -40,6 +40,7 @@ import warnings
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.io import paths
 
 PathLike = str | os.PathLike
 
@@ -172,10 +173,9 @@ def _quiet_fork():
 
 
 def _check_output(path, create: bool = False) -> str:
-  """:func:`physsplat_jax.io.outputs.check_output_file`, as VideoError."""
-  from physsplat_jax.io import outputs  # outputs imports this module
-
-  return outputs.check_output_file(path, VideoError, create=create)
+  """:func:`physsplat_jax.io.paths.check_output_file`, as VideoError."""
+  return paths.check_output_file(path, VideoError, what='video or image',
+                                 create=create)
 
 
 def _ffmpeg_reason(log: str) -> str:
