@@ -166,10 +166,97 @@ class ErrorTest(parameterized.TestCase):
     ('_bc_normal', {'boundary_conditions': [
       {'type': 'surface_collider', 'point': [1, 1, 0], 'normal': [0, 0, 0],
        'surface': 'sticky', 'friction': 0.1}]}, r"\.normal' = .*non-zero"),
+    # Accepted before and simulated with a wrong or no effect.
+    ('_friction_angle', {'material': 'sand', 'friction_angle': 120},
+     r"^x\.json: field 'friction_angle' = 120: use an angle in \[0, 90\)"),
+    ('_yield_stress', {'material': 'metal', 'yield_stress': -1},
+     r"'yield_stress' = -1: use a stress >= 0"),
+    ('_xi', {'material': 'snow', 'xi': 1e3}, r"'xi' = 1000: use"),
+    ('_damping', {'grid_v_damping_scale': -1},
+     r"'grid_v_damping_scale' = -1: use a factor in \(0, 1\)"),
+    ('_damping_zero', {'grid_v_damping_scale': 0},
+     r"'grid_v_damping_scale' = 0: use"),
+    ('_friction', {'boundary_conditions': [
+      {'type': 'surface_collider', 'point': [1, 1, 0], 'normal': [0, 0, 1],
+       'surface': 'slip', 'friction': -1}]},
+     r"boundary_conditions\[0\]\.friction' = -1: use a Coulomb coefficient "
+     '>= 0'),
+    ('_release_axis', {'boundary_conditions': [
+      {'type': 'release_particles_sequentially', 'axis': 5,
+       'start_position': 0.5, 'end_position': 1.5}]},
+     r"\.axis' = 5: use 0 \(x\), 1 \(y\) or 2 \(z\)"),
+    ('_num_dt_zero', {'boundary_conditions': [
+      {'type': 'particle_impulse', 'force': [1, 0, 0], 'num_dt': 0}]},
+     r"\.num_dt' = 0: use a number of substeps >= 1"),
+    ('_num_dt_negative', {'boundary_conditions': [
+      {'type': 'particle_impulse', 'force': [1, 0, 0], 'num_dt': -5}]},
+     r"\.num_dt' = -5: use"),
+    ('_box_size', {'additional_material_params': [
+      {'point': [1, 1, 1], 'size': [-0.1, 0.1, 0.1], 'E': 1e5}]},
+     r"additional_material_params\[0\]\.size' = \[-0\.1, 0\.1, 0\.1\]: "
+     'give half-extents > 0'),
+    # A typo fell back to the default region (all particles).
+    ('_bc_typo', {'boundary_conditions': [
+      {'type': 'particle_impulse', 'force': [1, 0, 0], 'num_dt': 1,
+       'pointt': [1, 1, 1]}]},
+     r"boundary_conditions\[0\]' \(particle_impulse\): unknown key "
+     r"'pointt' \(did you mean 'point'\?\); particle_impulse takes "
+     r"\['force', 'num_dt', 'point', 'size', 'start_time', 'type'\]"),
+    ('_bc_key_of_other_type', {'boundary_conditions': [
+      {'type': 'cuboid', 'point': [1, 1, 1], 'size': [0.1, 0.1, 0.1],
+       'velocity': [0, 0, 0], 'friction': 0.0}]},
+     r"\(cuboid\): unknown key 'friction'"),
   )
   def test_bad_field(self, raw, needle):
     with self.assertRaisesRegex(pg.ConfigError, needle):
-      pg.parse_config(raw, warn=False)
+      pg.parse_config(raw, source='x.json', warn=False)
+
+  def test_replace_checks_ranges(self):
+    c = pg.parse_config(_WOLF, warn=False)
+    for kw, needle in (({'friction_angle': 90.0}, "'friction_angle' = 90"),
+                       ({'grid_v_damping_scale': -0.5},
+                        "'grid_v_damping_scale'")):
+      with self.subTest(**kw), self.assertRaisesRegex(pg.ConfigError,
+                                                      needle):
+        c.replace(**kw)
+
+  def test_ranges_match_perception(self):
+    # The same physical ranges as perception's apply_spec.
+    from physsplat_jax.perception import choice
+    from physsplat_jax.physgaussian import fields
+    for name, (ok, _) in fields.PARAM_RANGES.items():
+      want = choice.PARAM_RANGES[name][0]
+      for v in (-1.0, 0.0, 0.5, 1.0, 30.0, 90.0, 100.0, 120.0, 1e6):
+        self.assertEqual(ok(v), want(v), msg=f'{name} = {v}')
+
+  def test_physgaussian_bc_keys_accepted(self):
+    # Every key PhysGaussian's set_boundary_conditions reads, per type
+    # (its configs: ficus, pillow2sofa, plane, tear_bread, vasedeck, wolf).
+    w = {'start_time': 0.0, 'end_time': 1.5}
+    box = {'point': [1, 1, 1], 'size': [0.2, 0.2, 0.2],
+           'velocity': [0, 0, 0], **w}
+    bcs = [
+      {'type': 'bounding_box'},
+      {'type': 'cuboid', 'reset': 1, **box},
+      {'type': 'enforce_particle_translation', **box},
+      {'type': 'particle_impulse', 'force': [1, 0, 0], 'num_dt': 2,
+       'start_time': 0.0, 'point': [1, 1, 1], 'size': [1, 1, 1]},
+      {'type': 'enforce_particle_velocity_rotation', 'point': [1, 1, 1],
+       'normal': [0, 1, 0], 'half_height_and_radius': [0.1, 0.5],
+       'rotation_scale': 1.0, 'translation_scale': 0.0, **w},
+      {'type': 'surface_collider', 'point': [1, 1, 0.5], 'normal': [0, 0, 1],
+       'surface': 'slip', 'friction': 0.4, **w},
+      {'type': 'release_particles_sequentially', 'normal': [1, 0, 0],
+       'start_position': 1.5, 'end_position': 0.5, 'num_layers': 50, **w},
+    ]
+    c = pg.parse_config({'boundary_conditions': bcs}, warn=False)
+    self.assertLen(c.boundary_conditions, len(bcs))
+    # add_bounding_box's window: accepted, ignored (as in PhysGaussian),
+    # and said so.
+    with self.assertLogs(level='WARNING') as logs:
+      pg.parse_config({'boundary_conditions': [
+        {'type': 'bounding_box', 'start_time': 0, 'end_time': 1}]})
+    self.assertTrue(any('ignored' in m for m in logs.output))
 
   def test_incompressible_nu_names_file_and_field(self):
     with tempfile.TemporaryDirectory() as d:
@@ -212,6 +299,28 @@ class ErrorTest(parameterized.TestCase):
         json.dump([1, 2], f)
       with self.assertRaisesRegex(pg.ConfigError, 'JSON object'):
         pg.load_config(path)
+
+  def test_directory_and_non_utf8_file(self):
+    with tempfile.TemporaryDirectory() as d:
+      # A directory said "does not exist".
+      with open(os.path.join(d, 'wolf.json'), 'w') as f:
+        json.dump(_WOLF, f)
+      with self.assertRaisesRegex(
+          pg.ConfigError, f"{re.escape(repr(d))} is a directory \\(it holds "
+          r'wolf\.json\); pass the path of the \.json config file'):
+        pg.load_config(d)
+      # Latin-1 text raised a UnicodeDecodeError naming no file.
+      path = os.path.join(d, 'latin1.json')
+      with open(path, 'wb') as f:
+        f.write(b'{"material": "jelly",\n "note": "caf\xe9"}')
+      with self.assertRaisesRegex(
+          pg.ConfigError, f'{re.escape(path)}: not UTF-8 text '
+          r'\(byte 0xe9 on line 2\); save the config as UTF-8'):
+        pg.load_config(path)
+      # A UTF-8 byte-order mark is fine.
+      with open(path, 'wb') as f:
+        f.write(b'\xef\xbb\xbf' + json.dumps(_WOLF).encode())
+      self.assertEqual(pg.load_config(path, warn=False).friction_angle, 30.0)
 
 
 class TransformTest(parameterized.TestCase):

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 from typing import Any
 
@@ -53,11 +52,22 @@ import numpy as np
 from absl import logging
 
 from physsplat_jax import struct
-from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.mpm.models import MATERIAL_ALIASES
 from physsplat_jax.mpm.models import MATERIAL_IDS
 from physsplat_jax.mpm.models import canonical_model
+from physsplat_jax.physgaussian.fields import ConfigError
+from physsplat_jax.physgaussian.fields import _bool
+from physsplat_jax.physgaussian.fields import _check_kind
+from physsplat_jax.physgaussian.fields import _float
+from physsplat_jax.physgaussian.fields import _freeze
+from physsplat_jax.physgaussian.fields import _int
+from physsplat_jax.physgaussian.fields import _type_error
+from physsplat_jax.physgaussian.fields import _vec
+from physsplat_jax.physgaussian.fields import _where
+from physsplat_jax.physgaussian.fields import check_keys
+from physsplat_jax.physgaussian.fields import check_range
+from physsplat_jax.physgaussian.fields import PARAM_RANGES
 from physsplat_jax.types import Array
 
 BOUNDARY_TYPES = (
@@ -86,7 +96,11 @@ _BC_FIELDS = {
                        'start_time': 'float', 'end_time': 'float'},
   'release_particles_sequentially': {},
 }
+# Every other key is refused (a typo would silently fall back to a default).
 _BC_OPTIONAL = {
+  # PhysGaussian's add_bounding_box takes a window but is always on; the
+  # keys are accepted (with a warning) and ignored, as there.
+  'bounding_box': {'start_time': 'float', 'end_time': 'float'},
   'cuboid': {'reset': 'int'},
   'particle_impulse': {'point': 'vec3', 'size': 'vec3'},
   # PhysGaussian's fields (it requires all of them); 'axis' is our
@@ -118,10 +132,6 @@ _KNOWN_TOP = {
 # counterpart in physsplat_jax.sampling.filling (docs/configs.md).
 PARTLY_HONOURED = ('particle_filling',)
 NOT_HONOURED = ()
-
-
-class ConfigError(PhysSplatError, ValueError):
-  """A config field has a bad value or type; the message names the fix."""
 
 
 # ----------------------------------------------------------------- dataclasses
@@ -209,7 +219,8 @@ class PhysGaussianConfig:
     frame_dt: frame interval [s].
     frame_num: number of frames.
     rpic_damping: RPIC damping in [0, 1] (0 = plain APIC/MLS).
-    grid_v_damping_scale: per-substep grid velocity factor (>= 1 disables).
+    grid_v_damping_scale: per-substep grid velocity factor, > 0 (>= 1
+      disables).
     yield_stress, hardening, xi, friction_angle, plastic_viscosity,
       softening: plasticity parameters (friction_angle in degrees).
     additional_material_params: boxes overriding E/nu/density.
@@ -315,65 +326,6 @@ class NormTransform(struct.PyTreeNode):
 # --------------------------------------------------------------------- parsing
 
 
-def _where(source: str, field: str) -> str:
-  return f'{source}: field {field!r}'
-
-
-def _type_error(source, field, value, expected):
-  return ConfigError(
-    f'{_where(source, field)} has value {value!r} of type '
-    f'{type(value).__name__}; expected {expected}. Fix the value in the '
-    'JSON file.'
-  )
-
-
-def _float(source, field, value):
-  if isinstance(value, bool) or not isinstance(value, (int, float)):
-    raise _type_error(source, field, value, 'a number')
-  value = float(value)
-  if not math.isfinite(value):
-    raise _type_error(source, field, value, 'a finite number')
-  return value
-
-
-def _int(source, field, value):
-  if isinstance(value, bool):
-    raise _type_error(source, field, value, 'an integer')
-  if isinstance(value, float) and value.is_integer():
-    value = int(value)
-  if not isinstance(value, int):
-    raise _type_error(source, field, value, 'an integer')
-  return value
-
-
-def _vec(source, field, value, n=None):
-  if not isinstance(value, (list, tuple)):
-    want = f'a list of {n} numbers' if n else 'a list of numbers'
-    raise _type_error(source, field, value, want)
-  if n is not None and len(value) != n:
-    raise ConfigError(
-      f'{_where(source, field)} has {len(value)} entries {value!r}; '
-      f'expected {n} numbers.'
-    )
-  return tuple(_float(source, f'{field}[{i}]', v) for i, v in enumerate(value))
-
-
-def _bool(source, field, value):
-  if isinstance(value, bool):
-    return value
-  if isinstance(value, int) and value in (0, 1):
-    return bool(value)
-  raise _type_error(source, field, value, 'true/false')
-
-
-def _freeze(value):
-  if isinstance(value, (list, tuple)):
-    return tuple(_freeze(v) for v in value)
-  if isinstance(value, dict):
-    return tuple(sorted((k, _freeze(v)) for k, v in value.items()))
-  return value
-
-
 def material_name(value: Any, source: str = '<dict>') -> str:
   """Maps a PhysGaussian material name or id to a canonical model name.
 
@@ -434,23 +386,7 @@ def _parse_box(source, i, box):
   )
 
 
-def _check_kind(source, field, value, kind):
-  if kind == 'vec3':
-    return _vec(source, field, value, 3)
-  if kind == 'vec2':
-    return _vec(source, field, value, 2)
-  if kind == 'float':
-    return _float(source, field, value)
-  if kind == 'int':
-    return _int(source, field, value)
-  if kind == 'str':
-    if not isinstance(value, str):
-      raise _type_error(source, field, value, 'a string')
-    return value
-  return _freeze(value)
-
-
-def _parse_bc(source, i, bc):
+def _parse_bc(source, i, bc, warn=True):
   field = f'boundary_conditions[{i}]'
   if not isinstance(bc, dict):
     raise _type_error(source, field, bc, 'an object with a "type"')
@@ -462,6 +398,7 @@ def _parse_bc(source, i, bc):
     )
   required = _BC_FIELDS[kind]
   optional = _BC_OPTIONAL.get(kind, {})
+  check_keys(source, field, bc, {'type', *required, *optional}, kind)
   params = {}
   for name, want in required.items():
     if name not in bc:
@@ -480,6 +417,19 @@ def _parse_bc(source, i, bc):
       f'{_where(source, field + ".surface")}: {params["surface"]!r}; '
       f'expected one of {list(SURFACE_TYPES)}.'
     )
+  if kind == 'bounding_box' and params and warn:
+    logging.warning('%s: %s (bounding_box): start_time/end_time are ignored; '
+                    'the domain box is always on (as in PhysGaussian).',
+                    source, field)
+  # Values that ran with no error and a wrong or no effect.
+  for name, ok, want in (
+    ('friction', lambda v: v >= 0, 'a Coulomb coefficient >= 0'),
+    ('num_dt', lambda v: v >= 1, 'a number of substeps >= 1'),
+    ('axis', lambda v: v in (0, 1, 2), '0 (x), 1 (y) or 2 (z)'),
+  ):
+    if name in params and not ok(params[name]):
+      raise ConfigError(f'{_where(source, f"{field}.{name}")} = '
+                        f'{params[name]:g}: use {want}.')
   # Values no boundary condition can use (accepted before, then did
   # nothing or failed later without naming the file).
   size = params.get('size')
@@ -555,7 +505,7 @@ def parse_config(
     if not isinstance(bcs, list):
       raise _type_error(source, 'boundary_conditions', bcs, 'a list')
     kw['boundary_conditions'] = tuple(
-      _parse_bc(source, i, b) for i, b in enumerate(bcs)
+      _parse_bc(source, i, b, warn) for i, b in enumerate(bcs)
     )
   if 'rotation_degree' in raw:
     kw['rotation_degree'] = _vec(source, 'rotation_degree',
@@ -639,6 +589,14 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
   if not 0.0 <= c.rpic_damping <= 1.0:
     raise ConfigError(f'{_where(s, "rpic_damping")} = {c.rpic_damping} must '
                       'be in [0, 1].')
+  if not c.grid_v_damping_scale > 0:  # (< 0 flipped the velocities)
+    raise ConfigError(
+      f'{_where(s, "grid_v_damping_scale")} = {c.grid_v_damping_scale:g}: '
+      'use a factor in (0, 1) to damp grid velocities every substep '
+      '(PhysGaussian: 0.9999) or >= 1 for no damping.'
+    )
+  for name in PARAM_RANGES:
+    check_range(s, name, getattr(c, name))
   if len(c.rotation_degree) != len(c.rotation_axis):
     raise ConfigError(
       f'{s}: rotation_degree has {len(c.rotation_degree)} entries but '
@@ -654,6 +612,11 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
       raise ConfigError(f'{_where(s, "sim_area")} = {c.sim_area}: each min '
                         'must be below its max (xmin, xmax, ymin, ...).')
   for i, b in enumerate(c.additional_material_params):
+    if not all(v > 0 for v in b.size):  # (had no effect)
+      raise ConfigError(
+        f'{_where(s, f"additional_material_params[{i}].size")} = '
+        f'{list(b.size)}: give half-extents > 0.'
+      )
     if b.nu is not None and not 0.0 <= b.nu < 0.5:
       raise ConfigError(
         f'{_where(s, f"additional_material_params[{i}].nu")} = {b.nu} is '
@@ -681,18 +644,36 @@ def load_config(path: str | os.PathLike, warn: bool = True
     The parsed ``PhysGaussianConfig``.
 
   Raises:
-    ConfigError: missing file, invalid JSON or a bad field.
+    ConfigError: missing file, a directory, unreadable or non-UTF-8 text,
+      invalid JSON or a bad field.
   """
   path = os.fspath(path)
+  if os.path.isdir(path):
+    try:
+      found = sorted(f for f in os.listdir(path) if f.endswith('.json'))
+    except OSError:
+      found = []
+    hint = f' (it holds {", ".join(found[:5])})' if found else ''
+    raise ConfigError(f'PhysGaussian config path {path!r} is a directory'
+                      f'{hint}; pass the path of the .json config file.')
   if not os.path.isfile(path):
     raise ConfigError(f'PhysGaussian config file {path!r} does not exist; '
                       'give the path of an existing PhysGaussian .json '
                       'config.')
-  with open(path) as f:
-    try:
-      raw = json.load(f)
-    except json.JSONDecodeError as e:
-      raise ConfigError(f'{path}: invalid JSON ({e}).') from None
+  try:
+    with open(path, 'rb') as f:
+      data = f.read()
+    raw = json.loads(data)  # (UTF-8, with or without BOM, UTF-16/32)
+  except OSError as e:
+    raise ConfigError(f'{path}: cannot read the config ({e.strerror}); '
+                      'check the file and its permissions.') from None
+  except UnicodeDecodeError as e:
+    line = e.object[:e.start].count(b'\n') + 1
+    raise ConfigError(
+      f'{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} on line '
+      f'{line}); save the config as UTF-8 JSON.') from None
+  except json.JSONDecodeError as e:
+    raise ConfigError(f'{path}: invalid JSON ({e}).') from None
   return parse_config(raw, source=path, warn=warn)
 
 
