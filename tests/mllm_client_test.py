@@ -2,6 +2,8 @@
 
 import base64
 import io
+import json
+import os
 import socket
 import tempfile
 import time
@@ -24,6 +26,13 @@ _HANG_S = 3.0
 def _config(url, cache_dir=None, **kw):
   return mllm.MLLMConfig(base_url=url, model='test-vlm', cache_dir=cache_dir,
                          timeout_s=kw.pop('timeout_s', 5.0), **kw)
+
+
+def _cut(text):
+  """A reply the server stopped at max_tokens."""
+  return Reply(body=json.dumps({'choices': [{
+    'index': 0, 'finish_reason': 'length',
+    'message': {'role': 'assistant', 'content': text}}]}))
 
 
 class Sleeps:
@@ -260,6 +269,52 @@ class ClientTest(absltest.TestCase):
         c.complete('p')
       self.assertEqual(c.complete('p').text, 'ok')
 
+  def test_cut_and_empty_answers_are_not_cached(self):
+    # Answers 1 (cut at max_tokens) and 2 (empty) were cached and replayed
+    # forever; an answer the caller finds unusable can be evicted.
+    script = lambda req, n: {1: _cut('{"candidates": [{"mat'),
+                             2: Reply(text='  ')}.get(n, Reply(text='ok'))
+    with tempfile.TemporaryDirectory() as d, ScriptedChatServer(script) as s:
+      c = mllm.MLLMClient(_config(s.url, cache_dir=d, max_tokens=64))
+      r = c.complete('p')
+      self.assertEqual(r.cut, 'answer cut at max_tokens=64 (finish_reason='
+                       'length); raise --mllm_max_tokens')
+      self.assertIsNone(r.cache_path)
+      self.assertEqual(c.complete('p').text, '  ')
+      r = c.complete('p')
+      self.assertEqual((r.text, r.cut, s.num_requests), ('ok', '', 3))
+      r = c.complete('p')
+      self.assertTrue(r.cached and r.cache_path.startswith(d))
+      self.assertEqual(c.evict(r.key), r.cache_path)
+      self.assertFalse(os.path.exists(r.cache_path))
+      self.assertFalse(c.complete('p').cached)
+      self.assertEqual(s.num_requests, 4)
+
+  def test_401_names_the_key_and_stops_asking(self):
+    deny = lambda req, n: Reply(status=401, body='{"error": "bad key"}')
+    for environ, cfg, want in (
+        ({}, {}, 'no API key was sent: OPENAI_API_KEY is unset '
+         r'\(--mllm_api_key_env\)'),
+        ({'MY_KEY': ''}, {'api_key_env': 'MY_KEY'},
+         'no API key was sent: MY_KEY is empty'),
+        ({'OPENAI_API_KEY': 'sk-x'}, {},
+         'an API key from OPENAI_API_KEY was sent and refused')):
+      with self.subTest(want), ScriptedChatServer(deny) as s:
+        c = mllm.MLLMClient(_config(s.url, **cfg), environ=environ,
+                            sleep=Sleeps())
+        with self.assertRaisesRegex(mllm.MLLMError, 'HTTP 401.*' + want):
+          c.complete('x')
+        # The next question (the scene's next object) is not asked.
+        with self.assertRaisesRegex(mllm.MLLMError,
+                                    want + '.*not asked again') as cm:
+          c.complete('y')
+        self.assertEqual((cm.exception.attempts, s.num_requests), (0, 1))
+    with ScriptedChatServer(lambda req, n: Reply(status=403, body='no')) as s:
+      c = mllm.MLLMClient(_config(s.url), environ={'OPENAI_API_KEY': 'k'})
+      with self.assertRaisesRegex(mllm.MLLMError,
+                                  "lacks access to model 'test-vlm'"):
+        c.complete('x')
+
   def test_bad_config(self):
     with self.assertRaisesRegex(mllm.MLLMError, 'no MLLM endpoint'):
       mllm.MLLMClient(mllm.MLLMConfig())
@@ -275,7 +330,12 @@ class ClientTest(absltest.TestCase):
                                ('max_tokens', 0, 'mllm_max_tokens'),
                                ('backoff_s', -2.0, 'mllm_backoff'),
                                ('scene_deadline_s', float('nan'),
-                                'mllm_scene_deadline')):
+                                'mllm_scene_deadline'),
+                               # inf overflowed the deadline watchdog.
+                               ('request_deadline_s', float('inf'),
+                                'mllm_deadline'),
+                               ('timeout_s', float('inf'), 'mllm_timeout'),
+                               ('max_tokens', 1.5, 'mllm_max_tokens')):
       with self.subTest(field), self.assertRaisesRegex(
           mllm.MLLMError, f'{field} must .* 0, got .*--{flag}'):
         mllm.MLLMConfig(**{field: value}).validate()

@@ -3,6 +3,7 @@
 import base64
 import io
 import json
+import os
 import tempfile
 import time
 from unittest import mock
@@ -112,6 +113,13 @@ def _run(script, names=('metal can',), **kw):
     images = {i: _VIEW for i in range(len(scene.objects))}
     choices = perception.perceive_scene(scene, opts, images=images)
     return choices, s
+
+
+def _cut(text):
+  """A reply the server stopped at max_tokens."""
+  return Reply(body=json.dumps({'choices': [{
+    'index': 0, 'finish_reason': 'length',
+    'message': {'role': 'assistant', 'content': text}}]}))
 
 
 class MllmPathTest(parameterized.TestCase):
@@ -303,6 +311,110 @@ class MllmPathTest(parameterized.TestCase):
     self.assertEqual(n1, 8)
     self.assertEqual(first, second)
 
+  def test_unusable_answers_are_not_replayed(self):
+    # An empty caption and a candidates answer cut at max_tokens were
+    # cached: every rerun replayed them (0 requests) and failed again.
+    cut = lambda task, n: (_cut('{"candidates": [{"material": "alumin')
+                           if task == 'candidates' else None)
+    for answers, special, want in (
+        (_answers(caption=''), None, 'caption answer is empty'),
+        (_answers(), cut, 'candidates answer unusable: malformed JSON: .*'
+         r'answer cut at max_tokens=512 \(finish_reason=length\); raise '
+         '--mllm_max_tokens')):
+      with self.subTest(want), tempfile.TemporaryDirectory() as d:
+        (c,), _ = _run(_script(answers, special), cache_dir=d)
+        self.assertEqual(c.source, 'library')
+        self.assertRegex(c.warnings[0], 'MLLM-P3 failed: ' + want)
+        (c,), s = _run(_script(_answers()), cache_dir=d)
+        self.assertEqual((c.source, c.warnings), ('mllm', ()))
+        self.assertGreater(s.num_requests, 0)
+
+  def test_cut_caption_is_used_with_a_warning(self):
+    cut = lambda task, n: _cut('A shiny silver drink can made of') if (
+      task == 'caption') else None
+    (c,), _ = _run(_script(_answers(), cut))
+    self.assertEqual((c.source, c.caption),
+                     ('mllm', 'A shiny silver drink can made of'))
+    self.assertIn('caption answer cut at max_tokens=512 (finish_reason='
+                  'length); raise --mllm_max_tokens', c.warnings)
+
+  def test_bad_cached_answer_names_the_cache(self):
+    # An unusable answer left in the cache (by an older version): the
+    # message names the cache file and the flag, and the entry is deleted.
+    bad = lambda task, n: Reply(text='no json') if task == 'candidates' \
+      else None
+    with tempfile.TemporaryDirectory() as d:
+      with mock.patch.object(mllm.MLLMClient, 'evict', return_value=None):
+        (c,), _ = _run(_script(_answers(), bad), cache_dir=d, json_retries=0)
+        (c,), s = _run(_script(_answers()), cache_dir=d, json_retries=0)
+      self.assertRegex(c.warnings[0], 'candidates answer unusable: .*'
+                       f'replayed from cache {d}/.*json; delete it or pass '
+                       '--mllm_cache_dir=')
+      (c,), s = _run(_script(_answers()), cache_dir=d, json_retries=0)
+      self.assertIn(f'replayed from cache {d}/', c.warnings[0])
+      self.assertIn('now deleted (the next run asks again', c.warnings[0])
+      (c,), s = _run(_script(_answers()), cache_dir=d, json_retries=0)
+      self.assertEqual((c.source, s.num_requests), ('mllm', 3))
+
+  def test_401_falls_back_at_once_naming_the_key(self):
+    deny = lambda task, n: Reply(status=401, body='{"error": "bad key"}')
+    env = {k: v for k, v in os.environ.items() if k != 'OPENAI_API_KEY'}
+    with mock.patch.dict(os.environ, env, clear=True):
+      cs, s = _run(_script(_answers(), deny),
+                   names=('metal can', 'rubber ball', 'sand pile'))
+    self.assertEqual(s.num_requests, 1)
+    self.assertEqual([c.source for c in cs], ['library'] * 3)
+    for c in cs:
+      self.assertIn('no API key was sent: OPENAI_API_KEY is unset '
+                    '(--mllm_api_key_env)', c.warnings[0])
+    self.assertIn('not asked again', cs[2].warnings[0])
+
+  def test_rigid_answer_for_a_soft_material_warns(self):
+    a = _answers(material='jelly', caption='A wobbly green jelly cube.',
+                 props={'density_kg_m3': 1050, 'youngs_modulus_pa': 5e4,
+                        'poisson_ratio': 0.45},
+                 scores={'scores': {'jelly': 0.9, 'steel': 0.1}})
+    (c,), _ = _run(_script(a), names=('jelly cube',))
+    self.assertEqual((c.source, c.material_key, c.rigid),
+                     ('mllm', 'jelly', True))
+    self.assertTrue(any(
+      "object 'jelly cube': the MLLM says rigid=true but the library "
+      'simulates jelly as deformable (rigid=false' in w
+      for w in c.warnings), c.warnings)
+
+  @parameterized.named_parameters(
+    ('json_retries', {'json_retries': -1}, 'json_retries', '0..10'),
+    ('E_slack', {'E_slack': 0}, 'E_slack', '>= 1'),
+    ('rho_slack_nan', {'rho_slack': float('nan')}, 'rho_slack', '>= 1'),
+    ('nu_slack_nan', {'nu_slack': float('nan')}, 'nu_slack', r'\[0, 0.5\]'),
+    ('weights_negative', {'score_weights': (-1, 0, 0)}, 'score_weights',
+     'three finite numbers >= 0'),
+    ('weights_two', {'score_weights': (1, 0)}, 'score_weights',
+     'three finite numbers'),
+    ('max_E_ratio_nan', {'max_E_ratio': float('nan')}, 'max_E_ratio',
+     '>= 1'),
+  )
+  def test_bad_options_fail_up_front(self, kw, field, allowed):
+    with ScriptedChatServer(_script(_answers())) as s:
+      with self.assertRaisesRegex(
+          perception.PerceptionError,
+          rf'PerceptionOptions\.{field} must be .*{allowed}.*, got'):
+        perception.perceive_scene(_scene(('metal can',)),
+                                  _options(s.url, **kw), images={0: _VIEW})
+      self.assertEqual(s.num_requests, 0)
+
+  @parameterized.named_parameters(
+    ('2d', {0: np.zeros((8, 8))}, r'images\[0\]: expected an \(H, W, 3\) '
+     r'or \(H, W, 4\) image.*got shape \(8, 8\)'),
+    ('bad_view', {0: [_VIEW, np.zeros((4, 4, 2))]},
+     r'images\[0\]\[1\]: expected .*got shape \(4, 4, 2\)'),
+    ('index', {3: _VIEW}, r'images\[3\]: no such object; .* has 1 '
+     r'object\(s\), indices 0\.\.0'),
+  )
+  def test_bad_images(self, images, want):
+    with self.assertRaisesRegex(perception.PerceptionError, want):
+      perception.perceive_scene(_scene(('metal can',)), images=images)
+
   @parameterized.named_parameters(
     ('name', 'metal can', 'A wobbly green jelly.',
      "'jelly' (food) contradicts the name 'metal can', which says "
@@ -466,6 +578,13 @@ class OfflineTest(parameterized.TestCase):
      r'friction_angle=95\.0 \(use an angle in \[0, 90\) deg\)'),
     ('bad_theta', {'material': 'snow', 'theta_c': -0.1},
      r'theta_c=-0\.1 \(use a critical compression'),
+    # One of an alias pair silently won; a parameter the model does not
+    # take was silently ignored.
+    ('alias_pair', {'material': 'jelly', 'rho': 1000, 'density': 5},
+     r"both 'rho' \(1000\) and 'density' \(5\) are given"),
+    ('param_not_taken', {'material': 'jelly', 'yield_stress': 5},
+     r"model 'fixed_corotated' \(jelly\) takes no parameter\(s\) "
+     r"\['yield_stress'\]; its parameters: none"),
   )
   def test_bad_override(self, spec, pattern):
     scene = _scene(('cube',))
@@ -480,6 +599,17 @@ class OfflineTest(parameterized.TestCase):
       {'a': 'wood', 'b': 'sand', 'c': {'E': 1e4}})
     with self.assertRaisesRegex(ValueError, 'expected name=key'):
       perception.parse_overrides(['rubber'])
+    self.assertEqual(
+      perception.parse_overrides(['a={"E": 1e4, "nu": 0.3}', 'b=wood;']),
+      {'a': {'E': 1e4, 'nu': 0.3}, 'b': 'wood'})
+    for items, want in (
+        (['a={"material":"jelly"};b=wood'],
+         "pass 'b=wood' as a separate --material_override"),
+        (['a=wood', 'a=sand'], "object 'a' is already given"),
+        ('a=wood;a={"E": 1}', "object 'a' is already given")):
+      with self.subTest(items), self.assertRaisesRegex(
+          perception.MaterialChoiceError, want):
+        perception.parse_overrides(items)
 
   def test_flags(self):
     from absl import flags
@@ -507,6 +637,34 @@ class ParsingTest(absltest.TestCase):
     for bad in ('', 'no json here', '[1, 2]', '{"a": '):
       with self.assertRaises(parsing.AnswerError):
         parsing.extract_json(bad)
+
+  def test_property_strings(self):
+    al = _LIB['aluminum']
+    for props, key, want in (
+        # '× 10^n' read as '×' a unit: 7 Pa, then a 'unit slip' to 7e9.
+        ({'E': '7.0 × 10^10 Pa'}, 'aluminum', ('E', 7e10)),
+        ({'E': '7*10**10', 'nu': '0,33'}, 'aluminum', ('E', 7e10)),
+        ({'E': '7×10¹⁰ Pa'}, 'aluminum', ('E', 7e10)),
+        ({'E': '0,05 GPa'}, 'rubber', ('E', 5e7)),  # was 5e6 ('slip')
+        # rho was read from the '3' of 'kg/m3', then 'repaired' to 3000.
+        ({'density_unit': 'kg/m3', 'density_value': 2700}, 'aluminum',
+         ('rho', 2700.0)),
+        ({'density': '~2.7 g/cm³'}, 'aluminum', ('rho', 2700.0)),
+        ({'E': {'value': 70, 'unit': 'GPa'}}, 'aluminum', ('E', 7e10))):
+      with self.subTest(props):
+        p = parsing.validate_properties(json.dumps(props), _LIB[key])
+        self.assertAlmostEqual(getattr(p, want[0]) / want[1], 1.0)
+        self.assertNotIn(want[0], p.from_library)
+        self.assertFalse([n for n in p.notes if 'slip' in n], p.notes)
+    for props, field, note in (
+        ({'E': '−70 GPa'}, 'E', 'is not positive'),  # Unicode minus
+        ({'E': '1,5,6 GPa'}, 'E', "E='1,5,6 GPa' has an ambiguous comma"),
+        ({'density': 'kg/m3'}, 'rho', "density='kg/m3' is not a number"),
+        ({'E': '70 bananas'}, 'E', "unknown unit 'bananas'")):
+      with self.subTest(props):
+        p = parsing.validate_properties(json.dumps(props), al)
+        self.assertIn(field, p.from_library)
+        self.assertTrue(any(note in n for n in p.notes), p.notes)
 
   def test_scores_scale(self):
     s, notes = parsing.parse_scores('{"scores": {"rubber": 8, "wood": 2}}',

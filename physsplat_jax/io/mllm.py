@@ -34,8 +34,15 @@ Robustness:
   passes a ``cache_id`` (e.g. a hash of the object's Gaussians and the view
   settings), by that instead of the images: then ``images`` may be a
   callable that renders them, called only on a cache miss, so a cached run
-  renders nothing. Only successful answers are cached. Default directory
-  ``.mllm_cache/`` (in .gitignore); ``cache_dir=None`` disables it.
+  renders nothing. Only successful answers are cached: not failures, not
+  empty answers, not answers cut at ``max_tokens`` (``finish_reason:
+  "length"``; :attr:`MLLMReply.cut` says so), and a caller that finds an
+  answer unusable removes it with :meth:`MLLMClient.evict`. Default
+  directory ``.mllm_cache/`` (in .gitignore); ``cache_dir=None`` disables
+  it.
+* HTTP 401/403 end the run's questions: the message says whether an API
+  key was sent and which variable (``--mllm_api_key_env``) provides it, and
+  later questions fail at once.
 
 Scripts get absl flags from :func:`define_flags` (nothing is defined at
 import time) and an :class:`MLLMConfig` from :func:`config_from_flags`.
@@ -48,6 +55,7 @@ import dataclasses
 import hashlib
 import http.client
 import json
+import math
 import os
 import socket
 import struct
@@ -155,13 +163,22 @@ class MLLMConfig:
                ('max_tokens', 'mllm_max_tokens', True),
                ('max_retries', 'mllm_retries', False),
                ('backoff_s', 'mllm_backoff', False),
-               ('backoff_max_s', None, False))
+               ('backoff_max_s', None, False),
+               ('temperature', None, False))
     for f, flag, strict in numbers:
       v = getattr(self, f)
-      if not (v > 0 if strict else v >= 0):   # NaN fails both
+      integer = f in ('max_tokens', 'max_retries')
+      try:  # NaN and inf fail (an infinite deadline overflowed a timer)
+        ok = (not isinstance(v, bool) and math.isfinite(v)
+              and (v > 0 if strict else v >= 0)
+              and (hasattr(type(v), '__index__') or not integer))
+      except TypeError:
+        ok = False
+      if not ok:
+        what = 'an integer' if integer else 'a finite number'
         raise MLLMError(
-          f'mllm {f} must be {">" if strict else ">="} 0, got {v}'
-          + (f' (--{flag})' if flag else ''), 'config')
+          f'MLLMConfig.{f} must be {what} {">" if strict else ">="} 0, got '
+          f'{v!r}' + (f' (--{flag})' if flag else ''), 'config')
     if not self.enabled:
       return self
     if not self.base_url.startswith(('http://', 'https://')):
@@ -182,12 +199,18 @@ class MLLMReply:
     cached: True when it came from the on-disk cache (no request made).
     attempts: requests made for it (0 when cached).
     key: the cache key.
+    cut: why the answer is incomplete ('' when it is not): the server
+      stopped at ``max_tokens`` (``finish_reason: "length"``). Such
+      answers are not cached.
+    cache_path: the cache file it was read from or written to, or None.
   """
 
   text: str
   cached: bool
   attempts: int
   key: str
+  cut: str = ''
+  cache_path: str | None = None
 
 
 # ------------------------------------------------------------------ images
@@ -267,7 +290,9 @@ def _cache_read(cache_dir: str, key: str) -> str | None:
   return text if isinstance(text, str) else None
 
 
-def _cache_write(cache_dir: str, key: str, text: str, model: str) -> None:
+def _cache_write(cache_dir: str, key: str, text: str,
+                 model: str) -> str | None:
+  """Stores an answer; returns its path, or None when it cannot."""
   path = _cache_path(cache_dir, key)
   try:
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -275,9 +300,11 @@ def _cache_write(cache_dir: str, key: str, text: str, model: str) -> None:
     with os.fdopen(fd, 'w', encoding='utf-8') as f:
       json.dump({'text': text, 'model': model, 'time': time.time()}, f)
     os.replace(tmp, path)
+    return path
   except OSError as e:
     logging.warning('mllm cache: cannot write %s (%s); continuing without '
                     'caching', path, e)
+    return None
 
 
 # ------------------------------------------------------------------ client
@@ -379,6 +406,7 @@ class MLLMClient:
     self._sleep = sleep
     env = os.environ if environ is None else environ
     self._api_key = env.get(config.api_key_env) if config.api_key_env else None
+    self._key_set = bool(config.api_key_env) and config.api_key_env in env
     if not self._api_key and config.api_key_env != 'OPENAI_API_KEY':
       logging.warning('mllm: environment variable %s is not set; sending no '
                       'API key', config.api_key_env)
@@ -388,6 +416,40 @@ class MLLMClient:
     # at all (refused, unknown host): later questions fail at once instead
     # of spending their retries on a server that is not there.
     self.unreachable: str | None = None
+    # Set on HTTP 401/403 (the credentials were refused): later questions
+    # fail at once, naming the key's variable.
+    self.refused: str | None = None
+
+  def _key_note(self, status: int) -> str:
+    """Whether a key was sent on a 401/403, and where it comes from."""
+    env = self.config.api_key_env
+    if self._api_key:
+      access = (f' or lacks access to model {self.config.model!r} '
+                '(--mllm_model)' if status == 403 else '')
+      return (f'an API key from {env} was sent and refused{access}; check '
+              'it, or name another variable with --mllm_api_key_env')
+    if not env:
+      return ('no API key was sent: MLLMConfig.api_key_env is empty '
+              '(--mllm_api_key_env)')
+    state = 'is empty' if self._key_set else 'is unset'
+    return f'no API key was sent: {env} {state} (--mllm_api_key_env)'
+
+  def evict(self, key: str) -> str | None:
+    """Deletes the cached answer ``key`` (one the caller found unusable,
+    so that the next run asks again); returns the deleted file's path, or
+    None when there was none or it cannot be deleted."""
+    if not self.config.cache_dir:
+      return None
+    path = _cache_path(self.config.cache_dir, key)
+    try:
+      os.remove(path)
+    except FileNotFoundError:
+      return None
+    except OSError as e:
+      logging.warning('mllm cache: cannot delete unusable answer %s (%s)',
+                      path, e)
+      return None
+    return path
 
   def _body(self, prompt, images, system) -> bytes:
     content = [{'type': 'text', 'text': prompt}]
@@ -409,9 +471,10 @@ class MLLMClient:
     return MLLMError(f'no complete answer from {self.config.url} within the '
                      f'{budget:g} s deadline', 'deadline')
 
-  def _request_once(self, body: bytes, end: float, budget: float) -> str:
-    """One POST that ends by ``end`` (monotonic); returns the content or
-    raises a classified MLLMError."""
+  def _request_once(self, body: bytes, end: float,
+                    budget: float) -> tuple[str, str | None]:
+    """One POST that ends by ``end`` (monotonic); returns the content and
+    the finish_reason, or raises a classified MLLMError."""
     headers = {'Content-Type': 'application/json',
                'Accept': 'application/json'}
     if self._api_key:
@@ -447,11 +510,14 @@ class MLLMClient:
       raise self._deadline_error(budget)
     return self._parse(raw)
 
-  def _parse(self, raw: bytes) -> str:
-    """The answer text of a response body (or a 'protocol' MLLMError)."""
+  def _parse(self, raw: bytes) -> tuple[str, str | None]:
+    """The answer text and finish_reason of a response body (or a
+    'protocol' MLLMError)."""
     try:
       data = json.loads(raw.decode('utf-8'))
-      text = _content_text(data['choices'][0]['message']['content'])
+      choice = data['choices'][0]
+      text = _content_text(choice['message']['content'])
+      finish = choice.get('finish_reason')
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, IndexError,
             TypeError) as e:
       raise MLLMError(
@@ -461,7 +527,7 @@ class MLLMClient:
     if text is None:
       raise MLLMError(f'response from {self.config.url} has no text content',
                       'protocol')
-    return text
+    return text, finish if isinstance(finish, str) else None
 
   def _open_errors(self, fn):
     """Runs ``fn`` mapping urllib/socket errors to classified MLLMErrors."""
@@ -542,12 +608,16 @@ class MLLMClient:
                     cache_id=cache_id, settings=settings)
     if self.config.cache_dir:
       text = _cache_read(self.config.cache_dir, key)
-      if text is not None:
+      if text is not None and text.strip():  # an empty one: ask again
         self.num_cache_hits += 1
-        return MLLMReply(text=text, cached=True, attempts=0, key=key)
+        return MLLMReply(text=text, cached=True, attempts=0, key=key,
+                         cache_path=_cache_path(self.config.cache_dir, key))
     if self.unreachable:
       raise MLLMError(f'{self.unreachable}; not asked again in this run',
                       'connection', attempts=0)
+    if self.refused:
+      raise MLLMError(f'{self.refused}; not asked again in this run', 'http',
+                      attempts=0)
     if end <= time.monotonic():
       raise self._deadline_error(budget)
     body = self._body(prompt, tuple(images() if lazy else images), system)
@@ -555,7 +625,7 @@ class MLLMClient:
     while True:
       attempts += 1
       try:
-        text = self._request_once(body, end, budget)
+        text, finish = self._request_once(body, end, budget)
         break
       except MLLMError as e:
         retryable = (e.kind in ('timeout', 'connection', 'protocol')
@@ -570,14 +640,24 @@ class MLLMClient:
             what = f'after {attempts} attempts; no time left to retry'
           if e.kind == 'connection':
             self.unreachable = f'{e} ({what})'
-          raise MLLMError(f'{e} ({what})', e.kind, e.status, attempts
-                          ) from None
+          msg = f'{e} ({what})'
+          if e.kind == 'http' and e.status in (401, 403):
+            note = self._key_note(e.status)
+            self.refused = (f'{self.config.url} refused an earlier request '
+                            f'with HTTP {e.status} ({note})')
+            msg += f'; {note}; the endpoint is not asked again in this run'
+          raise MLLMError(msg, e.kind, e.status, attempts) from None
         logging.warning('mllm: attempt %d failed (%s); retrying in %.2f s',
                         attempts, e, delay)
         self._sleep(delay)
-    if self.config.cache_dir:
-      _cache_write(self.config.cache_dir, key, text, self.config.model)
-    return MLLMReply(text=text, cached=False, attempts=attempts, key=key)
+    cut = '' if finish != 'length' else (
+      f'answer cut at max_tokens={self.config.max_tokens} '
+      '(finish_reason=length); raise --mllm_max_tokens')
+    path = None
+    if self.config.cache_dir and text.strip() and not cut:
+      path = _cache_write(self.config.cache_dir, key, text, self.config.model)
+    return MLLMReply(text=text, cached=False, attempts=attempts, key=key,
+                     cut=cut, cache_path=path)
 
 
 def make_client(config: MLLMConfig, **kwargs) -> MLLMClient:

@@ -76,6 +76,7 @@ import jax.numpy as jnp
 
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import transfer
+from physsplat_jax.mpm.models import MODEL_PARAMS
 
 SVD_MODELS = ('stvk', 'von_mises', 'plasticine', 'drucker_prager', 'snow',
               'foam', 'bingham')
@@ -265,17 +266,7 @@ _SPECTRAL = {
   'drucker_prager': _drucker_prager, 'snow': _snow, 'foam': _foam,
   'bingham': _bingham,
 }
-_PARAMS = {
-  'fixed_corotated': (), 'neo_hookean': (),
-  'stvk': (),
-  'von_mises': ('yield_stress', 'hardening', 'xi'),
-  'plasticine': ('yield_stress', 'hardening', 'xi', 'softening'),
-  'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3',
-                     'dp_cohesion', 'dp_volume_correction'),
-  'snow': ('xi', 'theta_c', 'theta_s'),
-  'foam': ('yield_stress', 'plastic_viscosity'),
-  'bingham': ('yield_stress', 'viscosity'),
-}
+_PARAMS = {m: MODEL_PARAMS[m] for m in _SPECTRAL}
 
 
 @functools.lru_cache(maxsize=None)

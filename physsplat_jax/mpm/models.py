@@ -20,6 +20,38 @@ MATERIAL_ALIASES = {
   'water': 'newtonian', 'fluid': 'newtonian', 'non_newtonian': 'bingham',
   'non-newtonian': 'bingham',
 }
+# The parameters beyond (E, nu, rho) each model's update reads
+# (mpm.constitutive), in mpm.Materials' units.
+MODEL_PARAMS = {
+  'fixed_corotated': (), 'neo_hookean': (), 'stvk': (), 'rigid': (),
+  'von_mises': ('yield_stress', 'hardening', 'xi'),
+  'plasticine': ('yield_stress', 'hardening', 'xi', 'softening'),
+  'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3',
+                     'dp_cohesion', 'dp_volume_correction'),
+  'snow': ('xi', 'theta_c', 'theta_s'),
+  'foam': ('yield_stress', 'plastic_viscosity'),
+  'newtonian': ('viscosity',),
+  'bingham': ('yield_stress', 'viscosity'),
+}
+
+# The physical ranges of those parameters: (test, what to use). A value
+# outside was accepted and blew up a frame later, blamed on the time step;
+# perception's overrides and PhysGaussian configs check against these.
+PARAM_RANGES = {
+  'friction_angle': (lambda v: 0.0 <= v < 90.0, 'an angle in [0, 90) deg'),
+  'yield_stress': (lambda v: v >= 0.0, 'a stress >= 0 [Pa]'),
+  'viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
+  'plastic_viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
+  'hardening': (lambda v: v >= 0.0, '0 (off) or a multiplier > 0'),
+  'xi': (lambda v: 0.0 <= v <= 100.0, 'a hardening coefficient in '
+         '[0, 100] (snow: ~10)'),
+  'softening': (lambda v: v >= 0.0, 'a softening >= 0 [Pa]'),
+  'theta_c': (lambda v: 0.0 < v < 1.0, 'a critical compression in (0, 1)'),
+  'theta_s': (lambda v: 0.0 < v < 1.0, 'a critical stretch in (0, 1)'),
+  'dp_cohesion': (lambda v: v >= 0.0, 'a cohesion strain >= 0'),
+  'dp_volume_correction': (lambda v: v in (0.0, 1.0), '0 or 1'),
+}
+
 MATERIAL_IDS = {
   0: 'fixed_corotated', 1: 'von_mises', 2: 'drucker_prager', 3: 'foam',
   4: 'snow', 5: 'plasticine', 6: 'neo_hookean',

@@ -27,7 +27,9 @@ from typing import Any
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
+from physsplat_jax.mpm.models import PARAM_RANGES
 from physsplat_jax.mpm.models import canonical_model
+from physsplat_jax.mpm.models import MODEL_PARAMS as SOLVER_PARAMS
 from physsplat_jax.perception.library import MODEL_PARAMS
 from physsplat_jax.perception.library import NEVER_RIGID_MODELS
 from physsplat_jax.perception.library import STRAIN_YIELD_MODELS
@@ -38,6 +40,16 @@ SOURCES = ('mllm', 'library', 'config', 'override')
 _SPEC_FIELDS = {'material', 'key', 'model', 'E', 'nu', 'rho', 'density',
                 'rigid'}
 _ALL_PARAMS = sorted({p for ps in MODEL_PARAMS.values() for p in ps})
+# Names of the same spec field: give one.
+_SPEC_ALIASES = (('material', 'key'), ('rho', 'density'))
+
+
+def model_params(model: str) -> tuple[str, ...]:
+  """The parameters an override may set for ``model``: the library's, and
+  the others of ``_ALL_PARAMS`` the solver's update reads for it."""
+  lib = tuple(MODEL_PARAMS.get(model, ()))
+  return lib + tuple(p for p in SOLVER_PARAMS.get(model, ())
+                     if p in _ALL_PARAMS and p not in lib)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,24 +119,6 @@ class MaterialChoiceError(PhysSplatError, ValueError):
 
 # The name perception has always used for the same record.
 MaterialChoice = ObjectMaterial
-
-
-# The model parameters' physical ranges (mpm.Materials): a value outside
-# was accepted and blew up a frame later, blamed on the time step.
-PARAM_RANGES = {
-  'friction_angle': (lambda v: 0.0 <= v < 90.0, 'an angle in [0, 90) deg'),
-  'yield_stress': (lambda v: v >= 0.0, 'a stress >= 0 [Pa]'),
-  'viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
-  'plastic_viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
-  'hardening': (lambda v: v >= 0.0, '0 (off) or a multiplier > 0'),
-  'xi': (lambda v: 0.0 <= v <= 100.0, 'a hardening coefficient in '
-         '[0, 100] (snow: ~10)'),
-  'softening': (lambda v: v >= 0.0, 'a softening >= 0 [Pa]'),
-  'theta_c': (lambda v: 0.0 < v < 1.0, 'a critical compression in (0, 1)'),
-  'theta_s': (lambda v: 0.0 < v < 1.0, 'a critical stretch in (0, 1)'),
-  'dp_cohesion': (lambda v: v >= 0.0, 'a cohesion strain >= 0'),
-  'dp_volume_correction': (lambda v: v in (0.0, 1.0), '0 or 1'),
-}
 
 
 def check_choice(c: MaterialChoice) -> MaterialChoice:
@@ -200,16 +194,25 @@ def choice_from_entry(
   ))
 
 
-def rigid_for(entry: MaterialEntry, rigid: bool | None) -> tuple[bool, str]:
+def rigid_for(entry: MaterialEntry, rigid: bool | None,
+              object_name: str = '') -> tuple[bool, str]:
   """The rigid flag to use given a model's answer, and a note ('' if none).
 
-  Granular media and fluids (``NEVER_RIGID_MODELS``) are never rigid.
+  Granular media and fluids (``NEVER_RIGID_MODELS``) are never rigid. A
+  rigid answer for a material the library simulates as deformable (jelly,
+  rubber) is kept, with a note naming the object and the library's value.
   """
   if rigid is None:
     return entry.rigid, ''
   if rigid and entry.model in NEVER_RIGID_MODELS:
     return False, (f'rigid=true ignored: {entry.key} ({entry.model}) '
                    'cannot be a rigid body')
+  if rigid and not entry.rigid:
+    return True, (
+      f'object {object_name!r}: the MLLM says rigid=true but the library '
+      f'simulates {entry.key} as deformable (rigid=false, {entry.model}); '
+      "kept the MLLM's answer (override: "
+      f'{object_name}={{"material": "{entry.key}", "rigid": false}})')
   return bool(rigid), ''
 
 
@@ -253,6 +256,11 @@ def apply_spec(
     raise MaterialChoiceError(
       f'{where}: unknown field(s) {unknown}; allowed: '
       f'{sorted(_SPEC_FIELDS)} and parameters {_ALL_PARAMS}')
+  for a, b in _SPEC_ALIASES:
+    if a in spec and b in spec:
+      raise MaterialChoiceError(
+        f'{where}: both {a!r} ({spec[a]!r}) and {b!r} ({spec[b]!r}) are '
+        'given; they name the same field: give one')
   name = spec.get('material', spec.get('key'))
   if name is not None:
     m = library.match(str(name))
@@ -296,6 +304,13 @@ def apply_spec(
   if model in STRAIN_YIELD_MODELS and entry.yield_strain is not None and (
       model == entry.model):
     params['yield_stress'] = entry.yield_strain * fields['E']
+  takes = model_params(model)
+  extra = sorted(p for p in spec if p in _ALL_PARAMS and p not in takes)
+  if extra:
+    raise MaterialChoiceError(
+      f'{where}: model {model!r} ({entry.key}) takes no parameter(s) '
+      f'{extra}; its parameters: {list(takes) or "none"} (set "model" to '
+      'one that takes them)')
   for p in _ALL_PARAMS:
     if p in spec:
       try:

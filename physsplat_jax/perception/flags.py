@@ -5,7 +5,8 @@
 
 * ``--material_override`` (repeatable): ``'name=key'`` or
   ``'name={"material": "rubber", "E": 3e5}'``; several pairs may be joined
-  with ``;`` (``'ball=rubber;can=aluminum'``). Values are simulation values.
+  with ``;`` (``'ball=rubber;can=aluminum'``; a JSON value ends its item).
+  Values are simulation values; each object may be given once.
 * ``--default_material``: library key for names that match nothing
   (empty: error instead).
 * ``--perception_candidates``, ``--perception_image_size``,
@@ -38,7 +39,8 @@ def parse_overrides(items: Sequence[str] | str | None) -> dict[str, Any]:
 
   Raises:
     MaterialChoiceError: a malformed item (the message quotes it and shows
-      the form).
+      the form), a pair after a JSON value in the same item, or an object
+      given twice.
   """
   if items is None:
     return {}
@@ -46,28 +48,59 @@ def parse_overrides(items: Sequence[str] | str | None) -> dict[str, Any]:
     items = [items]
   out: dict[str, Any] = {}
   for item in items:
-    parts = [item] if item.strip().split('=', 1)[-1].lstrip().startswith(
-      '{') else item.split(';')
-    for part in parts:
-      if not part.strip():
-        continue
-      if '=' not in part:
+    for name, value, part in _override_parts(item):
+      if name in out:
         raise MaterialChoiceError(
-          f'material override {part!r}: expected name=key or '
-          'name={"material": ..., "E": ...}')
-      name, value = part.split('=', 1)
-      name, value = name.strip(), value.strip()
-      if not name or not value:
-        raise MaterialChoiceError(
-          f'material override {part!r}: empty name or value')
-      if value.startswith('{'):
-        try:
-          value = json.loads(value)
-        except json.JSONDecodeError as e:
-          raise MaterialChoiceError(
-            f'material override {part!r}: invalid JSON ({e})') from None
+          f'material override {part!r}: object {name!r} is already given '
+          f'({name}={_show(out[name])}); give each object once')
       out[name] = value
   return out
+
+
+def _show(value) -> str:
+  return json.dumps(value) if isinstance(value, Mapping) else str(value)
+
+
+def _override_parts(item: str):
+  """Yields ``(name, value, text)`` of one --material_override string."""
+  rest = item
+  while rest.strip():
+    if '=' not in rest.split(';', 1)[0]:
+      part = rest.split(';', 1)[0]
+      if not part.strip():
+        rest = rest.split(';', 1)[1] if ';' in rest else ''
+        continue
+      raise MaterialChoiceError(
+        f'material override {part!r}: expected name=key or '
+        'name={"material": ..., "E": ...}')
+    name, rest = rest.split('=', 1)
+    name, rest = name.strip(), rest.lstrip()
+    if rest.startswith('{'):
+      try:
+        value, end = json.JSONDecoder().raw_decode(rest)
+      except json.JSONDecodeError as e:
+        raise MaterialChoiceError(
+          f'material override {item!r}: invalid JSON for {name!r} ({e})'
+        ) from None
+      part, after = f'{name}={rest[:end]}', rest[end:].strip()
+      if after and not after.startswith(';'):
+        raise MaterialChoiceError(
+          f'material override {item!r}: unexpected {after!r} after the '
+          f'JSON of {name!r}')
+      if after.strip('; '):
+        raise MaterialChoiceError(
+          f'material override {item!r}: after a JSON value, pass '
+          f'{after.lstrip("; ")!r} as a separate --material_override '
+          '(";" joins name=key pairs only)')
+      rest = ''
+    else:
+      value, _, rest = rest.partition(';')
+      value = value.strip()
+      part = f'{name}={value}'
+    if not name or (isinstance(value, str) and not value):
+      raise MaterialChoiceError(
+        f'material override {part!r}: empty name or value')
+    yield name, value, part
 
 
 def define_flags(flag_values=None) -> None:

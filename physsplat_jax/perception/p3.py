@@ -44,7 +44,10 @@ which, and why):
    render: a hash of the object's Gaussians, its name, the view settings,
    ``prompts.PROMPT_VERSION``, the prompt text, the model and its settings.
    The views are rendered on the first cache miss only, so a fully cached
-   run renders nothing.
+   run renders nothing. An answer that turns out unusable (empty, no JSON,
+   cut at ``max_tokens``) is deleted from the cache (the next run asks
+   again) and the message says so; options and ``images`` are checked
+   before any question (:mod:`physsplat_jax.perception.checks`).
 4. ``library`` (offline default): the scene's ``ObjectInfo.material`` key
    if set, else the object's name matched against the library (key, alias,
    phrase, keyword, fuzzy), else ``options.default_material`` with a
@@ -60,6 +63,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
@@ -68,13 +72,14 @@ import jax.numpy as jnp
 import numpy as np
 from absl import logging
 
-from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io.mllm import MLLMConfig
 from physsplat_jax.io.mllm import MLLMError
 from physsplat_jax.io.mllm import encode_png
+from physsplat_jax.perception import checks
 from physsplat_jax.perception import choice as choice_lib
 from physsplat_jax.perception import parsing
 from physsplat_jax.perception import prompts
+from physsplat_jax.perception.checks import PerceptionError
 from physsplat_jax.perception.choice import MaterialChoice
 from physsplat_jax.perception.library import MaterialEntry
 from physsplat_jax.perception.library import MaterialLibrary
@@ -99,11 +104,6 @@ class ChatClient(Protocol):
                deadline: float | None = None) -> Any:
     """Returns an object with a ``text`` attribute (``images`` may be a
     callable that renders them, called only when a request is made)."""
-
-
-class PerceptionError(PhysSplatError, ValueError):
-  """Bad perception options, or an object that cannot be perceived; the
-  message names the field or the object."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,23 +158,48 @@ class PerceptionOptions:
   scene_material_first: bool = False
 
   def validate(self) -> PerceptionOptions:
-    """Returns ``self``; raises :class:`PerceptionError` on a bad field."""
+    """Returns ``self``; raises :class:`PerceptionError` naming a bad field
+    and its allowed range (``mllm``: :class:`MLLMError`)."""
     if self.selection not in SELECTION_METHODS:
       raise PerceptionError(
         f'PerceptionOptions.selection={self.selection!r} is not one of '
         f'{SELECTION_METHODS}')
-    if self.num_candidates < 1:
-      raise PerceptionError('PerceptionOptions.num_candidates must be >= 1, '
-                            f'got {self.num_candidates}')
-    if not 1 <= self.num_views <= 8:
-      raise PerceptionError('PerceptionOptions.num_views must be in 1..8, '
-                            f'got {self.num_views}')
-    if self.image_size < 8:
-      raise PerceptionError('PerceptionOptions.image_size must be >= 8, got '
-                            f'{self.image_size}')
-    if self.max_E_ratio < 1:
-      raise PerceptionError('PerceptionOptions.max_E_ratio must be >= 1, '
-                            f'got {self.max_E_ratio}')
+    # (field, lowest, highest or None): integers.
+    for f, lo, hi in (('num_candidates', 1, None), ('num_views', 1, 8),
+                      ('image_size', 8, None), ('json_retries', 0, 10)):
+      v = getattr(self, f)
+      if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+              and lo <= v and (hi is None or v <= hi)):
+        checks.bad_option(f, v, f'an integer in {lo}..{hi}'
+                          if hi is not None else f'an integer >= {lo}')
+    # (field, test, allowed): numbers; inf is "no limit" for the factors.
+    for f, ok, want in (
+        ('max_E_ratio', lambda x: x >= 1, 'a factor >= 1'),
+        ('E_slack', lambda x: x >= 1, 'a factor >= 1'),
+        ('rho_slack', lambda x: x >= 1, 'a factor >= 1'),
+        ('nu_slack', lambda x: 0 <= x <= 0.5, 'a number in [0, 0.5]'),
+        ('azimuth_deg', math.isfinite, 'a finite angle [deg]'),
+        ('elevation_deg', math.isfinite, 'a finite angle [deg]')):
+      v = getattr(self, f)
+      if checks.number(v) is None or not ok(v):
+        checks.bad_option(f, v, want)
+    w = checks.numbers(self.score_weights, 3)
+    if w is None or min(w) < 0 or not math.isfinite(sum(w)) or sum(w) <= 0:
+      checks.bad_option('score_weights', self.score_weights,
+                        '(visual, text, rank): three finite numbers >= 0, '
+                        f'not all zero (default {DEFAULT_WEIGHTS})')
+    b = checks.numbers(self.background, 3)
+    if b is None or not all(0.0 <= x <= 1.0 for x in b):
+      checks.bad_option('background', self.background,
+                        'an RGB triple with values in [0, 1]')
+    for f in ('overrides', 'config_materials'):
+      if not isinstance(getattr(self, f), Mapping):
+        checks.bad_option(f, getattr(self, f),
+                          'a mapping object name -> spec')
+    if not isinstance(self.default_material, (str, type(None))):
+      checks.bad_option('default_material', self.default_material,
+                        'a library key or None')
+    self.mllm.validate()
     return self
 
 
@@ -416,30 +441,55 @@ def _mllm_choice(info: ObjectInfo, views: Callable[[], list[bytes]],
                  ) -> MaterialChoice:
   warnings: list[str] = []
 
-  def ask(task: str, prompt: str) -> str:
+  def ask(task: str, prompt: str):
     try:
       return client.complete(prompt, views, system=prompts.SYSTEM,
-                             cache_id=cache_id, deadline=deadline).text
+                             cache_id=cache_id, deadline=deadline)
     except MLLMError as e:
       raise _StepFailed(f'{task} request failed: {e}') from None
 
+  def unusable(reply) -> str:
+    """Drops an unusable answer from the cache (the next run asks
+    again); what to add to the message (the cut, the cache file)."""
+    cut = getattr(reply, 'cut', '')
+    note = f'; {cut}' if cut else ''
+    key, evict = getattr(reply, 'key', None), getattr(client, 'evict', None)
+    gone = evict(key) if key and callable(evict) else None
+    if getattr(reply, 'cached', False):
+      path = getattr(reply, 'cache_path', None) or 'the MLLM cache'
+      note += (f'; replayed from cache {path}, now deleted (the next run '
+               'asks again; --mllm_cache_dir= disables the cache)' if gone
+               else f'; replayed from cache {path}; delete it or pass '
+               '--mllm_cache_dir=')
+    return note
+
   def ask_json(task: str, prompt: str, parse: Callable[[str], Any]):
-    text = ask(task, prompt)
-    for attempt in range(options.json_retries + 1):
+    reply = ask(task, prompt)
+    attempt = 0
+    while True:
       try:
-        return parse(text)
+        out = parse(reply.text)
       except parsing.AnswerError as e:
-        if attempt == options.json_retries:
-          raise _StepFailed(f'{task} answer unusable: {e}') from None
-        warnings.append(f'{task} answer unusable ({e}); asked again')
-        text = ask(task, prompts.json_repair_prompt(prompt, text, str(e)))
-    raise AssertionError('unreachable')
+        why = f'{e}{unusable(reply)}'
+        if attempt >= options.json_retries:
+          raise _StepFailed(f'{task} answer unusable: {why}') from None
+        attempt += 1
+        warnings.append(f'{task} answer unusable ({why}); asked again')
+        reply = ask(task, prompts.json_repair_prompt(prompt, reply.text,
+                                                     str(e)))
+        continue
+      if getattr(reply, 'cut', ''):
+        warnings.append(f'{task} {reply.cut}')
+      return out
 
   # (1) caption.
-  caption = ask('caption', prompts.caption_prompt(
-    info.name if options.name_hint else None)).strip()
+  reply = ask('caption', prompts.caption_prompt(
+    info.name if options.name_hint else None))
+  caption = reply.text.strip()
   if not caption:
-    raise _StepFailed('caption answer is empty')
+    raise _StepFailed('caption answer is empty' + unusable(reply))
+  if getattr(reply, 'cut', ''):
+    warnings.append(f'caption {reply.cut}')
   # (2) candidates + rigid.
   cands = ask_json(
     'candidates',
@@ -482,7 +532,7 @@ def _mllm_choice(info: ObjectInfo, views: Callable[[], list[bytes]],
   if props.from_library:
     warnings.append(f'{"/".join(props.from_library)} from the library '
                     f'({entry.key})')
-  rigid, note = choice_lib.rigid_for(entry, cands.rigid)
+  rigid, note = choice_lib.rigid_for(entry, cands.rigid, info.name)
   if note:
     warnings.append(note)
   E, nu, rho, params = choice_lib.simulation_values(
@@ -560,8 +610,7 @@ def perceive_object(
                            warnings=(f'MLLM-P3 skipped: {why}',),
                            prefix=f'MLLM-P3 skipped ({why}): ')
   if image is not None:
-    given = [image] if np.ndim(image) == 3 else list(image)
-    pngs = [encode_png(v) for v in given]
+    pngs = [encode_png(v) for v in checks.views_of(image, 'image')]
     cache_id = 'images:' + hashlib.sha256(b''.join(
       hashlib.sha256(p).digest() for p in pngs)).hexdigest()
     views = lambda: pngs
@@ -607,7 +656,8 @@ def perceive_scene(
       ``options.mllm`` has an endpoint, else None (offline).
     library: the material library (default: the shipped one).
     images: object index -> (H, W, 3) view, or a sequence of views, to use
-      instead of rendering.
+      instead of rendering (checked up front: a bad index or shape raises
+      :class:`PerceptionError` naming ``images[i]``).
 
   Returns:
     One :class:`MaterialChoice` per object, in ``scene.objects`` order.
@@ -618,8 +668,10 @@ def perceive_scene(
     MaterialChoiceError: a bad override/config value, or a key of
       ``options.overrides`` / ``config_materials`` that names no object of
       the scene (the message lists the scene's objects).
+    PerceptionError: a bad option or ``images`` entry.
   """
   options = (options or PerceptionOptions()).validate()
+  images = checks.check_images(images, scene.object_names, scene.name)
   library = library or default_library()
   if options.default_material is not None:
     library[options.default_material]  # fail early on a bad default
@@ -641,7 +693,7 @@ def perceive_scene(
   for i, info in enumerate(scene.objects):
     c = given[i] or perceive_object(
       scene, i, options, library, client,
-      None if images is None else images.get(i), deadline)
+      images.get(i), deadline)
     level = logging.WARNING if c.warnings else logging.INFO
     logging.log(level, 'perception: object %d %r -> %s via %s: %s%s', i,
                 info.name, c.summary(), c.source, c.reason,

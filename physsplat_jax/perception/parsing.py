@@ -10,10 +10,16 @@ wrong. Nothing here trusts the model:
 * Candidates: names are mapped to library keys (key, alias, phrase, fuzzy;
   see :meth:`MaterialLibrary.match`); unknown names are dropped with a note.
 * Scores: clipped to [0, 1]; a 0-10 or 0-100 scale is detected and rescaled.
-* Properties (:func:`validate_properties`): units are read from strings
-  (``'70 GPa'``, ``'2.7 g/cm3'``), from key suffixes (``youngs_modulus_gpa``)
-  or from ``*_unit`` fields. Then each value is checked against physics and
-  against the chosen library entry:
+* Properties (:func:`validate_properties`): numbers are read from JSON
+  numbers or from strings (``'70 GPa'``, ``'7.0 × 10^10 Pa'``, ``'7e10'``,
+  ``'~2.7 g/cm³'``, ``'−70 GPa'`` with a Unicode minus, a decimal comma
+  where it cannot be a thousands separator: ``'0,05 GPa'``; a range
+  ``'5-10 GPa'`` gives its midpoint); units from the string, from
+  ``*_unit`` fields or from key suffixes (``youngs_modulus_gpa``). A string
+  that does not read as one such quantity, or an unknown unit, makes the
+  field unreadable (library value, with a note quoting the text): no number
+  is ever taken from inside a unit or from a ``*_unit`` field. Then each
+  value is checked against physics and against the chosen library entry:
 
   - E must be finite and > 0; it is accepted within a factor ``E_slack``
     (10) of the entry's real range. Otherwise a unit slip is assumed if a
@@ -39,21 +45,37 @@ from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.perception.library import MaterialEntry
 from physsplat_jax.perception.library import MaterialLibrary
 
+# Keys in the form of _unit_key (lower case; no spaces, ^, *, dots).
 _PRESSURE_UNITS = {
-  'pa': 1.0, 'n/m2': 1.0, 'n/m^2': 1.0, 'kpa': 1e3, 'mpa': 1e6,
-  'gpa': 1e9, 'n/mm2': 1e6, 'n/mm^2': 1e6, 'psi': 6894.757, 'ksi': 6.894757e6,
+  'pa': 1.0, 'pascal': 1.0, 'pascals': 1.0, 'n/m2': 1.0, 'nm-2': 1.0,
+  'si': 1.0, 'kpa': 1e3, 'kilopascal': 1e3, 'kilopascals': 1e3,
+  'mpa': 1e6, 'megapascal': 1e6, 'megapascals': 1e6, 'gpa': 1e9,
+  'gigapascal': 1e9, 'gigapascals': 1e9, 'tpa': 1e12, 'n/mm2': 1e6,
+  'nmm-2': 1e6, 'psi': 6894.757, 'ksi': 6.894757e6,
 }
 _DENSITY_UNITS = {
-  'kg/m3': 1.0, 'kg/m^3': 1.0, 'kgm3': 1.0, 'kg_m3': 1.0, 'g/cm3': 1e3,
-  'g/cm^3': 1e3, 'g_cm3': 1e3, 'g/ml': 1e3, 'kg/l': 1e3, 'g/l': 1.0,
-  'lb/ft3': 16.0185,
+  'kg/m3': 1.0, 'kgm-3': 1.0, 'kgm3': 1.0, 'kg_m3': 1.0, 'si': 1.0,
+  'g/cm3': 1e3, 'gcm-3': 1e3, 'g_cm3': 1e3, 'g/cc': 1e3, 'g/ml': 1e3,
+  'kg/l': 1e3, 'kg/dm3': 1e3, 'g/l': 1.0, 'lb/ft3': 16.0185,
 }
 _E_FIELDS = ('youngs_modulus', 'young_modulus', 'youngs_modulus_pa', 'e',
              'elastic_modulus', 'modulus', 'young', 'youngs')
 _NU_FIELDS = ('poisson_ratio', 'poissons_ratio', 'nu', 'poisson')
 _RHO_FIELDS = ('density', 'density_kg_m3', 'density_kg_per_m3', 'rho')
 _UNIT_REPAIRS = (1e9, 1e6, 1e3, 1e-3, 1e-6, 1e-9)
-_NUMBER = re.compile(r'[-+]?(?:\d[\d,_]*\.?\d*|\.\d+)(?:[eE][-+]?\d+)?')
+# Minus signs and dashes read as '-'; superscripts as digits.
+_DASHES = str.maketrans({c: '-' for c in '\u2212\u2012\u2013\u2014\ufe63'
+                         '\uff0d'})
+_SUPERSCRIPTS = str.maketrans('⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁺', '0123456789-+')
+# One number: 7, 2,700.5, 0,05, 7.0e10, 7.0 × 10^10, 7*10**10, 10^10.
+_POWER = r'10\s*(?:\^|\*\*)\s*'
+_NUMBER = re.compile(
+  rf'(?P<sign>[-+]?)\s*(?:{_POWER}(?P<p0>[-+]?\d+)'
+  r'|(?P<man>\d(?:[\d_]|,(?=\d))*(?:\.\d*)?|\.\d+)'
+  rf'(?:e(?P<e>[-+]?\d+)|\s*[x×*·]\s*{_POWER}(?P<p>[-+]?\d+))?)', re.I)
+_APPROX = re.compile(r'(?:~|≈|approx(?:imately|\.)?|about|around|roughly|'
+                     r'circa|ca\.)\s*', re.I)
+_RANGE = re.compile(r'\s*(?:-|to\b)\s*', re.I)
 
 
 class AnswerError(PhysSplatError, ValueError):
@@ -248,59 +270,132 @@ def parse_scores(text: str, library: MaterialLibrary,
 # -------------------------------------------------------------- properties
 
 
-def _field(obj: Mapping, names) -> tuple[str, object] | None:
-  low = {str(k).lower(): k for k in obj}
+def _field(obj: Mapping, names) -> tuple[str, str, object] | None:
+  """(key, the field name it matched, value); ``*_unit`` keys are units,
+  never values."""
+  low = {str(k).lower(): k for k in obj
+         if not str(k).lower().endswith(('_unit', '_units'))}
   for n in names:
     if n in low:
-      return low[n], obj[low[n]]
+      return low[n], n, obj[low[n]]
   # Key with a unit suffix, e.g. youngs_modulus_gpa, density_g_cm3.
   for k_low, k in low.items():
     for n in names:
       if k_low.startswith(n + '_'):
-        return k, obj[k]
+        return k, n, obj[k]
   return None
 
 
+def _unit_key(unit: str) -> str:
+  u = str(unit).translate(_SUPERSCRIPTS).translate(_DASHES).lower()
+  return re.sub(r'[\s^*·⋅.]', '', u)
+
+
 def _unit_factor(unit: str, table: Mapping[str, float]) -> float | None:
-  u = unit.strip().lower().replace(' ', '').replace('³', '3').replace(
-    '²', '2').replace('·', '')
-  return table.get(u)
+  return table.get(_unit_key(unit))
 
 
-def _number_with_unit(key: str, value, obj: Mapping, table) -> tuple[
-    float | None, str]:
-  """(value in SI or None, note) from a number or a string with units."""
-  unit = None
+def _plain(m: re.Match) -> float | None:
+  """The value of a :data:`_NUMBER` match (None: an ambiguous comma)."""
+  if m.group('p0') is not None:
+    x = float(f'1e{m.group("p0")}')
+  else:
+    man = m.group('man').replace('_', '')
+    if ',' in man:
+      if re.fullmatch(r'[1-9]\d{0,2}(?:,\d{3})+(?:\.\d*)?', man):
+        man = man.replace(',', '')  # thousands: 2,700 or 1,500.5
+      elif re.fullmatch(r'\d+,\d+', man):
+        man = man.replace(',', '.')  # decimal comma: 0,05 or 2,7
+      else:
+        return None
+    exp = m.group('e') or m.group('p')
+    x = float(f'{man}e{exp}' if exp is not None else man)
+  return -x if m.group('sign') == '-' else x
+
+
+def _quantity(text: str) -> tuple[float, str, str] | str:
+  """``(value, unit text, note)`` of a string such as ``'~7.0 × 10^10
+  Pa'`` or ``'5-10 GPa'`` (midpoint), or why it does not read as one."""
+  t = re.sub(r'10([⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁺]+)',
+             lambda m: '10^' + m.group(1).translate(_SUPERSCRIPTS), text)
+  t = t.translate(_SUPERSCRIPTS).translate(_DASHES).strip()
+  a = _APPROX.match(t)
+  m = _NUMBER.match(t, a.end() if a else 0)
+  if not m:
+    return 'is not a number'
+  x, note = _plain(m), ''
+  if x is None:
+    return 'has an ambiguous comma (write 0.05 or 2700)'
+  rest = t[m.end():]
+  r = _RANGE.match(rest)
+  m2 = _NUMBER.match(rest, r.end()) if r else None
+  if m2 and not m2.group('sign'):
+    y = _plain(m2)
+    if y is None:
+      return 'has an ambiguous comma (write 0.05 or 2700)'
+    x, note, rest = 0.5 * (x + y), 'a range; its midpoint used', rest[
+      m2.end():]
+  if re.match(r'\s*[.,]?\d', rest):  # '10^10.8', '1.2.3'
+    return 'is not one number'
+  rest = re.sub(r'\(.*?\)|\[.*?\]', ' ', rest).strip(' \t\n.,;:')
+  return x, rest, note
+
+
+def _number_with_unit(key: str, base: str, value, obj: Mapping,
+                      table) -> tuple[float | None, str]:
+  """(value in SI or None, note) from a number or a string with units.
+
+  Args:
+    key: the answer's key; base: the field name it matched.
+    value: the answer's value (a number, a string, or {value, unit}).
+    obj: the whole answer (``*_unit`` fields).
+    table: unit -> SI factor; empty for a dimensionless field.
+  """
+  unit, notes = None, []
+  if isinstance(value, Mapping) and 'value' in value:
+    unit = value.get('unit', value.get('units'))
+    unit = unit if isinstance(unit, str) and unit.strip() else None
+    value = value['value']
   if isinstance(value, bool):
     return None, f'{key}={value!r} is not a number'
   if isinstance(value, (int, float)):
     x = float(value)
   elif isinstance(value, str):
-    m = _NUMBER.search(value)
-    if not m:
-      return None, f'{key}={value!r} is not a number'
-    x = float(m.group(0).replace(',', '').replace('_', ''))
-    rest = value[m.end():].strip()
-    unit = rest.split()[0] if rest else None
+    q = _quantity(value)
+    if isinstance(q, str):
+      return None, f'{key}={value!r} {q}; unreadable'
+    x, rest, note = q
+    if note:
+      notes.append(f'{key}={value!r} is {note}')
+    if rest and table:
+      unit = rest
+      if _unit_factor(rest, table) is None:  # '70 GPa, typical'
+        first = re.split(r'[\s,;]+', rest)[0]
+        unit = first if _unit_factor(first, table) is not None else rest
   else:
     return None, f'{key}={value!r} is not a number'
-  note = ''
-  uk = f'{key}_unit'
-  if unit is None and isinstance(obj.get(uk, obj.get('unit')), str):
-    unit = obj.get(uk, obj.get('unit'))
+  low = {str(k).lower(): v for k, v in obj.items()}
   if unit is None:
-    for suffix, f in table.items():
-      if key.lower().endswith('_' + suffix.replace('/', '_').replace('^', '')):
+    for uk in (f'{key.lower()}_unit', f'{key.lower()}_units', f'{base}_unit',
+               f'{base}_units', 'unit', 'units'):
+      if isinstance(low.get(uk), str) and low[uk].strip():
+        unit = low[uk]
+        break
+  if unit is None:
+    for suffix in table:
+      if key.lower().endswith('_' + suffix.replace('/', '_')):
         unit = suffix
         break
-  if unit is not None:
+  if unit is not None and table:
     f = _unit_factor(unit, table)
     if f is None:
-      note = f'unknown unit {unit!r} for {key}; assumed SI'
-    elif f != 1.0:
+      known = 'Pa, kPa, MPa, GPa' if 'gpa' in table else 'kg/m3, g/cm3'
+      return None, (f'{key}={value!r}: unknown unit {unit!r} (use '
+                    f'{known}); unreadable')
+    if f != 1.0:
       x *= f
-      note = f'{key} given in {unit}'
-  return x, note
+      notes.append(f'{key} given in {unit}')
+  return x, '; '.join(notes)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -355,6 +450,11 @@ def validate_properties(text: str, entry: MaterialEntry,
   Raises:
     AnswerError: the answer has no JSON object at all.
   """
+  for arg, v in (('E_slack', E_slack), ('rho_slack', rho_slack),
+                 ('nu_slack', nu_slack + 1.0)):
+    if not v > 0:  # NaN too (E_slack=0 divided by zero)
+      raise ValueError(f'validate_properties: {arg}={v!r} must be a factor '
+                       '>= 1 (nu_slack: >= 0); see PerceptionOptions')
   obj = extract_json(text)
   lib = library_properties(entry)
   notes, from_lib = [], []
@@ -366,7 +466,8 @@ def validate_properties(text: str, entry: MaterialEntry,
   if f is None:
     notes.append('E missing')
   else:
-    E, note = _number_with_unit(str(f[0]), f[1], obj, _PRESSURE_UNITS)
+    E, note = _number_with_unit(str(f[0]), f[1], f[2], obj,
+                                _PRESSURE_UNITS)
     if note:
       notes.append(note)
     if E is None:
@@ -397,8 +498,8 @@ def validate_properties(text: str, entry: MaterialEntry,
   if f is None:
     notes.append('nu missing')
   else:
-    nu, note = _number_with_unit(str(f[0]), f[1], obj, {})
-    if note and 'unknown unit' not in note:
+    nu, note = _number_with_unit(str(f[0]), f[1], f[2], obj, {})
+    if note:
       notes.append(note)
     if nu is not None and not (math.isfinite(nu) and 0.0 <= nu < 0.5):
       notes.append(f'nu={nu:g} is outside [0, 0.5)')
@@ -422,7 +523,8 @@ def validate_properties(text: str, entry: MaterialEntry,
   if f is None:
     notes.append('density missing')
   else:
-    rho, note = _number_with_unit(str(f[0]), f[1], obj, _DENSITY_UNITS)
+    rho, note = _number_with_unit(str(f[0]), f[1], f[2], obj,
+                                  _DENSITY_UNITS)
     if note:
       notes.append(note)
     if rho is None:

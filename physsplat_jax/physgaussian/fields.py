@@ -12,19 +12,7 @@ import math
 from typing import Any
 
 from physsplat_jax.errors import PhysSplatError
-
-# Physical ranges of the plasticity parameters (name -> (test, what to
-# use)), the same as perception's ``choice.PARAM_RANGES`` (a test checks
-# they agree), so a config and a perceived material accept the same values.
-PARAM_RANGES = {
-  'friction_angle': (lambda v: 0.0 <= v < 90.0, 'an angle in [0, 90) deg'),
-  'yield_stress': (lambda v: v >= 0.0, 'a stress >= 0 [Pa]'),
-  'plastic_viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
-  'hardening': (lambda v: v >= 0.0, '0 (off) or a multiplier > 0'),
-  'xi': (lambda v: 0.0 <= v <= 100.0, 'a hardening coefficient in '
-         '[0, 100] (snow: ~10)'),
-  'softening': (lambda v: v >= 0.0, 'a softening >= 0 [Pa]'),
-}
+from physsplat_jax.mpm.models import PARAM_RANGES
 
 
 class ConfigError(PhysSplatError, ValueError):
@@ -107,7 +95,9 @@ def _check_kind(source, field, value, kind):
 
 
 def check_range(source: str, field: str, value: float) -> None:
-  """Raises ``ConfigError`` if ``value`` is outside ``PARAM_RANGES[field]``."""
+  """Raises ``ConfigError`` if ``value`` is outside the physical range of
+  the model parameter ``field`` (``mpm.models.PARAM_RANGES``, the ranges
+  perception's overrides are checked against too)."""
   ok, want = PARAM_RANGES[field]
   if not ok(value):
     raise ConfigError(f'{_where(source, field)} = {value:g}: use {want}.')

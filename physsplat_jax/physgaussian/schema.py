@@ -67,8 +67,12 @@ from physsplat_jax.physgaussian.fields import _vec
 from physsplat_jax.physgaussian.fields import _where
 from physsplat_jax.physgaussian.fields import check_keys
 from physsplat_jax.physgaussian.fields import check_range
-from physsplat_jax.physgaussian.fields import PARAM_RANGES
 from physsplat_jax.types import Array
+
+# The plasticity fields a config carries, checked against their physical
+# ranges (mpm.models.PARAM_RANGES).
+_PLASTICITY_FIELDS = ('friction_angle', 'yield_stress', 'plastic_viscosity',
+                      'hardening', 'xi', 'softening')
 
 BOUNDARY_TYPES = (
   'bounding_box', 'cuboid', 'particle_impulse', 'enforce_particle_translation',
@@ -595,7 +599,7 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
       'use a factor in (0, 1) to damp grid velocities every substep '
       '(PhysGaussian: 0.9999) or >= 1 for no damping.'
     )
-  for name in PARAM_RANGES:
+  for name in _PLASTICITY_FIELDS:
     check_range(s, name, getattr(c, name))
   if len(c.rotation_degree) != len(c.rotation_axis):
     raise ConfigError(
