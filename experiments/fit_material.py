@@ -23,6 +23,7 @@ from absl import flags
 from absl import logging
 
 from experiments.lib import cli
+from physsplat_jax.training import checks
 from physsplat_jax.training import simtrain
 
 _SEEDS = flags.DEFINE_list('seeds', ['10', '11'], 'beam seeds')
@@ -32,7 +33,7 @@ _STEPS = flags.DEFINE_integer('steps', 60, 'Adam steps per fit')
 _LR = flags.DEFINE_float('learning_rate', 0.1, 'peak Adam step size')
 _E_INIT = flags.DEFINE_float('E_init', 0.3, 'initial E / true mean E')
 _DEGREE = flags.DEFINE_integer('field_degree', 2, 'polynomial log-field '
-                               'degree (0: mean only)')
+                               'degree: 0 (mean only), 1 or 2')
 _OUT = flags.DEFINE_string('out', None, 'optional JSON results path')
 _CONFIG = cli.define_config_file('config', None, 'config file '
                                  '(its sim.task is used)', lock_config=True)
@@ -51,7 +52,8 @@ def _check_flags() -> list[int]:
        'a finite fraction of the true mean E > 0'),
       ('learning_rate', math.isfinite(_LR.value) and _LR.value > 0,
        'a finite step size > 0'),
-      ('field_degree', _DEGREE.value >= 0, 'an integer >= 0'),
+      ('field_degree', _DEGREE.value in checks.FIELD_DEGREES,
+       f'one of {checks.FIELD_DEGREES} (0: the mean only)'),
       ('steps', _STEPS.value >= 1, 'an integer >= 1')):
     if not ok:
       raise cli.usage_error(f'--{name}={flags.FLAGS[name].value}: give '
@@ -89,17 +91,20 @@ def main(argv):
         log_fn=lambda i, loss, E: logging.info('step %d loss %.4g E %.4g',
                                                i, loss, E))
       true = np.asarray(task.field[:, 0], np.float64)
-      fit = np.log(r['field_E'])
+      # None (JSON null) for a uniform fitted field (field_degree=0).
+      corr = checks.field_correlation(r['field_E'], true)
       # Per-driver E error of the start (E_init, uniform) and of a uniform
       # field at the true mean, for reference against E_point_mare.
       init_mare = np.mean(np.abs(_E_INIT.value - true) / true)
       row = dict(seed=seed, observe=observe, git=sha,
-                 field_corr_log=float(np.corrcoef(fit, np.log(true))[0, 1]),
+                 field_corr_log=corr,
                  init_point_mare=float(init_mare),
                  uniform_point_mare=float(np.mean(np.abs(1 - true) / true)),
                  loss_start=r['history'][0],
                  **{k: v for k, v in r.items()
                     if k not in ('field_E', 'history')})
+      if corr is None:
+        row['field_corr_note'] = checks.UNDEFINED_CORRELATION
       print(json.dumps(row), flush=True)
       rows.append(row)
   if _OUT.value:

@@ -13,6 +13,7 @@ import functools
 import json
 import os
 import tempfile
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +25,7 @@ from experiments.configs import mpdp_test as test_config
 from physsplat_jax import pipeline as pl
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import pretrained
+from physsplat_jax.training import checks
 from physsplat_jax.training import simtrain
 from physsplat_jax.mpdp import synthetic
 
@@ -198,6 +200,71 @@ class FitTest(absltest.TestCase):
     self.assertLess(r['final_loss'], r['history'][0])
     with self.assertRaisesRegex(ValueError, 'render='):
       simtrain.fit_material(_task(0), 'video')
+
+
+class ChecksTest(absltest.TestCase):
+  """Bad settings fail before any task is built or code compiled (they were
+  NumPy/optax errors, NaN checkpoints, or silent wrong fits)."""
+
+  def test_bad_task_sim_and_fit_settings_fail_up_front(self):
+    for bad, want in (({'length': -0.5}, 'TaskConfig.length = -0.5'),
+                      ({'num_gaussians': 0}, 'num_gaussians = 0; give an '
+                       'integer >= 8'),
+                      ({'E': '3e5'}, "TaskConfig.E = '3e5'; give a finite"),
+                      ({'nu': 0.5}, r'nu = 0.5; give a number in \[0, 0.5\)'),
+                      ({'num_particles': 4}, 'TaskConfig.num_particles=4'),
+                      ({'dtype': 'float16'}, 'dtype')):
+      with self.subTest(bad), self.assertRaisesRegex(simtrain.TrainingError,
+                                                     want):
+        simtrain.TaskConfig.from_dict(bad)
+    with tempfile.TemporaryDirectory() as tmp:
+      workdir = os.path.join(tmp, 'run')
+      for field, value, want in (
+          ('learning_rate', float('nan'), 'sim.learning_rate = nan'),
+          ('learning_rate', -1e-2, 'sim.learning_rate = -0.01'),
+          ('grad_clip', 0.0, 'sim.grad_clip = 0.0'),
+          ('train_seeds', (), r'sim.train_seeds = \(\); give a non-empty'),
+          ('eval_seeds', ('a',), 'sim.eval_seeds'),
+          ('init', 'zeros', "sim.init = 'zeros'; give 'zero' or"),
+          ('log_every', 0, 'sim.log_every = 0'),
+          ('checkpoint_every', 0, 'sim.checkpoint_every = 0'),
+          ('max_to_keep', 0, 'sim.max_to_keep = 0'),
+          ('num_steps', -1, 'sim.num_steps = -1')):
+        config = test_config.get_config().sim
+        config[field] = value
+        with self.subTest(field), self.assertRaisesRegex(
+            simtrain.TrainingError, want):
+          simtrain.train_and_evaluate(config, workdir)
+      self.assertFalse(os.path.exists(workdir))  # before any work
+      open(workdir, 'w').close()
+      with self.assertRaisesRegex(simtrain.TrainingError,
+                                  '--workdir.*is a file'):
+        simtrain.train_and_evaluate(test_config.get_config().sim, workdir)
+    # fit_material checks its arguments before it touches the task.
+    for kw, want in (({'E_init': 0.0}, 'E_init = 0.0; give a finite '
+                      'fraction'),
+                     ({'E_init': -1.0}, 'E_init = -1.0'),
+                     ({'learning_rate': float('nan')}, 'learning_rate = nan'),
+                     ({'num_steps': 0}, 'num_steps = 0; give an integer >= 1'),
+                     ({'field_degree': 7}, r'field_degree = 7; give one of '
+                      r'\(0, 1, 2\)'),
+                     ({'field_degree': -1}, 'field_degree = -1')):
+      with self.subTest(kw), self.assertRaisesRegex(simtrain.TrainingError,
+                                                    want):
+        simtrain.fit_material(None, 'trajectory', **kw)
+    with self.assertRaisesRegex(simtrain.TrainingError, 'learning_rate'):
+      simtrain.train_through_simulator({}, [], 1, learning_rate=-1.0)
+
+  def test_field_correlation_of_a_uniform_field_is_null_not_nan(self):
+    truth = np.linspace(0.5, 2.0, 16)
+    with warnings.catch_warnings():
+      warnings.simplefilter('error')  # NumPy warned on the NaN
+      self.assertIsNone(checks.field_correlation(np.ones(16), truth))
+      self.assertAlmostEqual(checks.field_correlation(truth**2, truth), 1.0)
+    row = {'field_corr_log': checks.field_correlation(np.ones(16), truth)}
+    self.assertEqual(json.dumps(row, allow_nan=False),
+                     '{"field_corr_log": null}')
+    self.assertIn('uniform', checks.UNDEFINED_CORRELATION)
 
 
 if __name__ == '__main__':

@@ -3,6 +3,7 @@
 Training through the simulator is tested in tests/mpdp_sim_test.py.
 """
 
+import dataclasses
 import functools
 import json
 import os
@@ -345,6 +346,103 @@ class TrainTest(absltest.TestCase):
     config.data.eval_seed = config.data.seed
     with self.assertRaisesRegex(ValueError, 'must differ'):
       train_lib.make_datasets(config)
+
+
+class ConfigChecksTest(absltest.TestCase):
+  """Bad settings and weight files fail up front, naming the field (they
+  were ZeroDivisionErrors after compiling, Flax/JAX/NumPy errors, or silent
+  wrong runs); nothing here compiles or trains."""
+
+  def test_bad_train_config_or_workdir_fails_before_any_work(self):
+    cases = (
+      ('train', 'log_every', 0, 'train.log_every = 0'),
+      ('train', 'eval_every', 0, 'train.eval_every = 0'),
+      ('train', 'checkpoint_every', 0, 'train.checkpoint_every = 0'),
+      ('train', 'max_to_keep', 0, 'train.max_to_keep = 0'),
+      ('train', 'grad_clip', 0.0, r'train.grad_clip = 0.0; give a finite '
+       'number > 0'),
+      ('train', 'grad_clip', -1.0, 'train.grad_clip = -1.0'),
+      ('train', 'channel_weights', (-1.0, 1.0, 1.0), 'channel_weights = '
+       r'\(-1.0.*weights >= 0'),
+      ('train', 'channel_weights', (0.0, 0.0, 0.0), 'not all 0'),
+      ('train', 'channel_weights', (1.0, 1.0), 'three finite weights'),
+      ('train', 'weight_decay', float('nan'), 'weight_decay = nan'),
+      ('train', 'warmup_steps', -1, 'warmup_steps = -1; give an integer'),
+      ('data', 'num_eval', 0, 'data.num_eval = 0'),
+      ('model', 'features', (0,), r'config.model: .*features\[0\] = 0'),
+      ('model', 'features', (-4,), r'features\[0\] = -4'),
+      ('model', 'log_range', (0.0, 0.4, 0.7), r'log_range\[0\] = 0.0'),
+      ('model', 'log_range', (1.0, 1.0), 'log_range = .*three finite'),
+      ('model', 'k_neighbors', 0, 'k_neighbors = 0.*edge_features = 0'),
+      ('model', 'k_neighbors', -2, 'k_neighbors = -2'))
+    with tempfile.TemporaryDirectory() as tmp:
+      workdir = os.path.join(tmp, 'run')
+      for section, field, value, want in cases:
+        config = test_config.get_config()
+        config[section][field] = value
+        with self.subTest(f'{section}.{field}={value}'), \
+            self.assertRaisesRegex(model_lib.MPDPError, want):
+          train_lib.train_and_evaluate(config, workdir)
+      self.assertFalse(os.path.exists(workdir))  # checked before any work
+      afile = os.path.join(tmp, 'afile')
+      open(afile, 'w').close()
+      os.makedirs(workdir)
+      open(os.path.join(workdir, 'checkpoints'), 'w').close()
+      for path in (afile, workdir):
+        with self.subTest(path), self.assertRaisesRegex(
+            model_lib.MPDPError, r'--workdir.*is a file, not a folder'):
+          train_lib.train_and_evaluate(test_config.get_config(), path)
+    for bad, want in (({'features': '64'}, 'features = .64.; give a list'),
+                      ({'edge_features': -1}, 'edge_features = -1'),
+                      ({'global_features': 2.5}, 'global_features = 2.5'),
+                      ({'log_range': (3.0, float('nan'), 1.0)},
+                       r'log_range\[1\] = nan')):
+      with self.subTest(bad), self.assertRaisesRegex(model_lib.MPDPError,
+                                                     want):
+        model_lib.ModelConfig.from_dict(bad)
+
+  def test_weight_files_are_checked_against_their_model_config(self):
+    # The shapes load_params checks against are the network's own (also
+    # with EdgeConv off: edge_features = 0).
+    for cfg in (_SMALL, model_lib.ModelConfig(features=(8,),
+                                              edge_features=0)):
+      abstract = jax.eval_shape(lambda c=cfg: model_lib.init_params(
+        jax.random.key(0), c))
+      self.assertEqual(jax.tree.map(lambda a: a.shape, abstract),
+                       model_lib.param_shapes(cfg))
+    params = jax.tree.map(
+      lambda shape: np.full(shape, 0.01, np.float32),
+      model_lib.param_shapes(_SMALL), is_leaf=lambda x: isinstance(x, tuple))
+    with tempfile.TemporaryDirectory() as d:
+      pretrained.save_params(params, _SMALL, d, 'good')
+      loaded, cfg, _ = pretrained.load_params(d, 'good')
+      self.assertEqual(cfg, _SMALL)
+      nan = jax.tree.map(np.copy, params)
+      nan['Dense_3']['kernel'][0, 0] = np.nan
+      missing = {k: v for k, v in params.items() if k != 'Dense_1'}
+      for name, tree, mcfg, want in (
+          ('nan', nan, _SMALL, r'Dense_3/kernel holds 1 non-finite'),
+          ('missing', missing, _SMALL, r"missing \['Dense_1/bias'"),
+          ('other', params, dataclasses.replace(_SMALL, global_features=8),
+           r'Dense_4/kernel has shape \(32, 16\).*global_features=8.*'
+           r'needs \(32, 8\)')):
+        pretrained.save_params(tree, mcfg, d, name)
+        with self.subTest(name), self.assertRaisesRegex(model_lib.MPDPError,
+                                                        want):
+          pretrained.load_params(d, name)
+      with open(os.path.join(d, 'good.npz'), 'rb') as f:
+        body = f.read()
+      with open(os.path.join(d, 'good.npz'), 'wb') as f:
+        f.write(body[:len(body) // 2])  # a truncated download
+      with self.assertRaisesRegex(model_lib.MPDPError,
+                                  r'good\.npz: not a weights file.*damaged'):
+        pretrained.load_params(d, 'good')
+      with open(os.path.join(d, 'other.json'), 'w') as f:
+        json.dump({'model_config': {'features': '64'}}, f)
+      with self.assertRaisesRegex(model_lib.MPDPError,
+                                  r'other\.json: not a model description.*'
+                                  'features'):
+        pretrained.load_params(d, 'other')
 
 
 class PretrainedTest(absltest.TestCase):

@@ -43,6 +43,7 @@ means, mask)``.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -71,6 +72,48 @@ NU_MAX = 0.49
 FIELD_CHANNELS = ('E', 'nu', 'rho')
 
 
+def is_int(value) -> bool:
+  """A whole number (not a bool, not 2.5, not a string)."""
+  return (isinstance(value, (int, np.integer))
+          and not isinstance(value, (bool, np.bool_)))
+
+
+def is_real(value) -> bool:
+  """A finite int or float (not a bool, not a string, not NaN)."""
+  return (isinstance(value, (int, float, np.integer, np.floating))
+          and not isinstance(value, (bool, np.bool_))
+          and math.isfinite(value))
+
+
+# Kinds of :func:`check_values`: name -> (test, what to give instead).
+VALUE_KINDS = {
+  'int': (is_int, 'an integer'),
+  'int>=0': (lambda v: is_int(v) and v >= 0, 'an integer >= 0'),
+  'int>=1': (lambda v: is_int(v) and v >= 1, 'an integer >= 1'),
+  '>0': (lambda v: is_real(v) and v > 0, 'a finite number > 0'),
+  '>=0': (lambda v: is_real(v) and v >= 0, 'a finite number >= 0'),
+}
+
+
+def check_values(owner: str, values, error: type | None = None) -> None:
+  """Checks config values before any work.
+
+  Args:
+    owner: how the user names their section, e.g. ``'config.train'``.
+    values: ``(name, value, kind)`` triples; ``kind`` is a key of
+      :data:`VALUE_KINDS` or a ``(test, what to give)`` pair.
+    error: the exception class raised (default :class:`MPDPError`).
+
+  Raises:
+    error: ``'<owner>.<name> = <value>; give <what>.'`` for the first value
+      that is not of its kind.
+  """
+  for name, value, kind in values:
+    test, want = VALUE_KINDS[kind] if isinstance(kind, str) else kind
+    if not test(value):
+      raise (error or MPDPError)(f'{owner}.{name} = {value!r}; give {want}.')
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
   """Static (hashable) architecture of the MPDP network.
@@ -78,12 +121,16 @@ class ModelConfig:
   Attributes:
     features: widths of the shared per-point MLP.
     edge_features: width of the EdgeConv MLP; 0 disables EdgeConv.
-    k_neighbors: kNN size of the EdgeConv (static).
+    k_neighbors: kNN size of the EdgeConv (static), >= 1 (``edge_features
+      = 0``, not ``k_neighbors = 0``, turns EdgeConv off).
     global_features: width of the max-pooled global feature.
     cond_features: width of the embedding of the mean properties.
     head_features: widths of the per-point output MLP.
     log_range: per-channel bound r of the logits (E, nu, rho): the field's
-      max/min ratio is at most exp(2 r).
+      max/min ratio is at most exp(2 r); three finite numbers > 0.
+
+  Every width is an integer >= 1 (``edge_features`` >= 0); a bad field
+  raises :class:`MPDPError` naming it when the config is made.
   """
 
   features: tuple[int, ...] = (64, 64)
@@ -94,9 +141,34 @@ class ModelConfig:
   head_features: tuple[int, ...] = (64, 64)
   log_range: tuple[float, float, float] = (3.0, 0.405, 0.693)
 
+  def __post_init__(self):
+    for k, size, what in (
+        ('features', None, 'a list of layer widths (integers >= 1)'),
+        ('head_features', None, 'a list of layer widths (integers >= 1)'),
+        ('log_range', 3, 'three finite numbers > 0 (E, nu, rho)')):
+      v = getattr(self, k)
+      if not isinstance(v, (tuple, list)) or (size and len(v) != size):
+        raise MPDPError(f'ModelConfig.{k} = {v!r}; give {what}.')
+      object.__setattr__(self, k, tuple(v))
+    if not (is_int(self.k_neighbors) and self.k_neighbors >= 1):
+      raise MPDPError(
+        f'ModelConfig.k_neighbors = {self.k_neighbors!r}; give an integer '
+        '>= 1 (to turn EdgeConv off, set edge_features = 0).')
+    check_values('ModelConfig', [
+      *((f'features[{i}]', f, 'int>=1') for i, f in enumerate(
+        self.features)),
+      ('edge_features', self.edge_features, 'int>=0'),
+      ('global_features', self.global_features, 'int>=1'),
+      ('cond_features', self.cond_features, 'int>=1'),
+      *((f'head_features[{i}]', f, 'int>=1') for i, f in enumerate(
+        self.head_features)),
+      *((f'log_range[{i}]', r, '>0') for i, r in enumerate(
+        self.log_range))])
+
   @classmethod
   def from_dict(cls, d) -> 'ModelConfig':
-    """Builds a config from a dict / ConfigDict (lists become tuples)."""
+    """Builds a config from a dict / ConfigDict (lists become tuples; a
+    value of the wrong type raises :class:`MPDPError` naming the field)."""
     d = dict(d)
     unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
     if unknown:
@@ -104,9 +176,6 @@ class ModelConfig:
         f'Unknown MPDP model config fields {sorted(unknown)}; valid fields '
         f'are {[f.name for f in dataclasses.fields(cls)]}.'
       )
-    for k in ('features', 'head_features', 'log_range'):
-      if k in d:
-        d[k] = tuple(d[k])
     return cls(**d)
 
   def to_dict(self) -> dict:
@@ -283,6 +352,34 @@ def init_params(key, config: ModelConfig = ModelConfig(),
   # Jitted: linen's eager init of this network takes seconds on a CPU.
   init_fn = jax.jit(network.PointNet(config).init)
   return init_fn(key, p, m, jnp.ones((num_points,), bool))['params']
+
+
+def param_shapes(config: ModelConfig = ModelConfig()) -> dict:
+  """Shapes of the params of :class:`PointNet` for ``config``, without Flax.
+
+  What :func:`init_params` gives (the tests compare the two), for checking
+  weight files against their config without tracing the network:
+  ``{'Dense_i': {'kernel': (in, out), 'bias': (out,)}}`` in layer order.
+  """
+  layers = []
+
+  def mlp(width, features):
+    for f in features:
+      layers.append((width, f))
+      width = f
+    return width
+
+  local = h = mlp(3, config.features)
+  if config.edge_features > 0 and config.k_neighbors > 0:
+    e = config.edge_features
+    layers += [(2 * h + 3, e), (e, e)]
+    local += e
+  layers.append((local, config.global_features))
+  c = mlp(MEANS_DIM, (config.cond_features, config.cond_features))
+  z = mlp(local + config.global_features + c + 3, config.head_features)
+  layers.append((z, 3))
+  return {f'Dense_{i}': {'kernel': (a, b), 'bias': (b,)}
+          for i, (a, b) in enumerate(layers)}
 
 
 predict = make_predict(ModelConfig())

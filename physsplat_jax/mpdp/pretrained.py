@@ -14,6 +14,8 @@ from __future__ import annotations
 import functools
 import json
 import os
+import zipfile
+import zlib
 
 import numpy as np
 
@@ -64,7 +66,9 @@ def load_params(directory: str, name: str = PRETRAINED_NAME):
     (params pytree of float32 jax arrays, ModelConfig, metadata dict).
 
   Raises:
-    ValueError: if the files are missing.
+    MPDPError (a ValueError): if the files are missing or damaged, or the
+      weights do not fit the JSON's model config (a missing, extra or
+      misshapen array; a non-float or non-finite value).
   """
   npz = os.path.join(directory, name + '.npz')
   js = os.path.join(directory, name + '.json')
@@ -81,19 +85,50 @@ def load_params(directory: str, name: str = PRETRAINED_NAME):
   except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
     raise MPDPError(f'MPDP params {js}: not a model description '
                     f'({type(e).__name__}: {e}); {fix}.') from None
-  params = {}
   try:
     with np.load(npz, allow_pickle=False) as data:
-      for key in data.files:
-        node = params
-        *parents, leaf = key.split('/')
-        for p in parents:
-          node = node.setdefault(p, {})
-        node[leaf] = device_array(data[key])
-  except (OSError, ValueError, KeyError) as e:
+      flat = {key: data[key] for key in data.files}
+  except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile,
+          zlib.error) as e:
     raise MPDPError(f'MPDP params {npz}: not a weights file written by '
-                    f'save_params ({type(e).__name__}); {fix}.') from None
+                    f'save_params, or damaged ({type(e).__name__}); '
+                    f'{fix}.') from None
+  _check_weights(flat, cfg, f'MPDP params {npz}', f'{js} ({cfg})', fix)
+  params = {}
+  for key, value in flat.items():
+    node = params
+    *parents, leaf = key.split('/')
+    for p in parents:
+      node = node.setdefault(p, {})
+    node[leaf] = device_array(value)
   return params, cfg, meta.get('metadata', {})
+
+
+def _check_weights(flat, cfg, where, config_of, fix):
+  """Every array of ``cfg``'s network present with its shape, finite, and
+  nothing else (:func:`model.param_shapes`: no Flax, no tracing)."""
+  want = _flatten(model_lib.param_shapes(cfg))
+  want = {k: tuple(int(n) for n in v) for k, v in want.items()}
+  missing = sorted(set(want) - set(flat))
+  extra = sorted(set(flat) - set(want))
+  if missing or extra:
+    raise MPDPError(
+      f'{where}: the arrays do not fit the model config of {config_of} '
+      f'(missing {missing[:4]}, unexpected {extra[:4]}); {fix}.')
+  for k, shape in want.items():
+    a = flat[k]
+    if a.shape != shape:
+      raise MPDPError(
+        f'{where}: {k} has shape {a.shape}, the model config of '
+        f'{config_of} needs {shape}; {fix}.')
+    if not np.issubdtype(a.dtype, np.floating):
+      raise MPDPError(f'{where}: {k} holds {a.dtype} values, not floats; '
+                      f'{fix}.')
+    if not np.all(np.isfinite(a)):
+      raise MPDPError(
+        f'{where}: {k} holds {int(np.sum(~np.isfinite(a)))} non-finite '
+        f'values (NaN/inf weights give a NaN field); {fix} from a run '
+        'that did not diverge.')
 
 
 @functools.lru_cache(maxsize=1)

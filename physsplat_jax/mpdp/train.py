@@ -16,12 +16,13 @@ Layout of ``config`` (an ``ml_collections.ConfigDict``; see
 num_train, num_eval, num_points, min_fill), ``train`` (seed, learning_rate,
 weight_decay, warmup_steps, num_steps, batch_size, grad_clip,
 channel_weights, log_every, eval_every, checkpoint_every, max_to_keep).
+:func:`validate_config` checks every field of them, and :func:`check_workdir`
+the workdir, before any data, compilation or training.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 
@@ -136,7 +137,87 @@ def evaluate(params, model_config, data, batch_size: int = 64):
 
 
 def _model_config(config) -> model_lib.ModelConfig:
-  return model_lib.ModelConfig.from_dict(config.model.to_dict())
+  try:
+    return model_lib.ModelConfig.from_dict(config.model.to_dict())
+  except MPDPError as e:
+    raise MPDPError(f'config.model: {e}') from None
+
+
+def _is_weights(w) -> bool:
+  return (isinstance(w, (tuple, list)) and len(w) == 3
+          and all(model_lib.is_real(x) and x >= 0 for x in w)
+          and sum(w) > 0)
+
+
+def validate_config(config) -> model_lib.ModelConfig:
+  """Checks ``config`` (see the module docstring) before any work.
+
+  Returns:
+    The :class:`ModelConfig` of ``config.model``.
+
+  Raises:
+    MPDPError: naming the first bad field (``config.<section>.<name>``), its
+      value and what to give instead.
+  """
+  tc, d = config.train, config.data
+  check = model_lib.check_values
+  check('config.train', [
+    ('learning_rate', tc.learning_rate, '>0'),
+    ('batch_size', tc.batch_size, 'int>=1'),
+    ('num_steps', tc.num_steps, 'int>=0'),
+    ('seed', tc.seed, 'int'),
+    ('weight_decay', tc.weight_decay, '>=0'),
+    ('warmup_steps', tc.warmup_steps, 'int>=0'),
+    ('grad_clip', tc.grad_clip, '>0'),
+    ('channel_weights', tc.channel_weights, (
+      _is_weights, 'three finite weights >= 0 (E, nu, rho), not all 0')),
+    ('log_every', tc.log_every, 'int>=1'),
+    ('eval_every', tc.eval_every, 'int>=1'),
+    ('checkpoint_every', tc.checkpoint_every, 'int>=1'),
+    ('max_to_keep', tc.max_to_keep, (
+      lambda v: v is None or (model_lib.is_int(v) and v >= 1),
+      'an integer >= 1 (or None: keep every checkpoint)'))])
+  check('config.data', [
+    ('seed', d.seed, 'int'), ('eval_seed', d.eval_seed, 'int'),
+    ('num_train', d.num_train, 'int>=1'),
+    ('num_eval', d.num_eval, 'int>=1'),
+    ('num_points', d.num_points, (
+      lambda v: model_lib.is_int(v) and v >= 8, 'an integer >= 8')),
+    ('min_fill', d.min_fill, (
+      lambda v: model_lib.is_real(v) and 0 < v <= 1,
+      'a fraction in (0, 1]'))])
+  if tc.batch_size > d.num_train:
+    raise MPDPError(f'config.train.batch_size ({tc.batch_size}) exceeds '
+                    f'config.data.num_train ({d.num_train}).')
+  return _model_config(config)
+
+
+def check_workdir(workdir, error: type = MPDPError) -> str:
+  """``workdir`` as an absolute path, created if missing; checked before
+  any work: it and its ``checkpoints`` entry (if there) must be writable
+  folders, not files (orbax failed on them after the last step).
+
+  Raises:
+    error: naming the workdir (``--workdir``), what is wrong and the fix.
+  """
+  if not isinstance(workdir, str) or not workdir:
+    raise error(f'workdir (--workdir) = {workdir!r}; give a folder path.')
+  path = os.path.abspath(workdir)
+  where = f'workdir {workdir!r} (--workdir)'
+  for p in (path, os.path.join(path, 'checkpoints')):
+    if os.path.exists(p) and not os.path.isdir(p):
+      raise error(f'{where}: {p} is a file, not a folder; give another '
+                  '--workdir or move the file away.')
+  try:
+    os.makedirs(path, exist_ok=True)
+  except OSError as e:
+    raise error(f'{where}: cannot create it ({e.strerror}); give a folder '
+                'you can write to.') from None
+  for p in (path, os.path.join(path, 'checkpoints')):
+    if os.path.isdir(p) and not os.access(p, os.W_OK | os.X_OK):
+      raise error(f'{where}: {p} is not writable; give a folder you can '
+                  'write to.')
+  return path
 
 
 def make_datasets(config):
@@ -218,26 +299,18 @@ def train_and_evaluate(config, workdir: str) -> dict:
   Returns:
     dict: final held-out metrics (see :func:`evaluate`) plus ``step``,
     ``train_loss`` and ``params`` (the trained params pytree).
+
+  Raises:
+    MPDPError: a bad config field or workdir (:func:`validate_config`,
+      :func:`check_workdir`), before any data is made or code compiled.
   """
   tc = config.train
-  for name, ok, want in (
-      ('learning_rate', math.isfinite(tc.learning_rate)
-       and tc.learning_rate > 0, 'a finite number > 0'),
-      ('batch_size', tc.batch_size >= 1, 'an integer >= 1'),
-      ('num_steps', tc.num_steps >= 0, 'an integer >= 0')):
-    if not ok:
-      raise MPDPError(f'config.train.{name} = {getattr(tc, name)!r}; give '
-                      f'{want}.')
-  if tc.batch_size > config.data.num_train:
-    raise MPDPError(f'config.train.batch_size ({tc.batch_size}) exceeds '
-                    f'config.data.num_train ({config.data.num_train}).')
-  workdir = os.path.abspath(workdir)
-  os.makedirs(workdir, exist_ok=True)
+  mcfg = validate_config(config)
+  workdir = check_workdir(workdir)
   logging.info('MPDP training on %s; workdir %s', jax.devices(), workdir)
   with open(os.path.join(workdir, 'config.json'), 'w') as f:
     json.dump(config.to_dict(), f, indent=1)
 
-  mcfg = _model_config(config)
   t0 = time.time()
   train_data, eval_data = make_datasets(config)
   logging.info('generated %d train / %d held-out objects in %.1f s',

@@ -48,28 +48,19 @@ import optax
 from physsplat_jax import cameras as cam_lib
 from physsplat_jax import gaussians as gs
 from physsplat_jax import pipeline as pl
-from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import synthetic
 from physsplat_jax.mpdp import train as train_lib
 from physsplat_jax.render import images as render_images
 from physsplat_jax.render import raster
+from physsplat_jax.training import checks
+from physsplat_jax.training.checks import DivergedError as DivergedError
+from physsplat_jax.training.checks import TrainingError as TrainingError
 from physsplat_jax.types import Array
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
 from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera
-
-
-class TrainingError(PhysSplatError, ValueError):
-  """A training or fitting setup that cannot run (configs, data, shapes);
-  the message names it and the fix."""
-
-
-class DivergedError(PhysSplatError, FloatingPointError):
-  """A simulation, training or fitting step went non-finite (a
-  ``FloatingPointError``); the message names the step and what to
-  change."""
 
 
 
@@ -100,6 +91,9 @@ class TaskConfig:
       within ~1e-5 cells of a half-cell plane on two axes (a node mass of
       ~1e-20 kg whose 1/m^2 overflows); float64 does not, at ~1.3x the
       cost.
+
+  Every field is checked when the config is made
+  (:func:`~.checks.check_task_config`: a bad one raises TrainingError).
   """
 
   num_gaussians: int = 384
@@ -119,6 +113,9 @@ class TaskConfig:
   height: int = 48
   wall_seed: int = 1234
   dtype: str = 'float64'
+
+  def __post_init__(self):
+    checks.check_task_config(self)
 
   def pipeline_config(self, render: str = 'none',
                       render_config: raster.RenderConfig | None = None
@@ -446,6 +443,8 @@ def train_through_simulator(params, tasks: Sequence[Task], num_steps: int,
     ``(params, history)``: trained params and the mean loss [dx^2] before
     each step.
   """
+  checks.check_optimizer('train_through_simulator', num_steps,
+                         learning_rate, grad_clip)
   config = _check_same_spec(tasks)
   tx = make_optimizer(learning_rate, grad_clip)
   step_fn = make_train_step(config, tx)
@@ -541,15 +540,17 @@ def train_and_evaluate(config, workdir: str) -> dict:
   comparison (baseline, shipped supervised network, simulator-trained
   network and the ground truth on train and held-out beams; field errors;
   timings) is returned and written to ``workdir/simulator.json``.
+  Every setting and the workdir are checked first
+  (:func:`~.checks.check_sim_config`; TrainingError names the field).
   """
   import orbax.checkpoint as ocp
   from absl import logging
 
   from physsplat_jax.mpdp import pretrained
 
-  workdir = os.path.abspath(workdir)
-  os.makedirs(workdir, exist_ok=True)
   tc = TaskConfig.from_dict(config.task)
+  checks.check_sim_config(config)
+  workdir = train_lib.check_workdir(workdir, TrainingError)
   t0 = time.perf_counter()
   train = make_tasks(config.train_seeds, tc)
   held = make_tasks(config.eval_seeds, tc)
@@ -558,11 +559,8 @@ def train_and_evaluate(config, workdir: str) -> dict:
                len(train), len(held), t_tasks)
   if config.init == 'zero':
     params = model_lib.init_params(jax.random.key(0))
-  elif config.init == 'pretrained':
+  else:  # 'pretrained' (check_sim_config)
     params = pretrained.load_pretrained()
-  else:
-    raise TrainingError(f"sim.init={config.init!r}: use 'zero' or "
-                        "'pretrained'.")
   pipe_config = _check_same_spec(train + held)
   tx = make_optimizer(config.learning_rate, config.grad_clip,
                       config.num_steps)
@@ -621,6 +619,8 @@ def poly_basis(x0, degree: int = 2):
 
   Degree 1: x, y, z; degree 2 adds x^2, y^2, z^2, xy, xz, yz (D = 9).
   """
+  if degree not in (1, 2):
+    raise TrainingError(f'poly_basis: degree={degree!r}; use 1 or 2.')
   x0 = jnp.asarray(x0)
   p = model_lib.normalize_points(x0, jnp.ones(x0.shape[:1], bool))
   cols = [p]
@@ -654,9 +654,12 @@ def fit_material(task: Task, observe: str = 'trajectory',
       ``physsplat_jax.render.render_differentiable``).
     num_steps: Adam steps.
     learning_rate: peak Adam step size (on ``log_E`` and ``c``).
-    E_init: initial guess as a fraction of the true mean E.
+    E_init: initial guess as a fraction of the true mean E, > 0.
     field_degree: 0 (mean only), 1 or 2.
     log_fn: optional ``log_fn(step, loss, E_mean)``.
+
+  The arguments are checked first (:func:`~.checks.check_fit`: a bad one
+  raises TrainingError naming it).
 
   Returns:
     dict: 'E_true', 'E_init', 'E_fit' (means [Pa]), 'E_rel_error',
@@ -667,6 +670,7 @@ def fit_material(task: Task, observe: str = 'trajectory',
   """
   if observe not in ('trajectory', 'video'):
     raise TrainingError(f"observe={observe!r}: use 'trajectory' or 'video'.")
+  checks.check_fit(num_steps, learning_rate, E_init, field_degree)
   if observe == 'video' and task.images is None:
     raise TrainingError("observe='video' needs a task made with "
                         "render='differentiable' (make_task(..., render=...)).")
