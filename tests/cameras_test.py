@@ -61,6 +61,17 @@ def _opengl_c2w():
   return c2w
 
 
+
+def _cloud(n):
+  """``n`` small Gaussians in a unit box around the origin."""
+  from physsplat_jax.types import Gaussians
+  rng = np.random.default_rng(0)
+  return Gaussians(
+    means=jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3)), jnp.float32),
+    log_scales=jnp.full((n, 3), -3.0), quats=jnp.tile(
+      jnp.array([1.0, 0, 0, 0]), (n, 1)),
+    opacity_logits=jnp.full((n,), 2.0), sh=jnp.zeros((n, 1, 3)))
+
 class CameraUtilTest(parameterized.TestCase):
 
   def test_look_at_target_at_centre_up_is_minus_y(self):
@@ -183,18 +194,10 @@ class CameraUtilTest(parameterized.TestCase):
     with self.assertRaisesRegex(ValueError, 'fov_deg'):
       cameras.fit_camera(lo, hi, fov_deg=180.0)
 
-
   def test_label_and_depth_range_do_not_recompile_the_renderer(self):
     from physsplat_jax.render import images as host_render
     from physsplat_jax.render import raster
-    from physsplat_jax.types import Gaussians
-    rng = np.random.default_rng(0)
-    n = 64
-    g = Gaussians(
-      means=jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3)), jnp.float32),
-      log_scales=jnp.full((n, 3), -3.0), quats=jnp.tile(
-        jnp.array([1.0, 0, 0, 0]), (n, 1)),
-      opacity_logits=jnp.full((n,), 2.0), sh=jnp.zeros((n, 1, 3)))
+    g = _cloud(64)
     vm = cameras.look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0])
     cfg = raster.RenderConfig(capacity=4096)
     raster._render_jit.clear_cache()  # pylint: disable=protected-access
@@ -228,17 +231,11 @@ class CameraUtilTest(parameterized.TestCase):
     self.assertTrue(np.all(np.isfinite(np.asarray(vm))))
 
   def test_scene_camera_refuses_bad_size_and_index(self):
-    from physsplat_jax.types import Gaussians, Scene
-    rng = np.random.default_rng(0)
-    n = 20
-    g = Gaussians(
-      means=jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3)), jnp.float32),
-      log_scales=jnp.full((n, 3), -3.0), quats=jnp.tile(
-        jnp.array([1.0, 0, 0, 0]), (n, 1)),
-      opacity_logits=jnp.full((n,), 2.0), sh=jnp.zeros((n, 1, 3)))
+    from physsplat_jax.types import Scene
+    g = _cloud(20)
     cam = make_camera(cameras.look_at([0.0, -3.0, 0.0], [0.0, 0.0, 0.0]),
                       40.0, 40.0, 32, 24)
-    sc = Scene(gaussians=g, object_ids=jnp.zeros(n, jnp.int32),
+    sc = Scene(gaussians=g, object_ids=jnp.zeros(g.num, jnp.int32),
                cameras=(cam,), name='s')
     got = cameras.scene_camera(sc, 64, 48)
     self.assertEqual((got.width, got.height), (64, 48))
