@@ -46,6 +46,18 @@ class ShippedLibraryTest(parameterized.TestCase):
               'bingham'):
       self.assertIn(m, models)
 
+  def test_every_parameter_is_read_by_its_model(self):
+    # A Bingham fluid's 'plastic_viscosity' and snow's 'hardening' were
+    # ignored by the solver (it reads 'viscosity' and 'xi'): ketchup
+    # flowed at the default 200 Pa s instead of its 0.5 Pa s.
+    from physsplat_jax.mpm.models import MODEL_PARAMS as SOLVER_PARAMS
+    for model, params in lib.MODEL_PARAMS.items():
+      self.assertLessEqual(set(params), set(SOLVER_PARAMS[model]), model)
+    for e in self.L.entries:
+      read = set(SOLVER_PARAMS[e.model])
+      self.assertLessEqual(set(dict(e.params)), read, e.key)
+    self.assertEqual(dict(self.L['ketchup'].params)['viscosity'], 0.5)
+
   def test_physical_sanity(self):
     for e in self.L.entries:
       with self.subTest(key=e.key):

@@ -50,6 +50,9 @@ from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 
 # Parameters each model needs (simulation units; see the file's 'units').
+# Each is a field the solver's update reads for that model
+# (mpm.models.MODEL_PARAMS): snow's hardening is ``xi`` and a Bingham
+# fluid's viscosity ``viscosity`` (named otherwise they were ignored).
 MODEL_PARAMS = {
   'fixed_corotated': (),
   'neo_hookean': (),
@@ -57,11 +60,11 @@ MODEL_PARAMS = {
   'rigid': (),
   'von_mises': ('yield_stress', 'hardening', 'xi'),
   'drucker_prager': ('friction_angle',),
-  'snow': ('theta_c', 'theta_s', 'hardening'),
+  'snow': ('theta_c', 'theta_s', 'xi'),
   'foam': ('yield_stress', 'plastic_viscosity'),
   'plasticine': ('yield_stress', 'softening'),
   'newtonian': ('viscosity',),
-  'bingham': ('yield_stress', 'plastic_viscosity'),
+  'bingham': ('yield_stress', 'viscosity'),
 }
 # Models whose yield stress is a yield strain times E_sim (so it scales
 # with E_sim when perception rescales the preset).
