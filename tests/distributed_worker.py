@@ -71,7 +71,7 @@ def _max_err(a, b):
 # ------------------------------------------------------------------ scenes
 
 
-def _mpm_setup(n=301, models=('fixed_corotated', 'neo_hookean', 'rigid'),
+def _mpm_setup(n=301, models=('fixed_corotated', 'rigid'),
                forces=True):
   """A block of up to three materials (the last may be a rigid body)
   thrown at a sticky floor."""
