@@ -688,5 +688,51 @@ class FailureTest(absltest.TestCase):
       self.assertEqual([f for f in os.listdir(d) if 'partial' in f], [])
 
 
+class ValuesTest(absltest.TestCase):
+  """physsplat_jax.values: the one definition of a number in user input."""
+
+  def test_what_counts_as_a_number(self):
+    import fractions  # noqa: PLC0415
+
+    from physsplat_jax import values  # noqa: PLC0415
+    nan, inf = float('nan'), float('inf')
+    # value: (is_number, is_real, is_int, is_whole)
+    table = [
+      (3, (True, True, True, True)),
+      (np.int64(3), (True, True, True, True)),
+      (3.0, (True, True, False, True)),
+      (np.float32(2.5), (True, True, False, False)),
+      (fractions.Fraction(1, 2), (True, True, False, False)),
+      (-0.0, (True, True, False, True)),
+      (inf, (True, False, False, False)),
+      (np.float64(nan), (True, False, False, False)),
+      (True, (False, False, False, False)),
+      (np.bool_(False), (False, False, False, False)),
+      ('3', (False, False, False, False)),
+      (None, (False, False, False, False)),
+      (np.ones(1), (False, False, False, False)),
+      (1 + 0j, (False, False, False, False)),
+    ]
+    tests = (values.is_number, values.is_real, values.is_int,
+             values.is_whole)
+    for value, want in table:
+      with self.subTest(value=repr(value)):
+        self.assertEqual(tuple(t(value) for t in tests), want)
+
+  def test_every_check_refuses_a_bool_for_a_number(self):
+    """The option, config and sidecar checks share the definition."""
+    from physsplat_jax.io import scene as scene_io  # noqa: PLC0415
+    from physsplat_jax.mpdp import model as model_lib  # noqa: PLC0415
+    from physsplat_jax.perception import checks  # noqa: PLC0415
+    from physsplat_jax.physgaussian import fields  # noqa: PLC0415
+    self.assertIsNone(checks.number(True))
+    self.assertEqual(checks.number(np.float32(2.0)), 2.0)
+    self.assertFalse(model_lib.is_real(True))
+    with self.assertRaisesRegex(PhysSplatError, 'finite number'):
+      scene_io._Fields('scene.json').number(True, 'meters_per_unit')
+    with self.assertRaisesRegex(PhysSplatError, 'a number'):
+      fields._float('config.json', 'E', True)
+
+
 if __name__ == '__main__':
   absltest.main()

@@ -46,8 +46,6 @@ from __future__ import annotations
 
 import glob
 import json
-import math
-import numbers
 import os
 import re
 
@@ -66,6 +64,7 @@ from physsplat_jax.io import up_axis as up_lib
 from physsplat_jax.types import Camera, DataError, Gaussians, ObjectInfo
 from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera, up_vector
+from physsplat_jax.values import is_real, is_whole
 
 PathLike = str | os.PathLike
 
@@ -130,16 +129,13 @@ class _Fields:
   def number(self, value, field, positive=False, default=None) -> float:
     if value is None and default is not None:
       return default
-    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
-    if not (ok and math.isfinite(value) and (value > 0 or not positive)):
+    if not (is_real(value) and (value > 0 or not positive)):
       raise self.error(field, value, 'must be a finite number'
                        + (' > 0' if positive else ''))
     return float(value)
 
   def whole(self, value, field, minimum=1, want='') -> int:
-    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
-    if not (ok and math.isfinite(value) and float(value).is_integer()
-            and value >= minimum):
+    if not (is_whole(value) and value >= minimum):
       raise self.error(field, value,
                        want or f'must be a whole number >= {minimum}')
     return int(value)

@@ -43,7 +43,6 @@ means, mask)``.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
@@ -53,6 +52,7 @@ from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpdp import knn as knn_lib
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.types import device_array
+from physsplat_jax.values import is_int, is_real  # noqa: F401 (public)
 from physsplat_jax.mpdp.knn import knn_indices as knn_indices  # noqa: F401
 
 
@@ -70,19 +70,6 @@ MEANS_DIM = 3 + NUM_MODELS + 1
 NU_MAX = 0.49
 # Channel order of the field.
 FIELD_CHANNELS = ('E', 'nu', 'rho')
-
-
-def is_int(value) -> bool:
-  """A whole number (not a bool, not 2.5, not a string)."""
-  return (isinstance(value, (int, np.integer))
-          and not isinstance(value, (bool, np.bool_)))
-
-
-def is_real(value) -> bool:
-  """A finite int or float (not a bool, not a string, not NaN)."""
-  return (isinstance(value, (int, float, np.integer, np.floating))
-          and not isinstance(value, (bool, np.bool_))
-          and math.isfinite(value))
 
 
 # Kinds of :func:`check_values`: name -> (test, what to give instead).

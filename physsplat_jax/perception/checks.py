@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.values import is_number
 
 
 class PerceptionError(PhysSplatError, ValueError):
@@ -28,10 +29,7 @@ def bad_option(field: str, value, want: str):
 def number(v) -> float | None:
   """``v`` as a float when it is a real number (not a bool, not NaN), else
   None."""
-  if isinstance(v, bool) or not isinstance(v, (int, float, np.number)):
-    return None
-  v = float(v)
-  return None if math.isnan(v) else v
+  return float(v) if is_number(v) and not math.isnan(v) else None
 
 
 def numbers(v, n: int) -> list[float] | None:

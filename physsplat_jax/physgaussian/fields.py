@@ -13,6 +13,7 @@ from typing import Any
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import PARAM_RANGES
+from physsplat_jax.values import is_number
 
 
 class ConfigError(PhysSplatError, ValueError):
@@ -32,7 +33,7 @@ def _type_error(source, field, value, expected):
 
 
 def _float(source, field, value):
-  if isinstance(value, bool) or not isinstance(value, (int, float)):
+  if not is_number(value):
     raise _type_error(source, field, value, 'a number')
   value = float(value)
   if not math.isfinite(value):

@@ -16,9 +16,8 @@ import numpy as np
 from physsplat_jax import pipeline as pl
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpdp import model as model_lib
+from physsplat_jax.values import is_int, is_real
 
-is_int = model_lib.is_int
-is_real = model_lib.is_real
 
 
 class TrainingError(PhysSplatError, ValueError):
