@@ -247,6 +247,7 @@ class Float32HazardTest(absltest.TestCase):
 
 class RigidContactGradientTest(absltest.TestCase):
 
+  @pytest.mark.optimized  # its loops run 6x longer unoptimised
   def test_rigid_projection_with_planes_matches_fd_x64(self):
     """Bodies in and out of contact, sticky and slip planes, free particles.
 

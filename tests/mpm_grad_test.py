@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from absl.testing import absltest
 
 from physsplat_jax import mpm
@@ -41,6 +42,7 @@ def _directional(f, args, grads, argnum, seed):
 
 class GradTest(absltest.TestCase):
 
+  @pytest.mark.optimized  # its loops run 6x longer unoptimised
   def test_rollout_grads_match_finite_differences(self):
     """d loss / d (E, nu, rho, v0, impulse force) on a 2 x 4-substep rollout.
 
