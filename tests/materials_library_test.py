@@ -111,11 +111,35 @@ class ShippedLibraryTest(parameterized.TestCase):
         self.assertTrue(e.density.contains(e.rho_sim))
         self.assertAlmostEqual(e.rho_sim / e.density.geometric_mid, 1.0,
                                delta=_ROUNDING_RTOL)
+        # The rule's plastic parameters (preset_rule), exactly: the choice
+        # recomputes them from E (choice.params_at), and an estimate equal
+        # to the library's mid value must give the preset.
         if e.model in lib.STRAIN_YIELD_MODELS:
           self.assertIsNotNone(e.yield_strain)
           self.assertAlmostEqual(
             e.params_dict['yield_stress'] / (e.yield_strain * e.E_sim), 1.0,
-            delta=_ROUNDING_RTOL)
+            delta=1e-9)
+        if e.model == 'foam':  # relaxation time 0.01 s
+          self.assertAlmostEqual(
+            e.params_dict['plastic_viscosity'] / (0.01 * e.E_sim), 1.0,
+            delta=1e-9)
+        if e.model == 'plasticine':  # no damage (see preset_rule)
+          self.assertEqual(e.params_dict['softening'], 0.0)
+
+  def test_plastic_parameters_follow_a_rescaled_E(self):
+    """An estimate 4x the entry's mid modulus doubles E_sim (the law's
+    exponent 0.5); the foam's yield stress and plastic viscosity double
+    with it (same yield strain and relaxation time), its mid value gives
+    the preset's own parameters."""
+    from physsplat_jax.perception import choice  # noqa: PLC0415
+    e = self.L['foam']
+    for factor, scale in ((1.0, 1.0), (4.0, 2.0)):
+      E, _, _, params = choice.simulation_values(
+        e, self.L, factor * e.E_mid, 0.2, 40.0)
+      self.assertAlmostEqual(E / e.E_sim, scale, delta=1e-9)
+      for k in ('yield_stress', 'plastic_viscosity'):
+        self.assertAlmostEqual(dict(params)[k] / e.params_dict[k], scale,
+                               delta=1e-9, msg=k)
 
   def test_preset_keeps_stiffness_order(self):
     es = sorted(self.L.entries, key=lambda e: e.E_mid)

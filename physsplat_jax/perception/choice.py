@@ -8,6 +8,7 @@ Mapping a real-world estimate to simulation values (docs/materials.md)::
   nu_sim = min(nu_real, nu_sim_max)                  (0.45)
   rho_sim = rho_real
   yield_stress = yield_strain * E_sim                (strain-yield models)
+  plastic_viscosity *= E_sim / E_sim_lib             (foam)
 
 ``E_mid`` is the library entry's real mid-range modulus and ``E_sim_lib`` its
 preset. The exponent 0.5 is the library's own compression law
@@ -171,11 +172,25 @@ def simulation_values(
   ratio = min(max(E_real / entry.E_mid, 1.0 / max_E_ratio), max_E_ratio)
   E_sim = min(max(entry.E_sim * math.sqrt(ratio), lo), hi)
   nu_sim = min(float(nu_real), library.nu_sim_max)
+  params = params_at(entry, E_sim)
+  return float(E_sim), float(nu_sim), float(rho_real), tuple(
+    sorted(params.items()))
+
+
+def params_at(entry: MaterialEntry, E_sim: float) -> dict[str, float]:
+  """The entry's model parameters for a simulated modulus ``E_sim``.
+
+  Those the library ties to E follow it: a strain-yield model's
+  ``yield_stress = yield_strain * E_sim`` (the same yield strain) and a
+  foam's ``plastic_viscosity`` in proportion (the same relaxation time);
+  the others are real values (docs/materials.md).
+  """
   params = dict(entry.params)
   if entry.model in STRAIN_YIELD_MODELS and entry.yield_strain is not None:
     params['yield_stress'] = entry.yield_strain * E_sim
-  return float(E_sim), float(nu_sim), float(rho_real), tuple(
-    sorted(params.items()))
+  if 'plastic_viscosity' in params and entry.E_sim > 0:
+    params['plastic_viscosity'] *= E_sim / entry.E_sim
+  return params
 
 
 def choice_from_entry(
@@ -300,10 +315,7 @@ def apply_spec(
   rigid = spec.get('rigid', entry.rigid)
   if not isinstance(rigid, bool):
     raise MaterialChoiceError(f'{where}: rigid={rigid!r} must be true or false')
-  params = dict(entry.params) if model == entry.model else {}
-  if model in STRAIN_YIELD_MODELS and entry.yield_strain is not None and (
-      model == entry.model):
-    params['yield_stress'] = entry.yield_strain * fields['E']
+  params = params_at(entry, fields['E']) if model == entry.model else {}
   takes = model_params(model)
   extra = sorted(p for p in spec if p in _ALL_PARAMS and p not in takes)
   if extra:
