@@ -277,15 +277,19 @@ run_sweep_pallas_block16() { run_sweep sweep_pallas_block16 --pallas_block=16; }
 run_sweep_pallas_block64() { run_sweep sweep_pallas_block64 --pallas_block=64; }
 run_sweep_num_warps1() { run_sweep sweep_num_warps1 --num_warps=1; }
 run_sweep_num_warps4() { run_sweep sweep_num_warps4 --num_warps=4; }
+# tests/conftest.py runs the tests on the CPU unless JAX_PLATFORMS says
+# otherwise: name the GPU.
 run_tests() {
-  step tests 150 $PY -m pytest -q -n 8 tests/render_pallas_test.py \
+  step tests 150 env JAX_PLATFORMS=cuda $PY -m pytest -q -n 8 \
+    tests/render_pallas_test.py \
     tests/sorting_test.py tests/pipeline_test.py tests/render_test.py \
     tests/mpm_pallas_test.py tests/mpm_graphs_test.py
 }
 # The MPM stress kernel compiled for this GPU against the pure-JAX update
 # (every model, float32/64, gradient, a whole frame): before timing it.
 run_mpm_kernel() {
-  step mpm_kernel 120 $PY -m pytest -q -n 4 -m 'slow or not slow' \
+  step mpm_kernel 120 env JAX_PLATFORMS=cuda $PY -m pytest -q -n 4 \
+    -m 'slow or not slow' \
     tests/mpm_pallas_test.py tests/mpm_graphs_test.py \
     tests/grad_finite_test.py::ScaleTest
 }
