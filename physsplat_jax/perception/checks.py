@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
-from physsplat_jax.values import is_number
+from physsplat_jax.values import is_int, is_number
 
 
 class PerceptionError(PhysSplatError, ValueError):
@@ -102,8 +102,7 @@ def check_images(images, names: Sequence[str],
                           f'to its view(s), got {type(images).__name__}')
   out = {}
   for i, v in images.items():
-    if (isinstance(i, bool) or not isinstance(i, (int, np.integer))
-        or not 0 <= i < n):
+    if not (is_int(i) and 0 <= i < n):
       raise PerceptionError(
         f'images[{i!r}]: no such object; scene {scene_name!r} has {n} '
         f'object(s), indices 0..{n - 1} ({list(names)})')

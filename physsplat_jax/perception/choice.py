@@ -378,8 +378,8 @@ def spec_from_physgaussian(config) -> dict[str, Any]:
   # PhysGaussian's snow has no parameters of its own (its 'hardening' is the
   # von Mises one): keep the library's Stomakhin values.
   for p in MODEL_PARAMS.get(model, ()) if model != 'snow' else ():
-    # A config's fluid viscosity is its plastic_viscosity (docs/configs.md).
-    # (as the PhysGaussian driver reads it: 0 means the model's default).
+    # A config's fluid viscosity is its plastic_viscosity, as the
+    # PhysGaussian driver reads it (0: the model's default; docs/configs.md).
     src = 'plastic_viscosity' if p == 'viscosity' else p
     value = getattr(config, src, None)
     if value is not None and (value or p != 'viscosity'):

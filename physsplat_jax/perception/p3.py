@@ -91,6 +91,7 @@ from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
 from physsplat_jax.types import Scene
 from physsplat_jax.types import concatenate_gaussians
+from physsplat_jax.values import is_int
 
 SELECTION_METHODS = ('score', 'text', 'first')
 
@@ -168,8 +169,7 @@ class PerceptionOptions:
     for f, lo, hi in (('num_candidates', 1, None), ('num_views', 1, 8),
                       ('image_size', 8, None), ('json_retries', 0, 10)):
       v = getattr(self, f)
-      if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-              and lo <= v and (hi is None or v <= hi)):
+      if not (is_int(v) and lo <= v and (hi is None or v <= hi)):
         checks.bad_option(f, v, f'an integer in {lo}..{hi}'
                           if hi is not None else f'an integer >= {lo}')
     # (field, test, allowed): numbers; inf is "no limit" for the factors.

@@ -19,7 +19,6 @@ from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.values import is_int, is_real
 
 
-
 class TrainingError(PhysSplatError, ValueError):
   """A training or fitting setup that cannot run (configs, data, shapes);
   the message names it and the fix."""
