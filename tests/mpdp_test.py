@@ -321,10 +321,27 @@ class TrainTest(absltest.TestCase):
     with tempfile.TemporaryDirectory() as workdir:
       train_lib.train_and_evaluate(config, workdir)
       config.model.global_features = 8
+      # Named from the checkpoint's metadata, before any restore starts
+      # (a restore failing part-way left orbax's reads pending).
       with self.assertRaisesRegex(model_lib.MPDPError,
                                   'cannot resume from the checkpoint of step '
-                                  '2 .*new --workdir'):
+                                  r"2 .*\(params\['Dense_\d+'\]\['(bias|kernel)'\] "
+                                  r'is \((\d+, )?16,?\) float32 there and '
+                                  r'\((\d+, )?8,?\) float32 in this config.*'
+                                  'new --workdir'):
         train_lib.train_and_evaluate(config, workdir)
+      # The optimiser state is compared as shapes (orbax saves its named
+      # tuples as dicts).
+      ckpt = os.path.join(workdir, 'checkpoints')
+      with ocp.CheckpointManager(ckpt) as m:
+        step = m.latest_step()
+        with ocp.StandardCheckpointer() as c:
+          saved = c.restore(os.path.join(ckpt, str(step), 'default'))
+        fits = train_lib._checkpoint_misfit(m, step, saved)
+        saved['opt_state'] = (saved['opt_state'], np.zeros(2, np.float32))
+        extra = train_lib._checkpoint_misfit(m, step, saved)
+      self.assertIsNone(fits)
+      self.assertRegex(extra, r'optimiser state \(\d+ arrays in all\)')
       for name, body in (('a.json', '{"metadata": {}}'),
                          ('a.npz', 'not a zip')):
         with open(os.path.join(workdir, name), 'w') as fh:

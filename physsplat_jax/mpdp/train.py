@@ -254,18 +254,72 @@ def restore_latest(mngr: ocp.CheckpointManager, state):
   latest = mngr.latest_step()
   if latest is None:
     return state
+  cannot = (f'cannot resume from the checkpoint of step {latest} in '
+            f'{mngr.directory}: it does not fit this config\'s model and '
+            'optimiser')
+  misfit = _checkpoint_misfit(mngr, latest, state)
+  if misfit:
+    raise MPDPError(f'{cannot} ({misfit}); train in a new --workdir, or with '
+                    'the config that wrote it.')
   try:
     restored = mngr.restore(latest, args=ocp.args.StandardRestore(
       jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
   except Exception as e:  # noqa: BLE001 (orbax raises many kinds)
     raise MPDPError(
-      f'cannot resume from the checkpoint of step {latest} in '
-      f'{mngr.directory}: it does not fit this config\'s model and '
-      f'optimiser, or it is damaged ({type(e).__name__}: '
+      f'{cannot}, or it is damaged ({type(e).__name__}: '
       f'{" ".join(str(e).split())[:200]}); train in a new --workdir, or '
       'with the config that wrote it.') from None
   logging.info('resumed from step %d', latest)
   return jax.tree.map(_placed_like, restored, state)
+
+
+def _arrays(tree) -> list[tuple[str, tuple, np.dtype]]:
+  """(key path, shape, dtype) of each array leaf of ``tree``."""
+  return [(jax.tree_util.keystr(k), tuple(np.shape(v)), np.dtype(v.dtype))
+          for k, v in jax.tree_util.tree_leaves_with_path(tree)]
+
+
+def _checkpoint_misfit(mngr, step, state) -> str | None:
+  """How the checkpoint of ``step`` differs from ``state``'s arrays, or None.
+
+  Read from the checkpoint's metadata before restoring: a restore that
+  fails part-way leaves orbax's reads pending, and they warn at exit.
+  The params are compared by name (flax keeps them in plain dicts, saved
+  as they are); the optimiser state as a multiset of shapes, since orbax
+  saves its named tuples as dicts, in an order that need not be theirs.
+  None also when the metadata cannot be read: the restore then decides.
+  """
+  path = mngr.directory / str(step) / 'default'  # an etils Path
+  if not os.path.isdir(path):
+    return None
+  handler = ocp.StandardCheckpointHandler()
+  try:
+    meta = handler.metadata(path)
+    saved = _arrays(getattr(meta, 'tree', meta))
+    want = _arrays(state)
+  except Exception:  # noqa: BLE001 (orbax versions differ; restore decides)
+    return None
+  finally:
+    handler.close()
+  there = {k: (s, d) for k, s, d in saved}
+  here = {k: (s, d) for k, s, d in want}
+  for key in sorted(set(there) | set(here)):
+    if not key.startswith("['params']") or there.get(key) == here.get(key):
+      continue
+    name = key[len("['params']"):]
+    if key not in there:
+      return f'its params have no {name}, which this config\'s model has'
+    if key not in here:
+      return f'its params have {name}, which this config\'s model has not'
+    (s0, d0), (s1, d1) = there[key], here[key]
+    return (f'params{name} is {s0} {d0} there and {s1} {d1} in this '
+            'config\'s model')
+  def shapes(arrays):
+    return sorted((s, str(d)) for _, s, d in arrays)
+  if shapes(saved) != shapes(want):
+    return (f'its optimiser state ({len(saved)} arrays in all) differs '
+            f'from this config\'s ({len(want)})')
+  return None
 
 
 def _placed_like(restored, template):
