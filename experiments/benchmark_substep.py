@@ -6,17 +6,17 @@
 
 Prepares the scene with the `make demo` settings (experiments/configs/
 demo.py; ``--preset=paper``: the paper's, 64^3 and up to 200k particles, as
-``benchmark_pipeline --preset=paper`` simulates it), then times one frame of ``--substeps`` substeps from the initial
-state for each variant of the static MPM config (experiments/lib/
-substep.py: ``scene``, the pipeline's grouped substep; ``split``, the
-same with a constitutive slice per model on a GPU too; ``masked``;
-``no_plane``; ``no_plane_no_body``; ``bare``, one fixed-corotated material
-with no body and no plane), all compiled first and timed in turns (best of
-``--rounds``). ``--constitutive_kernels=auto,jax`` times each variant with
-the stress update as one Pallas kernel (on a CUDA GPU) and as XLA's
-fusion, in the same process; ``--gpu_graphs=substep,frame,off`` with the
-frame launched on a GPU as one CUDA graph per substep (XLA's default), as
-one graph and with none (``SimConfig.gpu_graphs``).
+``benchmark_pipeline --preset=paper`` simulates it), then times one frame
+of ``--substeps`` substeps from the initial state for each variant of the
+static MPM config (experiments/lib/substep.py: ``scene``, the pipeline's
+grouped substep; ``split``, the same with a constitutive slice per model on a
+GPU too; ``masked``; ``no_plane``; ``no_plane_no_body``; ``bare``, one
+fixed-corotated material with no body and no plane), all compiled first and
+timed in turns (best of ``--rounds``). ``--constitutive_kernels=auto,jax``
+times each variant with the stress update as one Pallas kernel (on a CUDA GPU)
+and as XLA's fusion, in the same process; ``--gpu_graphs=substep,frame,off``
+with the frame launched on a GPU as one CUDA graph per substep (XLA's default),
+as one graph and with none (``SimConfig.gpu_graphs``).
 
 The differences say what the materials, the rigid bodies and the plane
 contact cost per substep. ``--clock=cpu`` reports process CPU time instead

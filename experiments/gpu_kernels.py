@@ -9,14 +9,14 @@ kernels it launches, not by arithmetic (docs/benchmarks.md). XLA can compile
 for a GPU it does not see ("deviceless" compilation, a ``target_config``
 topology): this script prepares the scene with the `make demo` settings
 (experiments/configs/demo.py; ``--preset=paper``: the paper's, as
-``benchmark_pipeline --preset=paper`` runs it), compiles one frame of the MPM for the GPU
-described by ``--spec`` (an XLA ``GpuTargetConfigProto``; default an H100
-SXM, experiments/configs/gpu_specs/), and counts in the optimised program
-the kernels of the substep: every instruction of the scan's body that XLA
-emits as a kernel (fusions, copies, custom calls, sorts, ...), and, for a
-loop nested in it, its body's kernels times its trip count. The variants
-(``scene``, ``masked``, ``no_plane``, ``no_plane_no_body``, ``bare``) are
-``benchmark_substep``'s (experiments/lib/substep.py). ``--targets=render``
+``benchmark_pipeline --preset=paper`` runs it), compiles one frame of the
+MPM for the GPU described by ``--spec`` (an XLA ``GpuTargetConfigProto``;
+default an H100 SXM, experiments/configs/gpu_specs/), and counts in the
+optimised program the kernels of the substep: every instruction of the scan's
+body that XLA emits as a kernel (fusions, copies, custom calls, sorts, ...),
+and, for a loop nested in it, its body's kernels times its trip count. The
+variants (``scene``, ``masked``, ``no_plane``, ``no_plane_no_body``, ``bare``)
+are ``benchmark_substep``'s (experiments/lib/substep.py). ``--targets=render``
 compiles the Pallas (Triton) compositor of the renderer, forward and
 gradient, for the same GPU: that its kernels build for the device at all,
 and, where NVIDIA's ``ptxas`` is found (the ``nvidia-cuda-nvcc`` wheel of a

@@ -172,7 +172,7 @@ def decompose_covariance(cov: Array, min_var: float = 1e-20):
   return log_scales, rotmat_to_quat(evecs)
 
 
-# Spherical harmonics ------------------------------------------------------------
+# Spherical harmonics -----------------------------------------------------
 def sh_dc_to_rgb(sh_dc: Array) -> Array:
   """DC coefficient -> RGB (INRIA ``SH2RGB``), not clamped."""
   return 0.5 + SH_C0 * sh_dc

@@ -14,7 +14,8 @@ CANONICAL_MODELS = (
 # PhysGaussian (and PhysDreamer id 6) names and ids -> canonical model names.
 MATERIAL_ALIASES = {
   'jelly': 'fixed_corotated', 'elastic': 'fixed_corotated',
-  'corotated': 'fixed_corotated', 'metal': 'von_mises', 'sand': 'drucker_prager',
+  'corotated': 'fixed_corotated', 'metal': 'von_mises',
+  'sand': 'drucker_prager',
   'foam': 'foam', 'snow': 'snow', 'plasticine': 'plasticine',
   'neo-hookean': 'neo_hookean', 'neohookean': 'neo_hookean',
   'water': 'newtonian', 'fluid': 'newtonian', 'non_newtonian': 'bingham',

@@ -13,15 +13,16 @@ and angular momentum conserved::
 affine velocity ``C_p``; the ``dx^2/24`` term is each particle's own
 inertia as a cube of side dx/2, which keeps ``I`` invertible for a line or
 a single particle, and its spin ``w_p`` is counted in ``L`` with the same
-inertia, so that a free body keeps its angular velocity exactly). Positions advance exactly, ``x_p = c + dt V + R(dt omega) r_p``,
-so pairwise distances are preserved, and ``F_p <- R(dt omega) F_p`` (followed
-by one Newton orthonormalisation step) so that the particle frames, and the
-Gaussians they carry, rotate with the body. Fixed bodies have
-``V = omega = 0``. Rigid particles carry no stress, so their stiffness never
-limits the time step; they still take part in P2G, which couples them two
-ways with the other materials. Fixed planes (``SurfaceCollider``) and the
-domain walls act on a body as a whole (``_plane_contacts``): a contact
-impulse and a translation out of the plane, never a per-particle clamp.
+inertia, so that a free body keeps its angular velocity exactly).
+Positions advance exactly, ``x_p = c + dt V + R(dt omega) r_p``, so pairwise
+distances are preserved, and ``F_p <- R(dt omega) F_p`` (followed by one Newton
+orthonormalisation step) so that the particle frames, and the Gaussians they
+carry, rotate with the body. Fixed bodies have ``V = omega = 0``. Rigid
+particles carry no stress, so their stiffness never limits the time step; they
+still take part in P2G, which couples them two ways with the other materials.
+Fixed planes (``SurfaceCollider``) and the domain walls act on a body as a
+whole (``_plane_contacts``): a contact impulse and a translation out of the
+plane, never a per-particle clamp.
 """
 
 from __future__ import annotations

@@ -12,9 +12,10 @@ sit at ``cfl = 0.35-0.37`` (REFERENCE.md 1.4: 2e6 Pa / 200 kg/m^3 / dx 0.04
 s), which is ``DEFAULT_CFL``. ``check_dt`` raises above ``UNSTABLE_CFL`` = 1:
 measured on a 1000-particle block hitting a floor at 2 m/s (24^3 grid, 1000
 substeps), fixed corotated, neo-Hookean and StVK all ran at Courant numbers
-0.3-1.0 and all produced NaN in the first frame at 1.2 (docs/mpm.md). Further bounds: a
-particle speed ``v_max`` must not cross more than ``cfl`` cells per substep,
-and explicit Newtonian viscosity needs ``dt <= rho dx^2 / (6 eta)``.
+0.3-1.0 and all produced NaN in the first frame at 1.2 (docs/mpm.md).
+Further bounds: a particle speed ``v_max`` must not cross more than ``cfl``
+cells per substep, and explicit Newtonian viscosity needs
+``dt <= rho dx^2 / (6 eta)``.
 
 Rigid particles (``body_id >= 0`` or model 'rigid') are ignored: their
 stiffness never enters the solver.

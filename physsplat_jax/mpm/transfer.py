@@ -117,7 +117,7 @@ def block_weights(f, form: str = 'auto'):
 
 
 def _offset_axis(e: int, dtype):
-  """Stencil offsets 0, 1, 2 along axis e, shaped to broadcast with (3,3,3,N)."""
+  """Stencil offsets 0, 1, 2 along axis e, to broadcast with (3, 3, 3, N)."""
   shape = [1, 1, 1, 1]
   shape[e] = 3
   return jnp.arange(3, dtype=dtype).reshape(shape)

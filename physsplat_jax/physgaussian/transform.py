@@ -1,6 +1,7 @@
 """PhysGaussian configs as arrays: materials, rotations, the normalised domain.
 
-``x_n = (R x - c) * s + (1, 1, 1)`` (see :mod:`physsplat_jax.physgaussian.schema`).
+``x_n = (R x - c) * s + (1, 1, 1)`` (see
+:mod:`physsplat_jax.physgaussian.schema`).
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def material_params(config: PhysGaussianConfig, dtype=jnp.float32
 
 
 def material_fields(
-  config: PhysGaussianConfig, x_norm: Array, params: MaterialParams | None = None
+  config: PhysGaussianConfig, x_norm: Array,
+  params: MaterialParams | None = None,
 ) -> tuple[Array, Array, Array]:
   """Per-particle E, nu, density with ``additional_material_params`` applied.
 

@@ -13,8 +13,8 @@ Modules, in the order the data flows: ``config`` (settings: host-side
 :class:`PrepareConfig`, static :class:`SimulateConfig`, both in
 :class:`PipelineConfig`), ``frames`` (scene <-> simulation frame, camera),
 ``colliders`` (fixed objects as boundary conditions), ``prepare`` (named
-host stages), ``simulation`` (the pure ``simulate``), ``host`` (the one host loop
-with pluggable writers from :mod:`physsplat_jax.io.outputs`) and ``job``
+host stages), ``simulation`` (the pure ``simulate``), ``host`` (the one host
+loop with pluggable writers from :mod:`physsplat_jax.io.outputs`) and ``job``
 (segment -> perceive -> prepare -> run -> report for one scene).
 """
 

@@ -222,7 +222,8 @@ def _check_params(params, prepared: PreparedScene, config) -> None:
 
 
 def initial_state(params: Params, prepared: PreparedScene,
-                  config: SimulateConfig | PipelineConfig, field: Array | None = None):
+                  config: SimulateConfig | PipelineConfig,
+                  field: Array | None = None):
   """``(state, materials, forces, sim_config)`` at frame 0 (pure);
   ``field`` as in :func:`driver_materials`."""
   config = as_simulate_config(config)
@@ -262,7 +263,8 @@ def initial_state(params: Params, prepared: PreparedScene,
   return state, materials, mpm.Forces(values=tuple(values)), sim_config
 
 
-def deformed_gaussians(prepared: PreparedScene, config: SimulateConfig | PipelineConfig,
+def deformed_gaussians(prepared: PreparedScene,
+                       config: SimulateConfig | PipelineConfig,
                        x: Array, F: Array | None = None):
   """Simulated Gaussians of one frame, in scene coordinates.
 
@@ -283,7 +285,8 @@ def deformed_gaussians(prepared: PreparedScene, config: SimulateConfig | Pipelin
           fr.rotation_to_scene(rots))
 
 
-def render_frame(prepared: PreparedScene, config: SimulateConfig | PipelineConfig, means,
+def render_frame(prepared: PreparedScene,
+                 config: SimulateConfig | PipelineConfig, means,
                  covs, rots, differentiable: bool = False,
                  render_config: raster.RenderConfig | None = None,
                  frame: Array | int = 0):

@@ -276,8 +276,8 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
     A :class:`Task`.
 
   Raises:
-    DivergedError (a FloatingPointError): the target simulation is not finite (raise
-      ``tc.substeps_per_frame``).
+    DivergedError (a FloatingPointError): the target simulation is not
+      finite (raise ``tc.substeps_per_frame``).
   """
   scene, materials, obj = make_cantilever(seed, tc)
   rc = None
@@ -393,8 +393,8 @@ def make_train_step(config: pl.PipelineConfig, tx) -> Callable:
   loss (one jitted ``value_and_grad`` shared by all tasks, which have equal
   shapes and static specs) is averaged over the tasks, then one optax
   update is applied. A non-finite loss or gradient raises
-  ``DivergedError`` (a ``FloatingPointError``) naming the step (lower the learning rate or raise
-  the substeps) instead of writing NaNs into the weights.
+  ``DivergedError`` (a ``FloatingPointError``) naming the step (lower the
+  learning rate or raise the substeps) instead of writing NaNs into the weights.
   """
   grad_fn = _grad_fn(config)
 
