@@ -103,20 +103,27 @@ class ErrorPathTest(absltest.TestCase):
   def test_unknown_config_field_is_one_line_exit_2(self):
     # ml_collections applies --config.* overrides while the script's flag
     # is defined, at import, or, with --config=FILE, while flags are
-    # parsed: no traceback from inside it either way.
-    for args in (['--config.nosuch=1'],
-                 ['--config=experiments/configs/simulate.py',
-                  '--config.nosuch=1']):
+    # parsed: no traceback from inside it either way. A near miss, which
+    # ml_collections words with a suggestion, was a traceback.
+    file = 'experiments/configs/simulate.py'
+    for args, want in (
+        (['--config.nosuch=1'], "error: the config has no field 'nosuch' "
+         f'(--config.nosuch=1); {file} lists the fields\n'),
+        ([f'--config={file}', '--config.nosuch=1'],
+         "error: the config has no field 'nosuch' (--config.nosuch=1); "
+         f'{file} lists the fields\n'),
+        (['--config.grid_rez=1'], "error: the config has no field "
+         "'grid_rez' (--config.grid_rez=1); did you mean 'grid_res'? "
+         f'{file} lists the fields\n')):
       proc = subprocess.run(
         [sys.executable, '-m', 'experiments.simulate', *args,
          '--config.num_frames=2'], capture_output=True, text=True,
         check=False, timeout=120,
         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-      with self.subTest(args[0]):
+      with self.subTest(args):
         self.assertEqual(proc.returncode, 2, proc.stderr)
         self.assertNotIn('Traceback', proc.stderr)
-        self.assertIn("error: the config has no field 'nosuch' "
-                      '(--config.nosuch=1)', proc.stderr)
+        self.assertTrue(proc.stderr.endswith(want), proc.stderr)
 
   def test_bad_flags_are_one_line_exit_2(self):
     for args, want in ((['--config.num_frames=abc'],

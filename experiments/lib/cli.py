@@ -15,6 +15,7 @@ It also turns on JAX's persistent compilation cache
 from __future__ import annotations
 
 import contextlib
+import difflib
 import json
 import os
 import re
@@ -51,20 +52,57 @@ def define_out(default: str | None, help_text: str) -> flags.FlagHolder:
   return flags.DEFINE_string('out', default, help_text)
 
 
+# Each config flag's default file (define_config_file), for the message
+# about a field that does not exist.
+_CONFIG_FILES: dict[str, str | None] = {}
+
+
+def _config_fields(path: str, parents: list[str]) -> list[str] | None:
+  """The field names at ``parents`` in the config ``get_config()`` of the
+  .py ``path`` returns, or None when that cannot be read."""
+  import importlib.util  # noqa: PLC0415 (only on this error path)
+  try:
+    spec = importlib.util.spec_from_file_location('_config_fields', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    config = module.get_config()
+    for key in parents:
+      config = config[key]
+    return sorted(config.keys())
+  except Exception:  # noqa: BLE001 (any failure: the message names the file)
+    return None
+
+
 def _unknown_field(e: Exception, argv) -> str | None:
   """The one-line message for an override of a config field that does not
   exist (ml_collections raises AttributeError / KeyError naming it), or
   None when no ``--NAME.PATH`` argument names that field (then the error
   came from elsewhere, e.g. a bug in a config file, and is not ours to
-  word)."""
-  field = str(e).strip('"\'')
+  word). It offers the nearest field names and names the config file
+  whose ``get_config()`` lists them all (``--helpfull`` shows only
+  ``--NAME`` itself)."""
+  # str(e): the name, quoted, and after ml_collections' "Did you mean"
+  # when it has a suggestion.
+  field = re.search(r"[A-Za-z_]\w*", str(e))
+  field = field and field.group()
   for arg in argv[1:]:
     if arg.startswith('--') and '.' in arg.split('=')[0]:
       name, *path = arg[2:].split('=')[0].split('.')
-      if field in path:
-        return (f'the {name} has no field {field!r} ({arg}); --helpfull '
-                f'lists the --{name}.* fields, docs/configs.md says what '
-                'they mean')
+      if field not in path:
+        continue
+      given = [a.split('=', 1)[1] for a in argv[1:]
+               if a.startswith(f'--{name}=')]
+      file = given[-1] if given else _CONFIG_FILES.get(name)
+      readable = bool(file) and os.path.isfile(file)
+      fields = (_config_fields(file, path[:path.index(field)])
+                if readable else None)
+      near = difflib.get_close_matches(field, fields or (), n=3)
+      hint = [f'did you mean {" or ".join(map(repr, near))}?'] if near else []
+      if readable:
+        hint.append(f'{os.path.relpath(file)} lists the fields')
+      return (f'the {name} has no field {field!r} ({arg})'
+              + ''.join(f'; {h}' if i == 0 else f' {h}'
+                        for i, h in enumerate(hint)))
   return None
 
 
@@ -117,6 +155,7 @@ def define_config_file(name: str, default: str | None, help_text: str,
   ml_collections applies the overrides while the flag is defined, when
   the script is imported (with it, while flags are parsed:
   :func:`parse_flags`), and raised from deep inside itself."""
+  _CONFIG_FILES[name] = default
   with _flag_errors(sys.argv):
     return config_flags.DEFINE_config_file(name, default, help_text,
                                            **kwargs)
