@@ -28,6 +28,7 @@ from experiments.lib import profile
 from experiments.lib import simulate as lib
 from physsplat_jax import perception
 from physsplat_jax import pipeline as pl
+from physsplat_jax import scenes
 from physsplat_jax import segmentation
 
 _CONFIG = cli.define_config_file(
@@ -94,6 +95,13 @@ def main(argv):
         f'--physgaussian={_PHYSGAUSSIAN.value}: no such file; give the path '
         'of a PhysGaussian .json config (e.g. '
         'experiments/configs/jelly_drop.json)')
+    if not os.path.isfile(_SCENE.value):
+      what = ('a built-in scene' if _SCENE.value in scenes.list_scenes()
+              else 'no such file')
+      raise cli.usage_error(
+        f'--physgaussian runs its JSON on a trained 3DGS PLY, and '
+        f'--scene={_SCENE.value} is {what}: give --scene=FILE.ply, the '
+        'Gaussians the JSON was written for')
     lib.run_physgaussian(_SCENE.value, _PHYSGAUSSIAN.value, _OUT.value,
                          config, ply=_PLY.value, auto_substeps=_AUTO.value)
     print(f'wrote {_OUT.value}')

@@ -175,6 +175,16 @@ class ErrorPathTest(absltest.TestCase):
     last = proc.stderr.strip().splitlines()[-1]
     self.assertIn('--velocity, --config.num_frames would be ignored', last)
     self.assertNotIn('width', last.split('would be ignored')[0])
+    # It blamed the default --scene: "PLY file not found: tabletop".
+    proc = subprocess.run(
+      [sys.executable, '-m', 'experiments.simulate', '--out=/nonexistent',
+       '--physgaussian=experiments/configs/jelly_drop.json'],
+      capture_output=True, text=True, check=False, timeout=120,
+      cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    self.assertEqual(proc.returncode, 2, proc.stderr)
+    self.assertTrue(proc.stderr.endswith(
+      '--scene=tabletop is a built-in scene: give --scene=FILE.ply, the '
+      'Gaussians the JSON was written for\n'), proc.stderr[-300:])
 
   def test_fit_material_checks_its_flags_first(self):
     # --E_init=-1 used to end in a FloatingPointError traceback at step 0.
