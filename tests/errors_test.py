@@ -359,6 +359,26 @@ class ValidationTest(absltest.TestCase):
         pl.ForceSpec('impulse', 'cube', (0, 0, 1.0), start=98.75),))
     self.assertIn("force on 'cube' starts at 98.8 s, after the run ends",
                   ' '.join(logs.output))
+    # So does an upward gravity (the field is a magnitude along -up).
+    with self.assertLogs(level='WARNING') as logs:
+      pl.PipelineConfig(gravity=-9.75).simulate
+    self.assertIn('gravity = -9.75 m/s^2 pulls up', ' '.join(logs.output))
+    # A background by name, as render's --background takes it; from a
+    # config file or --config.background=white (a 1-tuple there) too. A
+    # string or a short tuple there was a ValueError from float().
+    self.assertEqual(pl.PipelineConfig(background='Grey').background,
+                     (0.5, 0.5, 0.5))
+    self.assertEqual(pl.config_from_dict({'background': ('white',)})
+                     .background, (1.0, 1.0, 1.0))
+    for d, want in (({'background': 'pink'}, r"background='pink' is "
+                     r'invalid: use three numbers in \[0, 1\] or a name'),
+                    ({'background': (1, 2)}, r'background = \(1, 2\): give '
+                     '3 numbers'),
+                    ({'roi': (0, 1, 'a', 1, 0, 1)}, 'roi = .*give 6 numbers'),
+                    ({'forces': [{'kind': 'impulse', 'vector': 'up'}]},
+                     r"forces\[0\]\.vector = 'up': give 3 numbers")):
+      with self.subTest(d), self.assertRaisesRegex(pl.PipelineError, want):
+        pl.config_from_dict(d)
     scene = _block_scene()
     for mats, want in (({'block': _RUBBER}, 'got dict'),
                        (['jelly'], "material 'jelly' is not a material")):

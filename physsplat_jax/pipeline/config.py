@@ -31,6 +31,7 @@ from absl import logging
 from physsplat_jax import mpm
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render import raster
+from physsplat_jax.render.views import BACKGROUNDS
 
 
 class PipelineError(PhysSplatError, ValueError):
@@ -220,7 +221,7 @@ class PrepareConfig:
       axes]; '' as a name means every movable object.
     width, height: rendered frame size [pixels].
     camera_index: which scene camera renders (-1: a fitted default).
-    background: RGB in [0, 1].
+    background: RGB in [0, 1], or a name ('white', 'black', 'grey').
     camera_path: :class:`CameraPath`: 'fixed', or 'orbit' (the camera turns
       about the scene's up axis through the centre of the simulated
       objects, ``orbit_degrees`` over the whole video).
@@ -268,6 +269,9 @@ class PrepareConfig:
   ground_height: float | None = None
 
   def __post_init__(self):
+    name = self.background
+    if isinstance(name, str) and name.strip().lower() in BACKGROUNDS:
+      object.__setattr__(self, 'background', BACKGROUNDS[name.strip().lower()])
     _check_types('PrepareConfig', self)
     object.__setattr__(self, 'ground',
                        _enum(Ground, self.ground, 'PrepareConfig', 'ground'))
@@ -308,7 +312,8 @@ class PrepareConfig:
        'use -1 (fitted) or a camera index >= 0'),
       (len(self.background) == 3 and all(
         _finite(c) and 0 <= c <= 1 for c in self.background),
-       'background', 'use three numbers in [0, 1]'),
+       'background', 'use three numbers in [0, 1] or a name '
+       f'({", ".join(BACKGROUNDS)})'),
       (_finite(self.orbit_degrees), 'orbit_degrees',
        'use a finite angle [degrees]'),
       (_finite(self.min_opacity) and 0 <= self.min_opacity < 1,
@@ -401,6 +406,10 @@ class SimulateConfig:
       (self.gpu_graphs in mpm.GPU_GRAPHS, 'gpu_graphs',
        f"use {', '.join(repr(k) for k in mpm.GPU_GRAPHS)}"),
     ])
+    if self.gravity < 0:
+      _warn_once(f'gravity = {self.gravity} m/s^2 pulls up: the field is '
+                 'the magnitude along -up (9.8 for the Earth\'s); keep the '
+                 'sign only if objects should fall upwards')
 
 
 _PREPARE_FIELDS = tuple(f.name for f in dataclasses.fields(PrepareConfig))
@@ -468,6 +477,7 @@ class PipelineConfig:
     object.__setattr__(self, 'ground', p.ground)
     object.__setattr__(self, 'sampling', p.sampling)
     object.__setattr__(self, 'camera_path', p.camera_path)
+    object.__setattr__(self, 'background', p.background)
     object.__setattr__(self, 'render', s.render)
     duration = self.num_frames / self.fps
     for f in self.forces:
@@ -524,8 +534,22 @@ def _force_from_dict(i: int, f: Any) -> ForceSpec:
                         f'{[x.name for x in dataclasses.fields(ForceSpec)]}')
   for k in ('vector', 'point'):
     if f.get(k) is not None:
-      f[k] = tuple(float(v) for v in f[k])
+      f[k] = _numbers(f'forces[{i}].{k}', f[k], 3)
   return ForceSpec(**f)
+
+
+def _numbers(field: str, value, n: int) -> tuple[float, ...]:
+  """``value`` as ``n`` floats, or a :class:`PipelineError` naming
+  ``field`` (a string or a wrong length from a config file or an
+  ``--config.*`` override was a ValueError from ``float``)."""
+  try:
+    out = tuple(float(v) for v in value)
+  except (TypeError, ValueError):
+    out = ()
+  if len(out) != n or isinstance(value, str):
+    raise PipelineError(f'PipelineConfig.{field} = {value!r}: give {n} '
+                        'numbers, as a tuple')
+  return out
 
 
 def config_from_dict(d) -> PipelineConfig:
@@ -548,11 +572,17 @@ def config_from_dict(d) -> PipelineConfig:
     iv = d['initial_velocity'] or ()
     items = iv.items() if isinstance(iv, dict) else iv
     d['initial_velocity'] = tuple(
-      (str(n), tuple(float(c) for c in v)) for n, v in items)
+      (str(n), _numbers(f'initial_velocity[{n!r}]', v, 3))
+      for n, v in items)
   if 'background' in d:
-    d['background'] = tuple(float(v) for v in d['background'])
+    value = d['background']
+    if (isinstance(value, (tuple, list)) and len(value) == 1
+        and isinstance(value[0], str)):  # --config.background=white
+      value = value[0]
+    d['background'] = (value if isinstance(value, str)  # a name: checked
+                       else _numbers('background', value, 3))
   if d.get('roi') is not None:
-    d['roi'] = tuple(float(v) for v in d['roi'])
+    d['roi'] = _numbers('roi', d['roi'], 6)
   if isinstance(d.get('render_config'), dict):
     d['render_config'] = raster.RenderConfig(**d['render_config'])
   return PipelineConfig(**d)
