@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import sys
 import time
@@ -43,6 +44,7 @@ from absl import logging
 
 from experiments.lib import cli
 from physsplat_jax.distributed import runtime
+from physsplat_jax.io import outputs
 
 MODES = ('batch', 'particles')
 
@@ -158,7 +160,7 @@ def save_sweep(out_dir: str, result: SweepResult, frame_dt: float,
     final_com=result.means[:, -1].mean(1).tolist(), **(extra or {}))
   js = os.path.join(out_dir, 'sweep.json')
   with open(js, 'w') as f:
-    json.dump(report, f, indent=1)
+    json.dump(outputs.jsonable(report), f, indent=1)  # NaN: "nan"
   return dict(npz=npz, json=js)
 
 
@@ -173,7 +175,6 @@ def sweep_substeps(report, config, E_scale=(1.0,), nu_scale=(1.0,),
   it. The bound is ``prepare_scene``'s (CFL on the wave speed plus the
   initial speed), with the largest wave-speed factor over the items.
   """
-  import math
 
   from physsplat_jax.mpm import timestep
 
@@ -286,8 +287,18 @@ def main(argv):
     try:
       scales[k] = [float(v) for v in getattr(f, k)]
     except ValueError:
+      scales[k] = [math.nan]
+    if not all(math.isfinite(v) and v > 0 for v in scales[k]):
+      # (before the substep estimate, which took their roots and logs)
       raise cli.usage_error(f'--{k}={",".join(getattr(f, k))}: give '
-                            'numbers > 0 separated by commas') from None
+                            'numbers > 0 separated by commas')
+  if f.num_devices is not None and not (
+      1 <= f.num_devices <= jax.device_count()):
+    raise cli.usage_error(
+      f'--num_devices={f.num_devices}: give 1 to {jax.device_count()} '
+      f'(the {jax.default_backend()} devices this run has), or leave it '
+      'out to use them all; on a CPU, --cpu_devices=N splits it into N '
+      'devices')
   logging.info('devices %s', jax.devices())
   overrides = dict(num_frames=f.frames, fps=f.fps, grid_res=f.grid_res,
                    max_particles=f.max_particles)
@@ -329,8 +340,8 @@ def main(argv):
       f'sweep: {len(bad)} of {len(result.table)} items went non-finite '
       f'(e.g. {bad[0]}; "finite": false in sweep.json, their rows NaN) '
       f'with {prepared.spec.substeps_per_frame} substeps per frame: narrow '
-      '--e_scale/--nu_scale/--rho_scale, or give more substeps '
-      '(substeps_per_frame in a --config file).')
+      '--e_scale/--nu_scale/--rho_scale or lower --velocity, or give more '
+      'substeps (substeps_per_frame in a --config file).')
 
 
 if __name__ == '__main__':

@@ -186,6 +186,24 @@ class ErrorPathTest(absltest.TestCase):
       '--scene=tabletop is a built-in scene: give --scene=FILE.ply, the '
       'Gaussians the JSON was written for\n'), proc.stderr[-300:])
 
+  def test_sweep_checks_scales_and_devices_first(self):
+    # A negative or NaN scale was a math domain error in the substep
+    # estimate; --num_devices=2 on one CPU named XLA_FLAGS, not the
+    # script's own --cpu_devices.
+    for arg, want in (('--e_scale=1,-1', '--e_scale=1,-1: give numbers > 0'),
+                      ('--rho_scale=nan', '--rho_scale=nan: give numbers'),
+                      ('--num_devices=0', '--num_devices=0: give 1 to '),
+                      ('--num_devices=2', '--cpu_devices=N splits it')):
+      proc = subprocess.run(
+        [sys.executable, '-m', 'experiments.sweep', '--out=/nonexistent',
+         '--frames=1', arg], capture_output=True, text=True, check=False,
+        timeout=120,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+      with self.subTest(arg):
+        self.assertEqual(proc.returncode, 2, proc.stderr[-500:])
+        self.assertNotIn('Traceback', proc.stderr)
+        self.assertIn(want, proc.stderr.strip().splitlines()[-1])
+
   def test_fit_material_checks_its_flags_first(self):
     # --E_init=-1 used to end in a FloatingPointError traceback at step 0.
     proc = subprocess.run(
