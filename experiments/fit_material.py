@@ -36,7 +36,9 @@ _DEGREE = flags.DEFINE_integer('field_degree', 2, 'polynomial log-field '
                                'degree: 0 (mean only), 1 or 2')
 _OUT = flags.DEFINE_string('out', None, 'optional JSON results path')
 _CONFIG = cli.define_config_file('config', None, 'config file '
-                                 '(its sim.task is used)', lock_config=True)
+                                 '(its sim.task is used)', lock_config=True,
+                                 needs=('sim.task',),
+                                 example='experiments/configs/mpdp.py')
 flags.mark_flags_as_required(['config'])
 
 

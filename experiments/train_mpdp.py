@@ -32,7 +32,9 @@ _EXPORT = flags.DEFINE_string('export', None,
 _MODE = flags.DEFINE_enum('mode', 'supervised', ['supervised', 'simulator'],
                           'training mode')
 _CONFIG = cli.define_config_file('config', None, 'config file',
-                                 lock_config=True)
+                                 lock_config=True,
+                                 needs=('model', 'data', 'train'),
+                                 example='experiments/configs/mpdp.py')
 flags.mark_flags_as_required(['workdir', 'config'])
 
 

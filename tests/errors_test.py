@@ -186,6 +186,39 @@ class ErrorPathTest(absltest.TestCase):
       '--scene=tabletop is a built-in scene: give --scene=FILE.ply, the '
       'Gaussians the JSON was written for\n'), proc.stderr[-300:])
 
+  def test_config_files_of_the_wrong_kind_are_named(self):
+    # Each was an AttributeError from the script, or ml_collections' whole
+    # traceback squashed into one line.
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as tmp:
+      plain = os.path.join(tmp, 'plain.py')
+      with open(plain, 'w') as fh:
+        fh.write('def get_config():\n  return {"sim": 1}\n')
+      typed = os.path.join(tmp, 'typed.py')
+      with open(typed, 'w') as fh:
+        fh.write('from experiments.configs.simulate import get_config as g'
+                 '\n\n\ndef get_config():\n  c = g()\n'
+                 '  c.gravity = (0.0, 0.0, -9.8)\n  return c\n')
+      for script, config, want in (
+          ('fit_material', 'experiments/configs/simulate.py',
+           'error: --config=experiments/configs/simulate.py: this script '
+           'reads sim.task from its config, which this file does not have; '
+           'experiments/configs/mpdp.py is one that fits'),
+          ('fit_material', plain, f'error: --config={plain}: its '
+           'get_config() returned a dict; return an ml_collections.'
+           'ConfigDict'),
+          ('simulate', typed, f'error: config file {typed}, line 6: '
+           "TypeError: Could not override field 'gravity'")):
+        proc = subprocess.run(
+          [sys.executable, '-m', f'experiments.{script}', f'--config={config}',
+           '--out=/nonexistent'], capture_output=True, text=True,
+          check=False, timeout=120, cwd=root)
+        with self.subTest(script=script, config=config):
+          self.assertEqual(proc.returncode, 2, proc.stderr[-500:])
+          self.assertNotIn('Traceback', proc.stderr)
+          self.assertTrue(proc.stderr.strip().splitlines()[-1].startswith(
+            want), proc.stderr[-500:])
+
   def test_sweep_checks_scales_and_devices_first(self):
     # A negative or NaN scale was a math domain error in the substep
     # estimate; --num_devices=2 on one CPU named XLA_FLAGS, not the

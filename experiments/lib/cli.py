@@ -24,6 +24,7 @@ import threading
 import time
 
 import jax
+import ml_collections
 from absl import app
 from absl import flags
 from absl import logging
@@ -53,8 +54,36 @@ def define_out(default: str | None, help_text: str) -> flags.FlagHolder:
 
 
 # Each config flag's default file (define_config_file), for the message
-# about a field that does not exist.
+# about a field that does not exist, and the fields its script reads.
 _CONFIG_FILES: dict[str, str | None] = {}
+_CONFIG_NEEDS: dict[str, tuple[tuple[str, ...], str | None]] = {}
+
+
+def _check_configs() -> None:
+  """Each parsed config flag holds a ConfigDict with the fields its script
+  needs (:func:`define_config_file`), or a usage error naming the file."""
+  for name, (needs, example) in _CONFIG_NEEDS.items():
+    if name not in flags.FLAGS or flags.FLAGS[name].value is None:
+      continue
+    config = flags.FLAGS[name].value
+    file = config_flags.get_config_filename(flags.FLAGS[name])
+    fits = f'; {example} is one that fits' if example else ''
+    if not isinstance(config, ml_collections.ConfigDict):
+      raise usage_error(
+        f'--{name}={file}: its get_config() returned a '
+        f'{type(config).__name__}; return an ml_collections.ConfigDict{fits}')
+    missing = []
+    for path in needs:
+      node = config
+      for key in path.split('.'):
+        node = node.get(key) if isinstance(
+          node, ml_collections.ConfigDict) else None
+      if node is None:
+        missing.append(path)
+    if missing:
+      raise usage_error(
+        f'--{name}={file}: this script reads {", ".join(missing)} from its '
+        f'config, which this file does not have{fits}')
 
 
 def _config_fields(path: str, parents: list[str]) -> list[str] | None:
@@ -117,8 +146,27 @@ def _flag_errors(argv):
   try:
     yield
   except flags.Error as e:
-    print(f'error: {" ".join(str(e).split())}; --helpfull lists the flags',
-          file=sys.stderr)
+    text = " ".join(str(e).split())
+    none = re.match(r'flag --(\w+)=None: Flag --\w+ must have a value other '
+                    'than None', text)
+    if 'Error whilst parsing config file' in text:
+      # ml_collections puts get_config()'s whole traceback in the message.
+      frames = [(f, n) for f, n in re.findall(r'File "([^"]+)", line (\d+)',
+                                               text)
+                if 'ml_collections' not in f]
+      error = re.findall(r'\b(\w+(?:Error|Exception): .*)$', text)
+      where = (f'config file {frames[-1][0]}, line {frames[-1][1]}'
+               if frames else 'the config file')
+      text = (f'{where}: {error[-1] if error else "get_config() failed"}; '
+              'fix the file')
+    elif none and none.group(1) in _CONFIG_NEEDS:
+      given = [a for a in argv[1:] if a.startswith(f'--{none.group(1)}=')]
+      text = (f'{given[-1] if given else "--" + none.group(1)}: its '
+              'get_config() returned None; return an ml_collections.'
+              'ConfigDict')
+    else:
+      text += '; --helpfull lists the flags'
+    print(f'error: {text}', file=sys.stderr)
     sys.exit(2)
   except OSError as e:  # ml_collections: a config .py that does not exist
     match = re.search(r'Failed loading config file (\w+)_config', str(e))
@@ -138,9 +186,10 @@ def _flag_errors(argv):
     message = _unknown_field(e, argv)
     if message is None and 'get_config' in str(e):
       config = [a for a in argv[1:] if a.split('=')[0] == '--config']
+      other = ('; a PhysGaussian JSON goes to --physgaussian'
+               if 'physgaussian' in flags.FLAGS else '')
       message = (f'{config[0] if config else "--config"}: not a config '
-                 'file (a .py defining get_config(); a PhysGaussian JSON '
-                 'goes to --physgaussian)')
+                 f'file (a .py defining get_config(){other})')
     if message is None:
       raise
     print(f'error: {message}', file=sys.stderr)
@@ -148,14 +197,21 @@ def _flag_errors(argv):
 
 
 def define_config_file(name: str, default: str | None, help_text: str,
-                       **kwargs):
+                       needs: tuple[str, ...] = (),
+                       example: str | None = None, **kwargs):
   """``ml_collections.config_flags.DEFINE_config_file``, with a bad
   override (``--config.nosuch=1``, overrides in an order it refuses) as
   one line and exit code 2. Without ``--config=FILE`` on the command line
   ml_collections applies the overrides while the flag is defined, when
   the script is imported (with it, while flags are parsed:
-  :func:`parse_flags`), and raised from deep inside itself."""
+  :func:`parse_flags`), and raised from deep inside itself.
+
+  ``needs``: dotted paths the script reads (``'sim.task'``); after parsing,
+  a config without them, or a ``get_config()`` that returns something
+  other than a ConfigDict, is a usage error that names ``example``, a
+  config file that fits (it was an AttributeError in the script)."""
   _CONFIG_FILES[name] = default
+  _CONFIG_NEEDS[name] = (tuple(needs), example)
   with _flag_errors(sys.argv):
     return config_flags.DEFINE_config_file(name, default, help_text,
                                            **kwargs)
@@ -338,7 +394,13 @@ def parse_flags(argv):
   other usage errors (absl printed 'FATAL Flags parsing error' and exited
   1)."""
   with _flag_errors(argv):  # (--config=FILE --config.nosuch=1: here)
-    return flags.FLAGS(argv)
+    rest = flags.FLAGS(argv)
+  try:
+    _check_configs()
+  except app.UsageError as e:
+    print(f'error: {e}', file=sys.stderr)
+    sys.exit(2)
+  return rest
 
 
 def run(main, cpu_devices: int | None = None,
