@@ -46,6 +46,8 @@ def _check_flags() -> list[int]:
   """The seeds; a flag no fit can use is a usage error before any work."""
   try:
     seeds = [int(s) for s in _SEEDS.value]
+    if not seeds:  # (it ran nothing and exited 0)
+      raise ValueError
   except ValueError:
     raise cli.usage_error(f'--seeds={",".join(_SEEDS.value)}: give integer '
                           'seeds separated by commas') from None

@@ -36,7 +36,8 @@ from physsplat_jax import mpm
 
 _CASES = flags.DEFINE_list(
   'cases', ['free_fall', 'bar_mode', 'cantilever', 'sand_slope', 'contact'],
-  'cases')
+  'cases to run; also cantilever_slender, cantilever_pg and repose (the '
+  'long ones, not in the default)')
 _QUICK = flags.DEFINE_bool('quick', False, 'one coarse resolution per case')
 _OUT = cli.define_out(None, 'optional JSON output path')
 _REPOSE_SECONDS = flags.DEFINE_float(
@@ -532,6 +533,12 @@ def main(argv):
                for r in ((32,) if quick else (32, 48))
                for p in phis],
   }
+  if not _CASES.value:
+    raise cli.usage_error(f'--cases is empty: name one or more of '
+                          f'{sorted(plan)}')
+  if 'repose' in _CASES.value and not _REPOSE_SECONDS.value > 0:
+    raise cli.usage_error(f'--repose_seconds={_REPOSE_SECONDS.value}: give '
+                          'a simulated time > 0 [s] (default 7)')
   unknown = [c for c in _CASES.value if c not in plan]
   if unknown:
     raise app.UsageError(f'--cases: unknown case(s) {unknown}; choose from '

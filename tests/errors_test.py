@@ -186,6 +186,17 @@ class ErrorPathTest(absltest.TestCase):
       '--scene=tabletop is a built-in scene: give --scene=FILE.ply, the '
       'Gaussians the JSON was written for\n'), proc.stderr[-300:])
 
+  def test_help_lists_the_config_flag_and_exits_0(self):
+    # --help showed only the module's own DEFINEs (--config was cli's) and
+    # exited 1, absl's default, which a `set -e` script took for a failure.
+    proc = subprocess.run(
+      [sys.executable, '-m', 'experiments.fit_material', '--help'],
+      capture_output=True, text=True, check=False, timeout=120,
+      cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    self.assertEqual(proc.returncode, 0, proc.stderr[-500:])
+    self.assertIn('--config: config file (its sim.task is used)',
+                  proc.stdout + proc.stderr)
+
   def test_config_files_of_the_wrong_kind_are_named(self):
     # Each was an AttributeError from the script, or ml_collections' whole
     # traceback squashed into one line.

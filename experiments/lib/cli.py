@@ -68,6 +68,8 @@ def _check_configs() -> None:
     config = flags.FLAGS[name].value
     file = config_flags.get_config_filename(flags.FLAGS[name])
     fits = f'; {example} is one that fits' if example else ''
+    if type(config).__name__ == '_ErrorConfig':
+      config.lock()  # raises the error ml_collections kept (a missing file)
     if not isinstance(config, ml_collections.ConfigDict):
       raise usage_error(
         f'--{name}={file}: its get_config() returned a '
@@ -213,8 +215,16 @@ def define_config_file(name: str, default: str | None, help_text: str,
   _CONFIG_FILES[name] = default
   _CONFIG_NEEDS[name] = (tuple(needs), example)
   with _flag_errors(sys.argv):
-    return config_flags.DEFINE_config_file(name, default, help_text,
-                                           **kwargs)
+    holder = config_flags.DEFINE_config_file(name, default, help_text,
+                                             **kwargs)
+  # A key flag of the script that defines it, so that --help lists it (it
+  # belonged to this module, and only --helpfull showed it).
+  # (absl names the main module by sys.argv[0], as its own DEFINEs do).
+  module = sys._getframe(1).f_globals['__name__']  # noqa: SLF001
+  if module == '__main__':
+    module = sys.argv[0]
+  flags.FLAGS.register_key_flag_for_module(module, flags.FLAGS[name])
+  return holder
 
 
 def check_output_file(flag: str, path: str | None) -> None:
@@ -390,16 +400,22 @@ def positive_ints(name: str, values) -> list[int]:
 def parse_flags(argv):
   """absl's flag parsing with a bad flag (an unknown one, a value of the
   wrong type, a required one missing, an override of a config field that
-  does not exist) as one ``error:`` line and exit code 2, as the scripts'
-  other usage errors (absl printed 'FATAL Flags parsing error' and exited
-  1)."""
-  with _flag_errors(argv):  # (--config=FILE --config.nosuch=1: here)
-    rest = flags.FLAGS(argv)
+  does not exist, a config file of the wrong kind: ``define_config_file``)
+  as one ``error:`` line and exit code 2, as the scripts' other usage
+  errors (absl printed 'FATAL Flags parsing error' and exited 1); and
+  ``--help`` exits 0 (absl's exits 1)."""
   try:
-    _check_configs()
-  except app.UsageError as e:
+    with _flag_errors(argv):  # (--config=FILE --config.nosuch=1: here)
+      rest = flags.FLAGS(argv)
+      _check_configs()
+  except app.UsageError as e:  # from _check_configs
     print(f'error: {e}', file=sys.stderr)
     sys.exit(2)
+  except SystemExit as e:  # absl's --help and friends exit 1 after printing
+    asked = {'--help', '-h', '-?', '--helpshort', '--helpfull', '--helpxml'}
+    if e.code == 1 and asked & set(argv[1:]):
+      sys.exit(0)
+    raise
   return rest
 
 
