@@ -173,10 +173,12 @@ def sweep_substeps(report, config, E_scale=(1.0,), nu_scale=(1.0,),
   ``prepare_scene`` chose for the unscaled materials: a stiffer or lighter
   item (E up, rho down, nu towards 0.5) or a faster one would blow up with
   it. The bound is ``prepare_scene``'s (CFL on the wave speed plus the
-  initial speed), with the largest wave-speed factor over the items.
+  initial and impulse speeds), with the largest wave-speed factor over the
+  items.
   """
 
   from physsplat_jax.mpm import timestep
+  from physsplat_jax.pipeline import prepare as prep_lib
 
   ts = report.time_step
   c_max, n0 = ts['max_wave_speed_m_s'], ts['substeps_per_frame']
@@ -188,8 +190,11 @@ def sweep_substeps(report, config, E_scale=(1.0,), nu_scale=(1.0,),
     / timestep.wave_speed(1.0, base_nu, 1.0))) for s in nu_scale)
   factor = math.sqrt(max(E_scale) / min(rho_scale)) * max(nu_factor, 1.0)
   norm = lambda v: float(np.linalg.norm(v))  # noqa: E731
-  v0 = max([norm(v) for _, v in config.initial_velocity] + [0.0])
-  v1 = max([norm(v) for v in velocity or ()] + [v0])
+  # prepare_scene chose n0 for c_max + v0 (impulses included); the items'
+  # velocities replace the initial ones, the impulses stay.
+  v_init = max([norm(v) for _, v in config.initial_velocity] + [0.0])
+  v0 = prep_lib.given_speed(config)
+  v1 = max([norm(v) for v in velocity or ()] + [v_init]) + v0 - v_init
   speed0, speed1 = c_max + v0, c_max * factor + v1
   if speed0 <= 0 or speed1 <= speed0:
     return None

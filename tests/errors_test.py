@@ -743,9 +743,18 @@ class ValidationTest(absltest.TestCase):
     fast = substeps(initial_velocity=(('', (300.0, 0.0, 0.0)),))
     # Wave speed ~6.3 m/s: 300 m/s more needs ~48x the substeps.
     self.assertGreater(fast, 40 * slow)
-    with self.assertRaisesRegex(pl.PipelineError, 'initial speed 300'):
+    with self.assertRaisesRegex(pl.PipelineError,
+                                'initial and impulse speeds 300'):
       substeps(initial_velocity=(('', (300.0, 0.0, 0.0)),),
                substeps_per_frame=slow)
+    # An impulse counts as its velocity change (2000 m/s took 1 substep);
+    # a point force, whose speed depends on the material, does not.
+    kick = pl.ForceSpec('impulse', '', (0.0, 180.0, 240.0), start=0.1)
+    self.assertEqual(substeps(initial_velocity=(('', (300.0, 0.0, 0.0)),),
+                              forces=(kick,)),
+                     substeps(initial_velocity=(('', (600.0, 0.0, 0.0)),)))
+    self.assertEqual(substeps(forces=(pl.ForceSpec(
+      'point', '', (0.0, 0.0, 900.0), end=1.0),)), slow)
     # Too many substeps because frames are far apart or the scene is not
     # in metres: the message says which (it named neither).
     with self.assertRaisesRegex(pl.PipelineError,

@@ -528,10 +528,24 @@ def bucket_substeps(n: int) -> int:
   return -(-n // step) * step
 
 
+def given_speed(cfg) -> float:
+  """The fastest a particle can move by what the config gives it [m/s]:
+  the largest initial speed plus every impulse's velocity change (impulses
+  on one object add up). ``cfg``: a PrepareConfig or PipelineConfig."""
+  v0 = max([float(np.linalg.norm(v)) for _, v in cfg.initial_velocity]
+           + [0.0])
+  return v0 + sum(float(np.linalg.norm(f.vector)) for f in cfg.forces
+                  if f.kind is ForceKind.IMPULSE)
+
+
 def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
                     gravity: float) -> tuple[int, float]:
   """(substeps per frame, largest wave speed): the CFL bound of the stiffest
-  deformable point (MPDP field included) and of the initial speeds."""
+  deformable point (MPDP field included) and of the speeds given: the
+  largest initial speed plus every impulse's velocity change (an impulse
+  of 2000 m/s took 1 substep per frame and blew up). A point force's
+  speed depends on what resists it and is not bounded here, nor is free
+  fall's; the CFL number's margin covers moderate ones."""
   deform = ~np.asarray(rigid)[dobj]
   c_max = 0.0
   if deform.any():
@@ -541,8 +555,7 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
     c_max = float(np.max(timestep.wave_speed(E[deform], nu[deform],
                                              rho[deform])))
   frame_dt = cfg.frame_dt
-  v_max = max([float(np.linalg.norm(v)) for _, v in cfg.initial_velocity]
-              + [0.0])
+  v_max = given_speed(cfg)
   # Elastic waves and particle motion both limited to cfl cells per step;
   # with neither, one frame of free fall sets the scale.
   speed = c_max + v_max
@@ -554,9 +567,11 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
       raise PipelineError(
         f'substeps_per_frame={substeps} gives dt={frame_dt / substeps:.3g} s, '
         f'above the stability bound {cfg.cfl * dx / speed:.3g} s (wave speed '
-        f'{c_max:.3g} m/s + initial speed {v_max:.3g} m/s, dx={dx:.3g} m); use '
+        f'{c_max:.3g} m/s + initial and impulse speeds {v_max:.3g} m/s, '
+        f'dx={dx:.3g} m); use '
         f'substeps_per_frame >= {math.ceil(frame_dt * speed / (cfg.cfl * dx))}'
-        ' or None (automatic), or lower E or the initial velocity.')
+        ' or None (automatic), or lower E, the initial velocity or the '
+        'impulses.')
     return substeps, c_max
   dt_cfl = cfg.cfl * dx / speed
   substeps = max(1, int(math.ceil(frame_dt / dt_cfl)))
@@ -572,8 +587,8 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
       hints += (f'; a grid cell is {dx:.3g} m: if the scene is not in '
                 'metres, give its scale (--meters_per_unit)')
     raise PipelineError(
-      f'the stiffest material (wave speed {c_max:.3g} m/s) and initial '
-      f'speeds ({v_max:.3g} m/s) need {substeps} substeps per frame at '
+      f'the stiffest material (wave speed {c_max:.3g} m/s) and initial and '
+      f'impulse speeds ({v_max:.3g} m/s) need {substeps} substeps per frame at '
       f'dx={dx:.3g} m, over max_substeps_per_frame='
       f'{cfg.max_substeps_per_frame}: lower E (or mark the object rigid), '
       'lower grid_res or the velocities, or raise max_substeps_per_frame'
