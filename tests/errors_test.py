@@ -186,6 +186,32 @@ class ErrorPathTest(absltest.TestCase):
       '--scene=tabletop is a built-in scene: give --scene=FILE.ply, the '
       'Gaussians the JSON was written for\n'), proc.stderr[-300:])
 
+  def test_outputs_of_an_earlier_run_are_named_in_the_report(self):
+    # A failed rerun into the same --out left the earlier video and
+    # trajectory beside a report.json with "error", nothing telling them
+    # apart; a rerun without --ply kept the earlier ply/ silently.
+    from physsplat_jax.pipeline import job
+    with tempfile.TemporaryDirectory() as d:
+      for name in ('video.mp4', 'trajectory.npz', 'ply/frame_0000.ply',
+                   'frames/frame_0000.png'):
+        os.makedirs(os.path.dirname(os.path.join(d, name)), exist_ok=True)
+        with open(os.path.join(d, name), 'w') as fh:
+          fh.write('x')
+        os.utime(os.path.join(d, name), (1e9, 1e9))
+      # This run wrote the frames and the trajectory anew.
+      os.utime(os.path.join(d, 'frames/frame_0000.png'), (3e9, 3e9))
+      os.utime(os.path.join(d, 'trajectory.npz'), (3e9, 3e9))
+      report = {}
+      with self.assertLogs(level='WARNING') as logs:
+        job._note_earlier_outputs(d, 2e9, report)
+      self.assertEqual(report['earlier_files'], ['video.mp4', 'ply'])
+      self.assertIn('video.mp4, ply from an earlier run',
+                    ' '.join(logs.output))
+      self.assertTrue(os.path.exists(os.path.join(d, 'video.mp4')))
+      fresh = {}
+      job._note_earlier_outputs(d, 5e8, fresh)
+      self.assertNotIn('earlier_files', fresh)
+
   def test_help_lists_the_config_flag_and_exits_0(self):
     # --help showed only the module's own DEFINEs (--config was cli's) and
     # exited 1, absl's default, which a `set -e` script took for a failure.

@@ -117,6 +117,7 @@ def simulate_scene(
     devices=[str(d) for d in jax.devices()], jax_version=jax.__version__,
     config=dataclasses.asdict(config), **(extra_report or {}))
   t0 = time.perf_counter()
+  started = time.time()
   try:
     out = _run_stages(scene, config, out_dir, materials, perception_options,
                       segment, ply, stages, report, mpdp_params, pipelined,
@@ -125,9 +126,11 @@ def simulate_scene(
     report['error'] = f'{type(e).__name__}: {e}'
     stages['total'] = time.perf_counter() - t0
     report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
+    _note_earlier_outputs(out_dir, started, report)
     _write_report(out_dir, report)
     raise
   stages['total'] = time.perf_counter() - t0
+  _note_earlier_outputs(out_dir, started, report)
   report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
   report['files'] = dict(out.files)
   path = _write_report(out_dir, report)
@@ -171,6 +174,37 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
   if out.render_stats:
     report['render_stats'] = out.render_stats
   return out
+
+
+# What a run writes into its folder (report.json is always rewritten).
+_OUTPUTS = ('video.mp4', 'video.gif', 'trajectory.npz', 'frames', 'ply')
+
+
+def _note_earlier_outputs(out_dir, started: float, report: dict) -> None:
+  """Names in ``report['earlier_files']``, with a warning, the outputs in
+  ``out_dir`` that this run did not write: a failed rerun, or one without
+  ``ply``, left an earlier run's video or PLY folder beside the new
+  report, with nothing to tell them apart. They are kept (never lost)."""
+  if out_dir is None:
+    return
+  old = []
+  for name in _OUTPUTS:
+    path = os.path.join(out_dir, name)
+    try:
+      if os.path.isdir(path):
+        times = [e.stat().st_mtime for e in os.scandir(path) if e.is_file()]
+        if times and max(times) < started:
+          old.append(name)
+      elif os.path.isfile(path) and os.stat(path).st_mtime < started:
+        old.append(name)
+    except OSError:
+      continue
+  if old:
+    report['earlier_files'] = old
+    logging.warning('%s still holds %s from an earlier run, not written by '
+                    'this one (report.json: earlier_files); remove them, or '
+                    'give a new --out, to keep runs apart', out_dir,
+                    ', '.join(old))
 
 
 def _write_report(out_dir, report) -> str | None:
