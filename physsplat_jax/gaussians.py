@@ -48,8 +48,18 @@ def normalize_quat(q: Array, eps: float = 1e-12) -> Array:
   return safe / jnp.sqrt(jnp.sum(safe * safe, axis=-1, keepdims=True))
 
 
+def _last_axis(fn: str, what: str, x, n: int, hint: str) -> None:
+  """A DataError unless ``x`` is (..., n): JAX clamps an index past the end
+  of an axis, so a (..., 3) quaternion gave a wrong rotation, silently."""
+  shape = np.shape(x)
+  if len(shape) < 1 or shape[-1] != n:
+    raise DataError(f'{fn}: {what} have shape {shape}; give (..., {n}) '
+                    f'({hint})')
+
+
 def quat_to_rotmat(q: Array) -> Array:
   """(..., 4) wxyz quaternions (any norm) -> (..., 3, 3) rotation matrices."""
+  _last_axis('quat_to_rotmat', 'quaternions', q, 4, 'wxyz')
   q = normalize_quat(q)
   w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
   r00 = 1 - 2 * (y * y + z * z)
@@ -136,6 +146,7 @@ def quat_multiply(a: Array, b: Array) -> Array:
 # Covariances ------------------------------------------------------------------
 def covariance(log_scales: Array, quats: Array) -> Array:
   """(..., 3, 3) covariance ``R S S^T R^T`` from log-scales and quaternions."""
+  _last_axis('covariance', 'log-scales', log_scales, 3, 'x, y, z')
   R = quat_to_rotmat(quats)
   M = R * jnp.exp(log_scales)[..., None, :]
   return M @ jnp.swapaxes(M, -1, -2)
@@ -235,6 +246,12 @@ def eval_sh(sh: Array, dirs: Array, degree: int | None = None) -> Array:
   Returns:
     (..., 3) RGB, >= 0 (not clamped above, as in INRIA).
   """
+  _last_axis('eval_sh', 'directions', dirs, 3, 'x, y, z')
+  shape = np.shape(sh)
+  if len(shape) < 2 or shape[-1] != 3 or \
+      round(np.sqrt(shape[-2])) ** 2 != shape[-2]:
+    raise DataError(f'eval_sh: SH coefficients have shape {shape}; give '
+                    '(..., B, 3) with B = (degree + 1)^2: 1, 4, 9 or 16')
   have = int(round(np.sqrt(sh.shape[-2]))) - 1
   if degree is None:
     degree = have

@@ -409,6 +409,12 @@ class Camera(struct.PyTreeNode):
 def check_camera(camera: Camera) -> None:
   """:func:`make_camera`'s checks on a camera built otherwise (e.g. by
   ``Camera.replace``), on its concrete values; raises :class:`DataError`."""
+  if not isinstance(camera, Camera):
+    hint = ('; pick one, e.g. scene.cameras[0]'
+            if isinstance(camera, (list, tuple)) else
+            '; build one with make_camera or look_at')
+    raise DataError(f'camera is a {type(camera).__name__}, not a '
+                    f'physsplat_jax.Camera{hint}')
   _check_camera_values(camera.viewmat, camera.fx, camera.fy, camera.width,
                        camera.height, camera.near, camera.far, camera.name,
                        cx=camera.cx, cy=camera.cy)

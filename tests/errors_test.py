@@ -186,6 +186,57 @@ class ErrorPathTest(absltest.TestCase):
       '--scene=tabletop is a built-in scene: give --scene=FILE.ply, the '
       'Gaussians the JSON was written for\n'), proc.stderr[-300:])
 
+  def test_library_calls_with_the_wrong_kind_of_argument_are_named(self):
+    # Each was an AttributeError or a silent wrong value from inside.
+    import types as pytypes
+
+    import physsplat_jax as ps
+    with self.assertRaisesRegex(pl.PipelineError, "scene must be a "
+                                r"physsplat_jax\.Scene, got str 'tabletop'.*"
+                                'load_scene'):
+      pl.prepare_scene(_KEY, 'tabletop', [], pl.PipelineConfig())
+    prepared = pytypes.SimpleNamespace(
+      spec=pytypes.SimpleNamespace(object_names=('a',)))
+    with self.assertRaisesRegex(pl.PipelineError, 'config is a '
+                                'SimulateConfig; give a PrepareConfig'):
+      pl.init_params(prepared, pl.PipelineConfig().simulate, use_mpdp=False)
+    self.assertEqual(
+      pl.init_params(prepared, pl.PipelineConfig(initial_velocity=(
+        ('a', (1.0, 2.0, 3.0)),)), use_mpdp=False).velocity.tolist(),
+      [[1.0, 2.0, 3.0]])
+    # Forces as dicts, as config files write them.
+    c = pl.PipelineConfig(forces=[dict(kind='point', object='a',
+                                       vector=(1, 0, 0), end=0.5)])
+    self.assertEqual(c.forces[0], pl.ForceSpec('point', 'a', (1.0, 0.0, 0.0),
+                                               end=0.5))
+    g = _block_scene().gaussians
+    for camera, want in (([1], r'camera is a list, not a physsplat_jax\.'
+                          r'Camera; pick one, e\.g\. scene\.cameras\[0\]'),
+                         (None, 'camera is a NoneType')):
+      with self.subTest(camera), self.assertRaisesRegex(PhysSplatError, want):
+        ps.render_image(g, camera)
+    for call, want in (
+        (lambda: ps.quat_to_rotmat(jnp.ones(3)), r'quaternions have shape '
+         r'\(3,\); give \(\.\.\., 4\)'),
+        (lambda: ps.covariance(jnp.ones((2, 2)), jnp.ones((2, 4))),
+         r'log-scales have shape \(2, 2\)'),
+        (lambda: ps.eval_sh(jnp.ones((2, 5, 3)), jnp.ones((2, 3))),
+         r'SH coefficients have shape \(2, 5, 3\)'),
+        (lambda: ps.eval_sh(jnp.ones((2, 4, 3)), jnp.ones((2, 2))),
+         r'directions have shape \(2, 2\)')):
+      with self.subTest(want), self.assertRaisesRegex(DataError, want):
+        call()
+    # mpm.run is a host loop: under jit it was a TracerArrayConversionError.
+    from physsplat_jax import mpm
+    cfg = mpm.SimConfig(grid=mpm.GridSpec(res=8, size=1.0), dt=1e-3,
+                        substeps_per_frame=1)
+    mats = mpm.make_materials('fixed_corotated', 1e4, 0.3, 1000.0, num=1)
+    state = mpm.init_state(np.full((1, 3), 0.5), np.zeros((1, 3)), 1e-4,
+                           mats, cfg)
+    with self.assertRaisesRegex(mpm.MPMInputError, r'mpm\.run is a host '
+                                r'loop.*mpm\.rollout'):
+      jax.jit(lambda s: mpm.run(s, mats, None, cfg, 1).state.x)(state)
+
   def test_outputs_of_an_earlier_run_are_named_in_the_report(self):
     # A failed rerun into the same --out left the earlier video and
     # trajectory beside a report.json with "error", nothing telling them

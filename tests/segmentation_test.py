@@ -301,6 +301,11 @@ class MaskLiftingTest(absltest.TestCase):
     s = seg.lift_masks(self.g, self.cams[:1], [void], num_labels=3)
     np.testing.assert_array_equal(
       s.object_ids, seg.lift_masks(self.g, self.cams[:1], [mask]).object_ids)
+    # Masks stacked as one (V, H, W) array ("truth value of an array is
+    # ambiguous" before).
+    np.testing.assert_array_equal(
+      s.object_ids, seg.lift_masks(self.g, self.cams[:1],
+                                   np.stack([mask])).object_ids)
     # A camera looking away sees nothing: warned, and an error when no
     # camera sees anything (everything was background, silently).
     away = make_camera(look_at(np.array([0.0, 0.0, 5.0]),

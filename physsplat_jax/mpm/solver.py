@@ -752,7 +752,16 @@ def run(state: base.MPMState, materials: base.Materials,
 
   Raises:
     SimulationError: with the frame, the likely cause and the fix.
+    MPMInputError: called inside ``jax.jit`` / ``grad`` / ``vmap`` (a host
+      loop; :func:`rollout` is the traceable one), or bad inputs.
   """
+  if any(isinstance(leaf, jax.core.Tracer)
+         for leaf in jax.tree.leaves((state, materials, forces))):
+    raise MPMInputError(
+      'mpm.run is a host loop (it checks, logs and copies every frame to '
+      'the host), so it cannot run under jax.jit, grad or vmap; call '
+      'mpm.rollout there (pure, jittable and differentiable), or call '
+      'mpm.run outside the transformation')
   loop = FrameLoop(state, materials, forces, config, num_frames,
                    check=check, lookahead=lookahead, log_every=log_every)
   positions = [] if keep_positions else None

@@ -466,7 +466,11 @@ class PipelineConfig:
 
   def __post_init__(self):
     # Validates (and normalises enums) through the two parts, naming the
-    # field as the user wrote it.
+    # field as the user wrote it. Forces may be dicts, as in config files.
+    if isinstance(self.forces, (tuple, list)):
+      object.__setattr__(self, 'forces', tuple(
+        _force_from_dict(i, f) if isinstance(f, dict) else f
+        for i, f in enumerate(self.forces)))
     _check_types('PipelineConfig', self)
     try:
       p, s = self.prepare, self.simulate

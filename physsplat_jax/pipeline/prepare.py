@@ -215,6 +215,11 @@ def _as_key(key):
 def check_inputs(scene: Scene, materials: Sequence[Any]
                  ) -> tuple[list[int], list[int]]:
   """(movable, fixed) object indices; raises on anything unusable."""
+  if not isinstance(scene, Scene):
+    raise PipelineError(
+      f'scene must be a physsplat_jax.Scene, got {type(scene).__name__} '
+      f'{scene!r:.60}; load one first: physsplat_jax.load_scene(name or '
+      'path) (a built-in scene or a 3DGS PLY)')
   names = [o.name for o in scene.objects]
   if isinstance(materials, (dict, str)) or not hasattr(materials, '__len__'):
     raise PipelineError(

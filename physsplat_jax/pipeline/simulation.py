@@ -40,6 +40,7 @@ from physsplat_jax.pipeline.config import PipelineError
 from physsplat_jax.pipeline.config import PrepareConfig
 from physsplat_jax.pipeline.config import RenderMode
 from physsplat_jax.pipeline.config import SimulateConfig
+from physsplat_jax.pipeline.config import as_prepare_config
 from physsplat_jax.pipeline.config import as_simulate_config
 from physsplat_jax.pipeline.prepare import Params
 from physsplat_jax.pipeline.prepare import PreparedScene
@@ -93,6 +94,7 @@ def init_params(prepared: PreparedScene,
     mp = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
   names = prepared.spec.object_names
   vel = np.zeros((len(names), 3), np.float32)
+  config = as_prepare_config(config)  # (a SimulateConfig has no velocities)
   for name, v in config.initial_velocity:
     if name:
       vel[names.index(name)] = v

@@ -153,7 +153,7 @@ def lift_masks(
   Returns:
     A :class:`Segmentation` (method 'masks').
   """
-  if len(cameras) != len(masks) or not masks:
+  if len(cameras) != len(masks) or len(masks) == 0:  # (V, H, W) arrays too
     raise SegmentationError(
       f'lift_masks: {len(cameras)} cameras for {len(masks)} '
       'masks; give one mask per camera (at least one)')
