@@ -237,6 +237,25 @@ class ErrorPathTest(absltest.TestCase):
                                 r'loop.*mpm\.rollout'):
       jax.jit(lambda s: mpm.run(s, mats, None, cfg, 1).state.x)(state)
 
+  def test_a_segmentation_with_nothing_to_move_says_so(self):
+    # prepare_scene said "clear ObjectInfo.fixed", which a script user
+    # cannot do.
+    from physsplat_jax.pipeline import job
+    rng = np.random.default_rng(0)
+    k = 400  # a flat square: the support plane, nothing on it
+    means = np.c_[rng.uniform(-1, 1, (k, 2)), np.zeros(k)]
+    g = Gaussians(means=jnp.asarray(means, jnp.float32),
+                  log_scales=jnp.full((k, 3), np.log(0.02), jnp.float32),
+                  quats=jnp.tile(jnp.array([1.0, 0, 0, 0]), (k, 1)),
+                  opacity_logits=jnp.full((k,), 2.0),
+                  sh=jnp.full((k, 1, 3), 0.3))
+    scene = Scene(gaussians=g, object_ids=jnp.zeros(k, jnp.int32),
+                  objects=(ObjectInfo('all'),), name='flat')
+    with self.assertRaisesRegex(pl.PipelineError, r"segmenting scene 'flat' "
+                                r"with 'geometric' found .*nothing to move\. "
+                                'Try another method'):
+      job.segment_stage(scene, 'geometric')
+
   def test_outputs_of_an_earlier_run_are_named_in_the_report(self):
     # A failed rerun into the same --out left the earlier video and
     # trajectory beside a report.json with "error", nothing telling them

@@ -57,6 +57,17 @@ def segment_stage(scene: Scene, method: str | None) -> Scene:
   logging.info('segmented %r with %r: %d objects (%s)', scene.name, method,
                len(segmented.objects),
                ', '.join(o.name for o in segmented.objects))
+  if not any(not o.fixed for o in segmented.objects):
+    # (prepare_scene's message spoke of ObjectInfo.fixed, which a script
+    # user does not set.)
+    found = ', '.join(f'{o.name} (fixed)' for o in segmented.objects)
+    raise PipelineError(
+      f'segmenting scene {scene.name!r} with {method!r} found '
+      f'{found or "no object"}: nothing to move. Try another method '
+      f'({", ".join(m for m in segmentation.METHODS if m != method)}; '
+      'boxes and masks take their boxes or masks in segmentation.segment), '
+      'a --config.roi around the objects to simulate, or a scene whose '
+      'objects stand apart from the support.')
   return segmented
 
 
