@@ -4,6 +4,7 @@ import json
 import os
 import re
 import tempfile
+import types
 
 import jax
 import jax.numpy as jnp
@@ -120,6 +121,30 @@ class ParseTest(parameterized.TestCase):
     with self.assertLogs(level='WARNING') as logs:
       pg.parse_config(_PLANE)
     self.assertTrue(any('particle_filling' in m for m in logs.output))
+    # A misspelt field is ignored with the field it was likely meant as.
+    with self.assertLogs(level='WARNING') as logs:
+      pg.parse_config({**_PLANE, 'substep_dtt': 1e-4})
+    self.assertIn("did you mean 'substep_dt' for 'substep_dtt'?",
+                  ' '.join(logs.output))
+
+  def test_a_blow_up_names_the_json_fields(self):
+    # The solver's fix spoke of mpm.choose_substeps and dt.
+    from physsplat_jax.mpm import base
+    from physsplat_jax.physgaussian import driver
+    c = pg.parse_config({**_PLANE, 'boundary_conditions': [
+      {'type': 'particle_impulse', 'force': [0, 0, 1e7], 'num_dt': 1,
+       'start_time': 0.0}]}, source='kick.json')
+    err = base.SimulationError('frame 3 (t = 0.1 s): it blew up. Use a '
+                               'smaller dt (now 1e-4 s; mpm.choose_substeps '
+                               'picks a stable one), lower E.', 3, 'nan')
+    got = driver._json_fix(err, c, types.SimpleNamespace(dt=1e-4))
+    self.assertEqual((got.frame, got.reason), (3, 'nan'))
+    self.assertEqual(
+      str(got), 'kick.json: frame 3 (t = 0.1 s): it blew up. Lower '
+      'substep_dt in the JSON (now 0.0001 s; --auto_substeps picks one '
+      'stable at the start, not for speeds gained later), lower E, the '
+      'particle_impulse speeds or forces, or raise grid_lim if it was thrown '
+      'out of the grid.')
 
 
 class ErrorTest(parameterized.TestCase):
@@ -130,6 +155,8 @@ class ErrorTest(parameterized.TestCase):
     ('_E_string', {'E': '2e6'}, "'E'"),
     ('_bool_E', {'E': True}, "'E'"),
     ('_n_grid_float', {'n_grid': 50.5}, "'n_grid'"),
+    # The JSON check took 4, then mpm.GridSpec refused it naming neither.
+    ('_n_grid_small', {'n_grid': 4}, r"'n_grid' = 4 is too small.*>= 8"),
     ('_nu_range', {'nu': 0.6}, "'nu'"),
     # nu = 0.5 (incompressible: lambda infinite) passed the check before.
     ('_nu_half', {'nu': 0.5}, r"'nu' = 0\.5 is outside \[0, 0\.5\)"),

@@ -422,8 +422,29 @@ def simulate_config(
                sc.substeps_per_frame, frames)
   # The next frame simulates while ``collect`` fetches, renders and queues
   # this one.
-  res = solver.run(prep.state, prep.materials, prep.forces, sc, frames,
-                   on_frame=collect, keep_positions=False, lookahead=True)
+  try:
+    res = solver.run(prep.state, prep.materials, prep.forces, sc, frames,
+                     on_frame=collect, keep_positions=False, lookahead=True)
+  except base.SimulationError as e:
+    raise _json_fix(e, config, sc) from None
   t = np.arange(frames + 1) * sc.frame_dt
   del res
   return np.stack(traj), prep.ids, t
+
+
+def _json_fix(e, config, sc):
+  """The solver's blow-up with the fix in the JSON's terms (the solver
+  speaks of dt and mpm.choose_substeps; this user sets substep_dt)."""
+  head, sep, _ = str(e).partition('Use a smaller dt')
+  if not sep:
+    return e
+  movers = sorted({b.type for b in config.boundary_conditions
+                   if b.type in ('cuboid', 'particle_impulse',
+                                 'enforce_particle_translation',
+                                 'enforce_particle_velocity_rotation')})
+  kicks = f', the {" / ".join(movers)} speeds or forces' if movers else ''
+  return base.SimulationError(
+    f'{config.source}: {head}Lower substep_dt in the JSON (now {sc.dt:.3g} '
+    f's; --auto_substeps picks one stable at the start, not for speeds '
+    f'gained later), lower E{kicks}, or raise grid_lim if it was thrown out '
+    'of the grid.', e.frame, e.reason)

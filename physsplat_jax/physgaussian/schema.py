@@ -43,6 +43,7 @@ plasticine, neo-hookean (6, PhysDreamer) -> neo_hookean; canonical names
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import os
 from typing import Any
@@ -475,9 +476,13 @@ def parse_config(
     )
   unknown = sorted(set(raw) - _KNOWN_TOP)
   if unknown:
+    near = {k: difflib.get_close_matches(k, sorted(_KNOWN_TOP), n=1)
+            for k in unknown}
+    hints = ''.join(f'; did you mean {v[0]!r} for {k!r}?'
+                    for k, v in near.items() if v)
     logging.warning(
-      '%s: ignoring unknown fields %s (not in the PhysGaussian schema).',
-      source, unknown,
+      '%s: ignoring unknown fields %s (not in the PhysGaussian schema%s).',
+      source, unknown, hints,
     )
   kw: dict[str, Any] = {'source': source}
   if 'material' in raw:
@@ -582,9 +587,10 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
     if getattr(c, name) < 1:
       raise ConfigError(f'{_where(s, name)} = {getattr(c, name)!r} must be'
                         ' >= 1.')
-  if c.n_grid < 4:
+  if c.n_grid < 8:  # (mpm.GridSpec's bound, which named neither)
     raise ConfigError(f'{_where(s, "n_grid")} = {c.n_grid} is too small; '
-                      'the quadratic B-spline stencil needs n_grid >= 4.')
+                      'the quadratic B-spline stencil and the 3-cell domain '
+                      'border need n_grid >= 8.')
   if c.substep_dt > c.frame_dt:
     raise ConfigError(
       f'{_where(s, "substep_dt")} = {c.substep_dt} exceeds frame_dt = '
