@@ -432,6 +432,10 @@ class CameraFileTest(parameterized.TestCase):
         cam_io.CameraFileError,
         r"t\.json: frame 0 field 'k1' is not a number: 'abc'"):
       cam_io.load_cameras(self._frame_file(k1='abc'))
+    # A JSON true was a width of 1 pixel.
+    with self.assertRaisesRegex(
+        cam_io.CameraFileError, r"t\.json: .*'w' is not a number: True"):
+      cam_io.load_cameras(self._frame_file(w=True))
     with self.assertRaisesRegex(cam_io.CameraFileError,
                                 'is a directory.*cameras.json'):
       cam_io.load_cameras(self.tmp)

@@ -502,6 +502,9 @@ class ValidationTest(absltest.TestCase):
                      (dict(render_config='fast'), 'use a physsplat_jax.'
                       'render.RenderConfig'),
                      (dict(substeps_per_frame=2.5), 'whole number or None'),
+                     # The encoder failed after the whole simulation.
+                     (dict(width=16385), r'width x height = 16385 x 384: '
+                      'the MP4 encoder'),
                      (dict(initial_velocity=(('a', (1.0, 0, 0)),
                                              ('a', (0, 1.0, 0)))),
                       "initial_velocity names 'a' more than once"),

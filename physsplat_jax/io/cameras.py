@@ -124,6 +124,8 @@ def _number(d, key, path, what, positive=True) -> float:
   if key not in d:
     raise CameraFileError(f'{path}: {what} has no {key!r} field')
   try:
+    if isinstance(d[key], bool):  # (true was a width of 1 pixel)
+      raise TypeError
     v = float(d[key])
   except (TypeError, ValueError):
     raise CameraFileError(

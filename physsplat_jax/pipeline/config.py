@@ -417,6 +417,11 @@ _PREPARE_FIELDS = tuple(f.name for f in dataclasses.fields(PrepareConfig))
 _SIMULATE_FIELDS = tuple(f.name for f in dataclasses.fields(SimulateConfig))
 
 
+# The largest side libx264 encodes (16386 fails; measured with the
+# imageio-ffmpeg binary).
+MAX_VIDEO_SIDE = 16384
+
+
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
   """All pipeline settings, flat (scripts and config files write this).
@@ -484,6 +489,13 @@ class PipelineConfig:
     object.__setattr__(self, 'camera_path', p.camera_path)
     object.__setattr__(self, 'background', p.background)
     object.__setattr__(self, 'render', s.render)
+    big = max(self.width, self.height)
+    if s.render is not RenderMode.NONE and big > MAX_VIDEO_SIDE:
+      # (the encoder failed at the end of the run, after the simulation)
+      raise PipelineError(
+        f'PipelineConfig.width x height = {self.width} x {self.height}: the '
+        f'MP4 encoder (H.264) takes at most {MAX_VIDEO_SIDE} pixels a side; '
+        "use smaller ones, or render='none'.")
     duration = self.num_frames / self.fps
     for f in self.forces:
       if f.start >= duration:
