@@ -717,7 +717,10 @@ def fit_material(task: Task, observe: str = 'trajectory',
     if not (np.isfinite(float(loss)) and _finite(g)):
       raise DivergedError(
         f'fit_material step {i}: non-finite loss or gradient; lower '
-        'learning_rate or raise substeps_per_frame.')
+        f'learning_rate (now {learning_rate}; fit_material\'s '
+        '--learning_rate) or raise the task\'s substeps_per_frame (now '
+        f'{task.config.substeps_per_frame}; --config.sim.task.'
+        'substeps_per_frame).')
     theta, opt = new, new_opt
     history.append(float(loss))
     if log_fn is not None:
