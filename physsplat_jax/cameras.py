@@ -319,6 +319,40 @@ def _check_image(width, height, fov_deg):
     raise CameraError(f'fov_deg must be in (0, 180), got {fov_deg}')
 
 
+# Beyond this many scene units a float32 view matrix cannot hold the
+# scene (a camera fitted to 1e29 was "not a rigid transform").
+MAX_FRAMED_EXTENT = 1e12
+
+
+def framing_box(means) -> tuple[np.ndarray, np.ndarray]:
+  """The box a fitted camera frames: the 1st-99th percentile box of the
+  centres (robust to floaters), a unit box around them when they all sit
+  at one point (one Gaussian: the fit needs an extent), a unit box at the
+  origin when there are none.
+
+  Raises:
+    CameraError: the box is not finite or too large to frame (positions
+      off by many orders of magnitude: check the file's units).
+  """
+  m = np.asarray(means, np.float64).reshape(-1, 3)
+  if len(m) == 0:
+    lo = hi = np.zeros(3)
+  else:
+    lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
+  if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))
+          and max(np.max(np.abs(lo)), np.max(np.abs(hi)))
+          <= MAX_FRAMED_EXTENT):
+    raise CameraError(
+      'cannot fit a camera to Gaussians whose centres span '
+      f'({", ".join(f"{v:.3g}" for v in lo)}) to '
+      f'({", ".join(f"{v:.3g}" for v in hi)}): beyond '
+      f'{MAX_FRAMED_EXTENT:.0e} scene units; check the scene\'s positions '
+      'and units, or give a camera')
+  if not float(np.max(hi - lo)) > 0:
+    lo, hi = lo - 0.5, hi + 0.5
+  return lo, hi
+
+
 def fit_camera(
   bounds_min,
   bounds_max,

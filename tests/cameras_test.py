@@ -194,6 +194,31 @@ class CameraUtilTest(parameterized.TestCase):
     with self.assertRaisesRegex(ValueError, 'fov_deg'):
       cameras.fit_camera(lo, hi, fov_deg=180.0)
 
+  def test_framing_box_of_degenerate_scenes(self):
+    # One Gaussian: render's --camera_index=-1 failed in look_at ("eye and
+    # target are the same point"); centres near 1e29 failed as "viewmat is
+    # not a rigid transform", blaming the camera.
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(500, 3))
+    lo, hi = cameras.framing_box(m)
+    np.testing.assert_allclose(lo, np.percentile(m, 1.0, axis=0))
+    np.testing.assert_allclose(hi, np.percentile(m, 99.0, axis=0))
+    lo, hi = cameras.framing_box(np.full((3, 3), 2.0))
+    np.testing.assert_array_equal([lo, hi], [[1.5] * 3, [2.5] * 3])
+    from physsplat_jax.render import views
+    from physsplat_jax.types import Gaussians
+    one = Gaussians(means=jnp.ones((1, 3)), log_scales=jnp.zeros((1, 3)),
+                    quats=jnp.array([[1.0, 0, 0, 0]]),
+                    opacity_logits=jnp.ones(1), sh=jnp.zeros((1, 1, 3)))
+    cam = views.fit_scene_camera(one, width=32, height=24)
+    uv, _ = cam.project(jnp.ones(3))
+    np.testing.assert_allclose(uv, [16, 12], atol=PIXEL_TOL)
+    m[:10, 0] = 1e29
+    m[-10:, 0] = -1e29
+    with self.assertRaisesRegex(cameras.CameraError, r'span \(-1e\+29, .*'
+                                r'beyond 1e\+12 scene units'):
+      cameras.framing_box(m)
+
   def test_label_and_depth_range_do_not_recompile_the_renderer(self):
     from physsplat_jax.render import images as host_render
     from physsplat_jax.render import raster

@@ -202,6 +202,14 @@ class SceneIOTest(parameterized.TestCase):
     self.assertLen(sc.cameras, 2)
     self.assertEqual(sc.up_axis, 'z')
 
+  def test_a_folder_with_only_the_training_input(self):
+    # input.ply was read as the scene: "missing properties f_dc_0, ...".
+    with open(os.path.join(self.dir, 'input.ply'), 'w') as fh:
+      fh.write('ply\nformat ascii 1.0\nelement vertex 0\nend_header\n')
+    with self.assertRaisesRegex(SceneFileError, 'holds only input.ply, the '
+                                'point cloud 3DGS training starts from'):
+      load_scene(self.dir)
+
   def test_splat_file(self):
     g = test_util.random_gaussians(jax.random.key(6), 10)
     path = os.path.join(self.dir, 'x.splat')
@@ -390,7 +398,8 @@ class SceneIOTest(parameterized.TestCase):
     pathlib.Path(self.dir, 'cameras.json').write_text('{"a": 1}')
     with self.assertRaisesRegex(
         SceneFileError, r'cameras\.json was found next to it automatically '
-        r'.*unknown camera file.*cameras=False'):
+        r'.*unknown camera file.*fix that file or move it away.*'
+        'cameras=False'):
       load_scene(path)
     self.assertLen(load_scene(path, cameras=False, num_cameras=2).cameras, 2)
 

@@ -339,6 +339,13 @@ def _find_ply_in_dir(folder: str) -> str:
   if its:
     return max(its, key=num)
   plys = sorted(glob.glob(os.path.join(folder, '*.ply')))
+  if [os.path.basename(p) for p in plys] == ['input.ply']:
+    # (read as a scene, it failed on its missing properties: f_dc_0, ...)
+    raise SceneFileError(
+      f'load_scene: folder {folder!r} holds only input.ply, the point cloud '
+      "3DGS training starts from, not a trained scene: it has no "
+      'point_cloud/iteration_*/point_cloud.ply yet. Finish the training, or '
+      'pass a trained .ply')
   if len(plys) == 1:
     return plys[0]
   raise SceneFileError(
@@ -546,9 +553,9 @@ def _found_cameras(found: str, path: str) -> tuple[Camera, ...]:
   except (PhysSplatError, OSError, ValueError) as e:
     raise SceneFileError(
       f'{path}: the camera file {found} was found next to it automatically '
-      f'but cannot be read ({e}); cameras are optional: pass cameras=False '
-      'to fit orbit cameras instead, or cameras=<path> to name the right '
-      'camera file (or move that file away)'
+      f'but cannot be read ({e}); cameras are optional: fix that file or '
+      'move it away (then orbit cameras are fitted), or in code pass '
+      'cameras=False, or cameras=<path> to name the right file'
     ) from None
 
 
@@ -564,15 +571,9 @@ def fitted_orbit(
   """
   num_cameras = _Fields('fitted_orbit', sidecar=False).whole(
     num_cameras, 'num_cameras', 1)
-  m = np.asarray(means, np.float64)
-  if m.size == 0:
-    lo = hi = np.zeros(3)
-  else:
-    lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
-  if not float(np.max(hi - lo)) > 0:
-    # One Gaussian, or all at one point: frame a unit box around it (the
-    # camera fit needed an extent and failed in look_at, naming no file).
-    lo, hi = lo - 0.5, hi + 0.5
+  # (One Gaussian, or all at one point: a unit box around it; the camera
+  # fit needed an extent and failed in look_at, naming no file.)
+  lo, hi = _cameras.framing_box(means)
   up = up_vector(up_axis)
   cams = []
   for i in range(int(num_cameras)):

@@ -146,7 +146,8 @@ def decode_splat(data: bytes, path='<bytes>', dtype=jnp.float32) -> Gaussians:
   """
   if data.startswith(b'ply\n') or data.startswith(b'ply\r\n'):
     raise SplatError(
-      f'{path}: this is a PLY file, not an antimatter15 .splat; use load_ply'
+      f'{path}: this is a PLY file, not an antimatter15 .splat; rename it '
+      'to .ply (or read it with load_ply)'
     )
   if len(data) % ROW_BYTES:
     raise SplatError(

@@ -88,11 +88,11 @@ def fit_scene_camera(
 ) -> Camera:
   """A camera framing the 1st-99th percentile box of the centres.
 
-  Percentiles keep a few floaters from shrinking the object; see
-  :func:`physsplat_jax.cameras.fit_camera` for the angles.
+  Percentiles keep a few floaters from shrinking the object
+  (:func:`physsplat_jax.cameras.framing_box`, which also frames a single
+  Gaussian); see :func:`physsplat_jax.cameras.fit_camera` for the angles.
   """
-  m = np.asarray(gaussians.means, np.float64)
-  lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
+  lo, hi = cam_lib.framing_box(gaussians.means)
   return cam_lib.fit_camera(lo, hi, up=np.asarray(up, np.float64),
                             width=width, height=height, fov_deg=fov_deg,
                             azimuth=azimuth, elevation=elevation,
