@@ -511,7 +511,8 @@ def make_update(config):
   merged = constitutive_slices(config, merge=True)
 
   def with_jax(FC, Jpep, body_id, mat):
-    F, C = la.rows_mat(FC, 0), la.rows_mat(FC, 9)
+    F, C = transfer.materialize_cotangent(
+      (la.rows_mat(FC, 0), la.rows_mat(FC, 9)))
     if groups:
       args = (F, C, Jpep, mat)
       if merged == single:
