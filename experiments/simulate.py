@@ -97,6 +97,7 @@ def main(argv):
         'experiments/configs/jelly_drop.json)')
     if not os.path.isfile(_SCENE.value):
       what = ('a built-in scene' if _SCENE.value in scenes.list_scenes()
+              else 'a folder' if os.path.isdir(_SCENE.value)
               else 'no such file')
       raise cli.usage_error(
         f'--physgaussian runs its JSON on a trained 3DGS PLY, and '

@@ -27,7 +27,6 @@ import math
 import time
 
 import numpy as np
-from absl import app
 from absl import flags
 from absl import logging
 
@@ -541,8 +540,8 @@ def main(argv):
                           'a simulated time > 0 [s] (default 7)')
   unknown = [c for c in _CASES.value if c not in plan]
   if unknown:
-    raise app.UsageError(f'--cases: unknown case(s) {unknown}; choose from '
-                         f'{sorted(plan)}.')
+    raise cli.usage_error(f'--cases: unknown case(s) {unknown}; choose '
+                          f'from {sorted(plan)}.')
   results = []
   for case in _CASES.value:
     for fn, kw in plan[case]:

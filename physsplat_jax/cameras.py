@@ -331,17 +331,20 @@ def framing_box(means) -> tuple[np.ndarray, np.ndarray]:
   origin when there are none.
 
   Raises:
-    CameraError: the box is not finite or too large to frame (positions
-      off by many orders of magnitude: check the file's units).
+    CameraError: a centre is not finite, or the box is too large to frame
+      (positions off by many orders of magnitude: check the file's units).
   """
   m = np.asarray(means, np.float64).reshape(-1, 3)
   if len(m) == 0:
     lo = hi = np.zeros(3)
   else:
     lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
-  if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))
-          and max(np.max(np.abs(lo)), np.max(np.abs(hi)))
-          <= MAX_FRAMED_EXTENT):
+  if not np.all(np.isfinite(m)):
+    raise CameraError(
+      f'cannot fit a camera: {int(np.sum(~np.isfinite(m).all(1)))} of '
+      f'{len(m)} Gaussian centres are not finite; check the scene\'s file, '
+      'or give a camera')
+  if max(np.max(np.abs(lo)), np.max(np.abs(hi))) > MAX_FRAMED_EXTENT:
     raise CameraError(
       'cannot fit a camera to Gaussians whose centres span '
       f'({", ".join(f"{v:.3g}" for v in lo)}) to '
@@ -349,6 +352,7 @@ def framing_box(means) -> tuple[np.ndarray, np.ndarray]:
       f'{MAX_FRAMED_EXTENT:.0e} scene units; check the scene\'s positions '
       'and units, or give a camera')
   if not float(np.max(hi - lo)) > 0:
+    # (fit_camera needs an extent: it failed in look_at, naming no file)
     lo, hi = lo - 0.5, hi + 0.5
   return lo, hi
 

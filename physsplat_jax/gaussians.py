@@ -146,7 +146,8 @@ def quat_multiply(a: Array, b: Array) -> Array:
 # Covariances ------------------------------------------------------------------
 def covariance(log_scales: Array, quats: Array) -> Array:
   """(..., 3, 3) covariance ``R S S^T R^T`` from log-scales and quaternions."""
-  _last_axis('covariance', 'log-scales', log_scales, 3, 'x, y, z')
+  if np.shape(log_scales)[-1:] != (1,):  # (..., 1): isotropic, broadcast
+    _last_axis('covariance', 'log-scales', log_scales, 3, 'x, y, z')
   R = quat_to_rotmat(quats)
   M = R * jnp.exp(log_scales)[..., None, :]
   return M @ jnp.swapaxes(M, -1, -2)
@@ -248,8 +249,8 @@ def eval_sh(sh: Array, dirs: Array, degree: int | None = None) -> Array:
   """
   _last_axis('eval_sh', 'directions', dirs, 3, 'x, y, z')
   shape = np.shape(sh)
-  if len(shape) < 2 or shape[-1] != 3 or \
-      round(np.sqrt(shape[-2])) ** 2 != shape[-2]:
+  if (len(shape) < 2 or shape[-1] != 3
+      or round(np.sqrt(shape[-2])) ** 2 != shape[-2]):
     raise DataError(f'eval_sh: SH coefficients have shape {shape}; give '
                     '(..., B, 3) with B = (degree + 1)^2: 1, 4, 9 or 16')
   have = int(round(np.sqrt(sh.shape[-2]))) - 1

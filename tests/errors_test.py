@@ -256,6 +256,19 @@ class ErrorPathTest(absltest.TestCase):
                                 'Try another method'):
       job.segment_stage(scene, 'geometric')
 
+  def test_a_video_too_wide_for_the_encoder_is_refused_first(self):
+    # libx264 failed at the end of the run, after the whole simulation.
+    import types as pytypes
+
+    from physsplat_jax.pipeline import host
+    prepared = pytypes.SimpleNamespace(camera=pytypes.SimpleNamespace(
+      width=16385, height=384))
+    with tempfile.TemporaryDirectory() as d:
+      with self.assertRaisesRegex(outputs.OutputError, 'frames of 16385 x '
+                                  '384 pixels: the MP4 encoder'):
+        host.default_writers(prepared, d, 24.0)
+      self.assertEqual(os.listdir(d), [])
+
   def test_outputs_of_an_earlier_run_are_named_in_the_report(self):
     # A failed rerun into the same --out left the earlier video and
     # trajectory beside a report.json with "error", nothing telling them
@@ -281,6 +294,13 @@ class ErrorPathTest(absltest.TestCase):
       fresh = {}
       job._note_earlier_outputs(d, 5e8, fresh)
       self.assertNotIn('earlier_files', fresh)
+      # A finished run says what it wrote: the rest is earlier.
+      done = {}
+      with self.assertLogs(level='WARNING'):
+        job._note_earlier_outputs(d, 5e8, done, written={
+          'video': os.path.join(d, 'video.mp4'),
+          'frames': os.path.join(d, 'frames')})
+      self.assertEqual(done['earlier_files'], ['trajectory.npz', 'ply'])
 
   def test_help_lists_the_config_flag_and_exits_0(self):
     # --help showed only the module's own DEFINEs (--config was cli's) and
@@ -502,9 +522,7 @@ class ValidationTest(absltest.TestCase):
                      (dict(render_config='fast'), 'use a physsplat_jax.'
                       'render.RenderConfig'),
                      (dict(substeps_per_frame=2.5), 'whole number or None'),
-                     # The encoder failed after the whole simulation.
-                     (dict(width=16385), r'width x height = 16385 x 384: '
-                      'the MP4 encoder'),
+
                      (dict(initial_velocity=(('a', (1.0, 0, 0)),
                                              ('a', (0, 1.0, 0)))),
                       "initial_velocity names 'a' more than once"),

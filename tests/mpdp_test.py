@@ -325,7 +325,8 @@ class TrainTest(absltest.TestCase):
       # (a restore failing part-way left orbax's reads pending).
       with self.assertRaisesRegex(model_lib.MPDPError,
                                   'cannot resume from the checkpoint of step '
-                                  r"2 .*\(params\['Dense_\d+'\]\['(bias|kernel)'\] "
+                                  r"2 .*\(params\['Dense_\d+'\]"
+                                  r"\['(bias|kernel)'\] "
                                   r'is \((\d+, )?16,?\) float32 there and '
                                   r'\((\d+, )?8,?\) float32 in this config.*'
                                   'new --workdir'):
@@ -337,9 +338,13 @@ class TrainTest(absltest.TestCase):
         step = m.latest_step()
         with ocp.StandardCheckpointer() as c:
           saved = c.restore(os.path.join(ckpt, str(step), 'default'))
-        fits = train_lib._checkpoint_misfit(m, step, saved)
-        saved['opt_state'] = (saved['opt_state'], np.zeros(2, np.float32))
-        extra = train_lib._checkpoint_misfit(m, step, saved)
+        # A live state: optax's named tuples, saved as dicts.
+        live = {'step': saved['step'], 'params': saved['params'],
+                'opt_state': train_lib.make_optimizer(config.train).init(
+                  saved['params'])}
+        fits = train_lib._checkpoint_misfit(m, step, live)
+        live['opt_state'] = (live['opt_state'], np.zeros(2, np.float32))
+        extra = train_lib._checkpoint_misfit(m, step, live)
       self.assertIsNone(fits)
       self.assertRegex(extra, r'optimiser state \(\d+ arrays in all\)')
       for name, body in (('a.json', '{"metadata": {}}'),

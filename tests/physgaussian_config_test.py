@@ -134,13 +134,18 @@ class ParseTest(parameterized.TestCase):
     c = pg.parse_config({**_PLANE, 'boundary_conditions': [
       {'type': 'particle_impulse', 'force': [0, 0, 1e7], 'num_dt': 1,
        'start_time': 0.0}]}, source='kick.json')
-    err = base.SimulationError('frame 3 (t = 0.1 s): it blew up. Use a '
-                               'smaller dt (now 1e-4 s; mpm.choose_substeps '
-                               'picks a stable one), lower E.', 3, 'nan')
-    got = driver._json_fix(err, c, types.SimpleNamespace(dt=1e-4))
+    from physsplat_jax.mpm import solver
+    sc = types.SimpleNamespace(dt=1e-4)
+    stats = dict(nonfinite=5, wall=0, too_fast=0, max_F=1.0, min_J=1.0,
+                 max_J=1.0, max_speed=0.0)
+    with self.assertRaises(base.SimulationError) as cm:
+      solver.check_state(sc, stats, 3, 0.1)
+    got = driver._json_fix(cm.exception, c, sc)
     self.assertEqual((got.frame, got.reason), (3, 'nan'))
     self.assertEqual(
-      str(got), 'kick.json: frame 3 (t = 0.1 s): it blew up. Lower '
+      str(got), 'kick.json: frame 3 (t = 0.1 s): 5 particles have NaN/inf '
+      'positions, velocities or F: the simulation blew up, most likely '
+      'because the time step is too large for the stiffest material. Lower '
       'substep_dt in the JSON (now 0.0001 s; --auto_substeps picks one '
       'stable at the start, not for speeds gained later), lower E, the '
       'particle_impulse speeds or forces, or raise grid_lim if it was thrown '

@@ -63,11 +63,16 @@ def _check_configs() -> None:
   """Each parsed config flag holds a ConfigDict with the fields its script
   needs (:func:`define_config_file`), or a usage error naming the file."""
   for name, (needs, example) in _CONFIG_NEEDS.items():
-    if name not in flags.FLAGS or flags.FLAGS[name].value is None:
+    if name not in flags.FLAGS:
       continue
     config = flags.FLAGS[name].value
     file = config_flags.get_config_filename(flags.FLAGS[name])
     fits = f'; {example} is one that fits' if example else ''
+    if config is None:
+      if file:  # (an optional flag's file whose get_config() gave None)
+        raise usage_error(f'--{name}={file}: its get_config() returned '
+                          f'None; return an ml_collections.ConfigDict{fits}')
+      continue
     if type(config).__name__ == '_ErrorConfig':
       config.lock()  # raises the error ml_collections kept (a missing file)
     if not isinstance(config, ml_collections.ConfigDict):
@@ -162,10 +167,13 @@ def _flag_errors(argv):
       text = (f'{where}: {error[-1] if error else "get_config() failed"}; '
               'fix the file')
     elif none and none.group(1) in _CONFIG_NEEDS:
-      given = [a for a in argv[1:] if a.startswith(f'--{none.group(1)}=')]
-      text = (f'{given[-1] if given else "--" + none.group(1)}: its '
-              'get_config() returned None; return an ml_collections.'
-              'ConfigDict')
+      name = none.group(1)
+      given = [a for a in argv[1:] if a.startswith(f'--{name}=')]
+      example = _CONFIG_NEEDS[name][1]
+      text = (f'{given[-1]}: its get_config() returned None; return an '
+              'ml_collections.ConfigDict' if given else
+              f'--{name} is required: give a config file'
+              + (f', e.g. --{name}={example}' if example else ''))
     else:
       text += '; --helpfull lists the flags'
     print(f'error: {text}', file=sys.stderr)

@@ -142,6 +142,11 @@ def jsonable(x):
   return x
 
 
+# The largest side libx264 encodes (16386 failed with the imageio-ffmpeg
+# binary, 16384 passed).
+MAX_VIDEO_SIDE = 16384
+
+
 class VideoOutput:
   """``video.mp4`` (GIF when no ffmpeg) from the frames' images."""
 

@@ -331,6 +331,17 @@ def load_scene(path: str | PathLike, **options) -> Scene:
   return load_scene_file(path, **options)
 
 
+def _has_property(path: str, name: str) -> bool:
+  """Whether the PLY header of ``path`` declares property ``name``."""
+  try:
+    with open(path, 'rb') as fh:
+      header = fh.read(65536).split(b'end_header', 1)[0]
+  except OSError:
+    return False
+  return any(line.split()[:1] == [b'property'] and line.split()[-1:] ==
+             [name.encode()] for line in header.splitlines())
+
+
 def _find_ply_in_dir(folder: str) -> str:
   its = glob.glob(os.path.join(folder, 'point_cloud', 'iteration_*',
                                'point_cloud.ply'))
@@ -339,7 +350,8 @@ def _find_ply_in_dir(folder: str) -> str:
   if its:
     return max(its, key=num)
   plys = sorted(glob.glob(os.path.join(folder, '*.ply')))
-  if [os.path.basename(p) for p in plys] == ['input.ply']:
+  if ([os.path.basename(p) for p in plys] == ['input.ply']
+      and not _has_property(plys[0], 'f_dc_0')):
     # (read as a scene, it failed on its missing properties: f_dc_0, ...)
     raise SceneFileError(
       f'load_scene: folder {folder!r} holds only input.ply, the point cloud '
@@ -571,8 +583,6 @@ def fitted_orbit(
   """
   num_cameras = _Fields('fitted_orbit', sidecar=False).whole(
     num_cameras, 'num_cameras', 1)
-  # (One Gaussian, or all at one point: a unit box around it; the camera
-  # fit needed an extent and failed in look_at, naming no file.)
   lo, hi = _cameras.framing_box(means)
   up = up_vector(up_axis)
   cams = []

@@ -289,18 +289,22 @@ def _checkpoint_misfit(mngr, step, state) -> str | None:
   saves its named tuples as dicts, in an order that need not be theirs.
   None also when the metadata cannot be read: the restore then decides.
   """
+  # (The default step folder and item name: with others the check finds
+  # no folder and leaves it to the restore.)
   path = mngr.directory / str(step) / 'default'  # an etils Path
   if not os.path.isdir(path):
     return None
-  handler = ocp.StandardCheckpointHandler()
+  handler = None
   try:
+    handler = ocp.StandardCheckpointHandler()
     meta = handler.metadata(path)
     saved = _arrays(getattr(meta, 'tree', meta))
     want = _arrays(state)
   except Exception:  # noqa: BLE001 (orbax versions differ; restore decides)
     return None
   finally:
-    handler.close()
+    if handler is not None:
+      handler.close()
   there = {k: (s, d) for k, s, d in saved}
   here = {k: (s, d) for k, s, d in want}
   for key in sorted(set(there) | set(here)):

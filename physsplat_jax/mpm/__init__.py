@@ -43,6 +43,7 @@ from physsplat_jax.mpm.solver import RunResult as RunResult
 from physsplat_jax.mpm.solver import init_state as init_state
 from physsplat_jax.mpm.solver import make_frame as make_frame
 from physsplat_jax.mpm.solver import make_substep as make_substep
+from physsplat_jax.mpm.solver import split_fix as split_fix
 from physsplat_jax.mpm.solver import rollout as rollout
 from physsplat_jax.mpm.solver import run as run
 from physsplat_jax.mpm.timestep import cfl_dt as cfl_dt

@@ -569,10 +569,23 @@ MAX_F = 100.0
 J_RANGE = (1e-2, 1e2)
 
 
+# How check_state's messages start their fix: the pipeline and the
+# PhysGaussian driver replace the fix from here on with one in their own
+# terms (split_fix).
+FIX_START = 'Use a smaller dt'
+
+
+def split_fix(error: base.SimulationError) -> str | None:
+  """What a :func:`check_state` error says before its fix (which callers
+  reword in their users' terms), or None for another message."""
+  head, sep, _ = str(error).partition(FIX_START)
+  return head if sep else None
+
+
 def check_state(config: base.SimConfig, stats: dict, frame: int,
                 t: float) -> None:
   """Raises ``SimulationError`` for a blown-up frame (see ``run``)."""
-  fix = (f'Use a smaller dt (now {config.dt:.3g} s; mpm.choose_substeps picks '
+  fix = (f'{FIX_START} (now {config.dt:.3g} s; mpm.choose_substeps picks '
          'a stable one), lower E, add damping, or enlarge the domain.')
   where = f'frame {frame} (t = {t:.4g} s)'
   if stats['nonfinite'] > 0:

@@ -435,8 +435,8 @@ def simulate_config(
 def _json_fix(e, config, sc):
   """The solver's blow-up with the fix in the JSON's terms (the solver
   speaks of dt and mpm.choose_substeps; this user sets substep_dt)."""
-  head, sep, _ = str(e).partition('Use a smaller dt')
-  if not sep:
+  head = solver.split_fix(e)
+  if head is None:
     return e
   movers = sorted({b.type for b in config.boundary_conditions
                    if b.type in ('cuboid', 'particle_impulse',

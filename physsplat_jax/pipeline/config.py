@@ -31,7 +31,9 @@ from absl import logging
 from physsplat_jax import mpm
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render import raster
+from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.render.views import BACKGROUNDS
+from physsplat_jax.render.views import parse_background
 
 
 class PipelineError(PhysSplatError, ValueError):
@@ -222,7 +224,8 @@ class PrepareConfig:
       axes]; '' as a name means every movable object.
     width, height: rendered frame size [pixels].
     camera_index: which scene camera renders (-1: a fitted default).
-    background: RGB in [0, 1], or a name ('white', 'black', 'grey').
+    background: RGB in [0, 1], or a name ('white', 'black', 'grey') or
+      'r,g,b' string as render's ``--background`` takes.
     camera_path: :class:`CameraPath`: 'fixed', or 'orbit' (the camera turns
       about the scene's up axis through the centre of the simulated
       objects, ``orbit_degrees`` over the whole video).
@@ -270,9 +273,12 @@ class PrepareConfig:
   ground_height: float | None = None
 
   def __post_init__(self):
-    name = self.background
-    if isinstance(name, str) and name.strip().lower() in BACKGROUNDS:
-      object.__setattr__(self, 'background', BACKGROUNDS[name.strip().lower()])
+    if isinstance(self.background, str):  # as render's --background
+      try:
+        object.__setattr__(self, 'background',
+                           parse_background(self.background))
+      except RenderInputError:
+        pass  # refused below, naming the field
     _check_types('PrepareConfig', self)
     object.__setattr__(self, 'ground',
                        _enum(Ground, self.ground, 'PrepareConfig', 'ground'))
@@ -417,11 +423,6 @@ _PREPARE_FIELDS = tuple(f.name for f in dataclasses.fields(PrepareConfig))
 _SIMULATE_FIELDS = tuple(f.name for f in dataclasses.fields(SimulateConfig))
 
 
-# The largest side libx264 encodes (16386 fails; measured with the
-# imageio-ffmpeg binary).
-MAX_VIDEO_SIDE = 16384
-
-
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
   """All pipeline settings, flat (scripts and config files write this).
@@ -489,13 +490,6 @@ class PipelineConfig:
     object.__setattr__(self, 'camera_path', p.camera_path)
     object.__setattr__(self, 'background', p.background)
     object.__setattr__(self, 'render', s.render)
-    big = max(self.width, self.height)
-    if s.render is not RenderMode.NONE and big > MAX_VIDEO_SIDE:
-      # (the encoder failed at the end of the run, after the simulation)
-      raise PipelineError(
-        f'PipelineConfig.width x height = {self.width} x {self.height}: the '
-        f'MP4 encoder (H.264) takes at most {MAX_VIDEO_SIDE} pixels a side; '
-        "use smaller ones, or render='none'.")
     duration = self.num_frames / self.fps
     for f in self.forces:
       if f.start >= duration:

@@ -75,9 +75,21 @@ class RunOutput:
 def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
                     video: bool = True, png: bool = True, ply: bool = False,
                     render: bool = True) -> list[out_lib.FrameWriter]:
-  """The standard outputs of a run in ``out_dir``."""
+  """The standard outputs of a run in ``out_dir``.
+
+  Raises:
+    OutputError: the folder cannot be written, or the frames are too large
+      for the video encoder (before the simulation: the encoder failed at
+      the end of the run).
+  """
   out_lib.check_output_dir(out_dir)
   writers = []
+  size = (prepared.camera.width, prepared.camera.height)
+  if video and render and max(size) > out_lib.MAX_VIDEO_SIDE:
+    raise out_lib.OutputError(
+      f'frames of {size[0]} x {size[1]} pixels: the MP4 encoder (H.264) '
+      f'takes at most {out_lib.MAX_VIDEO_SIDE} a side; give a smaller '
+      'width and height, or no video (PNG frames only: video=False)')
   if video and render:
     writers.append(out_lib.VideoOutput(os.path.join(out_dir, 'video.mp4'),
                                        fps))
@@ -301,8 +313,8 @@ class _WallWatch:
 def _pipeline_fix(e, prepared):
   """The solver's error with the fix in the pipeline's terms (the solver
   speaks of dt and damping; a pipeline user sets config fields)."""
-  head, sep, _ = str(e).partition('Use a smaller dt')
-  if not sep:
+  head = mpm.split_fix(e)
+  if head is None:
     return e
   n = prepared.spec.substeps_per_frame
   return mpm.SimulationError(

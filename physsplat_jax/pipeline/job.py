@@ -66,8 +66,7 @@ def segment_stage(scene: Scene, method: str | None) -> Scene:
       f'{found or "no object"}: nothing to move. Try another method '
       f'({", ".join(m for m in segmentation.METHODS if m != method)}; '
       'boxes and masks take their boxes or masks in segmentation.segment), '
-      'a --config.roi around the objects to simulate, or a scene whose '
-      'objects stand apart from the support.')
+      'or a scene whose objects stand apart from the support.')
   return segmented
 
 
@@ -141,7 +140,7 @@ def simulate_scene(
     _write_report(out_dir, report)
     raise
   stages['total'] = time.perf_counter() - t0
-  _note_earlier_outputs(out_dir, started, report)
+  _note_earlier_outputs(out_dir, started, report, written=out.files)
   report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
   report['files'] = dict(out.files)
   path = _write_report(out_dir, report)
@@ -191,18 +190,25 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
 _OUTPUTS = ('video.mp4', 'video.gif', 'trajectory.npz', 'frames', 'ply')
 
 
-def _note_earlier_outputs(out_dir, started: float, report: dict) -> None:
+def _note_earlier_outputs(out_dir, started: float, report: dict,
+                          written: dict | None = None) -> None:
   """Names in ``report['earlier_files']``, with a warning, the outputs in
   ``out_dir`` that this run did not write: a failed rerun, or one without
   ``ply``, left an earlier run's video or PLY folder beside the new
-  report, with nothing to tell them apart. They are kept (never lost)."""
+  report, with nothing to tell them apart. They are kept (never lost).
+  ``written``: the run's files (``RunOutput.files``) when it finished;
+  else the files' modification times against ``started`` decide."""
   if out_dir is None:
     return
+  ours = {os.path.realpath(p) for p in (written or {}).values()}
   old = []
   for name in _OUTPUTS:
     path = os.path.join(out_dir, name)
     try:
-      if os.path.isdir(path):
+      if written is not None:
+        if os.path.exists(path) and os.path.realpath(path) not in ours:
+          old.append(name)
+      elif os.path.isdir(path):
         times = [e.stat().st_mtime for e in os.scandir(path) if e.is_file()]
         if times and max(times) < started:
           old.append(name)

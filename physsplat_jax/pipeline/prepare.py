@@ -9,7 +9,8 @@ stages, each a short function of the previous stages' results:
   drivers    driving particles (PGAS / uniform / k-means)
   binding    every simulated Gaussian -> its k nearest drivers (``deform``)
   mpdp       per-object driver gathers; the MPDP field, evaluated once
-  time step  substeps per frame from the stiffest point and initial speeds
+  time step  substeps per frame from the stiffest point, the initial speeds
+             and the impulses
   forces     force targets and ball centres in the simulation frame
 
 Nothing here is traced or differentiated; ``simulate`` is the pure part.
