@@ -24,6 +24,7 @@ entering as small integer multiples since ``x_i - x_p = (o - f) dx``.
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import jax
@@ -279,19 +280,77 @@ def p2g(grid: GridSpec, st: Stencil, v, mass, A, extra=None):
   Ae = [col(_channels([z] + [dx * A[d][e] for d in range(3)]
                       + [z] * len(tail)))
         for e in range(3)]
-  o = [jnp.arange(3, dtype=mass.dtype).reshape(s)
-       for s in ((1, 3, 1, 1, 1), (1, 1, 3, 1, 1), (1, 1, 1, 3, 1))]
   W = st.block_weights()                                      # (N, 3, 3, 3)
-  U = W[..., None] * (Q + o[0] * Ae[0] + o[1] * Ae[1] + o[2] * Ae[2])
-  out = _scatter(st, U)
+  out = _p2g_window(st.res, W, Q, *Ae, _channels(st.base))
   return out if extra is None else out[..., :5]
 
 
-def _scatter(st: Stencil, U):
+def _p2g_window_sum(G: int, W, Q, Ae0, Ae1, Ae2, base):
+  """The (G, G, G, C) sum of every particle's window
+  ``W (Q + o_x Ae0 + o_y Ae1 + o_z Ae2)`` at ``base`` (:func:`p2g`)."""
+  o = [jnp.arange(3, dtype=W.dtype).reshape(s)
+       for s in ((1, 3, 1, 1, 1), (1, 1, 3, 1, 1), (1, 1, 1, 3, 1))]
+  U = W[..., None] * (Q + o[0] * Ae0 + o[1] * Ae1 + o[2] * Ae2)
+  return _scatter(G, base, U)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _p2g_window(G: int, W, Q, Ae0, Ae1, Ae2, base):
+  """:func:`_p2g_window_sum`, whose reverse pass on the CPU is two batched
+  products instead of XLA's reductions over the 27 nodes.
+
+  XLA:CPU reduced the (N, 3, 3, 3, C) window cotangent over the nodes at
+  about 1 GB/s: the tabletop's backward spent ~18 of its ~44 ms per
+  substep there. The same sums as products (:func:`window_moments`' 'dot'
+  form, which G2P's forward uses for the same reason) take a fraction of
+  that. Elsewhere the reverse pass is XLA's own (``jax.vjp``).
+  """
+  return _p2g_window_sum(G, W, Q, Ae0, Ae1, Ae2, base)
+
+
+def _p2g_window_fwd(G, W, Q, Ae0, Ae1, Ae2, base):
+  return (_p2g_window_sum(G, W, Q, Ae0, Ae1, Ae2, base),
+          (W, Q, Ae0, Ae1, Ae2, base))
+
+
+def _p2g_window_bwd(G, res, g):
+  W, Q, Ae0, Ae1, Ae2, base = res
+
+  def by_products(W, Q, Ae0, Ae1, Ae2, base, g):
+    n, c = W.shape[0], g.shape[-1]
+    dn = jax.lax.GatherDimensionNumbers(
+      offset_dims=(1, 2, 3, 4), collapsed_slice_dims=(),
+      start_index_map=(0, 1, 2))
+    dU = jax.lax.gather(g, base, dn, slice_sizes=(3, 3, 3, c),
+                        mode=jax.lax.GatherScatterMode.CLIP
+                        ).reshape(n, 27, c)                        # (N,27,C)
+    o4 = _o4(W.dtype)                                              # (27, 4)
+    # dQ and dAe_e: sum_k W_k (1, o_k) dU_k.
+    dP = _window_moments_dot(W.reshape(n, 27), o4, dU)             # (N,4,C)
+    # dW_k: sum_c dU_kc (Q + o_k . Ae)_c.
+    P = jnp.stack([Q, Ae0, Ae1, Ae2], 1).reshape(n, 4, c)
+    T = jnp.einsum('nkc,njc->nkj', dU, P,
+                   precision=jax.lax.Precision.HIGHEST)            # (N,27,4)
+    dW = jnp.sum(T * o4[None], -1).reshape(W.shape)
+    shape = Q.shape
+    return (dW,) + tuple(dP[:, j].reshape(shape) for j in range(4))
+
+  def by_xla(W, Q, Ae0, Ae1, Ae2, base, g):
+    _, vjp = jax.vjp(
+      lambda *a: _p2g_window_sum(G, *a, base), W, Q, Ae0, Ae1, Ae2)
+    return vjp(g)
+
+  cts = jax.lax.platform_dependent(W, Q, Ae0, Ae1, Ae2, base, g,
+                                   cpu=by_products, default=by_xla)
+  return tuple(cts) + (None,)
+
+
+_p2g_window.defvjp(_p2g_window_fwd, _p2g_window_bwd)
+
+
+def _scatter(G: int, base, U):
   """Adds the (N, 3, 3, 3, C) window ``U`` of each particle into a
-  (G, G, G, C) grid at its stencil base."""
-  G = st.res
-  base = _channels(st.base)                                       # (N, 3)
+  (G, G, G, C) grid at its (N, 3) stencil ``base``."""
   dn = jax.lax.ScatterDimensionNumbers(
     update_window_dims=(1, 2, 3, 4), inserted_window_dims=(),
     scatter_dims_to_operand_dims=(0, 1, 2))
