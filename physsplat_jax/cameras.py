@@ -335,15 +335,15 @@ def framing_box(means) -> tuple[np.ndarray, np.ndarray]:
       (positions off by many orders of magnitude: check the file's units).
   """
   m = np.asarray(means, np.float64).reshape(-1, 3)
-  if len(m) == 0:
-    lo = hi = np.zeros(3)
-  else:
-    lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
   if not np.all(np.isfinite(m)):
     raise CameraError(
       f'cannot fit a camera: {int(np.sum(~np.isfinite(m).all(1)))} of '
       f'{len(m)} Gaussian centres are not finite; check the scene\'s file, '
       'or give a camera')
+  if len(m) == 0:
+    lo = hi = np.zeros(3)
+  else:
+    lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
   if max(np.max(np.abs(lo)), np.max(np.abs(hi))) > MAX_FRAMED_EXTENT:
     raise CameraError(
       'cannot fit a camera to Gaussians whose centres span '

@@ -59,6 +59,13 @@ _CONFIG_FILES: dict[str, str | None] = {}
 _CONFIG_NEEDS: dict[str, tuple[tuple[str, ...], str | None]] = {}
 
 
+def _given(argv, name: str) -> str | None:
+  """The value of the last ``--name=VALUE`` in ``argv``, or None."""
+  values = [a.split('=', 1)[1] for a in argv[1:]
+            if a.startswith(f'--{name}=')]
+  return values[-1] if values else None
+
+
 def _check_configs() -> None:
   """Each parsed config flag holds a ConfigDict with the fields its script
   needs (:func:`define_config_file`), or a usage error naming the file."""
@@ -126,9 +133,9 @@ def _unknown_field(e: Exception, argv) -> str | None:
       name, *path = arg[2:].split('=')[0].split('.')
       if field not in path:
         continue
-      given = [a.split('=', 1)[1] for a in argv[1:]
-               if a.startswith(f'--{name}=')]
-      file = given[-1] if given else _CONFIG_FILES.get(name)
+      file = _given(argv, name)
+      if file is None:
+        file = _CONFIG_FILES.get(name)
       readable = bool(file) and os.path.isfile(file)
       fields = (_config_fields(file, path[:path.index(field)])
                 if readable else None)
@@ -168,10 +175,10 @@ def _flag_errors(argv):
               'fix the file')
     elif none and none.group(1) in _CONFIG_NEEDS:
       name = none.group(1)
-      given = [a for a in argv[1:] if a.startswith(f'--{name}=')]
+      given = _given(argv, name)
       example = _CONFIG_NEEDS[name][1]
-      text = (f'{given[-1]}: its get_config() returned None; return an '
-              'ml_collections.ConfigDict' if given else
+      text = (f'--{name}={given}: its get_config() returned None; return '
+              'an ml_collections.ConfigDict' if given is not None else
               f'--{name} is required: give a config file'
               + (f', e.g. --{name}={example}' if example else ''))
     else:
@@ -183,9 +190,8 @@ def _flag_errors(argv):
     if match is None:
       raise
     name = match.group(1)
-    given = [a.split('=', 1)[1] for a in argv[1:]
-             if a.startswith(f'--{name}=')]
-    flag = f'--{name}={given[-1]!r}' if given else f'--{name}'
+    given = _given(argv, name)
+    flag = f'--{name}={given!r}' if given is not None else f'--{name}'
     print(f'error: {flag}: no such .py config file', file=sys.stderr)
     sys.exit(2)
   except SyntaxError as e:  # a config .py that does not parse

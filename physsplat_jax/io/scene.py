@@ -58,7 +58,7 @@ from physsplat_jax import cameras as _cameras
 from physsplat_jax.io.cameras import load_cameras
 from physsplat_jax.io.ply import PlyError, load_ply, save_ply
 from physsplat_jax.io.ply import check_writable_file, float_dtype
-from physsplat_jax.io.ply_format import open_output
+from physsplat_jax.io.ply_format import open_output, read_ply_header
 from physsplat_jax.io.splat import load_splat
 from physsplat_jax.io import up_axis as up_lib
 from physsplat_jax.types import Camera, DataError, Gaussians, ObjectInfo
@@ -334,12 +334,10 @@ def load_scene(path: str | PathLike, **options) -> Scene:
 def _has_property(path: str, name: str) -> bool:
   """Whether the PLY header of ``path`` declares property ``name``."""
   try:
-    with open(path, 'rb') as fh:
-      header = fh.read(65536).split(b'end_header', 1)[0]
-  except OSError:
+    header = read_ply_header(path)
+  except (PlyError, OSError):
     return False
-  return any(line.split()[:1] == [b'property'] and line.split()[-1:] ==
-             [name.encode()] for line in header.splitlines())
+  return any(name in e.property_names for e in header.elements)
 
 
 def _find_ply_in_dir(folder: str) -> str:

@@ -318,12 +318,7 @@ def _p2g_window_bwd(G, res, g):
 
   def by_products(W, Q, Ae0, Ae1, Ae2, base, g):
     n, c = W.shape[0], g.shape[-1]
-    dn = jax.lax.GatherDimensionNumbers(
-      offset_dims=(1, 2, 3, 4), collapsed_slice_dims=(),
-      start_index_map=(0, 1, 2))
-    dU = jax.lax.gather(g, base, dn, slice_sizes=(3, 3, 3, c),
-                        mode=jax.lax.GatherScatterMode.CLIP
-                        ).reshape(n, 27, c)                        # (N,27,C)
+    dU = _window_block(g, base)                                    # (N,27,C)
     o4 = _o4(W.dtype)                                              # (27, 4)
     # dQ and dAe_e: sum_k W_k (1, o_k) dU_k.
     dP = _window_moments_dot(W.reshape(n, 27), o4, dU)             # (N,4,C)
@@ -374,15 +369,17 @@ def _window_moments_sum(w, o4, g):
   return jnp.sum(wo[:, :, :, None] * g[:, :, None, :], axis=1)
 
 
-def _window_block(g4, base, lin):
-  """(N, 27, 3) node velocities of each particle's 3 x 3 x 3 window: one
-  windowed gather of a (3, 3, 3, 3) block at ``base`` (clamped per axis)."""
+def _window_block(g4, base, lin=None):
+  """(N, 27, C) node values of each particle's 3 x 3 x 3 window of a
+  (G, G, G, C) grid (G2P's velocities, C = 3): one windowed gather of a
+  (3, 3, 3, C) block at ``base`` (clamped per axis)."""
   del lin
+  c = g4.shape[-1]
   dn = jax.lax.GatherDimensionNumbers(
     offset_dims=(1, 2, 3, 4), collapsed_slice_dims=(),
     start_index_map=(0, 1, 2))
-  return jax.lax.gather(g4, base, dn, slice_sizes=(3, 3, 3, 3),
-                        mode=jax.lax.GatherScatterMode.CLIP).reshape(-1, 27, 3)
+  return jax.lax.gather(g4, base, dn, slice_sizes=(3, 3, 3, c),
+                        mode=jax.lax.GatherScatterMode.CLIP).reshape(-1, 27, c)
 
 
 def _window_rows(g4, base, lin):

@@ -576,9 +576,8 @@ def config_from_dict(d) -> PipelineConfig:
   if unknown:
     raise PipelineError(f'unknown pipeline config fields {unknown}; valid: '
                         f'{sorted(fields)}')
-  if 'forces' in d:
-    d['forces'] = tuple(_force_from_dict(i, f)
-                        for i, f in enumerate(d['forces'] or ()))
+  if 'forces' in d:  # (dicts: PipelineConfig converts them)
+    d['forces'] = tuple(d['forces'] or ())
   if 'initial_velocity' in d:
     iv = d['initial_velocity'] or ()
     items = iv.items() if isinstance(iv, dict) else iv
