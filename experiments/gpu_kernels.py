@@ -58,6 +58,7 @@ from experiments.lib import hlo
 from experiments.lib import ptxas as ptxas_lib
 from experiments.lib import substep as substep_lib
 from physsplat_jax import mpm
+from physsplat_jax import platforms
 from physsplat_jax import pipeline as pl
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.render import pallas_raster
@@ -192,6 +193,13 @@ def compile_simulate(sharding, scene_name: str, frames: int) -> list[dict]:
 
 def main(argv):
   del argv
+  # Lowered for a GPU this host need not have: traces keep every
+  # platform's form (physsplat_jax.platforms).
+  with platforms.every_platform():
+    _compile_targets()
+
+
+def _compile_targets():
   dump_dir = ptxas = None
   if {'render', 'mpm'} & set(_TARGETS.value):
     # ptxas reads the PTX that XLA dumps; the flag must be set before XLA

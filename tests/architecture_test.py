@@ -14,7 +14,8 @@ from absl.testing import absltest
 ROOT = pathlib.Path(__file__).resolve().parent.parent / 'physsplat_jax'
 
 CORE = {'types', 'struct', 'gaussians', 'cameras', 'sh_rotation', 'errors',
-        'compile_cache', 'program_store', 'sorting', 'test_util', 'values'}
+        'compile_cache', 'program_store', 'sorting', 'test_util', 'values',
+        'platforms'}
 LAYER = {
   **{m: 0 for m in CORE},
   **{m: 1 for m in ('mpm', 'render', 'sampling', 'deform', 'mpdp')},

@@ -2,7 +2,8 @@
 without one.
 
 Some steps of the substep are written twice and chosen by platform when
-the program is lowered (``lax.platform_dependent``): the CPU keeps the forms
+the program is lowered (``platforms.platform_dependent``, which keeps every
+form while ``platforms.every_platform()`` is open): the CPU keeps the forms
 XLA:CPU runs fastest (a batched product in G2P and for the rigid-body sums,
 the Jacobi sweeps of the SVD as a loop); other platforms get forms XLA:GPU
 fuses into fewer kernels (sums, an unrolled chain). Lowering for CUDA needs
@@ -26,6 +27,7 @@ import mpm_blocks
 from experiments.lib import hlo
 from experiments.lib import ptxas
 from physsplat_jax import mpm
+from physsplat_jax import platforms
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import rigid
 from physsplat_jax.mpm import transfer
@@ -36,8 +38,9 @@ _GRID = mpm.GridSpec(res=16, size=1.0, lower=(0.5, -1.0, 0.0))
 
 def _ops(fn, args, platform):
   """Counts of StableHLO ops in ``fn`` lowered for ``platform``."""
-  text = jax.jit(fn).trace(*args).lower(
-    lowering_platforms=(platform,)).as_text()
+  with platforms.every_platform():  # a program for a GPU on a CPU host
+    text = jax.jit(fn).trace(*args).lower(
+      lowering_platforms=(platform,)).as_text()
   ops = {op: len(re.findall(rf'stablehlo\.{op}\b', text))
          for op in ('while', 'dot_general', 'scatter', 'reduce', 'gather',
                     'concatenate')}
@@ -369,6 +372,39 @@ ENTRY %main (e: f32[4]) -> f32[4] {
   ROOT %o = f32[4]{0} get-tuple-element(%w), index=1
 }
 """
+
+
+class TraceTimeChoiceTest(absltest.TestCase):
+  """``platforms.platform_dependent`` traces the CPU's form alone where only
+  the CPU can run the program, every form inside ``every_platform``."""
+
+  def test_cpu_form_alone_then_every_form(self):
+    self.assertEqual(jax.default_backend(), 'cpu')  # (CI: JAX_PLATFORMS=cpu)
+
+    def f(x):
+      return platforms.platform_dependent(
+        x, cpu=lambda y: y * 3.0, default=lambda y: y * 5.0)
+
+    x = jnp.ones(4)
+    jitted = jax.jit(f)
+    self.assertTrue(platforms.traced_for_cpu_only())
+    prims = {e.primitive.name for e in jax.make_jaxpr(f)(x).eqns}
+    self.assertNotIn('platform_index', prims)
+    self.assertNotIn('cond', prims)
+    np.testing.assert_array_equal(jitted(x), 3.0 * np.ones(4))
+    with platforms.every_platform():
+      self.assertFalse(platforms.traced_for_cpu_only())
+      prims = {e.primitive.name for e in jax.make_jaxpr(f)(x).eqns}
+      self.assertIn('platform_index', prims)
+      # The jitted function traced before is traced again (a cached
+      # CPU-only trace would give CUDA the CPU's form): 5 for CUDA.
+      cuda = jitted.trace(x).lower(lowering_platforms=('cuda',)).as_text()
+      self.assertRegex(cuda, r'5\.0+e\+00')
+      self.assertNotRegex(cuda, r'3\.0+e\+00')
+      np.testing.assert_array_equal(jitted(x), 3.0 * np.ones(4))
+    self.assertTrue(platforms.traced_for_cpu_only())
+    with self.assertRaisesRegex(ValueError, 'no branch for the CPU'):
+      platforms.platform_dependent(x, cuda=lambda y: y)
 
 
 class KernelCountTest(absltest.TestCase):

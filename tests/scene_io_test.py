@@ -210,6 +210,15 @@ class SceneIOTest(parameterized.TestCase):
                                 'point cloud 3DGS training starts from'):
       load_scene(self.dir)
 
+  def test_positions_too_far_to_frame_name_the_file(self):
+    # The camera fit's error named no file.
+    g = test_util.random_gaussians(jax.random.key(7), 10)
+    path = os.path.join(self.dir, 'far.ply')
+    save_ply(path, g.replace(means=g.means * 1e13 + 1e13))
+    with self.assertRaisesRegex(SceneFileError, r'far\.ply: cannot fit a '
+                                r'camera .* beyond 1e\+12 scene units'):
+      load_scene(path)
+
   def test_splat_file(self):
     g = test_util.random_gaussians(jax.random.key(6), 10)
     path = os.path.join(self.dir, 'x.splat')

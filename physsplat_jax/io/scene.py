@@ -496,11 +496,14 @@ def load_scene_file(
                 c.height if height is None else height) for c in cams
     )
   if not cams and not exact:
-    cams = fitted_orbit(
-      np.asarray(g.means), up_axis, num_cameras,
-      DEFAULT_WIDTH if width is None else width,
-      DEFAULT_HEIGHT if height is None else height, fov_deg,
-    )
+    try:
+      cams = fitted_orbit(
+        np.asarray(g.means), up_axis, num_cameras,
+        DEFAULT_WIDTH if width is None else width,
+        DEFAULT_HEIGHT if height is None else height, fov_deg,
+      )
+    except _cameras.CameraError as e:
+      raise SceneFileError(f'{path}: {e}') from None
   if meters_per_unit is None:
     meters_per_unit = side.get('meters_per_unit', 1.0) if side else 1.0
   if name is None:

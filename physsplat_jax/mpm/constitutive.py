@@ -74,6 +74,7 @@ import math
 import jax
 import jax.numpy as jnp
 
+from physsplat_jax import platforms
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import transfer
 from physsplat_jax.mpm.models import MODEL_PARAMS
@@ -520,7 +521,7 @@ def make_update(config):
       # A slice per model on the CPU (an elastic model's closed form is
       # cheaper than an SVD); elsewhere one blended slice, whose program
       # compiles faster (constitutive_slices).
-      return jax.lax.platform_dependent(
+      return platforms.platform_dependent(
         *args, cpu=functools.partial(constitute_slices, single, dt),
         default=functools.partial(constitute_slices, merged, dt))
     return constitute_all(models, dt, F, C, Jpep, mat,
@@ -544,11 +545,11 @@ def make_update(config):
       # update; the kernel's interpreted form does not run there.)
       out = with_jax(*args)
     elif kernel == 'pallas':  # interpreted off a CUDA GPU (slow: tests)
-      out = jax.lax.platform_dependent(
+      out = platforms.platform_dependent(
         *args, cuda=compiled,
         default=functools.partial(with_kernel, interpret=True))
     elif pallas_constitutive.available(config.dtype):  # 'auto'
-      out = jax.lax.platform_dependent(*args, cuda=compiled, default=with_jax)
+      out = platforms.platform_dependent(*args, cuda=compiled, default=with_jax)
     else:  # 'auto' where this JAX cannot build the kernel
       out = with_jax(*args)
     return transfer.materialize(out)

@@ -54,6 +54,7 @@ import threading
 import jax
 import jax.numpy as jnp
 
+from physsplat_jax import platforms
 from physsplat_jax.types import Array
 
 Mat = tuple  # tuple[tuple[Array, Array, Array], ...] of (N,) arrays
@@ -496,7 +497,7 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
   if unroll is None and _MODE.on:
     unroll = False
   if unroll is None:
-    A, V = jax.lax.platform_dependent(carry, cpu=looped, default=unrolled)
+    A, V = platforms.platform_dependent(carry, cpu=looped, default=unrolled)
   else:
     A, V = unrolled(carry) if unroll else looped(carry)
   return [A[0][0], A[1][1], A[2][2]], V

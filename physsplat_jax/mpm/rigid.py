@@ -30,6 +30,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from physsplat_jax import platforms
 from physsplat_jax.mpm import linalg as la
 
 
@@ -80,7 +81,7 @@ def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto',
     def one(q):
       if form in ('product', 'reduction'):
         return product(q) if form == 'product' else column(q)
-      return jax.lax.platform_dependent(q, cpu=product, default=column)
+      return platforms.platform_dependent(q, cpu=product, default=column)
 
     def ssum_used(cols):
       out = (one(jnp.stack(cols, axis=1)) if inner is None
@@ -99,7 +100,7 @@ def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto',
         return _onehot_product(q, onehot)
       if form == 'reduction':
         return _onehot_reduction(q, onehot)
-      return jax.lax.platform_dependent(q, onehot, cpu=_onehot_product,
+      return platforms.platform_dependent(q, onehot, cpu=_onehot_product,
                                         default=_onehot_reduction)
   else:
     def total(q):
@@ -143,7 +144,7 @@ def _per_particle(seg, num_segments, dtype, form='auto'):
       return gather(*cols)
     if form == 'product':
       return product(*cols)
-    return jax.lax.platform_dependent(*cols, cpu=product, default=gather)
+    return platforms.platform_dependent(*cols, cpu=product, default=gather)
 
   return at_all
 
@@ -481,7 +482,7 @@ def _measure_contacts(planes, rigid, ssum, at, mass, r, x_new, free,
   elif form == 'merged':
     table = merged()
   elif form == 'auto':
-    table = jax.lax.platform_dependent(cpu=sequential, default=merged)
+    table = platforms.platform_dependent(cpu=sequential, default=merged)
   else:
     raise ValueError(f"_measure_contacts: form={form!r}; use 'sequential', "
                      "'merged' or 'auto'")

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax import platforms
 from physsplat_jax.mpm.base import GridSpec
 
 OFFSETS = tuple(itertools.product(range(3), repeat=3))
@@ -75,7 +76,7 @@ def _channels(cols, form: str = 'auto'):
     return stack(*cols)
   if form == 'select':
     return select(*cols)
-  return jax.lax.platform_dependent(*cols, cpu=stack, default=select)
+  return platforms.platform_dependent(*cols, cpu=stack, default=select)
 
 
 def _w1d(f):
@@ -114,7 +115,7 @@ def block_weights(f, form: str = 'auto'):
     return stack(*f)
   if form == 'select':
     return select(*f)
-  return jax.lax.platform_dependent(*f, cpu=stack, default=select)
+  return platforms.platform_dependent(*f, cpu=stack, default=select)
 
 
 def _offset_axis(e: int, dtype):
@@ -202,14 +203,14 @@ def materialize(a):
   through a ``lax.cond`` whose branches both return it (its predicate,
   ``a`` has no NaN in its first entry, only picks which). Other platforms
   (where a conditional costs a host round trip and fusion is not the
-  problem) get ``a`` unchanged, chosen at lowering by
-  ``lax.platform_dependent``.
+  problem) get ``a`` unchanged, chosen by
+  ``platforms.platform_dependent``.
   """
   def on_cpu(a):
     first = jax.tree.leaves(a)[0].reshape(-1)[0]
     return jax.lax.cond(first == first, lambda b: b,
                         lambda b: jax.tree.map(lambda q: q + 0, b), a)
-  return jax.lax.platform_dependent(a, cpu=on_cpu, default=lambda b: b)
+  return platforms.platform_dependent(a, cpu=on_cpu, default=lambda b: b)
 
 
 @jax.custom_vjp
@@ -335,7 +336,7 @@ def _p2g_window_bwd(G, res, g):
       lambda *a: _p2g_window_sum(G, *a, base), W, Q, Ae0, Ae1, Ae2)
     return vjp(g)
 
-  cts = jax.lax.platform_dependent(W, Q, Ae0, Ae1, Ae2, base, g,
+  cts = platforms.platform_dependent(W, Q, Ae0, Ae1, Ae2, base, g,
                                    cpu=by_products, default=by_xla)
   return tuple(cts) + (None,)
 
@@ -411,7 +412,7 @@ def window_moments(w, o4, g, form: str = 'auto'):
   a reduction over the 27 nodes, which XLA:GPU fuses with the gather into
   one kernel, where the product is a GEMM after a transposed copy of the
   gathered block), or ``'auto'``: 'dot' on the CPU, 'sum' elsewhere
-  (``lax.platform_dependent``, chosen at lowering).
+  (``platforms.platform_dependent``).
   """
   if form == 'dot':
     return _window_moments_dot(w, o4, g)
@@ -420,7 +421,7 @@ def window_moments(w, o4, g, form: str = 'auto'):
   if form != 'auto':
     raise ValueError(f"window_moments: form must be 'auto', 'dot' or 'sum', "
                      f'got {form!r}.')
-  return jax.lax.platform_dependent(w, o4, g, cpu=_window_moments_dot,
+  return platforms.platform_dependent(w, o4, g, cpu=_window_moments_dot,
                                     default=_window_moments_sum)
 
 
@@ -452,7 +453,7 @@ def g2p(grid: GridSpec, st: Stencil, gv, form: str = 'auto'):
   g4 = jnp.stack([a.reshape(G, G, G) for a in gv], axis=-1)      # (G,G,G,3)
   g4 = materialize(g4)
   base = _channels(st.base)                                       # (N, 3)
-  g = jax.lax.platform_dependent(g4, base, st.lin, cpu=_window_rows,
+  g = platforms.platform_dependent(g4, base, st.lin, cpu=_window_rows,
                                  default=_window_block)           # (N,27,3)
   R = window_moments(st.weights(), _o4(g.dtype), g, form)         # (N, 4, 3)
   v = tuple(R[:, 0, d] for d in range(3))

@@ -78,6 +78,7 @@ import numpy as np
 from jax import lax
 
 from physsplat_jax import gaussians as gs
+from physsplat_jax import platforms
 from physsplat_jax import program_store
 from physsplat_jax import sorting
 from physsplat_jax import struct
@@ -371,7 +372,7 @@ def _sub_tile_ranges(sub_s: Array, num_sub: int,
 
   if method is not None:
     return search(method)()
-  return lax.platform_dependent(cpu=search('scan'),
+  return platforms.platform_dependent(cpu=search('scan'),
                                 default=search('scan_unrolled'))
 
 

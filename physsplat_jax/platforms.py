@@ -1,0 +1,67 @@
+"""Code chosen by platform, decided when it is traced where it can be.
+
+Some of the solver's and the renderer's steps have a form per platform
+with the same values (a loop on the CPU, the same chain unrolled on a GPU;
+a Pallas kernel on a CUDA GPU, XLA's fusion elsewhere).
+``jax.lax.platform_dependent`` picks one when the program is lowered, so
+a trace holds every form, and a gradient linearizes and transposes every
+form: tracing the README's three-frame gradient took 10.4 s on a 2-core
+CPU, 4.2 s with the CPU's forms alone (round of 2026-11-28).
+
+:func:`platform_dependent` takes ``lax.platform_dependent``'s arguments.
+Where JAX's default backend is the CPU (no GPU or TPU in this process: JAX
+picks one as the default whenever there is one) a program can only be
+lowered for the CPU, so it traces the CPU's form alone; anywhere else it
+is ``lax.platform_dependent``. A program lowered for another platform on
+a CPU-only host (``.lower(lowering_platforms=('cuda',))``, a deviceless
+compile for a GPU) is traced inside :func:`every_platform`, which keeps
+every form. (Without it such a program is still correct, with the CPU's
+forms: every form gives the same values.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+
+import jax
+
+_LOCK = threading.Lock()
+_EVERY = 0  # how many every_platform() blocks are open, in any thread
+
+
+def traced_for_cpu_only() -> bool:
+  """Whether a program traced now can only be lowered for the CPU (and so
+  :func:`platform_dependent` traces the CPU's form alone)."""
+  return _EVERY == 0 and jax.default_backend() == 'cpu'
+
+
+def platform_dependent(*args, default=None, **per_platform):
+  """``jax.lax.platform_dependent(*args, default=..., cpu=..., cuda=...)``,
+  with the CPU's branch (``cpu``, else ``default``) called directly where
+  :func:`traced_for_cpu_only`."""
+  if traced_for_cpu_only():
+    branch = per_platform.get('cpu', default)
+    if branch is None:
+      raise ValueError('platform_dependent: no branch for the CPU and no '
+                       'default')
+    return branch(*args)
+  return jax.lax.platform_dependent(*args, default=default, **per_platform)
+
+
+@contextlib.contextmanager
+def every_platform():
+  """While open (in any thread), traces keep every platform's form, for a
+  program lowered for a platform this process has no device of. JAX's
+  trace caches are cleared on entry: a trace made before would hold the
+  CPU's forms only. (Traces made inside stay valid after: they hold every
+  form.)"""
+  global _EVERY
+  with _LOCK:
+    _EVERY += 1
+  jax.clear_caches()
+  try:
+    yield
+  finally:
+    with _LOCK:
+      _EVERY -= 1
