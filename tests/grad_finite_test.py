@@ -75,8 +75,10 @@ def _f64(tree):
     if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree)
 
 
-def _check_directional(test, fn, params, seed=0):
-  """AD vs central FD along a random direction of every float leaf.
+def _check_directional(test, fn, params, seed=0, fields=None):
+  """AD vs central FD along a random direction of every float leaf, and of
+  each of ``fields`` (Params field names) alone: a field whose share of
+  the total is small would otherwise pass with its own gradient wrong.
 
   ``fn`` is a jitted ``value_and_grad``; returns the gradient.
   """
@@ -86,13 +88,22 @@ def _check_directional(test, fn, params, seed=0):
   _, g = fn(params)
   for leaf in jax.tree.leaves(g):
     test.assertTrue(np.all(np.isfinite(np.asarray(leaf))))
-  ad = sum(float(jnp.sum(a * b)) for a, b in
-           zip(jax.tree.leaves(g), jax.tree.leaves(d)))
-  fp, _ = fn(jax.tree.map(lambda a, b: a + _EPS * b, params, d))
-  fm, _ = fn(jax.tree.map(lambda a, b: a - _EPS * b, params, d))
-  fd = float(fp - fm) / (2 * _EPS)
+
+  def along(direction):
+    ad = sum(float(jnp.sum(a * b)) for a, b in
+             zip(jax.tree.leaves(g), jax.tree.leaves(direction)))
+    fp, _ = fn(jax.tree.map(lambda a, b: a + _EPS * b, params, direction))
+    fm, _ = fn(jax.tree.map(lambda a, b: a - _EPS * b, params, direction))
+    return ad, float(fp - fm) / (2 * _EPS)
+
+  ad, fd = along(d)
   test.assertGreater(abs(ad), 1e-8)  # the direction really matters
   np.testing.assert_allclose(ad, fd, rtol=_FD_RTOL)
+  zero = jax.tree.map(jnp.zeros_like, d)
+  for field in fields or ():
+    ad, fd = along(zero.replace(**{field: getattr(d, field)}))
+    test.assertGreater(abs(ad), 1e-10, msg=field)  # it matters at all
+    np.testing.assert_allclose(ad, fd, rtol=_FD_RTOL, err_msg=field)
   return g
 
 
@@ -135,13 +146,21 @@ class PipelineFromRestTest(absltest.TestCase):
   takes one side.
   """
 
-  def _check(self, ground):
+  def _check(self, ground, velocity=None):
+    models = _GROUPS[ground]
     with jax.enable_x64(True):
-      fn, params = _from_rest(_GROUPS[ground], ground)
+      fn, params = _from_rest(models, ground)
       self.assertFalse(np.any(np.asarray(params.velocity)))  # from rest
-      g = _check_directional(self, fn, params)
-      # Every object's velocity gradient is non-zero (no silent zero).
+      if velocity is not None:  # F = I still, moving
+        params = params.replace(velocity=jnp.asarray(velocity, jnp.float64))
+      g = _check_directional(self, fn, params,
+                             fields=('log_scale', 'velocity'))
+      # Every object's velocity gradient is non-zero (no silent zero), and
+      # every deformable object's material matters.
       self.assertTrue(np.all(np.any(np.asarray(g.velocity) != 0, axis=1)))
+      deformable = np.array([m != 'rigid' for m in models])
+      self.assertTrue(np.all(np.any(
+        np.asarray(g.log_scale)[deformable] != 0, axis=1)))
 
   # Each pipeline case compiles a value_and_grad of simulate (~40-80 s on
   # the shared 2-core VM): slow, as the default run's budget is ~20 s each.
@@ -155,7 +174,10 @@ class PipelineFromRestTest(absltest.TestCase):
 
   @pytest.mark.slow
   def test_no_ground_matches_fd_x64(self):
-    self._check('none')
+    # Without a ground the cubes only fall, undeformed: their materials
+    # would not matter. Thrown at one another (from F = I) they collide.
+    self._check('none', velocity=[[1.5, 1.5, 0.0], [-1.5, 0.0, 0.0],
+                                  [0.0, -1.5, 0.0]])
 
   @pytest.mark.slow
   def test_sand_from_rest_is_finite_x64(self):

@@ -189,14 +189,17 @@ class FitTest(absltest.TestCase):
     self.assertLess(r['final_loss'], r['history'][0])
     np.testing.assert_allclose(np.mean(r['field_E']), 1.0, atol=1e-5)
 
-  @pytest.mark.slow  # ~45 s: rollout + differentiable rendering backward
+  @pytest.mark.slow  # ~20-45 s: rollout + differentiable rendering backward
   def test_fit_from_rendered_frames_moves_E_toward_truth(self):
     t = _task(0, render='differentiable')
     self.assertEqual(t.images.shape, (3, _TINY.height, _TINY.width, 3))
     r = simtrain.fit_material(t, 'video', num_steps=3, learning_rate=0.2,
                               E_init=0.4, field_degree=0)
+    # At least a fifth of the way (0.55 of the initial log error is left
+    # after three steps, measured); the initial error itself as the limit
+    # passed any step in the right direction.
     self.assertLess(abs(np.log(r['E_fit'] / r['E_true'])),
-                    abs(np.log(0.4)))
+                    0.8 * abs(np.log(0.4)))
     self.assertLess(r['final_loss'], r['history'][0])
     with self.assertRaisesRegex(ValueError, 'render='):
       simtrain.fit_material(_task(0), 'video')

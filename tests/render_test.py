@@ -91,6 +91,36 @@ class ReferenceParityTest(parameterized.TestCase):
     image, alpha, depth = _reference(g, cam, colors, bg)
     _assert_matches(self, out, image, alpha, depth)
 
+  def test_colors_come_from_the_view_direction(self):
+    """``gaussian_colors`` against NumPy from the camera's eye: degree 1 in
+    closed form (basis C0, -C1 y, C1 z, -C1 x of the unit direction from
+    the eye to the mean; + 0.5, clamped at 0), and with per-Gaussian
+    rotations the direction taken into the rest frame, R^T d. The parity
+    tests hand the renderer's own colours to the reference: a flipped view
+    direction passed them."""
+    from scipy.spatial.transform import Rotation
+    c0, c1 = 0.28209479177387814, 0.4886025119029199
+    eye = np.array([0.4, -3.5, 1.0])
+    g = _scene(seed=3, num=50, sh_degree=1)
+    cam = _camera(eye=eye)
+    sh = np.asarray(g.sh, np.float64)
+
+    def colors(d):
+      d = d / np.linalg.norm(d, axis=1, keepdims=True)
+      basis = np.stack([np.full(len(d), c0), -c1 * d[:, 1], c1 * d[:, 2],
+                        -c1 * d[:, 0]], 1)
+      return np.maximum(np.einsum('kb,kbc->kc', basis, sh[:, :4]) + 0.5, 0)
+
+    d = np.asarray(g.means, np.float64) - eye
+    want = colors(d)
+    self.assertGreater(np.abs(colors(-d) - want).max(), 0.05)  # it matters
+    np.testing.assert_allclose(raster.gaussian_colors(g, cam), want,
+                               atol=1e-5)
+    rot = Rotation.random(g.num, random_state=1).as_matrix()
+    np.testing.assert_allclose(
+      raster.gaussian_colors(g, cam, jnp.asarray(rot, jnp.float32)),
+      colors(np.einsum('kji,kj->ki', rot, d)), atol=1e-5)
+
   def test_differentiable_path_matches_reference(self):
     g = _scene(seed=5, num=120)
     cam = _camera(48, 40)
@@ -449,6 +479,50 @@ class GradientTest(parameterized.TestCase):
         self.assertGreater(abs(float(an)), 1e-6, msg=name)
         np.testing.assert_allclose(an, fd, rtol=_GRAD_RTOL,
                                    err_msg=f'gradient mismatch: {name}')
+
+  def test_sh_color_gradients_match_central_differences_x64(self):
+    """Colours from degree-1 SH (no colours passed): the gradient with
+    respect to the SH, and the part of the means' gradient that comes
+    through the view direction, against central differences. (The test
+    above passes colours, so neither was checked.) Colours stay inside
+    (0, 1): no clamp at 0 for the differences to straddle."""
+    with jax.enable_x64(True):
+      g = _scene(seed=22, num=8, scale_boost=1.5, dtype=jnp.float64)
+      rng = np.random.default_rng(1)
+      sh = np.zeros((8, 4, 3))
+      sh[:, 0] = (rng.uniform(0.3, 0.7, (8, 3)) - 0.5) / gs.SH_C0
+      sh[:, 1:] = 0.3 * rng.normal(size=(8, 3, 3))
+      g = g.replace(sh=jnp.asarray(sh))
+      cam = _camera(24, 20, focal=24.0, dtype=jnp.float64)
+      cfg = raster.RenderConfig(chunk_size=4, tile_size=8)
+      w_img = jnp.asarray(rng.normal(size=(20, 24, 3)))
+      rgb = np.asarray(raster.gaussian_colors(g, cam))
+      self.assertTrue(np.all((rgb > 0.05) & (rgb < 0.95)))
+
+      def loss(means, sh):
+        out = raster.render_differentiable(
+          g.replace(means=means, sh=sh), cam, config=cfg)
+        return jnp.sum(out.image * w_img)
+
+      def colors_only(means, sh):  # the view direction's part alone
+        return jnp.sum(raster.gaussian_colors(
+          g.replace(means=means, sh=sh), cam) * w_img[0, :8])
+
+      args = (g.means, g.sh)
+      for fn in (loss, colors_only):
+        grads = jax.jit(jax.grad(fn, argnums=(0, 1)))(*args)
+        fn_j = jax.jit(fn)
+        for i, name in enumerate(('means', 'sh')):
+          d = jnp.asarray(rng.normal(size=args[i].shape))
+          plus, minus = list(args), list(args)
+          plus[i] = args[i] + _FD_STEP * d
+          minus[i] = args[i] - _FD_STEP * d
+          fd = (fn_j(*plus) - fn_j(*minus)) / (2 * _FD_STEP)
+          an = jnp.sum(grads[i] * d)
+          self.assertGreater(abs(float(an)), 1e-6, msg=name)
+          np.testing.assert_allclose(
+            an, fd, rtol=_GRAD_RTOL,
+            err_msg=f'gradient mismatch: {fn.__name__} {name}')
 
 
 _AA = raster.RenderConfig(rasterize_mode='antialiased')
