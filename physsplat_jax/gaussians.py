@@ -166,6 +166,9 @@ def decompose_covariance(cov: Array, min_var: float = 1e-20):
   The inverse of :func:`covariance` up to the order and signs of the axes:
   ``covariance(*decompose_covariance(c)) == c``. The rotation is proper
   (det +1). Used to write deformed Gaussians (``F Sigma F^T``) back to PLY.
+  Not for gradients: the axes of a covariance with equal eigenvalues (a
+  round Gaussian) are arbitrary, and the derivative of the rotation there
+  is NaN (the log-scales' is finite). Differentiate through covariances.
 
   Args:
     cov: (..., 3, 3) symmetric covariances.

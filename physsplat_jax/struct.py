@@ -13,8 +13,9 @@ pytrees, written as with ``flax.struct``::
 ``flax.struct`` does, without importing Flax: a run that uses no network
 does not pay Flax's import (0.08 s on the 2-core VM, about three times that
 on the GPU hosts). What differs from ``flax.struct``: these classes are not
-registered with ``flax.serialization`` (use ``jax.tree`` functions or
-orbax, which need no registration).
+registered with ``flax.serialization`` (use ``jax.tree`` functions, or
+``physsplat_jax.io.save_tree`` / ``load_tree`` for files: orbax refuses
+zero-size arrays such as the ``forces`` of a scene without forces).
 """
 
 from __future__ import annotations

@@ -843,6 +843,14 @@ class ErrorTest(absltest.TestCase):
     with self.assertRaisesRegex(ValueError, 'num_bodies'):
       mpm.init_state(np.full((3, 3), 0.5), 0.0, 1e-6, mat, cfg,
                      body_id=[0, 0, 0])
+    with jax.enable_x64(True):  # a crash inside the loop before
+      m64 = mpm.make_materials('fixed_corotated', 1e5, 0.3, 1e3, num=3,
+                               dtype=jnp.float64)
+      s = mpm.init_state(np.full((3, 3), 0.5), 0.0, 1e-6, m64, cfg)
+      with self.assertRaisesRegex(
+          ValueError, r"materials.E is float64 but SimConfig.dtype is "
+          r"'float32': build both with the same dtype"):
+        mpm.rollout(s, m64, None, cfg.replace(substeps_per_frame=1), 1)
     with self.assertRaisesRegex(ValueError, 'boundary conditions'):
       mpm.make_frame(cfg.replace(boundary_conditions=(
         mpm.SurfaceCollider(point=(0, 0, 0.1)),)))(

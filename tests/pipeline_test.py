@@ -8,6 +8,7 @@ difference check in float64, colliders from fixed objects, one compilation
 for two same-shape scenes, and the host loop's outputs.
 """
 
+import dataclasses
 import os
 import tempfile
 import threading
@@ -19,6 +20,7 @@ import numpy as np
 from absl.testing import absltest
 
 from physsplat_jax import mpm
+from physsplat_jax import io as ps_io
 from physsplat_jax import pipeline as pl
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
@@ -243,6 +245,70 @@ class SimulateTest(absltest.TestCase):
         with self.subTest(want=want, fn=fn.__name__), \
             self.assertRaisesRegex(pl.PipelineError, want):
           fn(*args, cfg)
+
+  def test_params_that_do_not_fit_the_prepared_scene_are_named(self):
+    cfg = _config(num_frames=1)
+    prep, _ = pl.prepare_scene(0, _scene(), [_RUBBER, _WOOD], cfg)
+    # A force the scene was not prepared with ran without it, silently,
+    # with a zero gradient for it.
+    pushed = dataclasses.replace(cfg, forces=(
+      pl.ForceSpec('impulse', 'cube', vector=(0.0, 0.0, 2.0)),))
+    with self.assertRaisesRegex(
+        pl.PipelineError, r"config.forces act on \['cube'\] .* prepared "
+        'with forces on nothing; forces are placed by prepare_scene'):
+      pl.simulate_jit(pl.init_params(prep, pushed), prep, pushed)
+    params = pl.init_params(prep, cfg)
+    # A list leaf: a TracerArrayConversionError deep inside before.
+    with self.assertRaisesRegex(pl.PipelineError,
+                                'Params.velocity is a list; give an array'):
+      pl.simulate(params.replace(velocity=[[0.0, 0.0, 0.0]]), prep, cfg)
+    with self.assertRaisesRegex(pl.PipelineError, 'float64 needs JAX'):
+      prep.astype(jnp.float64)
+    with jax.enable_x64(True):
+      # Float64: the scene cast, init_params following it; float32 params
+      # with it crashed in the solver's loop (dynamic_update_slice).
+      p64 = prep.astype(jnp.float64)
+      self.assertEqual(p64.x0.dtype, jnp.float64)
+      self.assertEqual(p64.driver_object.dtype, prep.driver_object.dtype)
+      params64 = pl.init_params(p64, cfg)
+      self.assertEqual(params64.velocity.dtype, jnp.float64)
+      traj = pl.simulate_jit(params64, p64, cfg)
+      self.assertEqual(traj.means.dtype, jnp.float64)
+      ref = pl.simulate_jit(params, prep, cfg)
+      np.testing.assert_allclose(traj.means, ref.means, atol=1e-5)
+      with self.assertRaisesRegex(
+          pl.PipelineError, 'Params.log_scale is float32 but the prepared '
+          'scene is float64: cast both alike'):
+        pl.simulate_jit(params, p64, cfg)
+
+  def test_params_round_trip_through_a_file(self):
+    # orbax refuses the (0, 3) forces of a scene without forces.
+    cfg = dataclasses.replace(_config(num_frames=1), use_mpdp=True)
+    prep, _ = pl.prepare_scene(0, _scene(), [_RUBBER, _WOOD], cfg)
+    params = pl.init_params(prep, cfg)
+    self.assertEqual(params.forces.shape, (0, 3))
+    params = params.replace(velocity=params.velocity + 1.5, mpdp=jax.tree.map(
+      lambda a: a * 2.0, params.mpdp))
+    with tempfile.TemporaryDirectory() as d:
+      path = os.path.join(d, 'sub', 'params.npz')
+      self.assertEqual(ps_io.save_tree(path, params), path)
+      back = ps_io.load_tree(path, like=pl.init_params(prep, cfg))
+      self.assertIsInstance(back, pl.Params)
+      for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(back),
+                      strict=True):
+        np.testing.assert_array_equal(a, b)
+      with self.assertRaisesRegex(ps_io.TreeFileError, r'params.npz: does '
+                                  r"not fit the template: not in the "
+                                  r"template \[\".mpdp\['Dense_0'\]"):
+        ps_io.load_tree(path, like=pl.init_params(prep, dataclasses.replace(
+          cfg, use_mpdp=False)))
+      with self.assertRaisesRegex(ps_io.TreeFileError,
+                                  r'\.velocity is float32 \(1, 3\) in the '
+                                  r'file, float32 \(2, 3\) in the template'):
+        ps_io.load_tree(path, like=params.replace(
+          velocity=jnp.zeros((2, 3))))
+      with self.assertRaisesRegex(ps_io.TreeFileError, 'no such file'):
+        ps_io.load_tree(os.path.join(d, 'none.npz'), like=params)
 
   def test_check_finite_names_bad_inputs_before_the_time_step(self):
     # A NaN initial velocity was blamed on the time step ("raise

@@ -3,9 +3,13 @@
 The filesystem is touched only here (and in ``experiments/``). Outputs live
 in ``io.video`` (MP4/GIF/PNG, space-time slices), ``io.export`` (deformed
 Gaussians as per-frame PLY / .splat) and ``io.scene`` (scenes with object
-ids); the MLLM client is ``io.mllm``.
+ids); ``io.arrays`` saves and loads pytrees of arrays (``Params``) as
+``.npz``; the MLLM client is ``io.mllm``.
 """
 
+from physsplat_jax.io.arrays import TreeFileError as TreeFileError
+from physsplat_jax.io.arrays import load_tree as load_tree
+from physsplat_jax.io.arrays import save_tree as save_tree
 from physsplat_jax.io.cameras import CameraFileError as CameraFileError
 from physsplat_jax.io.cameras import load_cameras as load_cameras
 from physsplat_jax.io.cameras import load_inria_cameras as load_inria_cameras

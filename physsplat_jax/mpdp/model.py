@@ -171,7 +171,9 @@ class ModelConfig:
 
 
 def encode_means(E, nu, rho, model='fixed_corotated', rigid=None):
-  """Encodes an object's mean properties as the network's condition vector.
+  """Encodes an object's mean properties as the network's condition vector
+  (host side, NumPy: concrete values, not traced ones; under ``jit`` pass
+  the encoded vector in).
 
   Args:
     E: mean Young's modulus [Pa], > 0 (scalar or array).

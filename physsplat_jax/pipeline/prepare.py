@@ -73,6 +73,28 @@ class Params(struct.PyTreeNode):
   velocity: Array
   forces: Array
 
+  def astype(self, dtype) -> Params:
+    """These params with every floating leaf (MPDP weights included) cast
+    to ``dtype``: float64 needs JAX's x64 mode (docs/pipeline.md)."""
+    return _cast_floats(self, dtype)
+
+
+def _cast_floats(tree, dtype):
+  """``tree`` with its floating leaves cast to ``dtype`` (integer and bool
+  leaves kept)."""
+  dtype = jnp.dtype(dtype)
+  if dtype == jnp.float64 and not jax.config.read('jax_enable_x64'):
+    raise PipelineError(
+      'float64 needs JAX\'s x64 mode: call '
+      "jax.config.update('jax_enable_x64', True) first (or set "
+      'JAX_ENABLE_X64=1)')
+  if not jnp.issubdtype(dtype, jnp.floating):
+    raise PipelineError(f'dtype {dtype} is not a floating type; use '
+                        'float32 or float64')
+  return jax.tree.map(
+    lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(
+      jnp.result_type(a), jnp.floating) else a, tree)
+
 
 @dataclasses.dataclass(frozen=True)
 class SimSpec:
@@ -177,6 +199,12 @@ class PreparedScene(struct.PyTreeNode):
   @property
   def num_objects(self) -> int:
     return self.means.shape[0]
+
+  def astype(self, dtype) -> PreparedScene:
+    """This scene with every floating array cast to ``dtype`` (indices
+    kept): ``prepared.astype(jnp.float64)`` simulates in float64, with
+    ``init_params`` of the result (docs/pipeline.md; x64 mode needed)."""
+    return _cast_floats(self, dtype)
 
 
 @dataclasses.dataclass

@@ -86,7 +86,8 @@ def init_params(prepared: PreparedScene,
                 mpdp_params: Any = None, use_mpdp: bool | None = None
                 ) -> Params:
   """Default :class:`Params`: pretrained MPDP, perceived means, the config's
-  initial velocities and force vectors."""
+  initial velocities and force vectors, in the prepared scene's float type
+  (``prepared.astype(jnp.float64)`` first for float64 params)."""
   if use_mpdp is None:
     use_mpdp = getattr(config, 'use_mpdp', True)
   mp = None
@@ -102,9 +103,11 @@ def init_params(prepared: PreparedScene,
       vel[:] = v
   forces = np.array([f.vector for f in config.forces], np.float32).reshape(
     len(config.forces), 3)
-  return Params(mpdp=mp,
-                log_scale=device_array(np.zeros((len(names), 3), np.float32)),
-                velocity=device_array(vel), forces=device_array(forces))
+  params = Params(
+    mpdp=mp, log_scale=device_array(np.zeros((len(names), 3), np.float32)),
+    velocity=device_array(vel), forces=device_array(forces))
+  dtype = prepared.x0.dtype
+  return params if dtype == jnp.float32 else params.astype(dtype)
 
 
 def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
@@ -212,15 +215,39 @@ def _check_params(params, prepared: PreparedScene, config) -> None:
   if not isinstance(prepared, PreparedScene):
     raise PipelineError(f'prepared must be a pipeline.PreparedScene, got '
                         f'{type(prepared).__name__}; {order}')
-  O = len(prepared.spec.object_names)
+  spec = prepared.spec
+  # Forces are placed when the scene is prepared (their objects and ball
+  # centres are in the spec): a config with other forces than those was
+  # simulated without them, silently, with a zero gradient for them.
+  names = spec.object_names
+  prepared_with = [('' if o < 0 else names[o]) for o in spec.force_objects]
+  given = [f.object for f in config.forces]
+  if given != prepared_with:
+    raise PipelineError(
+      f'config.forces act on {given or "nothing"} (by object, \'\' = every '
+      f'movable object), but the scene was prepared with forces on '
+      f'{prepared_with or "nothing"}; forces are placed by prepare_scene: '
+      'prepare the scene with the same forces as the config you simulate')
+  O = len(names)
+  dtype = prepared.x0.dtype
   for name, want in (('log_scale', (O, 3)), ('velocity', (O, 3)),
                      ('forces', (len(config.forces), 3))):
-    got = tuple(np.shape(getattr(params, name)))
+    value = getattr(params, name)
+    if not hasattr(value, 'dtype'):
+      raise PipelineError(
+        f'Params.{name} is a {type(value).__name__}; give an array '
+        f'(jnp.asarray), as init_params makes it')
+    got = tuple(np.shape(value))
     if got != want:
       raise PipelineError(
         f'Params.{name} has shape {got}; expected {want} (one row per '
         + ('movable object' if name != 'forces' else 'ForceSpec')
         + ' of the prepared scene, as init_params makes it)')
+    if value.dtype != dtype:  # (a crash deep in the solver's loop)
+      raise PipelineError(
+        f'Params.{name} is {value.dtype} but the prepared scene is {dtype}:'
+        ' cast both alike, prepared.astype(...) and params.astype(...), or '
+        'init_params of the cast scene (docs/pipeline.md, float64)')
 
 
 def initial_state(params: Params, prepared: PreparedScene,
