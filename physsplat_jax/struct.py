@@ -24,6 +24,9 @@ import dataclasses
 from typing import Any, TypeVar
 
 import jax
+import jax.numpy as jnp
+
+from physsplat_jax.errors import PhysSplatError
 
 try:  # Python >= 3.11 (typing_extensions not needed)
   from typing import dataclass_transform
@@ -80,3 +83,23 @@ class PyTreeNode:
 
   def replace(self: _T, **changes) -> _T:  # set on each subclass
     return dataclasses.replace(self, **changes)
+
+
+class DtypeError(PhysSplatError, ValueError):
+  """A float type that cannot be used (float64 without JAX's x64 mode)."""
+
+
+def cast_floats(tree: _T, dtype) -> _T:
+  """``tree`` with its floating leaves cast to ``dtype`` (integer and bool
+  leaves kept): ``PreparedScene.astype``, ``Params.astype``."""
+  dtype = jnp.dtype(dtype)
+  if not jnp.issubdtype(dtype, jnp.floating):
+    raise DtypeError(f'dtype {dtype} is not a floating type; use float32 '
+                     'or float64')
+  if dtype == jnp.float64 and not jax.config.read('jax_enable_x64'):
+    raise DtypeError(
+      "float64 needs JAX's x64 mode: call jax.config.update("
+      "'jax_enable_x64', True) first (or set JAX_ENABLE_X64=1)")
+  return jax.tree.map(
+    lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(
+      jnp.result_type(a), jnp.floating) else a, tree)

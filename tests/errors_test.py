@@ -196,7 +196,8 @@ class ErrorPathTest(absltest.TestCase):
                                 'load_scene'):
       pl.prepare_scene(_KEY, 'tabletop', [], pl.PipelineConfig())
     prepared = pytypes.SimpleNamespace(
-      spec=pytypes.SimpleNamespace(object_names=('a',)))
+      spec=pytypes.SimpleNamespace(object_names=('a',)),
+      x0=np.zeros((1, 3), np.float32))
     with self.assertRaisesRegex(pl.PipelineError, 'config is a '
                                 'SimulateConfig; give a PrepareConfig'):
       pl.init_params(prepared, pl.PipelineConfig().simulate, use_mpdp=False)

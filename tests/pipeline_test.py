@@ -262,7 +262,7 @@ class SimulateTest(absltest.TestCase):
     with self.assertRaisesRegex(pl.PipelineError,
                                 'Params.velocity is a list; give an array'):
       pl.simulate(params.replace(velocity=[[0.0, 0.0, 0.0]]), prep, cfg)
-    with self.assertRaisesRegex(pl.PipelineError, 'float64 needs JAX'):
+    with self.assertRaisesRegex(ValueError, "float64 needs JAX's x64 mode"):
       prep.astype(jnp.float64)
     with jax.enable_x64(True):
       # Float64: the scene cast, init_params following it; float32 params

@@ -9,6 +9,8 @@ transfer of the state) and name the field, how many particles and which.
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.mpm.errors import MPMInputError
@@ -33,6 +35,23 @@ def material_fault(E, nu, rho, stressed=True):
     if np.any(bad):
       return label, bad, fix
   return None
+
+
+def check_dtypes(state, materials, dtype: str) -> None:
+  """Every floating array of ``state`` and ``materials`` is ``dtype``
+  (``SimConfig.dtype``); another one crashed inside the solver's loop
+  ("scan body ... float32 vs float64"). Static: safe under ``jit``."""
+  want = jnp.dtype(dtype)
+  for what, tree in (('state', state), ('materials', materials)):
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+      got = getattr(leaf, 'dtype', None)
+      if got is not None and jnp.issubdtype(got, jnp.floating) and (
+          got != want):
+        raise MPMInputError(
+          f'{what}{jax.tree_util.keystr(path)} is {got} but '
+          f"SimConfig.dtype is '{dtype}': build both with the same dtype "
+          '(mpm.make_materials(..., dtype=config.dtype) and mpm.init_state '
+          'with that config) or change SimConfig.dtype')
 
 
 def _per_particle(a, n: int) -> np.ndarray:

@@ -360,17 +360,7 @@ def _check_inputs(state, materials, forces, config, values: bool = True):
     raise TypeError('expected an MPMState (mpm.init_state) as the state.')
   if not isinstance(materials, base.Materials):
     raise TypeError('expected Materials (mpm.make_materials).')
-  want = jnp.dtype(config.dtype)
-  for what, tree in (('state', state), ('materials', materials)):
-    for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
-      dt = getattr(leaf, 'dtype', None)
-      if dt is not None and jnp.issubdtype(dt, jnp.floating) and dt != want:
-        # (a crash inside the loop: "scan body ... float32 vs float64")
-        raise MPMInputError(
-          f'{what}{jax.tree_util.keystr(path)} is {dt} but '
-          f"SimConfig.dtype is '{config.dtype}': build both with the same "
-          "dtype (mpm.make_materials(..., dtype=config.dtype) and "
-          'mpm.init_state with that config) or change SimConfig.dtype')
+  inputs.check_dtypes(state, materials, config.dtype)
   if forces is None:
     forces = base.make_forces(config, state.x.dtype)
   if len(forces.values) != len(config.boundary_conditions):

@@ -201,8 +201,9 @@ class PrepareConfig:
       CFL bound of the stiffest deformable material and the initial and
       impulse speeds (:func:`~physsplat_jax.pipeline.prepare.given_speed`),
       rounded up to 16 steps per octave
-      (:func:`~physsplat_jax.pipeline.prepare.bucket_substeps`) so that a
-      new seed or budget does not recompile the simulation.
+      (:func:`~physsplat_jax.mpm.timestep.bucket_substeps`) so that a
+      new seed or budget seldom recompiles the simulation (it can at a
+      bucket's edge: set the count to loop over keys with one program).
     cfl: Courant number used when choosing substeps.
     max_substeps_per_frame: refuse automatic step counts above this (a run
       that would never end); raise it to allow very stiff materials.

@@ -35,6 +35,7 @@ from physsplat_jax import program_store
 from physsplat_jax import sampling
 from physsplat_jax import struct
 from physsplat_jax.mpm import timestep
+from physsplat_jax.mpm.timestep import bucket_substeps
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline import frames as frames_lib
 from physsplat_jax.pipeline.colliders import Colliders
@@ -74,26 +75,8 @@ class Params(struct.PyTreeNode):
   forces: Array
 
   def astype(self, dtype) -> Params:
-    """These params with every floating leaf (MPDP weights included) cast
-    to ``dtype``: float64 needs JAX's x64 mode (docs/pipeline.md)."""
-    return _cast_floats(self, dtype)
-
-
-def _cast_floats(tree, dtype):
-  """``tree`` with its floating leaves cast to ``dtype`` (integer and bool
-  leaves kept)."""
-  dtype = jnp.dtype(dtype)
-  if dtype == jnp.float64 and not jax.config.read('jax_enable_x64'):
-    raise PipelineError(
-      'float64 needs JAX\'s x64 mode: call '
-      "jax.config.update('jax_enable_x64', True) first (or set "
-      'JAX_ENABLE_X64=1)')
-  if not jnp.issubdtype(dtype, jnp.floating):
-    raise PipelineError(f'dtype {dtype} is not a floating type; use '
-                        'float32 or float64')
-  return jax.tree.map(
-    lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(
-      jnp.result_type(a), jnp.floating) else a, tree)
+    """Floating leaves (MPDP weights too) cast (``struct.cast_floats``)."""
+    return struct.cast_floats(self, dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,10 +184,8 @@ class PreparedScene(struct.PyTreeNode):
     return self.means.shape[0]
 
   def astype(self, dtype) -> PreparedScene:
-    """This scene with every floating array cast to ``dtype`` (indices
-    kept): ``prepared.astype(jnp.float64)`` simulates in float64, with
-    ``init_params`` of the result (docs/pipeline.md; x64 mode needed)."""
-    return _cast_floats(self, dtype)
+    """Floating arrays cast, indices kept (float64: docs/pipeline.md)."""
+    return struct.cast_floats(self, dtype)
 
 
 @dataclasses.dataclass
@@ -545,21 +526,6 @@ def mpdp_stage(x0, dobj, counts, mats, use_mpdp: bool, mpdp_params):
 
 
 _predict_jit = jax.jit(mpdp.predict)
-
-
-def bucket_substeps(n: int) -> int:
-  """``n`` rounded up to 16 steps per octave (exact below 32).
-
-  The substep count is static in the compiled frame (the scan's length and
-  the time step), so an automatic count that moves with the seed, the
-  particle budget or a small change of material would recompile every time;
-  on this ladder it changes only when the wave speed moves by more than a
-  step. Rounding up only lowers the time step (at most 6.25 % more
-  substeps, ~3 % on average).
-  """
-  n = int(n)
-  step = 1 << max(0, n.bit_length() - 5)
-  return -(-n // step) * step
 
 
 def given_speed(cfg) -> float:
