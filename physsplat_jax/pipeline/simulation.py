@@ -87,7 +87,12 @@ def init_params(prepared: PreparedScene,
                 ) -> Params:
   """Default :class:`Params`: pretrained MPDP, perceived means, the config's
   initial velocities and force vectors, in the prepared scene's float type
-  (``prepared.astype(jnp.float64)`` first for float64 params)."""
+  (``prepared.astype(jnp.float64)`` first for float64 params).
+
+  ``use_mpdp`` defaults to the config's (a PipelineConfig's or
+  SimulateConfig's field; a PrepareConfig has none: True); with False the
+  params hold no network (``mpdp=None``). ``mpdp_params`` replaces the
+  pretrained weights."""
   if use_mpdp is None:
     use_mpdp = getattr(config, 'use_mpdp', True)
   mp = None
