@@ -5,23 +5,24 @@ with the same values (a loop on the CPU, the same chain unrolled on a GPU;
 a Pallas kernel on a CUDA GPU, XLA's fusion elsewhere).
 ``jax.lax.platform_dependent`` picks one when the program is lowered, so
 a trace holds every form, and a gradient linearizes and transposes every
-form: tracing the README's three-frame gradient took 10.4 s on a 2-core
-CPU, 4.2 s with the CPU's forms alone (round of 2026-11-28).
+form: tracing the README's three-frame gradient took 11.5 s on a 2-core
+CPU, 5.1 s with the CPU's forms alone (docs/benchmarks.md).
 
 :func:`platform_dependent` takes ``lax.platform_dependent``'s arguments.
-Where JAX's default backend is the CPU (no GPU or TPU in this process: JAX
-picks one as the default whenever there is one) a program can only be
-lowered for the CPU, so it traces the CPU's form alone; anywhere else it
-is ``lax.platform_dependent``. A program lowered for another platform on
-a CPU-only host (``.lower(lowering_platforms=('cuda',))``, a deviceless
-compile for a GPU) is traced inside :func:`every_platform`, which keeps
-every form. (Without it such a program is still correct, with the CPU's
-forms: every form gives the same values.)
+Where the CPU is the only backend JAX started (no GPU or TPU in this
+process) a program runs on the CPU, so it traces the CPU's form alone;
+anywhere else it is ``lax.platform_dependent``. The exception is a program
+lowered on purpose for a platform the process has no device of
+(``.lower(lowering_platforms=('cuda',))``, a deviceless compile for a
+GPU): trace it inside :func:`every_platform`, which keeps every form.
+(Without it such a program is still correct, with the CPU's forms: every
+form gives the same values.)
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import threading
 
 import jax
@@ -32,8 +33,18 @@ _EVERY = 0  # how many every_platform() blocks are open, in any thread
 
 def traced_for_cpu_only() -> bool:
   """Whether a program traced now can only be lowered for the CPU (and so
-  :func:`platform_dependent` traces the CPU's form alone)."""
-  return _EVERY == 0 and jax.default_backend() == 'cpu'
+  :func:`platform_dependent` traces the CPU's form alone): the CPU is the
+  only backend JAX started (not ``JAX_PLATFORMS=cpu,cuda``, where the CPU
+  is the default beside a GPU) and no :func:`every_platform` is open."""
+  return (_EVERY == 0 and jax.default_backend() == 'cpu'
+          and _cpu_only_backends())
+
+
+@functools.lru_cache(maxsize=None)
+def _cpu_only_backends() -> bool:
+  # (The backends are started once per process; cached: called per trace.)
+  from jax.extend import backend  # noqa: PLC0415
+  return set(backend.backends()) == {'cpu'}
 
 
 def platform_dependent(*args, default=None, **per_platform):

@@ -379,7 +379,8 @@ class TraceTimeChoiceTest(absltest.TestCase):
   the CPU can run the program, every form inside ``every_platform``."""
 
   def test_cpu_form_alone_then_every_form(self):
-    self.assertEqual(jax.default_backend(), 'cpu')  # (CI: JAX_PLATFORMS=cpu)
+    if not platforms.traced_for_cpu_only():
+      self.skipTest('a GPU in this process: every form is traced anyway')
 
     def f(x):
       return platforms.platform_dependent(

@@ -71,8 +71,9 @@ class RigidTest(absltest.TestCase):
     self.assertGreater(xf[body == -1][:, 2].min(), 0.2)
 
   def test_free_rigid_body_conserves_momenta(self):
-    # Angular momentum to 0.4 % for a 4x3x2 body, ~1.5 cells wide (0.38 %
-    # measured), to 6e-5 for a 3x3x3 cube (docs/mpm.md): see below.
+    # Angular momentum to 0.4 % for a body of 4x3x2 particles (2 x 1.5 x 1
+    # cells, unequal inertia; 0.38 % measured), to 6e-5 for a cube of 3x3x3
+    # (1.5 cells a side) (docs/mpm.md): see below.
     for shape, l_tol in (((4, 3, 2), 0.005), ((3, 3, 3), 1e-4)):
       with self.subTest(shape=shape):
         self._free_rigid_body(shape, l_tol)
@@ -115,8 +116,8 @@ class RigidTest(absltest.TestCase):
       L1 = L(x1, np.asarray(s1.v), np.asarray(s1.C))
       # (81 % was lost before.) The rest: the grid transfers conserve
       # APIC's angular momentum, whose particle spin weighs m dx^2/2, the
-      # projection the body's own (dx^2/24); it shows on a body only ~1.5
-      # cells wide.
+      # projection the body's own (dx^2/24); it shows on a body a cell or
+      # two wide, most on the unequal one.
       np.testing.assert_allclose(L1, L0, atol=l_tol * np.linalg.norm(L0))
 
   def test_one_pass_body_sums_are_accurate_in_float32(self):

@@ -262,6 +262,8 @@ class SimulateTest(absltest.TestCase):
     with self.assertRaisesRegex(pl.PipelineError,
                                 'Params.velocity is a list; give an array'):
       pl.simulate(params.replace(velocity=[[0.0, 0.0, 0.0]]), prep, cfg)
+    # NumPy's float64 is float32 to JAX without x64 mode: accepted.
+    pl.simulate_jit(params.replace(velocity=np.zeros((1, 3))), prep, cfg)
     with self.assertRaisesRegex(ValueError, "float64 needs JAX's x64 mode"):
       prep.astype(jnp.float64)
     with jax.enable_x64(True):
@@ -309,6 +311,15 @@ class SimulateTest(absltest.TestCase):
           velocity=jnp.zeros((2, 3))))
       with self.assertRaisesRegex(ps_io.TreeFileError, 'no such file'):
         ps_io.load_tree(os.path.join(d, 'none.npz'), like=params)
+      np.save(os.path.join(d, 'one.npy'), np.ones(3))
+      with self.assertRaisesRegex(ps_io.TreeFileError, r'single array'):
+        ps_io.load_tree(os.path.join(d, 'one.npy'), like=params)
+      # NumPy's format has no bfloat16 (it read back as raw bytes, |V2).
+      with self.assertRaisesRegex(ps_io.TreeFileError, r"\['a'\] is "
+                                  'bfloat16, which .npz does not store'):
+        ps_io.save_tree(path, {'a': jnp.ones(2, jnp.bfloat16)})
+      self.assertEqual(sorted(os.listdir(os.path.dirname(path))),
+                       ['params.npz'])  # no temporary file left
 
   def test_check_finite_names_bad_inputs_before_the_time_step(self):
     # A NaN initial velocity was blamed on the time step ("raise

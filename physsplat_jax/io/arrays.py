@@ -13,6 +13,7 @@ another scene or config is named, not silently misassigned.
 from __future__ import annotations
 
 import os
+import tempfile
 
 import jax
 import numpy as np
@@ -47,13 +48,26 @@ def save_tree(path, tree) -> str:
     except Exception as e:  # noqa: BLE001 - e.g. an abstract value
       raise TreeFileError(f'{path}: the leaf {key} is not an array '
                           f'({type(leaf).__name__}: {e})') from None
-    if arrays[key].dtype == object:
+    kind = arrays[key].dtype.kind
+    if kind == 'O':
       raise TreeFileError(f'{path}: the leaf {key} is not an array '
                           f'({type(leaf).__name__})')
-  tmp = path + '.tmp.npz'
-  with open(tmp, 'wb') as fh:  # complete, then in place: never half a file
-    np.savez(fh, **arrays)
-  os.replace(tmp, path)
+    if kind not in 'biufc':  # e.g. bfloat16: NumPy's format has no such type
+      raise TreeFileError(
+        f'{path}: the leaf {key} is {arrays[key].dtype}, which .npz does '
+        'not store; cast it to float32 first (params.astype(jnp.float32))')
+  # Complete, then in place: never half a file, nor a collision between
+  # two writers of one path.
+  fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)),
+                             prefix='.tree_', suffix='.npz')
+  try:
+    with os.fdopen(fd, 'wb') as fh:
+      np.savez(fh, **arrays)
+    os.replace(tmp, path)
+  except BaseException:
+    if os.path.exists(tmp):
+      os.remove(tmp)
+    raise
   return path
 
 
@@ -74,6 +88,9 @@ def load_tree(path, like):
     raise TreeFileError(f'{path}: no such file') from None
   except (OSError, ValueError) as e:
     raise TreeFileError(f'{path}: not a .npz tree file ({e})') from None
+  if not isinstance(data, np.lib.npyio.NpzFile):
+    raise TreeFileError(f'{path}: a single array (.npy), not a .npz tree '
+                        'file written by save_tree')
   with data:
     want = _paths(like)
     keys = [k for k, _ in want]
@@ -89,8 +106,12 @@ def load_tree(path, like):
     leaves = []
     for key, ref in want:
       a = data[key]
-      ref_shape, ref_dtype = np.shape(ref), np.asarray(ref).dtype
-      if a.shape != ref_shape or a.dtype != ref_dtype:
+      ref_shape = tuple(np.shape(ref))  # (arrays or ShapeDtypeStructs)
+      ref_dtype = np.dtype(getattr(ref, 'dtype', None)
+                           or np.asarray(ref).dtype)
+      canon = jax.dtypes.canonicalize_dtype  # (float64 is float32 to JAX
+      # without x64 mode: a Python float leaf is stored as float64)
+      if a.shape != ref_shape or canon(a.dtype) != canon(ref_dtype):
         raise TreeFileError(
           f'{path}: {key} is {a.dtype} {a.shape} in the file, '
           f'{ref_dtype} {ref_shape} in the template (saved for another '

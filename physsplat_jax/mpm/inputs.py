@@ -45,8 +45,9 @@ def check_dtypes(state, materials, dtype: str) -> None:
   for what, tree in (('state', state), ('materials', materials)):
     for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
       got = getattr(leaf, 'dtype', None)
+      # (canonical: NumPy's float64 is float32 to JAX without x64 mode)
       if got is not None and jnp.issubdtype(got, jnp.floating) and (
-          got != want):
+          jax.dtypes.canonicalize_dtype(got) != want):
         raise MPMInputError(
           f'{what}{jax.tree_util.keystr(path)} is {got} but '
           f"SimConfig.dtype is '{dtype}': build both with the same dtype "

@@ -89,8 +89,8 @@ def init_params(prepared: PreparedScene,
   initial velocities and force vectors, in the prepared scene's float type
   (``prepared.astype(jnp.float64)`` first for float64 params).
 
-  ``use_mpdp`` defaults to the config's (a PipelineConfig's or
-  SimulateConfig's field; a PrepareConfig has none: True); with False the
+  ``use_mpdp`` defaults to the config's (a PipelineConfig's field; a
+  PrepareConfig has none: True); with False the
   params hold no network (``mpdp=None``). ``mpdp_params`` replaces the
   pretrained weights."""
   if use_mpdp is None:
@@ -111,8 +111,7 @@ def init_params(prepared: PreparedScene,
   params = Params(
     mpdp=mp, log_scale=device_array(np.zeros((len(names), 3), np.float32)),
     velocity=device_array(vel), forces=device_array(forces))
-  dtype = prepared.x0.dtype
-  return params if dtype == jnp.float32 else params.astype(dtype)
+  return params.astype(prepared.x0.dtype)  # MPDP weights given too
 
 
 def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
@@ -181,6 +180,8 @@ def driver_materials(params: Params, prepared: PreparedScene,
                          prepared.mpdp_mask)  # (O, Nmax, 3)
     flat = jnp.concatenate([field[o, :c] for o, (_, c) in
                             enumerate(spec.object_ranges)])
+    # (weights of another float type than the scene: the scene's)
+    flat = flat.astype(prepared.x0.dtype)
   else:
     flat = jnp.ones((prepared.num_particles, 3), prepared.x0.dtype)
   per = means[prepared.driver_object] * flat
@@ -248,7 +249,9 @@ def _check_params(params, prepared: PreparedScene, config) -> None:
         f'Params.{name} has shape {got}; expected {want} (one row per '
         + ('movable object' if name != 'forces' else 'ForceSpec')
         + ' of the prepared scene, as init_params makes it)')
-    if value.dtype != dtype:  # (a crash deep in the solver's loop)
+    # (a crash deep in the solver's loop; canonical: NumPy's float64 is
+    # float32 to JAX without x64 mode)
+    if jax.dtypes.canonicalize_dtype(value.dtype) != dtype:
       raise PipelineError(
         f'Params.{name} is {value.dtype} but the prepared scene is {dtype}:'
         ' cast both alike, prepared.astype(...) and params.astype(...), or '
