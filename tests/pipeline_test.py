@@ -283,6 +283,20 @@ class SimulateTest(absltest.TestCase):
           'scene is float64: cast both alike'):
         pl.simulate_jit(params, p64, cfg)
 
+  def test_forward_mode_is_refused_by_name(self):
+    # JAX's TypeError from a custom_vjp deep inside the solver before.
+    cfg = _config(num_frames=1, substeps_per_frame=40)
+    prep, _ = pl.prepare_scene(0, _scene(), [_RUBBER, _WOOD], cfg)
+    params = pl.init_params(prep, cfg)
+
+    def f(v):
+      return pl.simulate(params.replace(velocity=v), prep, cfg).means.sum()
+
+    with self.assertRaisesRegex(pl.PipelineError, 'reverse-mode derivatives '
+                                'only: jax.grad, .* jax.jvp, jacfwd and '
+                                'hessian do not'):
+      jax.jvp(f, (params.velocity,), (jnp.ones_like(params.velocity),))
+
   def test_params_round_trip_through_a_file(self):
     # orbax refuses the (0, 3) forces of a scene without forces.
     cfg = dataclasses.replace(_config(num_frames=1), use_mpdp=True)

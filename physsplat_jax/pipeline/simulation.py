@@ -366,8 +366,17 @@ def simulate(params: Params, prepared: PreparedScene,
   rollout_fn = mpm.rollout if rollout_fn is None else rollout_fn
   state, materials, forces, sim_config = initial_state(params, prepared,
                                                        config, field)
-  _, xs, Fs = rollout_fn(state, materials, forces, sim_config,
-                         config.num_frames)
+  try:
+    _, xs, Fs = rollout_fn(state, materials, forces, sim_config,
+                           config.num_frames)
+  except TypeError as e:  # JAX's words, from deep inside the solver
+    if 'forward-mode autodiff' not in str(e):
+      raise
+    raise PipelineError(
+      'simulate has reverse-mode derivatives only: jax.grad, '
+      'value_and_grad, vjp and jacrev work; jax.jvp, jacfwd and hessian do '
+      "not (the solver's SVD and polar derivatives are custom VJPs; "
+      'docs/pipeline.md, "Working with params")') from None
   per_frame = jax.vmap(lambda x, F: deformed_gaussians(prepared, config, x, F))
   means, covs, rots = per_frame(xs, Fs)
   images = overflow = None
