@@ -254,9 +254,19 @@ class SimulateTest(absltest.TestCase):
     pushed = dataclasses.replace(cfg, forces=(
       pl.ForceSpec('impulse', 'cube', vector=(0.0, 0.0, 2.0)),))
     with self.assertRaisesRegex(
-        pl.PipelineError, r"config.forces act on \['cube'\] .* prepared "
-        'with forces on nothing; forces are placed by prepare_scene'):
+        pl.PipelineError, r"config.forces are placed at \[\('cube', None\)"
+        r"\] .* prepared with nothing; forces are placed by prepare_scene"):
       pl.simulate_jit(pl.init_params(prep, pushed), prep, pushed)
+    # The same force with its point moved after preparing: the point was
+    # silently the prepared one.
+    prep2, _ = pl.prepare_scene(0, _scene(), [_RUBBER, _WOOD], pushed)
+    moved = dataclasses.replace(pushed, forces=(dataclasses.replace(
+      pushed.forces[0], point=(0.0, 0.0, 0.1)),))
+    pl.simulate_jit(pl.init_params(prep2, pushed), prep2, pushed)
+    with self.assertRaisesRegex(
+        pl.PipelineError, r"placed at \[\('cube', \(0.0, 0.0, 0.1\)\)\]"
+        r".* prepared with \[\('cube', None\)\]"):
+      pl.simulate_jit(pl.init_params(prep2, moved), prep2, moved)
     params = pl.init_params(prep, cfg)
     # A list leaf: a TracerArrayConversionError deep inside before.
     with self.assertRaisesRegex(pl.PipelineError,

@@ -184,6 +184,13 @@ class ForceSpec:
        'a point force needs end > start [s]'),
     ])
 
+  def placement(self) -> tuple:
+    """``(object, point)``: what ``prepare_scene`` places (the particles a
+    force selects); the rest is read when simulating."""
+    point = None if self.point is None else tuple(float(v) for v in
+                                                  self.point)
+    return self.object, point
+
   def window(self, frame_dt: float) -> tuple[float, float]:
     """(start, end) [s]; an impulse acts over the frame after ``start``."""
     if self.kind is ForceKind.IMPULSE:

@@ -99,6 +99,8 @@ class SimSpec:
     colliders: :class:`Colliders`.
     force_objects: per force, the movable-object index it acts on (-1 all).
     force_points: per force, the ball centre [m, simulation frame].
+    force_placements: per force, its ``ForceSpec.placement()`` (object and
+      point as given), for ``simulate``'s check of its config.
   """
 
   object_names: tuple[str, ...]
@@ -115,6 +117,7 @@ class SimSpec:
   colliders: Colliders
   force_objects: tuple[int, ...]
   force_points: tuple[tuple[float, float, float], ...]
+  force_placements: tuple[tuple, ...] = ()
 
   @property
   def dx(self) -> float:
@@ -729,7 +732,8 @@ def prepare_scene(
     object_ranges=tuple((int(a), int(c)) for a, c in zip(starts, counts)),
     grid_lower=(0.0, 0.0, 0.0), grid_size=fr.L, grid_res=cfg.grid_res,
     substeps_per_frame=substeps, dt=cfg.frame_dt / substeps,
-    colliders=fr.colliders, force_objects=f_obj, force_points=f_pts)
+    colliders=fr.colliders, force_objects=f_obj, force_points=f_pts,
+    force_placements=tuple(f.placement() for f in cfg.forces))
   bodies = np.cumsum(rigid) - 1
   body_id = np.where(np.asarray(rigid)[dobj], bodies[dobj], -1)
   f32 = lambda a: device_array(a, jnp.float32)  # noqa: E731

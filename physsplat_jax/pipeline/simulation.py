@@ -225,16 +225,15 @@ def _check_params(params, prepared: PreparedScene, config) -> None:
   # Forces are placed when the scene is prepared (their objects and ball
   # centres are in the spec): a config with other forces than those was
   # simulated without them, silently, with a zero gradient for them.
-  names = spec.object_names
-  prepared_with = [('' if o < 0 else names[o]) for o in spec.force_objects]
-  given = [f.object for f in config.forces]
-  if given != prepared_with:
+  given = tuple(f.placement() for f in config.forces)
+  if given != spec.force_placements:
     raise PipelineError(
-      f'config.forces act on {given or "nothing"} (by object, \'\' = every '
-      f'movable object), but the scene was prepared with forces on '
-      f'{prepared_with or "nothing"}; forces are placed by prepare_scene: '
-      'prepare the scene with the same forces as the config you simulate')
-  O = len(names)
+      f'config.forces are placed at {list(given) or "nothing"} (object, '
+      f"point; '' = every movable object, None = its centre), but the scene "
+      f'was prepared with {list(spec.force_placements) or "nothing"}; '
+      'forces are placed by prepare_scene: prepare the scene with the same '
+      'forces as the config you simulate (their vectors are Params.forces)')
+  O = len(spec.object_names)
   dtype = prepared.x0.dtype
   for name, want in (('log_scale', (O, 3)), ('velocity', (O, 3)),
                      ('forces', (len(config.forces), 3))):
