@@ -35,7 +35,8 @@ def traced_for_cpu_only() -> bool:
   """Whether a program traced now can only be lowered for the CPU (and so
   :func:`platform_dependent` traces the CPU's form alone): the CPU is the
   only backend JAX started (not ``JAX_PLATFORMS=cpu,cuda``, where the CPU
-  is the default beside a GPU) and no :func:`every_platform` is open."""
+  is the default beside a GPU) and no :func:`every_platform` is open. (The
+  default backend is read too: tests stand in a GPU by patching it.)"""
   return (_EVERY == 0 and jax.default_backend() == 'cpu'
           and _cpu_only_backends())
 

@@ -145,9 +145,8 @@ def _pipeline_setup():
   prepared, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, mats, config)
   params = pl.init_params(prepared, config)
   if jnp.zeros(()).dtype == jnp.float64:
-    f64 = lambda a: a.astype(jnp.float64) if jnp.issubdtype(  # noqa: E731
-      a.dtype, jnp.floating) else a
-    prepared, params = jax.tree.map(f64, (prepared, params))
+    prepared = prepared.astype(jnp.float64)
+    params = params.astype(jnp.float64)
   return prepared, params, config
 
 

@@ -69,12 +69,6 @@ def _scene(models, n=40, half=0.02, gap=0.001, seed=0):
                name='grad')
 
 
-def _f64(tree):
-  return jax.tree.map(
-    lambda a: jnp.asarray(a, jnp.float64)
-    if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, tree)
-
-
 def _check_directional(test, fn, params, seed=0, fields=None):
   """AD vs central FD along a random direction of every float leaf, and of
   each of ``fields`` (Params field names) alone: a field whose share of
@@ -118,8 +112,8 @@ def _from_rest(models, ground):
     particles_per_cell=2.0, use_mpdp=False, render='none', margin=1.0,
     fill=False, ground=ground)
   prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), _scene(models), mats, cfg)
-  prep = _f64(prep)
-  params = _f64(pl.init_params(prep, cfg))
+  prep = prep.astype(jnp.float64)
+  params = pl.init_params(prep, cfg)  # float64, as prep
   rng = np.random.default_rng(1)
   shape = prep.rest_means.shape
   wm = jnp.asarray(rng.normal(size=shape))

@@ -403,11 +403,8 @@ class SimulateTest(absltest.TestCase):
                      point=(0.03, 0.0, 0.05), radius=0.025, start=0.0,
                      end=1.0),))
       prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD], cfg)
-      prep = jax.tree.map(
-        lambda a: a.astype(jnp.float64) if jnp.issubdtype(
-          a.dtype, jnp.floating) else a, prep)
-      params = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64),
-                            pl.init_params(prep, cfg))
+      prep = prep.astype(jnp.float64)
+      params = pl.init_params(prep, cfg)  # float64, as prep
 
       def loss(p):
         m = pl.simulate(p, prep, cfg).means[-1]

@@ -290,13 +290,10 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
                         "jax.config.update('jax_enable_x64', True) first, or "
                         "use dtype='float32'.")
   dtype = jnp.dtype(tc.dtype)
-  cast = lambda t: jax.tree.map(  # noqa: E731
-    lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating)
-    else a, t)
   prepared, _ = pl.prepare_scene(jax.random.PRNGKey(config.seed), scene,
                                  materials, config)
-  prepared = cast(prepared)
-  params = cast(default_params(prepared, config))
+  prepared = prepared.astype(dtype)
+  params = default_params(prepared, config)  # in prepared's dtype
   field = jnp.asarray(driver_field(obj, prepared), dtype)
   traj = pl.simulate_jit(params, prepared, config, field=field)
   target = traj.means
