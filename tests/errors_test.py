@@ -114,7 +114,11 @@ class ErrorPathTest(absltest.TestCase):
          f'{file} lists the fields\n'),
         (['--config.grid_rez=1'], "error: the config has no field "
          "'grid_rez' (--config.grid_rez=1); did you mean 'grid_res'? "
-         f'{file} lists the fields\n')):
+         f'{file} lists the fields\n'),
+        # absl's space form names the file too (it named the default).
+        (['--config', 'experiments/configs/demo.py', '--config.nosuch=1'],
+         "error: the config has no field 'nosuch' (--config.nosuch=1); "
+         'experiments/configs/demo.py lists the fields\n')):
       proc = subprocess.run(
         [sys.executable, '-m', 'experiments.simulate', *args,
          '--config.num_frames=2'], capture_output=True, text=True,

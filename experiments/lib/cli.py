@@ -60,9 +60,15 @@ _CONFIG_NEEDS: dict[str, tuple[tuple[str, ...], str | None]] = {}
 
 
 def _given(argv, name: str) -> str | None:
-  """The value of the last ``--name=VALUE`` in ``argv``, or None."""
-  values = [a.split('=', 1)[1] for a in argv[1:]
-            if a.startswith(f'--{name}=')]
+  """The value of the last ``--name=VALUE`` or ``--name VALUE`` in
+  ``argv`` (absl takes both), or None."""
+  values = []
+  args = list(argv[1:])
+  for i, a in enumerate(args):
+    if a.startswith(f'--{name}='):
+      values.append(a.split('=', 1)[1])
+    elif a == f'--{name}' and i + 1 < len(args):
+      values.append(args[i + 1])
   return values[-1] if values else None
 
 
@@ -201,11 +207,12 @@ def _flag_errors(argv):
   except (AttributeError, KeyError) as e:
     message = _unknown_field(e, argv)
     if message is None and 'get_config' in str(e):
-      config = [a for a in argv[1:] if a.split('=')[0] == '--config']
+      config = _given(argv, 'config')
       other = ('; a PhysGaussian JSON goes to --physgaussian'
                if 'physgaussian' in flags.FLAGS else '')
-      message = (f'{config[0] if config else "--config"}: not a config '
-                 f'file (a .py defining get_config(){other})')
+      message = (f'--config={config}' if config is not None else '--config'
+                 ) + (': not a config file (a .py defining get_config()'
+                      f'{other})')
     if message is None:
       raise
     print(f'error: {message}', file=sys.stderr)
