@@ -181,6 +181,19 @@ class PlasticityTest(absltest.TestCase):
       np.testing.assert_allclose(np.linalg.det(Fe), np.linalg.det(F),
                                  rtol=1e-10)
 
+  def test_von_mises_zero_yield_is_perfectly_plastic(self):
+    """yield_stress = 0 keeps only the volume change (PhysGaussian's map);
+    it was purely elastic (the damage switch of plasticine)."""
+    with jax.enable_x64(True):
+      F = np.diag([1.1, 0.95, 0.97])[None] @ _rotations(1, seed=5)
+      Fe, _, ep, tau = _update('von_mises', F, yield_stress=0.0)
+      J = np.linalg.det(F[0])
+      np.testing.assert_allclose(np.linalg.svd(Fe[0])[1], np.cbrt(J),
+                                 rtol=1e-10)
+      dev = tau[0] - np.trace(tau[0]) / 3 * np.eye(3)
+      np.testing.assert_allclose(dev, 0.0, atol=1e-8 * _E)
+      self.assertGreater(float(ep[0]), 0)
+
   def test_von_mises_hardening_raises_yield(self):
     with jax.enable_x64(True):
       F = np.diag([1.1, 0.95, 0.97])[None]
@@ -299,9 +312,10 @@ class PlasticityTest(absltest.TestCase):
       F = np.diag([1.1, 0.95, 0.97])[None]
       ys = 1e3
       dev = lambda t: np.linalg.norm(t - np.trace(t) / 3 * np.eye(3))  # noqa
-      limit = np.sqrt(2 / 3) * ys
-      for model, field in (('foam', 'plastic_viscosity'),
-                           ('bingham', 'viscosity')):
+      # Foam's J2 yield as PhysGaussian; Bingham's in shear terms.
+      for model, field, limit in (
+          ('foam', 'plastic_viscosity', np.sqrt(2 / 3) * ys),
+          ('bingham', 'viscosity', np.sqrt(2) * ys)):
         _, _, _, t_rate_free = _update(model, F, yield_stress=ys,
                                        **{field: 0.0})
         _, _, _, t_visc = _update(model, F, yield_stress=ys,
@@ -310,6 +324,37 @@ class PlasticityTest(absltest.TestCase):
                                    err_msg=model)
         # Viscosity delays the flow: stress above the yield surface.
         self.assertGreater(dev(t_visc[0]), 1.01 * limit, msg=model)
+
+  def test_bingham_steady_simple_shear_follows_binghams_law(self):
+    """F = (I + dt L) F_e each substep with L = gamma_dot e_x e_y: the
+    shear stress settles at tau_0 + eta_p gamma_dot (the yield stress and
+    plastic viscosity a rheometer gives; with tau_0 = 0, the newtonian
+    model's eta gamma_dot). It was tau_0 / sqrt(3) + eta gamma_dot / 2."""
+    with jax.enable_x64(True):
+      E, dt, steps = 1e6, 1e-5, 2000
+      soa = lambda a: la.to_mat(jnp.asarray(a)[:, :, None])  # noqa: E731
+      for tau0, eta, rate in ((0.0, 20.0, 10.0), (50.0, 200.0, 10.0),
+                              (500.0, 200.0, 1.0)):
+        mat = mpm.make_materials('bingham', E, 0.3, 1000.0, num=1,
+                                 dtype=jnp.float64, yield_stress=tau0,
+                                 viscosity=eta)
+        L = np.zeros((3, 3))
+        L[0, 1] = rate
+        step_f = np.eye(3) + dt * L
+
+        def step(carry, _, mat=mat, L=L, step_f=step_f):
+          F, ep = carry
+          Fe, _, ep, tau = constitutive.constitutive_update(
+            ('bingham',), mat.model_id, soa(F), soa(L),
+            jnp.ones((1,)), ep, mat, dt)
+          Fe = la.from_mat(Fe)[:, :, 0]
+          return (step_f @ Fe, ep), la.from_mat(tau)[0, 1, 0]
+
+        _, txy = jax.jit(lambda c, step=step: jax.lax.scan(
+          step, c, None, length=steps))((jnp.eye(3), jnp.zeros((1,))))
+        with self.subTest(tau0=tau0, eta=eta, rate=rate):
+          np.testing.assert_allclose(float(txy[-1]), tau0 + eta * rate,
+                                     rtol=1e-3)
 
   def test_newtonian_pressure_and_viscosity(self):
     with jax.enable_x64(True):

@@ -9,12 +9,20 @@ scatters (Hu et al. 2018). Fields are structure-of-arrays nested tuples
 Elastic models:
 
 - ``fixed_corotated``: ``tau = 2 mu (F - R) F^T + lam J (J - 1) I`` with the
-  polar rotation R (Newton iteration, ``linalg.polar_mat``).
+  polar rotation R (Newton iteration, ``linalg.polar_mat``). For an
+  inverted particle (``det F < 0``) that R is a reflection, whereas the
+  spectral form (used next to an SVD model) takes Stomakhin et al.'s
+  rotation-variant SVD: the two differ there. Only a particle crushed
+  through zero volume gets there (``mpm.run`` stops at ``det F < 0.01``).
 - ``neo_hookean`` (compressible, Bonet & Wood):
   ``tau = mu (F F^T - I) + lam log(J) I``.
-- ``stvk``: St. Venant-Kirchhoff with the *Hencky* (logarithmic) strain, as
-  PhysGaussian's "StVK": ``tau = U diag(2 mu eps + lam tr(eps)) U^T`` with
-  ``eps = log(s)`` from ``F = U diag(s) V^T``.
+- ``stvk``: St. Venant-Kirchhoff with the *Hencky* (logarithmic) strain, the
+  model PhysGaussian calls "StVK": ``tau = U diag(2 mu eps + lam tr(eps))
+  U^T`` with ``eps = log(s)`` from ``F = U diag(s) V^T``, the Kirchhoff
+  stress of the Hencky energy. (PhysGaussian's ``kirchoff_stress_StVK``
+  returns ``U diag(...) V^T F^T = U diag((2 mu eps + lam tr eps) s) U^T``,
+  one factor ``s`` more per principal direction; its own Drucker-Prager
+  stress divides it out, as here. von_mises and foam use this stress too.)
 
 Plastic models (return maps on the log singular values ``eps``; ``eps^`` is
 the deviatoric part, ``|.|`` the Euclidean norm):
@@ -23,10 +31,13 @@ the deviatoric part, ``|.|`` the Euclidean norm):
   when ``|eps^| > tau_Y / (2 mu)``, project ``eps -= dg eps^/|eps^|`` with
   ``dg = |eps^| - tau_Y / (2 mu)``; hardening
   ``tau_Y = yield_stress + (hardening 2 mu xi - softening) ep`` with ``ep``
-  the accumulated ``dg``; Hencky stress.
+  the accumulated ``dg``; Hencky stress. ``yield_stress = 0`` is perfectly
+  plastic (only the volume change is elastic).
 - ``plasticine`` (PhysGaussian ``..._with_damage``): the same return map with
   softening; a particle whose yield stress reaches 0 is damaged (no stress,
-  no further return map); fixed-corotated stress on ``F_e``.
+  no further return map) from its next substep on (PhysGaussian zeroes the
+  stress in the substep the yield crosses 0); fixed-corotated stress on
+  ``F_e``.
 - ``drucker_prager`` (sand; Klar et al. 2016): with
   ``alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``,
   ``dg = |eps^| + (3 lam + 2 mu) / (2 mu) tr(eps) alpha``:
@@ -42,17 +53,20 @@ the deviatoric part, ``|.|`` the Euclidean norm):
 - ``snow`` (Stomakhin et al. 2013): singular values clamped to
   ``[1 - theta_c, 1 + theta_s]``, ``Jp *= J_tr / J_e``; fixed-corotated
   stress with ``mu, lam`` scaled by ``h = exp(xi (1 - Jp))`` (clamped to
-  [0.1, 5] as taichi_elements does, so a crushed particle cannot make the
-  step unstable).
+  [0.1, 5] as Taichi's mpm99 / mpm128 examples do, so a crushed particle
+  cannot make the step unstable; the time step does not count that factor:
+  at ``h = 5`` the default Courant number 0.35 is 0.78 for that particle).
 - ``foam`` (PhysGaussian ``viscoplasticity_return_mapping_with_StVK``):
   ``s = 2 mu eps^``, ``y = |s| - sqrt(2/3) tau_Y``; if ``y > 0``:
   ``|s_new| = |s| - y / (1 + eta_p / (2 mu_hat dt))`` with
   ``mu_hat = mu tr(b) / 3``, ``b = diag(s_i^2)``. Hencky stress.
-- ``bingham`` (Bingham / Herschel-Bulkley-type viscoplastic fluid): the same
-  regularised von Mises flow with ``mu_hat = mu`` and the dynamic
-  ``viscosity`` as ``eta``: rigid-elastic below the yield stress, flowing with
-  viscosity ``eta`` above it. Hencky stress (bulk modulus
-  ``lam + 2 mu / 3``).
+- ``bingham`` (Bingham plastic; ``yield_stress`` the *shear* yield stress
+  ``tau_0`` and ``viscosity`` the plastic viscosity ``eta_p`` a rheometer
+  gives): the same regularised flow in shear terms, yield when
+  ``|s| > sqrt(2) tau_0`` and ``|s_new| = |s| - y / (1 + eta_p / (mu dt))``:
+  elastic (stiffness ``mu``) below the yield stress; in steady simple shear
+  each step ends at ``tau_xy = tau_0 + eta_p gamma_dot``, Bingham's law.
+  Hencky stress (bulk modulus ``lam + 2 mu / 3``).
 - ``newtonian`` (weakly compressible fluid): ``F_e = J^{1/3} I`` (no shear
   memory), Tait pressure ``p = K (J^{-7} - 1) / 7`` with
   ``K = E / (3 (1 - 2 nu))``, viscous stress from the velocity gradient
@@ -93,6 +107,7 @@ _J_FLOOR = 1e-3
 _TAIT_GAMMA = 7.0
 _SNOW_H = (0.1, 5.0)
 _SQRT23 = math.sqrt(2.0 / 3.0)
+_SQRT2 = math.sqrt(2.0)
 _N2_MIN = 1e-30  # |e^|^2 below this is zero deviatoric strain
 
 
@@ -154,15 +169,18 @@ def _stvk(s, p):
   return s, _hencky_k(e, p['mu'], p['lam']), {'Jp': p['Jp'], 'ep': p['ep']}
 
 
-def _von_mises_core(s, p, softening):
+def _von_mises_core(s, p, softening, damage):
   mu = p['mu']
   e = _log_sig(s)
   tr, eh, n = _dev(e)
   ys = p['yield_stress'] + (p['hardening'] * 2.0 * mu * p['xi']
                             - softening) * p['ep']
   dg = n - ys / (2.0 * mu)
+  # Damage is plasticine's (softening): its particle whose yield stress
+  # has reached 0 is stress-free. von_mises with yield_stress = 0 is
+  # perfectly plastic (only the volume is elastic), as PhysGaussian's map.
   alive = ys > 0.0
-  plastic = (dg > 0.0) & alive
+  plastic = (dg > 0.0) & alive if damage else dg > 0.0
   f = jnp.where(plastic, dg / n, 0.0)
   e_new = tuple(x - f * y for x, y in zip(e, eh))
   s_new = tuple(jnp.where(plastic, jnp.exp(x), y) for x, y in zip(e_new, s))
@@ -171,13 +189,13 @@ def _von_mises_core(s, p, softening):
 
 
 def _von_mises(s, p):
-  s_new, e_new, ep, _ = _von_mises_core(s, p, 0.0)
+  s_new, e_new, ep, _ = _von_mises_core(s, p, 0.0, False)
   return s_new, _hencky_k(e_new, p['mu'], p['lam']), {'Jp': p['Jp'],
                                                       'ep': ep}
 
 
 def _plasticine(s, p):
-  s_new, _, ep, alive = _von_mises_core(s, p, p['softening'])
+  s_new, _, ep, alive = _von_mises_core(s, p, p['softening'], True)
   k = _fcr_k(s_new, p['mu'], p['lam'])
   k = tuple(jnp.where(alive, x, 0.0) for x in k)
   return s_new, k, {'Jp': p['Jp'], 'ep': ep}
@@ -233,19 +251,25 @@ def _snow(s, p):
   return s_new, k, {'Jp': Jp, 'ep': p['ep']}
 
 
-def _viscoplastic(s, p, eta, mu_hat_from_b):
+def _viscoplastic(s, p, eta, bingham):
+  """Regularised von Mises flow on the Hencky deviator ``s = 2 mu eps^``:
+  foam as PhysGaussian (``|s| <= sqrt(2/3) tau_Y``, relaxation
+  ``1 + eta / (2 mu_hat dt)``); ``bingham`` in shear terms (``|s| <=
+  sqrt(2) tau_Y``, ``1 + eta / (mu dt)``), so that steady simple shear
+  ends each step at ``tau_xy = tau_Y + eta gamma_dot`` exactly."""
   mu = p['mu']
   e = _log_sig(s)
   tr, eh, n = _dev(e)
   s_norm = 2.0 * mu * n
-  y = s_norm - _SQRT23 * p['yield_stress']
+  y = s_norm - (_SQRT2 if bingham else _SQRT23) * p['yield_stress']
   plastic = y > 0.0
-  if mu_hat_from_b:
+  if bingham:
+    relax = 1.0 + eta / (mu * p['dt'])
+  else:
     sc = tuple(jnp.maximum(x, _SIG_FLOOR) for x in s)
     mu_hat = mu * (sc[0] * sc[0] + sc[1] * sc[1] + sc[2] * sc[2]) / 3.0
-  else:
-    mu_hat = mu
-  new_norm = s_norm - y / (1.0 + eta / (2.0 * mu_hat * p['dt']))
+    relax = 1.0 + eta / (2.0 * mu_hat * p['dt'])
+  new_norm = s_norm - y / relax
   f = jnp.where(plastic, new_norm / s_norm, 1.0)
   e_new = tuple(f * y_ + tr / 3.0 for y_ in eh)
   s_new = tuple(jnp.where(plastic, jnp.exp(x), y_) for x, y_ in zip(e_new, s))
@@ -254,11 +278,11 @@ def _viscoplastic(s, p, eta, mu_hat_from_b):
 
 
 def _foam(s, p):
-  return _viscoplastic(s, p, p['plastic_viscosity'], True)
+  return _viscoplastic(s, p, p['plastic_viscosity'], False)
 
 
 def _bingham(s, p):
-  return _viscoplastic(s, p, p['viscosity'], False)
+  return _viscoplastic(s, p, p['viscosity'], True)
 
 
 _SPECTRAL = {
