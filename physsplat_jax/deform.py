@@ -364,19 +364,29 @@ def deform(
 
 def deform_gaussians(
   bind: Binding, gaussians: Gaussians, driver_x: Array,
-  driver_F: Array | None = None,
+  driver_F: Array | None = None, rotate_colors: bool = True,
 ) -> Gaussians:
   """:func:`deform` returned as a :class:`Gaussians` (for PLY export/render).
 
   Scales and quaternions come from an eigen-decomposition of ``F Sigma F^T``
-  (:func:`physsplat_jax.gaussians.decompose_covariance`); use :func:`deform`
-  directly inside gradient computations.
+  (:func:`physsplat_jax.gaussians.decompose_covariance`), and the SH
+  coefficients are rotated by ``polar(F)``
+  (:func:`physsplat_jax.sh_rotation.rotate_sh`), so that view-dependent
+  colour turns with the object as ``render(..., view_rotations=R)`` shows
+  it (``rotate_colors=False`` keeps the rest SH). Use :func:`deform`
+  directly inside gradient computations; for files,
+  :func:`physsplat_jax.io.export.deformed_gaussians` also keeps rigidly
+  moved scales exact.
   """
   from physsplat_jax import gaussians as _g
+  from physsplat_jax.sh_rotation import rotate_sh
 
-  means, covs, _ = deform(bind, gaussians, driver_x, driver_F)
+  means, covs, R = deform(bind, gaussians, driver_x, driver_F)
   log_scales, quats = _g.decompose_covariance(covs)
+  sh = gaussians.sh
+  if rotate_colors:
+    sh = rotate_sh(sh, R).astype(sh.dtype)
   return gaussians.replace(
     means=means, log_scales=log_scales.astype(gaussians.log_scales.dtype),
-    quats=quats.astype(gaussians.quats.dtype),
+    quats=quats.astype(gaussians.quats.dtype), sh=sh,
   )

@@ -62,9 +62,10 @@ PhysGaussian's ``convert_SH`` does.
 
 Differences between gsplat (followed here) and INRIA
 ``diff-gaussian-rasterization`` are listed in docs/rendering.md: alpha cap
-0.999 vs 0.99, near plane 0.01 (camera.near) vs 0.2, pixel centres at
-``j + 0.5`` vs ``j``, frustum clamp ``(W - cx) / fx + 0.3 tan_fovx`` vs
-``1.3 tan_fovx``.
+0.999 vs 0.99, near plane 0.01 (camera.near) vs 0.2, frustum clamp
+``(W - cx) / fx + 0.3 tan_fovx`` vs ``1.3 tan_fovx``. (Pixel centres at
+``j + 0.5`` vs INRIA's ``j`` give the same image: INRIA moves the means by
+the same half pixel.)
 """
 
 from __future__ import annotations
