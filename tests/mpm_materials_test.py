@@ -210,6 +210,15 @@ class PlasticityTest(absltest.TestCase):
       _, _, _, tau = _update('plasticine', F, ep=np.full(1, 10.0),
                              yield_stress=5e2, softening=100.0)
       np.testing.assert_allclose(tau, 0.0, atol=1e-12)
+      # Sound before the step, its flow softens the yield below 0: damaged
+      # in that substep (PhysGaussian), not one later.
+      _, _, ep, tau = _update('plasticine', F, yield_stress=5e2,
+                              softening=1e5)
+      self.assertLess(5e2 - 1e5 * float(ep[0]), 0.0)
+      np.testing.assert_allclose(tau, 0.0, atol=1e-12)
+      _, _, _, tau = _update('plasticine', F, yield_stress=5e2,
+                             softening=1.0)  # still sound: stressed
+      self.assertGreater(np.abs(tau).max(), 1e2)
 
   def test_drucker_prager_tension_goes_to_tip(self):
     with jax.enable_x64(True):

@@ -35,9 +35,8 @@ the deviatoric part, ``|.|`` the Euclidean norm):
   plastic (only the volume change is elastic).
 - ``plasticine`` (PhysGaussian ``..._with_damage``): the same return map with
   softening; a particle whose yield stress reaches 0 is damaged (no stress,
-  no further return map) from its next substep on (PhysGaussian zeroes the
-  stress in the substep the yield crosses 0); fixed-corotated stress on
-  ``F_e``.
+  no further return map) from the substep whose flow brings it there on
+  (as PhysGaussian); fixed-corotated stress on ``F_e``.
 - ``drucker_prager`` (sand; Klar et al. 2016): with
   ``alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``,
   ``dg = |eps^| + (3 lam + 2 mu) / (2 mu) tr(eps) alpha``:
@@ -196,8 +195,12 @@ def _von_mises(s, p):
 
 def _plasticine(s, p):
   s_new, _, ep, alive = _von_mises_core(s, p, p['softening'], True)
+  # Damaged from the substep whose flow softens the yield to 0 (as
+  # PhysGaussian zeroes mu and lam there), not only from the next one.
+  ys = p['yield_stress'] + (p['hardening'] * 2.0 * p['mu'] * p['xi']
+                            - p['softening']) * ep
   k = _fcr_k(s_new, p['mu'], p['lam'])
-  k = tuple(jnp.where(alive, x, 0.0) for x in k)
+  k = tuple(jnp.where(alive & (ys > 0.0), x, 0.0) for x in k)
   return s_new, k, {'Jp': p['Jp'], 'ep': ep}
 
 
