@@ -511,9 +511,8 @@ class Materials(struct.PyTreeNode):
       ``K = E / (3 (1 - 2 nu))`` is used.
     nu: Poisson ratio in [0, 0.5).
     rho: density [kg/m^3].
-    yield_stress: von Mises yield stress [Pa] (von_mises, plasticine, foam;
-      see mpm.constitutive for each one's convention); for bingham the
-      shear yield stress ``tau_0`` of ``tau = tau_0 + eta_p gamma_dot``.
+    yield_stress: yield stress [Pa] (von_mises, plasticine, foam, bingham;
+      each one's convention in mpm.constitutive).
     hardening: isotropic hardening switch/multiplier (PhysGaussian's
       ``hardening``, 0 or 1): yield grows by ``hardening * 2 mu xi`` per unit
       plastic strain (von_mises, plasticine).
@@ -526,8 +525,8 @@ class Materials(struct.PyTreeNode):
       ``phi(q) = friction_angle + (h1 q - h3) exp(-h2 q)`` [deg, -, deg] with
       ``q`` the accumulated plastic strain; h1 = h3 = 0 disables it.
     plastic_viscosity: foam viscoplastic viscosity [Pa s].
-    viscosity: dynamic viscosity [Pa s] (newtonian; bingham's plastic
-      viscosity ``eta_p``).
+    viscosity: dynamic (bingham: plastic) viscosity [Pa s] (newtonian,
+      bingham).
     theta_c, theta_s: snow critical compression and stretch.
     dp_cohesion: Drucker-Prager cohesion as the log-strain ``c`` of the cone
       apex (Tampubolon et al. 2017): the sand carries isotropic tension up
