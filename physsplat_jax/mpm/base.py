@@ -525,8 +525,7 @@ class Materials(struct.PyTreeNode):
       ``phi(q) = friction_angle + (h1 q - h3) exp(-h2 q)`` [deg, -, deg] with
       ``q`` the accumulated plastic strain; h1 = h3 = 0 disables it.
     plastic_viscosity: foam viscoplastic viscosity [Pa s].
-    viscosity: dynamic (bingham: plastic) viscosity [Pa s] (newtonian,
-      bingham).
+    viscosity: dynamic viscosity [Pa s] (newtonian; plastic for bingham).
     theta_c, theta_s: snow critical compression and stretch.
     dp_cohesion: Drucker-Prager cohesion as the log-strain ``c`` of the cone
       apex (Tampubolon et al. 2017): the sand carries isotropic tension up
