@@ -577,7 +577,7 @@ FLOAT_FIELDS = (
 # (mpm_solver_warp defaults: softening 0.1, friction angle 25 deg, plastic
 # viscosity 0); Stomakhin et al. 2013 (snow: xi 10, theta_c 2.5e-2,
 # theta_s 7.5e-3); Klar et al. 2016 (h2 = 0.2); PhysFlow's jam for bingham
-# (yield 50 Pa, viscosity 200 Pa s); water (1e-3 Pa s).
+# (50 Pa, 200 Pa s, read as tau_0 and eta_p); water (1e-3 Pa s).
 _GENERIC = dict(
   yield_stress=1e4, hardening=0.0, xi=0.0, softening=0.0,
   friction_angle=25.0, dp_h1=0.0, dp_h2=0.2, dp_h3=0.0,

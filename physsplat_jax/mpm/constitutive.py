@@ -64,7 +64,8 @@ the deviatoric part, ``|.|`` the Euclidean norm):
   gives): the same regularised flow in shear terms, yield when
   ``|s| > sqrt(2) tau_0`` and ``|s_new| = |s| - y / (1 + eta_p / (mu dt))``:
   elastic (stiffness ``mu``) below the yield stress; in steady simple shear
-  each step ends at ``tau_xy = tau_0 + eta_p gamma_dot``, Bingham's law.
+  each step ends at ``tau_xy = tau_0 + eta_p gamma_dot``, Bingham's law (up
+  to ``(tau / mu)^2``: 3e-3 at ``tau / mu = 0.05``).
   Hencky stress (bulk modulus ``lam + 2 mu / 3``).
 - ``newtonian`` (weakly compressible fluid): ``F_e = J^{1/3} I`` (no shear
   memory), Tait pressure ``p = K (J^{-7} - 1) / 7`` with
@@ -179,6 +180,8 @@ def _von_mises_core(s, p, softening, damage):
   # has reached 0 is stress-free. von_mises with yield_stress = 0 is
   # perfectly plastic (only the volume is elastic), as PhysGaussian's map.
   alive = ys > 0.0
+  if not damage:  # (a negative yield would flip the deviator)
+    dg = n - jnp.maximum(ys, 0.0) / (2.0 * mu)
   plastic = (dg > 0.0) & alive if damage else dg > 0.0
   f = jnp.where(plastic, dg / n, 0.0)
   e_new = tuple(x - f * y for x, y in zip(e, eh))
@@ -259,7 +262,8 @@ def _viscoplastic(s, p, eta, bingham):
   foam as PhysGaussian (``|s| <= sqrt(2/3) tau_Y``, relaxation
   ``1 + eta / (2 mu_hat dt)``); ``bingham`` in shear terms (``|s| <=
   sqrt(2) tau_Y``, ``1 + eta / (mu dt)``), so that steady simple shear
-  ends each step at ``tau_xy = tau_Y + eta gamma_dot`` exactly."""
+  ends each step at ``tau_xy = tau_Y + eta gamma_dot`` (to second order in
+  the elastic strain ``tau / mu``)."""
   mu = p['mu']
   e = _log_sig(s)
   tr, eh, n = _dev(e)
