@@ -385,7 +385,7 @@ def deform_gaussians(
   log_scales, quats = _g.decompose_covariance(covs)
   sh = gaussians.sh
   if rotate_colors:
-    sh = rotate_sh(sh, R).astype(sh.dtype)
+    sh = rotate_sh(sh, R)  # (computed in sh's dtype)
   return gaussians.replace(
     means=means, log_scales=log_scales.astype(gaussians.log_scales.dtype),
     quats=quats.astype(gaussians.quats.dtype), sh=sh,

@@ -210,9 +210,9 @@ def _flag_errors(argv):
       config = _given(argv, 'config')
       other = ('; a PhysGaussian JSON goes to --physgaussian'
                if 'physgaussian' in flags.FLAGS else '')
-      message = (f'--config={config}' if config is not None else '--config'
-                 ) + (': not a config file (a .py defining get_config()'
-                      f'{other})')
+      flag = '--config' if config is None else f'--config={config}'
+      message = (f'{flag}: not a config file (a .py defining get_config()'
+                 f'{other})')
     if message is None:
       raise
     print(f'error: {message}', file=sys.stderr)

@@ -169,41 +169,45 @@ def _stvk(s, p):
   return s, _hencky_k(e, p['mu'], p['lam']), {'Jp': p['Jp'], 'ep': p['ep']}
 
 
+def _vm_yield(p, softening, ep):
+  """Yield stress after plastic strain ``ep`` (von_mises, plasticine)."""
+  return p['yield_stress'] + (p['hardening'] * 2.0 * p['mu'] * p['xi']
+                              - softening) * ep
+
+
 def _von_mises_core(s, p, softening, damage):
   mu = p['mu']
   e = _log_sig(s)
   tr, eh, n = _dev(e)
-  ys = p['yield_stress'] + (p['hardening'] * 2.0 * mu * p['xi']
-                            - softening) * p['ep']
+  ys = _vm_yield(p, softening, p['ep'])
+  # von_mises: yield_stress = 0 is perfectly plastic (only the volume is
+  # elastic), as PhysGaussian's map; a negative yield would flip the
+  # deviator. plasticine (damage): a particle whose yield has reached 0 is
+  # damaged and flows no more.
+  if not damage:
+    ys = jnp.maximum(ys, 0.0)
   dg = n - ys / (2.0 * mu)
-  # Damage is plasticine's (softening): its particle whose yield stress
-  # has reached 0 is stress-free. von_mises with yield_stress = 0 is
-  # perfectly plastic (only the volume is elastic), as PhysGaussian's map.
-  alive = ys > 0.0
-  if not damage:  # (a negative yield would flip the deviator)
-    dg = n - jnp.maximum(ys, 0.0) / (2.0 * mu)
-  plastic = (dg > 0.0) & alive if damage else dg > 0.0
+  plastic = (dg > 0.0) & (ys > 0.0) if damage else dg > 0.0
   f = jnp.where(plastic, dg / n, 0.0)
   e_new = tuple(x - f * y for x, y in zip(e, eh))
   s_new = tuple(jnp.where(plastic, jnp.exp(x), y) for x, y in zip(e_new, s))
   ep = p['ep'] + jnp.where(plastic, dg, 0.0)
-  return s_new, e_new, ep, alive
+  return s_new, e_new, ep
 
 
 def _von_mises(s, p):
-  s_new, e_new, ep, _ = _von_mises_core(s, p, 0.0, False)
+  s_new, e_new, ep = _von_mises_core(s, p, 0.0, False)
   return s_new, _hencky_k(e_new, p['mu'], p['lam']), {'Jp': p['Jp'],
                                                       'ep': ep}
 
 
 def _plasticine(s, p):
-  s_new, _, ep, alive = _von_mises_core(s, p, p['softening'], True)
-  # Damaged from the substep whose flow softens the yield to 0 (as
-  # PhysGaussian zeroes mu and lam there), not only from the next one.
-  ys = p['yield_stress'] + (p['hardening'] * 2.0 * p['mu'] * p['xi']
-                            - p['softening']) * ep
+  s_new, _, ep = _von_mises_core(s, p, p['softening'], True)
+  # Stress-free from the substep whose flow softens the yield to 0 (as
+  # PhysGaussian zeroes mu and lam there); a damaged particle stays so.
+  sound = _vm_yield(p, p['softening'], ep) > 0.0
   k = _fcr_k(s_new, p['mu'], p['lam'])
-  k = tuple(jnp.where(alive & (ys > 0.0), x, 0.0) for x in k)
+  k = tuple(jnp.where(sound, x, 0.0) for x in k)
   return s_new, k, {'Jp': p['Jp'], 'ep': ep}
 
 
