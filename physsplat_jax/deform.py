@@ -377,6 +377,11 @@ def deform_gaussians(
   directly inside gradient computations; for files,
   :func:`physsplat_jax.io.export.deformed_gaussians` also keeps rigidly
   moved scales exact.
+
+  An inverted driver (``det F < 0``, reached only by an over-compressed or
+  unstable run) gives a reflection as ``polar(F)``: the covariance is still
+  ``F Sigma F^T`` and the colours are mirrored with it (:func:`rotate_sh`
+  is exact for any orthogonal matrix).
   """
   from physsplat_jax import gaussians as _g
   from physsplat_jax.sh_rotation import rotate_sh

@@ -49,7 +49,8 @@ def rotate_sh(sh: Array, rotations: Array) -> Array:
 
   Args:
     sh: (K, B, 3) coefficients, B = (d + 1)**2 with d in 0..3.
-    rotations: (K, 3, 3) or (3, 3) proper rotations.
+    rotations: (K, 3, 3) or (3, 3) rotations (or any orthogonal matrices:
+      the SH of degree <= d span a space closed under reflections too).
 
   Returns:
     (K, B, 3) coefficients ``c'`` with ``eval_sh(c', d) == eval_sh(sh, R^T

@@ -129,6 +129,14 @@ class ErrorPathTest(absltest.TestCase):
         self.assertNotIn('Traceback', proc.stderr)
         self.assertTrue(proc.stderr.endswith(want), proc.stderr)
 
+  def test_config_file_is_read_from_flags_before_double_dash(self):
+    # After absl's '--' nothing is a flag: a '--config=' there is a
+    # positional argument, not the config file the message should name.
+    argv = ['prog', '--config', 'a.py', '--config.x=1', '--', '--config=b.py']
+    self.assertEqual(cli._given(argv, 'config'), 'a.py')
+    self.assertIsNone(cli._given(['prog', '--', '--config=b.py'], 'config'))
+    self.assertEqual(cli._given(['prog', '--config=c.py'], 'config'), 'c.py')
+
   def test_bad_flags_are_one_line_exit_2(self):
     for args, want in ((['--config.num_frames=abc'],
                         "error: flag --config.num_frames=abc: invalid "

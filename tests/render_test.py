@@ -675,11 +675,14 @@ class ShRotationTest(absltest.TestCase):
     q = rng.normal(size=(5, 4))
     R = gs.quat_to_rotmat(jnp.asarray(q, jnp.float32))
     d = jnp.asarray(rng.normal(size=(5, 3)), jnp.float32)
-    rot = sh_rotation.rotate_sh(sh, R)
-    want = gs.eval_sh(sh, jnp.einsum('kji,kj->ki', R, d))
-    got = gs.eval_sh(rot, d)
-    np.testing.assert_allclose(got, want, atol=1e-4)
-    np.testing.assert_allclose(rot[:, 0], sh[:, 0], atol=1e-6)
+    # Reflections too: deform_gaussians passes polar(F) of an inverted F.
+    for name, Q in (('rotations', R), ('reflections', -R)):
+      rot = sh_rotation.rotate_sh(sh, Q)
+      want = gs.eval_sh(sh, jnp.einsum('kji,kj->ki', Q, d))
+      got = gs.eval_sh(rot, d)
+      with self.subTest(name):
+        np.testing.assert_allclose(got, want, atol=1e-4)
+        np.testing.assert_allclose(rot[:, 0], sh[:, 0], atol=1e-6)
 
 
 class ViewsTest(absltest.TestCase):

@@ -59,11 +59,18 @@ _CONFIG_FILES: dict[str, str | None] = {}
 _CONFIG_NEEDS: dict[str, tuple[tuple[str, ...], str | None]] = {}
 
 
+def _flag_args(argv) -> list[str]:
+  """``argv``'s arguments up to absl's ``--``, after which nothing is a
+  flag."""
+  args = list(argv[1:])
+  return args[:args.index('--')] if '--' in args else args
+
+
 def _given(argv, name: str) -> str | None:
   """The value of the last ``--name=VALUE`` or ``--name VALUE`` in
-  ``argv`` (absl takes both), or None."""
+  ``argv`` (absl takes both) before any ``--``, or None."""
   values = []
-  args = list(argv[1:])
+  args = _flag_args(argv)
   for i, a in enumerate(args):
     if a.startswith(f'--{name}='):
       values.append(a.split('=', 1)[1])
@@ -134,7 +141,7 @@ def _unknown_field(e: Exception, argv) -> str | None:
   # when it has a suggestion.
   field = re.search(r"[A-Za-z_]\w*", str(e))
   field = field and field.group()
-  for arg in argv[1:]:
+  for arg in _flag_args(argv):
     if arg.startswith('--') and '.' in arg.split('=')[0]:
       name, *path = arg[2:].split('=')[0].split('.')
       if field not in path:
@@ -434,7 +441,7 @@ def parse_flags(argv):
     sys.exit(2)
   except SystemExit as e:  # absl's --help and friends exit 1 after printing
     asked = {'--help', '-h', '-?', '--helpshort', '--helpfull', '--helpxml'}
-    if e.code == 1 and asked & set(argv[1:]):
+    if e.code == 1 and asked & set(_flag_args(argv)):
       sys.exit(0)
     raise
   return rest
