@@ -334,36 +334,50 @@ class PlasticityTest(absltest.TestCase):
         # Viscosity delays the flow: stress above the yield surface.
         self.assertGreater(dev(t_visc[0]), 1.01 * limit, msg=model)
 
+  @staticmethod
+  def _steady_shear(model, rate, **fields):
+    """The shear stress tau_xy after 2000 substeps of F = (I + dt L) F_e,
+    L = rate e_x e_y (float64)."""
+    E, dt, steps = 1e6, 1e-5, 2000
+    soa = lambda a: la.to_mat(jnp.asarray(a)[:, :, None])  # noqa: E731
+    mat = mpm.make_materials(model, E, 0.3, 1000.0, num=1,
+                             dtype=jnp.float64, **fields)
+    L = np.zeros((3, 3))
+    L[0, 1] = rate
+    step_f = np.eye(3) + dt * L
+
+    def step(carry, _):
+      F, ep = carry
+      Fe, _, ep, tau = constitutive.constitutive_update(
+        (model,), mat.model_id, soa(F), soa(L), jnp.ones((1,)), ep, mat, dt)
+      Fe = la.from_mat(Fe)[:, :, 0]
+      return (step_f @ Fe, ep), la.from_mat(tau)[0, 1, 0]
+
+    _, txy = jax.jit(lambda c: jax.lax.scan(step, c, None, length=steps))(
+      (jnp.eye(3), jnp.zeros((1,))))
+    return float(txy[-1])
+
   def test_bingham_steady_simple_shear_follows_binghams_law(self):
-    """F = (I + dt L) F_e each substep with L = gamma_dot e_x e_y: the
-    shear stress settles at tau_0 + eta_p gamma_dot (the yield stress and
-    plastic viscosity a rheometer gives; with tau_0 = 0, the newtonian
-    model's eta gamma_dot). It was tau_0 / sqrt(3) + eta gamma_dot / 2."""
+    """The shear stress settles at tau_0 + eta_p gamma_dot (the yield
+    stress and plastic viscosity a rheometer gives; with tau_0 = 0, the
+    newtonian model's eta gamma_dot). It was tau_0 / sqrt(3) + eta
+    gamma_dot / 2, which is the J2 form's (foam's, and PhysFlow's
+    non-Newtonian's) law."""
     with jax.enable_x64(True):
-      E, dt, steps = 1e6, 1e-5, 2000
-      soa = lambda a: la.to_mat(jnp.asarray(a)[:, :, None])  # noqa: E731
       for tau0, eta, rate in ((0.0, 20.0, 10.0), (50.0, 200.0, 10.0),
                               (500.0, 200.0, 1.0)):
-        mat = mpm.make_materials('bingham', E, 0.3, 1000.0, num=1,
-                                 dtype=jnp.float64, yield_stress=tau0,
-                                 viscosity=eta)
-        L = np.zeros((3, 3))
-        L[0, 1] = rate
-        step_f = np.eye(3) + dt * L
-
-        def step(carry, _, mat=mat, L=L, step_f=step_f):
-          F, ep = carry
-          Fe, _, ep, tau = constitutive.constitutive_update(
-            ('bingham',), mat.model_id, soa(F), soa(L),
-            jnp.ones((1,)), ep, mat, dt)
-          Fe = la.from_mat(Fe)[:, :, 0]
-          return (step_f @ Fe, ep), la.from_mat(tau)[0, 1, 0]
-
-        _, txy = jax.jit(lambda c, step=step: jax.lax.scan(
-          step, c, None, length=steps))((jnp.eye(3), jnp.zeros((1,))))
         with self.subTest(tau0=tau0, eta=eta, rate=rate):
-          np.testing.assert_allclose(float(txy[-1]), tau0 + eta * rate,
-                                     rtol=1e-3)
+          np.testing.assert_allclose(
+            self._steady_shear('bingham', rate, yield_stress=tau0,
+                               viscosity=eta), tau0 + eta * rate, rtol=1e-3)
+      # bingham's default is PhysFlow's jam (J2: tau_Y 50 Pa, eta 200 Pa s)
+      # in shear terms: the two flow alike.
+      jam = self._steady_shear('foam', 10.0, yield_stress=50.0,
+                               plastic_viscosity=200.0)
+      np.testing.assert_allclose(jam, 50 / np.sqrt(3) + 100 * 10.0,
+                                 rtol=1e-3)
+      np.testing.assert_allclose(self._steady_shear('bingham', 10.0), jam,
+                                 rtol=1e-3)
 
   def test_newtonian_pressure_and_viscosity(self):
     with jax.enable_x64(True):

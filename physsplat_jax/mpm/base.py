@@ -576,8 +576,8 @@ FLOAT_FIELDS = (
 # Defaults per model for the fields beyond (E, nu, rho). Sources: PhysGaussian
 # (mpm_solver_warp defaults: softening 0.1, friction angle 25 deg, plastic
 # viscosity 0); Stomakhin et al. 2013 (snow: xi 10, theta_c 2.5e-2,
-# theta_s 7.5e-3); Klar et al. 2016 (h2 = 0.2); PhysFlow's jam for bingham
-# (50 Pa, 200 Pa s, read as tau_0 and eta_p); water (1e-3 Pa s).
+# theta_s 7.5e-3); Klar et al. 2016 (h2 = 0.2); water (1e-3 Pa s); bingham:
+# PhysFlow's jam (J2 50 Pa, 200 Pa s) in shear terms, 50/sqrt(3) and 200/2.
 _GENERIC = dict(
   yield_stress=1e4, hardening=0.0, xi=0.0, softening=0.0,
   friction_angle=25.0, dp_h1=0.0, dp_h2=0.2, dp_h3=0.0,
@@ -594,7 +594,7 @@ MODEL_DEFAULTS = {
   'foam': dict(yield_stress=1e2, plastic_viscosity=0.0),
   'plasticine': dict(yield_stress=1e3, softening=0.1),
   'newtonian': dict(viscosity=1e-3),
-  'bingham': dict(yield_stress=50.0, viscosity=200.0),
+  'bingham': dict(yield_stress=28.9, viscosity=100.0),
   'rigid': {},
 }
 
