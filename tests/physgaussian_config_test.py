@@ -227,6 +227,15 @@ class ErrorTest(parameterized.TestCase):
       {'point': [1, 1, 1], 'size': [-0.1, 0.1, 0.1], 'E': 1e5}]},
      r"additional_material_params\[0\]\.size' = \[-0\.1, 0\.1, 0\.1\]: "
      'give half-extents > 0'),
+    # DreamPhysics / Physics3D / PhysFlow units (E / 1e7) read as Pa: a
+    # jelly of 0.1 Pa that cannot hold its shape.
+    ('_E_scaled_units', {'E': 0.1},
+     r"^x\.json: field 'E' = 0\.1 Pa is below 1 Pa: .* PhysFlow config "
+     r'gives E / 1e7 .* here E = 1e\+06\.$'),
+    ('_box_E_scaled_units', {'additional_material_params': [
+      {'point': [1, 1, 1], 'size': [0.1, 0.1, 0.1], 'E': 0.01}]},
+     r"additional_material_params\[0\]\.E' = 0\.01 Pa is below 1 Pa: .* "
+     r'here E = 1e\+05\.$'),
     # A typo fell back to the default region (all particles).
     ('_bc_typo', {'boundary_conditions': [
       {'type': 'particle_impulse', 'force': [1, 0, 0], 'num_dt': 1,

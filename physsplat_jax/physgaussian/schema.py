@@ -583,6 +583,7 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
       raise ConfigError(
         f'{_where(s, name)} = {getattr(c, name)!r} must be > 0.'
       )
+  _check_pascals(c.E, _where(s, 'E'))
   for name in ('n_grid', 'frame_num'):
     if getattr(c, name) < 1:
       raise ConfigError(f'{_where(s, name)} = {getattr(c, name)!r} must be'
@@ -639,7 +640,22 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
           f'{_where(s, f"additional_material_params[{i}].{name}")} = {v} '
           'must be > 0.'
         )
+    if b.E is not None:
+      _check_pascals(b.E, _where(s, f'additional_material_params[{i}].E'))
   return c
+
+
+def _check_pascals(E: float, where: str) -> None:
+  """E below 1 Pa is a config in the units of DreamPhysics, Physics3D or
+  PhysFlow, whose solvers multiply E by 1e7 (REFERENCE: units traps):
+  read in pascals here it would be a jelly that cannot hold its shape."""
+  if E < 1.0:
+    raise ConfigError(
+      f'{where} = {E!r} Pa is below 1 Pa: a PhysGaussian config gives E in '
+      f'pascals (1e4-1e7 for a jelly). A DreamPhysics, Physics3D or PhysFlow '
+      f'config gives E / 1e7 (their solvers multiply it by 1e7, PhysFlow '
+      f'also yield_stress by 1e5 and plastic_viscosity by 1e4); write the '
+      f'pascals, here E = {E * 1e7:.3g}.')
 
 
 def load_config(path: str | os.PathLike, warn: bool = True
