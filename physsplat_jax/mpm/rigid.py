@@ -7,7 +7,7 @@ and angular momentum conserved::
   M = sum m_p,  c = sum m_p x_p / M,  V = sum m_p v_p / M,
   L = sum m_p (r_p x v_p + dx^2/24 w_p),
   I = sum m_p (|r_p|^2 1 - r_p r_p^T) + M dx^2/24 1,
-  omega = I^{-1} L,  v_p = V + omega x r_p,  C_p = [omega]_x,
+  omega = I^{-1} L,
 
 (``r_p = x_p - c``, ``w_p`` the axial vector of the skew part of the G2P
 affine velocity ``C_p``; the ``dx^2/24`` term is each particle's own
@@ -15,11 +15,15 @@ inertia as a cube of side dx/2, which keeps ``I`` invertible for a line or
 a single particle, and its spin ``w_p`` is counted in ``L`` with the same
 inertia, so that a free body keeps its angular velocity exactly).
 Positions advance exactly, ``x_p = c + dt V + R(dt omega) r_p``, so pairwise
-distances are preserved, and ``F_p <- R(dt omega) F_p`` (followed by one Newton
-orthonormalisation step) so that the particle frames, and the Gaussians they
-carry, rotate with the body. Fixed bodies have ``V = omega = 0``. Rigid
-particles carry no stress, so their stiffness never limits the time step; they
-still take part in P2G, which couples them two ways with the other materials.
+distances are preserved; the particles then get the rigid velocity at their
+new positions, ``V + omega' x R(dt omega) r_p`` with ``C_p = [omega']_x`` and
+``omega' = R I^{-1} R^T I omega`` (the angular momentum kept in the world
+frame while the inertia turns with the body); and ``F_p <- R(dt omega) F_p``
+(followed by one Newton orthonormalisation step) so that the particle
+frames, and the Gaussians they carry, rotate with the body. Fixed bodies
+have ``V = omega = 0``. Rigid particles carry no stress, so their stiffness
+never limits the time step; they still take part in P2G, which couples them
+two ways with the other materials.
 Fixed planes (``SurfaceCollider``) and the domain walls act on a body as a
 whole (``_plane_contacts``): a contact impulse and a translation out of the
 plane, never a per-particle clamp.
@@ -294,21 +298,33 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   V = [V[d] * free for d in range(3)]
   w = [w[d] * free for d in range(3)]
 
-  def move(V, w):
+  def move(V, w, spin_after=False):
     # Every per-body value the particles need, in one ``at_all``.
     Rb = _rodrigues(tuple(dt * w[d] for d in range(3)))
+    if spin_after:
+      # The angular velocity after the rotation: the body's angular
+      # momentum I w is kept in the world frame while its inertia turns
+      # with it, I' = R I R^T, so w' = R I^-1 R^T I w (torque-free
+      # precession; w' = w about a principal axis).
+      Lw = tuple(la.sum_products((I[a][b], w[b]) for b in range(3))
+                 for a in range(3))
+      Lb = tuple(la.sum_products((Rb[b][a], Lw[b]) for b in range(3))
+                 for a in range(3))
+      y = la.solve_sym(I, Lb)
+      w = [la.sum_products((Rb[a][b], y[b]) for b in range(3))
+           for a in range(3)]
     cols = list(c) + list(V) + list(w) + [Rb[a][b] for a in range(3)
                                           for b in range(3)]
     got = at_all(cols)
     cp, Vp, wp = got[0:3], got[3:6], got[6:9]
     Rp = tuple(tuple(got[9 + 3 * a + b] for b in range(3)) for a in range(3))
-    x_new = [cp[d] + dt * Vp[d]
-             + Rp[d][0] * r[0] + Rp[d][1] * r[1] + Rp[d][2] * r[2]
-             for d in range(3)]
-    return x_new, Vp, wp, Rp
+    Rr = [Rp[d][0] * r[0] + Rp[d][1] * r[1] + Rp[d][2] * r[2]
+          for d in range(3)]
+    x_new = [cp[d] + dt * Vp[d] + Rr[d] for d in range(3)]
+    return x_new, Vp, wp, Rp, Rr
 
   if planes:
-    x_new, _, _, _ = move(V, w)
+    x_new, _, _, _, _ = move(V, w)
     # The moved positions, computed once per particle. Without the barrier
     # XLA:GPU fused their chain (the body's solve, its rotation) into the
     # contact sums' product, evaluated for every (particle, plane column,
@@ -320,15 +336,20 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
     x_new = jax.lax.optimization_barrier(x_new)
     V, w, shift = _plane_contacts(planes, rigid, ssum, at, mass, r, x_new,
                                   V, w, I, M, free, contact_form)
-    x_new, Vp, wp, Rp = move(V, w)
+    x_new, Vp, wp, Rp, Rr = move(V, w, spin_after=True)
     shifted = at_all(shift)
     x_new = [x_new[d] + shifted[d] for d in range(3)]
   else:
-    x_new, Vp, wp, Rp = move(V, w)
+    x_new, Vp, wp, Rp, Rr = move(V, w, spin_after=True)
   x_new = tuple(x_new)
-  v_new = (Vp[0] + wp[1] * r[2] - wp[2] * r[1],
-           Vp[1] + wp[2] * r[0] - wp[0] * r[2],
-           Vp[2] + wp[0] * r[1] - wp[1] * r[0])
+  # The rigid velocity field at the moved positions (``Rr``, consistent with
+  # ``C = [w]_x`` there): with the unrotated ``r`` the particles' velocities
+  # lagged their positions by the substep's rotation, so that every substep
+  # removed part of the spin (a factor ~cos(dt |w|) of the orbital angular
+  # momentum) and, on a body a few cells wide, drove a spurious precession.
+  v_new = (Vp[0] + wp[1] * Rr[2] - wp[2] * Rr[1],
+           Vp[1] + wp[2] * Rr[0] - wp[0] * Rr[2],
+           Vp[2] + wp[0] * Rr[1] - wp[1] * Rr[0])
   C_new = la.skew_from(wp)
   Fr = la.matmul(Rp, F)
   # One Newton step F <- (F + F^{-T}) / 2 removes the round-off drift away
