@@ -666,6 +666,35 @@ class ParsingTest(absltest.TestCase):
         self.assertIn(field, p.from_library)
         self.assertTrue(any(note in n for n in p.notes), p.notes)
 
+  def test_ranges_tolerances_and_prose(self):
+    rubber = _LIB['rubber']
+    for value, want in (
+        # The power of ten written once applies to both bounds (was 1.25e6:
+        # the midpoint of 1.5 Pa and 2.5e6 Pa).
+        ('1.5-2.5 × 10^6 Pa', 2e6),
+        ('0.5-1.0e7 Pa', 7.5e6),
+        ('5e5-1e7 Pa', 5.25e6),  # (each bound its own power: as before)
+        # A unit after each bound (the second bound was dropped: 1e6).
+        ('1e6 Pa to 1e7 Pa', 5.5e6),
+        ('1 MPa - 5 MPa', 3e6),
+        ('500 kPa to 5 MPa', 2.75e6),
+        ('5 ± 1 MPa', 5e6)):  # was unreadable: unknown unit '±1 MPa'
+      with self.subTest(value):
+        p = parsing.validate_properties(
+          json.dumps({'youngs_modulus': value}), rubber)
+        self.assertNotIn('E', p.from_library)
+        self.assertAlmostEqual(p.E / want, 1.0)
+    # Of two unit slips that fit foam's band [1e4, 1e6] Pa (x10), the one
+    # nearest its mid (1e5 Pa): 5 -> 5 kPa, not 5 MPa.
+    p = parsing.validate_properties('{"youngs_modulus": 5}', _LIB['foam'])
+    self.assertEqual(p.E, 5e3)
+    # A '{name}' in prose, or a fence that is not JSON, before the object.
+    for text in ('For the {object} shown: {"a": 1}',
+                 '```text\nsteel\n```\n```json\n{"a": 1}\n```'):
+      self.assertEqual(parsing.extract_json(text), {'a': 1})
+    with self.assertRaises(parsing.AnswerError):  # not an inner object
+      parsing.extract_json('{"a": {"b": 1}, oops}')
+
   def test_scores_scale(self):
     s, notes = parsing.parse_scores('{"scores": {"rubber": 8, "wood": 2}}',
                                     _LIB, ('rubber', 'wood'))

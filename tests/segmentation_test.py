@@ -317,6 +317,31 @@ class MaskLiftingTest(absltest.TestCase):
       seg.lift_masks(self.g, [away, self.cams[0]], [mask, mask])
     self.assertRegex(logs.output[0], 'camera 0 sees none')
 
+  def test_non_square_view_reads_the_mask_where_it_draws(self):
+    # A 64x40 view with an off-centre principal point: Gaussian k drawn at
+    # pixel (row, col) takes the mask's label at [row, col].
+    W, H, fx, fy, cx, cy = 64, 40, 50.0, 45.0, 27.3, 15.8
+    vm = np.eye(4)
+    vm[2, 3] = 2.0
+    cam = make_camera(vm, fx, fy, W, H, cx=cx, cy=cy)
+    rows = np.array([3, 37, 35, 6, 20, 28])
+    cols = np.array([5, 60, 10, 50, 33, 20])
+    means = np.c_[(cols + 0.5 - cx) / fx * 2.0, (rows + 0.5 - cy) / fy * 2.0,
+                  np.zeros(6)]
+    g = _gaussians(means, scale=0.01, opacity_logit=4.0)
+    mask = np.full((H, W), -1, np.int32)
+    for k, (r, c) in enumerate(zip(rows, cols)):
+      mask[r - 2:r + 3, c - 2:c + 3] = k
+    s = seg.lift_masks(g, [cam], [mask], fill_unseen='background')
+    np.testing.assert_array_equal(s.object_ids, np.arange(6))
+    # A transposed (W, H) mask stretched the camera to 40x64 and labelled
+    # other Gaussians, silently; a downscaled mask (same aspect) is fine.
+    with self.assertRaisesRegex(seg.SegmentationError, 'transposed'):
+      seg.lift_masks(g, [cam], [mask.T.copy()])
+    half = seg.lift_masks(g, [cam], [mask[::2, ::2]],
+                          fill_unseen='background')
+    np.testing.assert_array_equal(half.object_ids, np.arange(6))
+
   def test_recovers_ground_truth(self):
     s = seg.lift_masks(self.g, self.cams, self.masks,
                        names=('floor', 'a', 'b'))

@@ -14,17 +14,20 @@ wrong. Nothing here trusts the model:
   numbers or from strings (``'70 GPa'``, ``'7.0 × 10^10 Pa'``, ``'7e10'``,
   ``'~2.7 g/cm³'``, ``'−70 GPa'`` with a Unicode minus, a decimal comma
   where it cannot be a thousands separator: ``'0,05 GPa'``; a range
-  ``'5-10 GPa'`` gives its midpoint); units from the string, from
-  ``*_unit`` fields or from key suffixes (``youngs_modulus_gpa``). A string
-  that does not read as one such quantity, or an unknown unit, makes the
-  field unreadable (library value, with a note quoting the text): no number
-  is ever taken from inside a unit or from a ``*_unit`` field. Then each
+  ``'5-10 GPa'``, ``'1.5-2.5 × 10^6 Pa'``, ``'1 MPa - 5 MPa'`` give their
+  midpoint; a tolerance ``'5 ± 1 MPa'`` is dropped); units from the
+  string, from ``*_unit`` fields or from key suffixes
+  (``youngs_modulus_gpa``). A string that does not read as one such
+  quantity, or an unknown unit, makes the field unreadable (library
+  value, with a note quoting the text): no number is ever taken from
+  inside a unit or from a ``*_unit`` field. Then each
   value is checked against physics and against the chosen library entry:
 
   - E must be finite and > 0; it is accepted within a factor ``E_slack``
     (10) of the entry's real range. Otherwise a unit slip is assumed if a
     factor 1e±3, 1e±6, 1e±9 brings it into that band (``E = 70`` "Pa" for
-    aluminium is 70 GPa); failing that, the library's mid value is used.
+    aluminium is 70 GPa; of several such factors, the one nearest the
+    entry's geometric mid); failing that, the library's mid value is used.
   - nu must be finite and in [0, 0.5); values further than ``nu_slack``
     (0.1) from the entry's range are clipped into that band.
   - rho must be finite and > 0, accepted within a factor ``rho_slack`` (3)
@@ -76,6 +79,7 @@ _NUMBER = re.compile(
 _APPROX = re.compile(r'(?:~|≈|approx(?:imately|\.)?|about|around|roughly|'
                      r'circa|ca\.)\s*', re.I)
 _RANGE = re.compile(r'\s*(?:-|to\b)\s*', re.I)
+_TOLERANCE = re.compile(r'\s*(?:±|\+/-|\+-)\s*')
 
 
 class AnswerError(PhysSplatError, ValueError):
@@ -90,11 +94,13 @@ def _excerpt(text: str, n: int = 160) -> str:
 # -------------------------------------------------------------------- JSON
 
 
-def _balanced_object(text: str) -> str | None:
-  """The first brace-balanced ``{...}`` substring (string-aware)."""
+def _balanced_objects(text: str):
+  """The brace-balanced ``{...}`` substrings (string-aware), in order; each
+  search starts after the previous object (a non-JSON ``{name}`` in prose
+  does not hide the object after it)."""
   start = text.find('{')
   while start >= 0:
-    depth, quote, esc = 0, None, False
+    depth, quote, esc, end = 0, None, False, None
     for i in range(start, len(text)):
       ch = text[i]
       if quote:
@@ -112,13 +118,29 @@ def _balanced_object(text: str) -> str | None:
       elif ch == '}':
         depth -= 1
         if depth == 0:
-          return text[start:i + 1]
-    start = text.find('{', start + 1)
-  return None
+          end = i + 1
+          break
+    if end is None:
+      start = text.find('{', start + 1)
+    else:
+      yield text[start:end]
+      start = text.find('{', end)
+
+
+def _loads(cand: str):
+  """JSON, else a Python literal; None when neither parses."""
+  try:
+    return json.loads(cand)
+  except json.JSONDecodeError:
+    try:
+      return ast.literal_eval(cand)
+    except (ValueError, SyntaxError, MemoryError, RecursionError):
+      return None
 
 
 def extract_json(text: str) -> dict:
-  """The JSON object in an answer.
+  """The JSON object in an answer: the first code fence, or the text, or a
+  brace-balanced object in it, that parses.
 
   Raises:
     AnswerError: no parseable object (the message quotes the answer).
@@ -126,23 +148,17 @@ def extract_json(text: str) -> dict:
   if not isinstance(text, str) or not text.strip():
     raise AnswerError('empty answer where JSON was expected')
   t = text.strip()
-  fence = re.search(r'```(?:json|JSON)?\s*(.*?)```', t, re.S)
-  if fence:
-    t = fence.group(1).strip()
-  for cand in (t, _balanced_object(t)):
-    if not cand:
-      continue
-    try:
-      obj = json.loads(cand)
-    except json.JSONDecodeError:
-      try:
-        obj = ast.literal_eval(cand)
-      except (ValueError, SyntaxError, MemoryError, RecursionError):
+  fences = [f.strip() for f in re.findall(r'```(?:json|JSON)?\s*(.*?)```', t,
+                                         re.S)]
+  for src in fences + [t]:
+    for cand in (src, *_balanced_objects(src)):
+      obj = _loads(cand)
+      if obj is None:
         continue
-    if isinstance(obj, dict):
-      return obj
-    raise AnswerError(f'expected a JSON object, got {type(obj).__name__}: '
-                      f'{_excerpt(text)}')
+      if isinstance(obj, dict):
+        return obj
+      raise AnswerError(f'expected a JSON object, got {type(obj).__name__}: '
+                        f'{_excerpt(text)}')
   raise AnswerError(f'malformed JSON: {_excerpt(text)}')
 
 
@@ -313,9 +329,26 @@ def _plain(m: re.Match) -> float | None:
   return -x if m.group('sign') == '-' else x
 
 
-def _quantity(text: str) -> tuple[float, str, str] | str:
+def _has_exponent(m: re.Match) -> bool:
+  return any(m.group(g) is not None for g in ('p0', 'e', 'p'))
+
+
+def _exponent(m: re.Match) -> str:
+  """The power of ten of a :data:`_NUMBER` match, as text ('0' if none)."""
+  return m.group('p0') or m.group('e') or m.group('p') or '0'
+
+
+def _quantity(text: str, table: Mapping[str, float] | None = None
+              ) -> tuple[float, str, str] | str:
   """``(value, unit text, note)`` of a string such as ``'~7.0 × 10^10
-  Pa'`` or ``'5-10 GPa'`` (midpoint), or why it does not read as one."""
+  Pa'`` or ``'5-10 GPa'`` (midpoint), or why it does not read as one.
+
+  A range's bounds share a power of ten written once (``'1.5-2.5 × 10^6'``
+  is 1.5e6 to 2.5e6) and may each carry a unit (``'1 MPa - 5 MPa'``,
+  ``'500 kPa to 5 MPa'``: with ``table``, unit -> SI factor, the second
+  bound is converted to the first's unit). A tolerance (``'5 ± 1 MPa'``)
+  is dropped.
+  """
   t = re.sub(r'10([⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁺]+)',
              lambda m: '10^' + m.group(1).translate(_SUPERSCRIPTS), text)
   t = t.translate(_SUPERSCRIPTS).translate(_DASHES).strip()
@@ -327,14 +360,43 @@ def _quantity(text: str) -> tuple[float, str, str] | str:
   if x is None:
     return 'has an ambiguous comma (write 0.05 or 2700)'
   rest = t[m.end():]
+  tol = _TOLERANCE.match(rest)
+  if tol:
+    m_tol = _NUMBER.match(rest, tol.end())
+    if m_tol and not m_tol.group('sign'):
+      note, rest = 'a value with a tolerance; the value used', rest[
+        m_tol.end():]
   r = _RANGE.match(rest)
   m2 = _NUMBER.match(rest, r.end()) if r else None
   if m2 and not m2.group('sign'):
     y = _plain(m2)
     if y is None:
       return 'has an ambiguous comma (write 0.05 or 2700)'
+    shared = 10.0 ** float(_exponent(m2))
+    if not _has_exponent(m) and _has_exponent(m2) and x * shared <= y:
+      x *= shared  # '1.5-2.5 x 10^6': one power for both ('500-1e6': not)
     x, note, rest = 0.5 * (x + y), 'a range; its midpoint used', rest[
       m2.end():]
+  elif table:
+    # '1 MPa - 5 MPa', '1e6 Pa to 1e7 Pa': a unit after each bound (the
+    # second bound was dropped, so '1e6 Pa to 1e7 Pa' read as 1e6 Pa).
+    for sep in _RANGE.finditer(rest):
+      u1 = rest[:sep.start()].strip()
+      f1 = _unit_factor(u1, table) if u1 else None
+      m3 = _NUMBER.match(rest, sep.end())
+      if f1 is None or not m3 or m3.group('sign'):
+        continue
+      tail = re.sub(r'\(.*?\)|\[.*?\]', ' ', rest[m3.end():]).strip(
+        ' \t\n.,;:')
+      u2 = re.split(r'[\s,;]+', tail)[0] if tail else ''
+      f2 = _unit_factor(tail, table) or (
+        _unit_factor(u2, table) if u2 else None)
+      y = _plain(m3)
+      if f2 is None or y is None:
+        continue
+      x = 0.5 * (x + y * f2 / f1)
+      note, rest = 'a range; its midpoint used', u1
+      break
   if re.match(r'\s*[.,]?\d', rest):  # '10^10.8', '1.2.3'
     return 'is not one number'
   rest = re.sub(r'\(.*?\)|\[.*?\]', ' ', rest).strip(' \t\n.,;:')
@@ -361,7 +423,7 @@ def _number_with_unit(key: str, base: str, value, obj: Mapping,
   if isinstance(value, (int, float)):
     x = float(value)
   elif isinstance(value, str):
-    q = _quantity(value)
+    q = _quantity(value, table)
     if isinstance(q, str):
       return None, f'{key}={value!r} {q}; unreadable'
     x, rest, note = q
@@ -418,18 +480,21 @@ class Properties:
 
 
 def library_properties(entry: MaterialEntry) -> Properties:
-  """The entry's real mid values (E: geometric mid; nu, rho: arithmetic)."""
+  """The entry's real mid values (E, rho: geometric mid; nu: arithmetic)."""
   return Properties(E=entry.E_mid, nu=entry.poisson_ratio.mid,
                     rho=entry.density.geometric_mid,
                     from_library=('E', 'nu', 'rho'))
 
 
-def _repair(x: float, ok) -> float | None:
-  """The unit-repair factor that makes ``ok(x * f)`` true, or None."""
-  for f in _UNIT_REPAIRS:
-    if ok(x * f):
-      return f
-  return None
+def _repair(x: float, ok, mid: float,
+            factors=_UNIT_REPAIRS) -> float | None:
+  """The unit-repair factor that makes ``ok(x * f)`` true, or None; when
+  several do (a wide band: 10 for foam is 10 kPa or 10 MPa), the one that
+  lands nearest ``mid`` in ratio (``x > 0``)."""
+  fits = [f for f in factors if ok(x * f)]
+  if not fits:
+    return None
+  return min(fits, key=lambda f: abs(math.log(x * f / mid)))
 
 
 def validate_properties(text: str, entry: MaterialEntry,
@@ -478,7 +543,7 @@ def validate_properties(text: str, entry: MaterialEntry,
     elif not entry.youngs_modulus.contains(E, E_slack):
       r = entry.youngs_modulus
       ok = lambda v: r.contains(v, E_slack)
-      fac = _repair(E, ok)
+      fac = _repair(E, ok, r.geometric_mid)
       if fac is not None:
         notes.append(
           f'E={E:g} Pa is implausible for {name} [{r.min:.2g}, {r.max:.2g}] '
@@ -534,8 +599,9 @@ def validate_properties(text: str, entry: MaterialEntry,
       rho = None
     elif not entry.density.contains(rho, rho_slack):
       r = entry.density
-      fac = _repair(rho, lambda v: r.contains(v, rho_slack))
-      if fac is not None and fac in (1e3, 1e-3):
+      fac = _repair(rho, lambda v: r.contains(v, rho_slack),
+                    r.geometric_mid, (1e3, 1e-3))
+      if fac is not None:
         notes.append(f'density={rho:g} kg/m^3 is implausible for {name}; '
                      f'read as {rho * fac:.4g} kg/m^3 (unit slip x{fac:g})')
         rho *= fac

@@ -125,6 +125,24 @@ def contribution_weights(
   return w[:, :L + 1]
 
 
+def _check_aspect(i: int, cam: Camera, shape) -> None:
+  """Refuses a mask whose aspect ratio is not the camera's: resizing the
+  camera to it would stretch the image (a transposed (W, H) mask labelled
+  the wrong Gaussians silently). Rounding of a downscaled mask is allowed
+  (one pixel)."""
+  H, W = cam.height, cam.width
+  h, w = shape
+  if (h, w) == (H, W) or abs(W * h / H - w) <= 1 or abs(H * w / W - h) <= 1:
+    return
+  hint = ' (transposed? masks are (H, W) = (rows, columns))' if (
+    (h, w) == (W, H)) else ''
+  raise SegmentationError(
+    f'mask {i} is {h}x{w} (H x W) but camera {i} is {H}x{W}: another '
+    f'aspect ratio{hint}. Give a mask of the camera\'s shape, or a '
+    'uniformly resized one; for another image size pass '
+    'camera.resized(W, H)')
+
+
 def lift_masks(
   gaussians: Gaussians,
   cameras: Sequence[Camera],
@@ -140,7 +158,8 @@ def lift_masks(
   Args:
     gaussians: K Gaussians.
     cameras: V cameras; a camera whose size differs from its mask is
-      resized to the mask.
+      resized to the mask when the aspect ratios agree (to a pixel), else
+      a SegmentationError (a transposed mask).
     masks: V (H, W) int label images (-1 = no object).
     names: object names by label (default ``'object_<l>'``).
     num_labels: L (default: largest label + 1).
@@ -183,6 +202,8 @@ def lift_masks(
           'unlabelled pixels -1 in a signed integer mask')
     num_labels = max(int(m.max()) for m in masks) + 1
   L = max(int(num_labels), 1)
+  for i, (cam, m) in enumerate(zip(cameras, masks)):
+    _check_aspect(i, cam, m.shape)
   cameras = [
     cam if (cam.height, cam.width) == m.shape else cam.resized(
       m.shape[1], m.shape[0]) for cam, m in zip(cameras, masks)]
