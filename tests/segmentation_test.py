@@ -346,6 +346,15 @@ class MaskLiftingTest(absltest.TestCase):
     s = seg.lift_masks(self.g, self.cams, self.masks,
                        names=('floor', 'a', 'b'))
     self.assertEqual(s.names, ('floor', 'a', 'b'))
+    # A named object that no mask shows keeps its name (it was '4 names
+    # for 3 labels'); fewer names than labels is an error naming both.
+    extra = seg.lift_masks(self.g, self.cams, self.masks,
+                           names=('floor', 'a', 'b', 'c'))
+    self.assertEqual(extra.names, ('floor', 'a', 'b', 'c'))
+    np.testing.assert_array_equal(extra.object_ids, s.object_ids)
+    with self.assertRaisesRegex(seg.SegmentationError,
+                                r'2 names for 3 labels \(0\.\.2\)'):
+      seg.lift_masks(self.g, self.cams, self.masks, names=('floor', 'a'))
     self.assertGreater(np.mean(s.object_ids == self.gt), _MASK_ACCURACY)
     # Robust to 5 % of the pixels relabelled at random in every view.
     rng = np.random.default_rng(1)

@@ -7,8 +7,14 @@ over the pixels that the view's mask gives label l::
   W_v[k, l] = sum_{p : mask_v(p) = l} alpha_k(p) T_k(p)
 
 (``alpha_k(p) T_k(p)`` is exactly the weight of k's colour in pixel p, so
-an occluded Gaussian gets no say, and a Gaussian seen across a mask border
-splits its vote by area). The renderer is linear in the per-Gaussian colours
+an occluded Gaussian's say shrinks with the transmittance in front of it,
+and a Gaussian seen across a mask border splits its vote by area). Behind
+one opaque layer (alpha capped at 0.99) a Gaussian keeps about 1 % of its
+weight: a view that sees it outvotes the views that see it only through
+an occluder, but a Gaussian seen in no view except through one takes the
+occluder's label (raise ``min_weight`` to count it unseen instead). A view
+counts in proportion to the pixels a Gaussian covers there: closer or
+higher-resolution views weigh more. The renderer is linear in the per-Gaussian colours
 ``c``: ``image(p) = sum_k c_k alpha_k(p) T_k(p)`` with a black background,
 so ``W_v[:, l]`` is the vector-Jacobian product of the image with the
 one-hot image of label l -- one reverse pass of
@@ -162,7 +168,7 @@ def lift_masks(
       a SegmentationError (a transposed mask).
     masks: V (H, W) int label images (-1 = no object).
     names: object names by label (default ``'object_<l>'``).
-    num_labels: L (default: largest label + 1).
+    num_labels: L (default: largest label + 1, or ``len(names)`` if more).
     min_weight: a Gaussian whose summed weight over all views is below this
       counts as unseen.
     fill_unseen: 'nearest' (id of the nearest decided Gaussian) or
@@ -201,6 +207,8 @@ def lift_masks(
           'num_labels=L (labels >= L count as unlabelled), or mark '
           'unlabelled pixels -1 in a signed integer mask')
     num_labels = max(int(m.max()) for m in masks) + 1
+    if names is not None:  # (an object in no mask keeps its name)
+      num_labels = max(num_labels, len(names))
   L = max(int(num_labels), 1)
   for i, (cam, m) in enumerate(zip(cameras, masks)):
     _check_aspect(i, cam, m.shape)
@@ -234,7 +242,9 @@ def lift_masks(
     names = [f'object_{l}' for l in range(L)]
   names = tuple(names)
   if len(names) != L:
-    raise SegmentationError(f'{len(names)} names for {L} labels')
+    raise SegmentationError(
+      f'lift_masks: {len(names)} names for {L} labels (0..{L - 1}); give a '
+      'name for each label the masks use')
   return Segmentation(ids, names, method='masks')
 
 
