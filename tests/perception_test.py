@@ -666,6 +666,13 @@ class ParsingTest(absltest.TestCase):
         self.assertIn(field, p.from_library)
         self.assertTrue(any(note in n for n in p.notes), p.notes)
 
+  def test_rigid_flags_in_words(self):
+    for word, want in (('Yes.', True), ('rigid', True), ('not rigid', False),
+                       ('Non-rigid', False), ('soft', False),
+                       ('maybe', None)):
+      with self.subTest(word):
+        self.assertIs(parsing._as_bool(word), want)
+
   def test_ranges_tolerances_and_prose(self):
     rubber = _LIB['rubber']
     for value, want in (
@@ -684,6 +691,10 @@ class ParsingTest(absltest.TestCase):
           json.dumps({'youngs_modulus': value}), rubber)
         self.assertNotIn('E', p.from_library)
         self.assertAlmostEqual(p.E / want, 1.0)
+    # A fraction (was read as 1 and refused).
+    p = parsing.validate_properties('{"poisson_ratio": "1/3"}',
+                                    _LIB['aluminum'])
+    self.assertAlmostEqual(p.nu, 1 / 3)
     # Of two unit slips that fit foam's band [1e4, 1e6] Pa (x10), the one
     # nearest its mid (1e5 Pa): 5 -> 5 kPa, not 5 MPa.
     p = parsing.validate_properties('{"youngs_modulus": 5}', _LIB['foam'])

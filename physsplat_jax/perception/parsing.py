@@ -171,10 +171,11 @@ def _as_bool(v) -> bool | None:
   if isinstance(v, (int, float)) and v in (0, 1):
     return bool(v)
   if isinstance(v, str):
-    s = v.strip().lower()
+    s = ' '.join(v.strip().lower().rstrip('.!').split())
     if s in ('true', 'yes', 'rigid', '1'):
       return True
-    if s in ('false', 'no', 'deformable', 'soft', '0'):
+    if s in ('false', 'no', 'deformable', 'soft', '0', 'not rigid',
+             'non-rigid', 'nonrigid'):
       return False
   return None
 
@@ -347,7 +348,7 @@ def _quantity(text: str, table: Mapping[str, float] | None = None
   is 1.5e6 to 2.5e6) and may each carry a unit (``'1 MPa - 5 MPa'``,
   ``'500 kPa to 5 MPa'``: with ``table``, unit -> SI factor, the second
   bound is converted to the first's unit). A tolerance (``'5 ± 1 MPa'``)
-  is dropped.
+  is dropped; a fraction (``'1/3'``) is divided out.
   """
   t = re.sub(r'10([⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁺]+)',
              lambda m: '10^' + m.group(1).translate(_SUPERSCRIPTS), text)
@@ -360,6 +361,10 @@ def _quantity(text: str, table: Mapping[str, float] | None = None
   if x is None:
     return 'has an ambiguous comma (write 0.05 or 2700)'
   rest = t[m.end():]
+  frac = re.match(r'\s*/\s*', rest)
+  m_den = _NUMBER.match(rest, frac.end()) if frac else None
+  if m_den and not m_den.group('sign') and _plain(m_den):  # nu '1/3'
+    x, rest = x / _plain(m_den), rest[m_den.end():]
   tol = _TOLERANCE.match(rest)
   if tol:
     m_tol = _NUMBER.match(rest, tol.end())
