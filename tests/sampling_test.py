@@ -504,6 +504,30 @@ class DrivingTest(parameterized.TestCase):
     else:  # same shape and size: about the same number
       self.assertLess(abs(n_soft - n_stiff), 0.25 * (n_soft + n_stiff))
 
+  def test_kmeans_keeps_exactly_the_budget(self):
+    # Split by candidate count with largest-remainder rounding: an object of
+    # 2 candidates gets 2 drivers (not 4, two of them duplicates of volume
+    # 0) and three equal objects share the other 98 as 33/33/32 (rounding
+    # each share gave 4 + 3 x 33 = 103).
+    rng = np.random.default_rng(0)
+    sizes = (300, 300, 300, 2)
+    x = np.concatenate([rng.uniform(size=(s, 3)) + 3.0 * i
+                        for i, s in enumerate(sizes)])
+    ob = np.concatenate([np.full(s, i, np.int32)
+                         for i, s in enumerate(sizes)])
+    m = len(x)
+    cand = sampling.Candidates(
+      x=x, is_surface=np.ones(m, bool), object_ids=ob,
+      covariances=np.zeros((m, 3, 3)), volume=np.full(m, 1.0 / m),
+      gaussian_index=np.arange(m, dtype=np.int32))
+    d = sampling.select_drivers(jax.random.PRNGKey(0), cand, 'kmeans',
+                                budget=100, kmeans_iters=2)
+    self.assertEqual(len(d.x), 100)
+    self.assertEqual(sorted(np.bincount(d.object_ids)[:3]), [32, 33, 33])
+    self.assertEqual(np.sum(d.object_ids == 3), 2)
+    self.assertTrue(np.all(d.volume > 0))
+    np.testing.assert_allclose(d.volume.sum(), 1.0, rtol=1e-9)
+
 
 class KMeansTest(parameterized.TestCase):
 

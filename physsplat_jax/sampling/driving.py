@@ -254,7 +254,10 @@ def select_drivers(
     config: :class:`~physsplat_jax.sampling.pgas.PGASConfig` (its
       ``base_radius`` is the uniform radius for 'uniform').
     budget: target driver count; required for 'kmeans' and 'pgas-cvt'
-      (exactly ``budget`` drivers), optional for the Poisson disks (the
+      (exactly ``budget`` drivers, unless the per-object floors exceed
+      it: 4 per object for 'kmeans', ``cvt.min_per_object`` (8) for
+      'pgas-cvt', each capped by the object's candidates), optional for
+      the Poisson disks (the
       radius is then scaled to keep at most ``budget``, and at least
       ``(1 - budget_rtol) budget`` when the search gets there). A budget
       of at least the candidate count keeps every candidate, with its own
@@ -308,10 +311,16 @@ def select_drivers(
       raise SamplingError("select_drivers: method='kmeans' needs budget=")
     xs, obs = [], []
     objs = np.unique(cand.object_ids)
+    # Budget split by candidate count with largest-remainder rounding, so
+    # the counts sum to the budget (rounding each share gave up to half a
+    # driver more or less per object), at least 4 per object and at most
+    # its candidates (more centres than points are duplicates of volume 0).
+    sizes = np.array([np.sum(cand.object_ids == o) for o in objs])
+    counts = centroidal.allocate(budget, sizes, np.minimum(4, sizes), sizes,
+                                 min_count=4)
     for i, o in enumerate(objs):
       sel = cand.object_ids == o
-      # Budget split by candidate count, at least 4 per object.
-      nb = max(4, int(round(budget * sel.sum() / m)))
+      nb = int(counts[i])
       res = jax.jit(clustering.kmeans, static_argnums=(2, 3))(
         jax.random.fold_in(key, i), x32[np.nonzero(sel)[0]], nb,
         kmeans_iters)
