@@ -307,6 +307,17 @@ class PGASTest(parameterized.TestCase):
     self.assertGreater(per_area_ball, 1.5 * per_area_plane)
     self.assertIn(0, info['k_obj'])
 
+  def test_flat_scene_noise_stays_flat(self):
+    # The local range is stretched over [v_min, v_max]; with nothing curved
+    # in the scene it was the noise's (K_hat 1.07-3.37 on this plate).
+    rng = np.random.default_rng(0)
+    plate = np.c_[rng.uniform(-1, 1, (2000, 2)),
+                  1e-7 * rng.normal(size=2000)]
+    covs = np.broadcast_to(np.diag([1e-4, 1e-4, 0.0]), (2000, 3, 3))
+    k_hat, _ = pgas.pgas_curvature(plate, np.ones(2000, bool),
+                                   np.zeros(2000, int), covs, self.cfg)
+    np.testing.assert_allclose(k_hat, 1.0, atol=1e-3)
+
   def test_interior_points_use_object_curvature(self):
     pts = np.concatenate([_sphere(500), 0.3 * _sphere(50, seed=3)])
     surf = np.arange(550) < 500

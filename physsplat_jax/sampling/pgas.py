@@ -15,7 +15,8 @@ with ``K = l3 / (l1 + l2 + l3)``, ``K_hat = clip(K, V_min=1, V_max=10)`` and
     formula) over its theoretical range ``[0, 1/3]`` -> ``K_hat_obj``;
   * local level: PCA surface variation of the ``k`` nearest Gaussian
     centres, over its observed range in the scene (5th-95th percentile of
-    surface points) -> ``K_hat_loc``.
+    surface points, at least 1e-4 wide so that a flat scene's noise stays
+    flat) -> ``K_hat_loc``.
 
   Surface points (Gaussians) use ``sqrt(K_hat_obj * K_hat_loc)`` (the object
   sets the level, local shape modulates it); interior fill particles, which
@@ -42,6 +43,12 @@ from physsplat_jax.sampling import curvature as curv
 from physsplat_jax.sampling import poisson
 from physsplat_jax.sampling.poisson import SamplingError
 from physsplat_jax.types import device_array
+
+
+# Smallest range of local surface variation mapped onto [v_min, v_max]:
+# above float noise on a plane (1e-12), below a ball 10 neighbour spacings
+# across (~2e-3).
+_LOCAL_SPAN = 1e-4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,6 +144,10 @@ def pgas_curvature(
   k_loc[surf] = curv.local_curvature(sp, config.curvature_neighbors,
                                      query=pts[surf])
   lo, hi = np.percentile(k_loc[surf], config.local_percentiles)
+  # A span of at least _LOCAL_SPAN (surface variation is in [0, 1/3]): on a
+  # flat scene the observed range is only noise, which the affine map
+  # stretched over [v_min, v_max] (a plate with 1e-7 noise got 1.07-3.37).
+  hi = max(hi, lo + _LOCAL_SPAN)
   kh_loc = curv.normalize_curvature(k_loc, lo, hi, config.v_min, config.v_max)
   k_hat = np.empty(n)
   k_obj = {}
