@@ -85,6 +85,31 @@ class ModelTest(absltest.TestCase):
                                  data['means'][0]))
     np.testing.assert_allclose(f1.mean(0), 1.0, atol=_MEAN_TOL)
 
+  def test_weighted_mean_one(self):
+    # With per-point weights (volumes) the weighted mean is 1: the plain
+    # mean is not, and the field's shape is the unweighted one's.
+    o, pts, means, mask = _object(min_fill=0.6)
+    a = jnp.asarray(np.random.default_rng(5).uniform(0.2, 3.0, mask.shape))
+    field = np.asarray(self.predict(self.params, pts, means, mask, a))
+    plain = np.asarray(self.predict(self.params, pts, means, mask))
+    m, w = np.asarray(mask), np.asarray(a)[np.asarray(mask)]
+    np.testing.assert_allclose((w[:, None] * field[m]).sum(0) / w.sum(),
+                               1.0, atol=_MEAN_TOL)
+    self.assertGreater(np.abs(field[m].mean(0) - 1.0).max(), 1e-3)
+    ratio = field[m] / plain[m]
+    np.testing.assert_allclose(ratio, np.broadcast_to(ratio[:1], ratio.shape),
+                               rtol=1e-5)
+    np.testing.assert_array_equal(field[~m], 1.0)
+    # Batched, and all-zero weights fall back to the plain mean.
+    fb = np.asarray(self.predict(self.params, pts[None], means[None],
+                                 mask[None], a[None]))
+    np.testing.assert_allclose(fb[0], field, rtol=1e-6)
+    f0 = np.asarray(self.predict(self.params, pts, means, mask,
+                                 jnp.zeros_like(a)))
+    np.testing.assert_allclose(f0, plain, rtol=1e-6)
+    with self.assertRaisesRegex(model_lib.MPDPError, 'weights shape'):
+      self.predict(self.params, pts, means, mask, a[:3])
+
   def test_permutation_equivariance_and_similarity_invariance(self):
     _, pts, means, mask = _object(min_fill=1.0)
     field = np.asarray(self.predict(self.params, pts, means, mask))

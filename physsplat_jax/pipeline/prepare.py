@@ -501,8 +501,10 @@ def drivers_stage(key, cand, mats, names, dx: float, cfg: PrepareConfig):
   return drv.x[order], drv.volume[order], dobj, counts
 
 
-def mpdp_stage(x0, dobj, counts, mats, use_mpdp: bool, mpdp_params):
-  """Per-object gathers, condition vectors and the MPDP field (N, 3)."""
+def mpdp_stage(x0, dobj, counts, mats, use_mpdp: bool, mpdp_params,
+               volume=None):
+  """Per-object gathers, condition vectors and the MPDP field (N, 3)
+  (with each object's volume-weighted mean 1 when ``volume`` is given)."""
   starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
   nmax = int(counts.max())
   index = np.zeros((len(mats), nmax), np.int32)
@@ -516,8 +518,10 @@ def mpdp_stage(x0, dobj, counts, mats, use_mpdp: bool, mpdp_params):
   field = np.ones((len(x0), 3), np.float32)
   if use_mpdp:
     params = mpdp.load_pretrained() if mpdp_params is None else mpdp_params
+    weights = (np.ones(index.shape, np.float32) if volume is None
+               else np.asarray(volume, np.float32)[index])
     args = (params, device_array(x0[index]), device_array(means),
-            device_array(mask))
+            device_array(mask), device_array(weights))
     # Traced once across processes when a compilation cache is on (1.2 s of
     # Python for the donut's 63k points on the 2-core VM).
     predict = program_store.compile_stored(
@@ -716,7 +720,7 @@ def prepare_scene(
     gauss_object_ids=fr.local_ids, driver_object_ids=dobj)
   timings['binding_s'], t = time.perf_counter() - t, time.perf_counter()
   index, mask, cond, field = mpdp_stage(x0, dobj, counts, mats, use_mpdp,
-                                        mpdp_params)
+                                        mpdp_params, vol)
   timings['mpdp_s'], t = time.perf_counter() - t, time.perf_counter()
   rigid = tuple(bool(m.rigid or m.model == 'rigid') for m in mats)
   substeps, c_max = time_step_stage(mats, rigid, field, dobj, fr.dx, cfg,

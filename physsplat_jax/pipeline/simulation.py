@@ -176,8 +176,11 @@ def driver_materials(params: Params, prepared: PreparedScene,
     flat = field.astype(prepared.x0.dtype)
   elif config.use_mpdp and params.mpdp is not None:
     pts = prepared.x0[prepared.mpdp_index]
+    # (O, Nmax, 3); each object's volume-weighted mean is 1 (its mass and
+    # mean stiffness are the means', however PGAS spaced its particles).
     field = mpdp.predict(params.mpdp, pts, prepared.mpdp_means,
-                         prepared.mpdp_mask)  # (O, Nmax, 3)
+                         prepared.mpdp_mask,
+                         prepared.volume[prepared.mpdp_index])
     flat = jnp.concatenate([field[o, :c] for o, (_, c) in
                             enumerate(spec.object_ranges)])
     # (weights of another float type than the scene: the scene's)
