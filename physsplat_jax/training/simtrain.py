@@ -246,13 +246,17 @@ def driver_field(obj: synthetic.SyntheticObject,
 
   Single-object scenes: the drivers (simulation frame) are mapped back to
   scene coordinates and take the rule's value at their nearest synthetic
-  point (:func:`synthetic.field_at`; mean exactly 1 over the drivers).
+  point (:func:`synthetic.field_at`), scaled to a volume-weighted mean of
+  exactly 1 over the drivers, as ``pipeline.simulate`` scales the MPDP
+  field it trains (so the truth is a field the network can give).
   """
   if prepared.num_objects != 1:
     raise TrainingError('driver_field: scenes with one movable object only; '
                         f'this one has {prepared.num_objects}.')
   x = np.asarray(prepared.frame.to_scene(prepared.x0), np.float64)
-  return synthetic.field_at(obj, x).astype(np.float32)
+  f = synthetic.field_at(obj, x)
+  v = np.asarray(prepared.volume, np.float64)[:, None]
+  return (f * (v.sum() / (v * f).sum(0))).astype(np.float32)
 
 
 def default_params(prepared: pl.PreparedScene,
