@@ -280,6 +280,10 @@ def normalize_field(logits, mask, weights=None):
     field = w * (n / jnp.sum(w, axis=0))
   else:
     a = jnp.where(mask, weights.astype(logits.dtype), 0.0)[:, None]
+    # Scaled to a largest weight of 1 (the field does not depend on the
+    # scale): volumes of 1e-25 m^3 underflowed the sums in float32.
+    top = jax.lax.stop_gradient(jnp.max(a))
+    a = a / jnp.where(top > 0, top, 1.0)
     den = jnp.sum(a * w, axis=0)
     # (an object whose weights are all 0: the plain field, no 0 / 0)
     ok = den > 0
