@@ -56,6 +56,26 @@ class ConversionTest(absltest.TestCase):
     self.assertEqual(imp.force, (-0.18, 0.0, 0.0))
     self.assertEqual(imp.point, (1.0, 1.0, 1.0))  # PhysGaussian default
 
+  def test_impulses_act_before_enforced_velocities(self):
+    # PhysGaussian's p2g2p runs the impulses before the velocity modifiers,
+    # whatever the list order: the enforced velocity wins (it was 2e-3).
+    import jax.numpy as jnp
+    from physsplat_jax.mpm import boundary
+    raw = dict(_TINY, boundary_conditions=[
+      {'type': 'enforce_particle_translation', 'point': [1, 1, 1],
+       'size': [1, 1, 1], 'velocity': [0.5, 0, 0], 'start_time': 0,
+       'end_time': 1},
+      {'type': 'particle_impulse', 'force': [1, 0, 0], 'num_dt': 1,
+       'start_time': 0}])
+    sc = mpm_pg.make_sim_config(pg.parse_config(raw, warn=False))
+    x = jnp.array([[1.0, 1.0, 1.0], [0.5, 0.5, 0.5]])
+    data = boundary.particle_bc_data(sc, x)
+    z = jnp.zeros(2)
+    v, _ = boundary.apply_particle_bcs(
+      sc, mpm.make_forces(sc), data, jnp.zeros(()), tuple(x.T), (z,) * 3,
+      ((z,) * 3,) * 3, jnp.full(2, 0.5))
+    np.testing.assert_allclose(np.asarray(v[0]), [0.5, 0.5], rtol=1e-6)
+
   def test_release_sequentially_fields(self):
     raw = dict(_TINY, boundary_conditions=[
       {'type': 'release_particles_sequentially', 'normal': [0, 1, 0],
@@ -132,6 +152,37 @@ class SimulateTest(absltest.TestCase):
     vol = np.asarray(prep.state.vol0)
     dx3 = (2.0 / 16) ** 3
     self.assertTrue(np.all((vol > 0) & (vol <= dx3 * (1 + 1e-6))))
+
+
+  def test_fill_spacing_spans_the_boundary(self):
+    # PhysGaussian's fill grid has particle_filling.n_grid cells over the
+    # longest side of "boundary" (0.4 here: spacing 0.0125), not over
+    # grid_lim (2: spacing 0.0625, a 5x coarser fill).
+    import types
+    from unittest import mock
+    from physsplat_jax.sampling import filling
+    rng = np.random.default_rng(0)
+    k = 200
+    g = Gaussians(
+      means=rng.uniform(-1, 1, (k, 3)).astype(np.float32),
+      log_scales=np.full((k, 3), np.log(0.05), np.float32),
+      quats=np.tile(np.float32([1, 0, 0, 0]), (k, 1)),
+      opacity_logits=np.full((k,), 4.0, np.float32),
+      sh=np.zeros((k, 1, 3), np.float32))
+    raw = dict(_TINY, rotation_degree=[], rotation_axis=[],
+               particle_filling={'n_grid': 32,
+                                 'boundary': [0.8, 1.2, 0.8, 1.2, 0.8, 1.2]})
+    cfg = pg.parse_config(raw, warn=False)
+    seen = {}
+
+    def fake(key, means, *args, config, **kw):
+      ext = float(np.max(np.ptp(means, 0)))
+      seen['dx'] = ext / (config.grid_res - 2 * config.margin_cells)
+      return types.SimpleNamespace(points=np.zeros((0, 3)), overflow=False)
+
+    with mock.patch.object(filling, 'fill_gaussians_host', fake):
+      mpm_pg.fill_particles(cfg, g, np.arange(k), None)
+    self.assertLess(seen['dx'], 0.0125 * 1.1)
 
 
 if __name__ == '__main__':

@@ -428,6 +428,28 @@ class TransformTest(parameterized.TestCase):
     # Only the particle outside the box depends on the base E.
     self.assertAlmostEqual(float(jax.grad(total_mass_like)(2e6)), 200.0)
 
+  def test_box_without_density_takes_the_base_density(self):
+    # decode_param fills a box's missing density with the base density,
+    # which overwrites an earlier box's (it was the earlier box's 70).
+    boxes = [
+      {'point': [1, 1, 1], 'size': [0.5, 0.5, 0.5], 'E': 2e6, 'nu': 0.3,
+       'density': 70},
+      {'point': [1, 1, 1], 'size': [0.2, 0.2, 0.2], 'E': 5e6, 'nu': 0.3}]
+    c = pg.parse_config({'density': 200, 'E': 1e5,
+                         'additional_material_params': boxes}, warn=False)
+    E, _, rho = pg.material_fields(c, jnp.array([[1.0, 1, 1], [1.3, 1, 1]]))
+    np.testing.assert_allclose(np.asarray(rho), [200.0, 70.0])
+    np.testing.assert_allclose(np.asarray(E), [5e6, 2e6])
+
+  def test_impulse_defaults_as_set_boundary_conditions(self):
+    # PhysGaussian reads num_dt (default 1) and start_time (default 0) as
+    # optional; a config without them was refused.
+    c = pg.parse_config({'boundary_conditions': [
+      {'type': 'particle_impulse', 'force': [1, 0, 0]}]}, warn=False)
+    imp, = pg.convert_boundary_conditions(c)
+    self.assertEqual((imp.num_dt, imp.start_time), (1, 0.0))
+    self.assertEqual((imp.point, imp.size), ((1.0,) * 3, (1.0,) * 3))
+
   def test_cfl_substep_scales_with_wave_speed(self):
     a = pg.parse_config({'E': 1e6, 'density': 100}, warn=False)
     b = pg.parse_config({'E': 4e6, 'density': 100}, warn=False)

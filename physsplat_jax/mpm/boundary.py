@@ -123,6 +123,10 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
                        mass, reduce_fn=None):
   """Particle velocity rules before P2G.
 
+  Impulses and point forces act first, then the enforced velocities
+  (translation, rotation, release) in list order, as PhysGaussian's
+  ``p2g2p`` does: an enforced velocity is not changed by a force.
+
   Args:
     config: static config.
     forces: ``Forces``.
@@ -146,12 +150,15 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
       for b in range(3):
         C[a][b] = jnp.where(on, G[a][b], C[a][b])
 
-  k = 0
-  for i, bc in enumerate(config.boundary_conditions):
-    if not isinstance(bc, base.PARTICLE_BCS):
-      continue
-    data = bc_data[k]
-    k += 1
+  # PhysGaussian's p2g2p runs every impulse (pre_p2g_operations) before any
+  # velocity modifier (enforced translation, rotation, release), whatever
+  # their order in the list: the forces first, then the overwrites.
+  bcs = [(i, config.boundary_conditions[i], bc_data[k])
+         for k, i in enumerate(config.particle_bcs)]
+  bcs = ([e for e in bcs if isinstance(e[1], (ParticleImpulse, PointForce))]
+         + [e for e in bcs
+            if not isinstance(e[1], (ParticleImpulse, PointForce))])
+  for i, bc, data in bcs:
     val = forces.values[i]
     if isinstance(bc, ParticleImpulse):
       on = _active(t, bc.start_time, bc.start_time + bc.num_dt * dt, dt)

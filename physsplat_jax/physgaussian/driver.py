@@ -231,7 +231,8 @@ def fill_particles(config: pg.PhysGaussianConfig, gaussians, ids, transform,
   """Interior fill points (normalised domain) for ``particle_filling``.
 
   Maps PhysGaussian's block onto ``sampling.filling``: the fill grid spacing
-  is ``grid_lim / particle_filling.n_grid`` (default ``4 n_grid``),
+  is ``grid_lim / particle_filling.n_grid`` (default ``4 n_grid``), or the
+  longest side of ``boundary`` over it when given (as PhysGaussian),
   ``density_threshold``, ``max_partciels_per_cell`` [sic] and
   ``max_particles_num`` are used as is, ``boundary`` (a box in the
   normalised domain) restricts the fill; ``search_threshold``,
@@ -250,7 +251,13 @@ def fill_particles(config: pg.PhysGaussianConfig, gaussians, ids, transform,
   opac = np.asarray(jax.nn.sigmoid(jnp.asarray(gaussians.opacity_logits)),
                     np.float64)[ids]
   n_fill = int(pf.get('n_grid', 4 * config.n_grid))
-  spacing = config.grid_lim / n_fill
+  box = pf.get('boundary')
+  # PhysGaussian's fill grid has n_grid cells over grid_lim, or over the
+  # longest side of ``boundary`` when one is given (filling.py).
+  side = (float(np.max(np.asarray(box[1::2], np.float64)
+                       - np.asarray(box[0::2], np.float64)))
+          if box is not None else config.grid_lim)
+  spacing = side / n_fill
   ext = float(np.max(np.ptp(means, 0)))
   margin = 2
   res = int(np.clip(math.ceil(ext / spacing) + 2 * margin, 8, 256))
@@ -269,7 +276,6 @@ def fill_particles(config: pg.PhysGaussianConfig, gaussians, ids, transform,
     key, means, log_scales, quats, opac,
     max_particles=int(pf.get('max_particles_num', 2_000_000)), config=fc)
   pts = np.asarray(res.points, np.float64)
-  box = pf.get('boundary')
   if box is not None:
     b = np.asarray(box, np.float64)
     keep = np.all((pts >= b[0::2]) & (pts <= b[1::2]), axis=1)

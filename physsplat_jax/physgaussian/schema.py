@@ -87,8 +87,7 @@ _BC_FIELDS = {
   'bounding_box': {},
   'cuboid': {'point': 'vec3', 'size': 'vec3', 'velocity': 'vec3',
              'start_time': 'float', 'end_time': 'float'},
-  'particle_impulse': {'force': 'vec3', 'num_dt': 'int',
-                       'start_time': 'float'},
+  'particle_impulse': {'force': 'vec3'},
   'enforce_particle_translation': {'point': 'vec3', 'size': 'vec3',
                                    'velocity': 'vec3', 'start_time': 'float',
                                    'end_time': 'float'},
@@ -107,7 +106,10 @@ _BC_OPTIONAL = {
   # keys are accepted (with a warning) and ignored, as there.
   'bounding_box': {'start_time': 'float', 'end_time': 'float'},
   'cuboid': {'reset': 'int'},
-  'particle_impulse': {'point': 'vec3', 'size': 'vec3'},
+  # PhysGaussian's set_boundary_conditions defaults: num_dt 1, start_time
+  # 0, point and size (1, 1, 1).
+  'particle_impulse': {'num_dt': 'int', 'start_time': 'float',
+                       'point': 'vec3', 'size': 'vec3'},
   # PhysGaussian's fields (it requires all of them); 'axis' is our
   # alternative to 'normal'. Checked for type here, for presence when
   # simulated (physsplat_jax.physgaussian).
@@ -149,9 +151,12 @@ class MaterialBox:
   Attributes:
     point: box centre (3,) [normalised length].
     size: box half-extents (3,) [normalised length].
-    E: Young's modulus inside the box [Pa]; None keeps the base value.
-    nu: Poisson ratio inside the box; None keeps the base value.
-    density: density inside the box [kg/m^3]; None keeps the base value.
+    E: Young's modulus inside the box [Pa]; None sets the base value
+      (also over an earlier box).
+    nu: Poisson ratio inside the box; None sets the base value.
+    density: density inside the box [kg/m^3]; None sets the base value
+      (PhysGaussian's decode_param fills a missing density with the base
+      density; it requires E and nu).
   """
 
   point: tuple[float, float, float]

@@ -48,7 +48,10 @@ def material_fields(
   """Per-particle E, nu, density with ``additional_material_params`` applied.
 
   A particle takes a box's values when ``|x_n - point|_i < size_i`` on every
-  axis; later boxes win, as in PhysGaussian's sequential overwrite.
+  axis; later boxes win, as in PhysGaussian's sequential overwrite. A value
+  a box leaves out is the base value there (PhysGaussian's decode_param
+  gives a box without ``density`` the base density, which overwrites an
+  earlier box's), not an earlier box's.
 
   Args:
     config: parsed config (static boxes).
@@ -64,17 +67,16 @@ def material_fields(
   E = jnp.broadcast_to(params.E, (n,)).astype(x_norm.dtype)
   nu = jnp.broadcast_to(params.nu, (n,)).astype(x_norm.dtype)
   rho = jnp.broadcast_to(params.density, (n,)).astype(x_norm.dtype)
+  base_E, base_nu, base_rho = E, nu, rho
   for box in config.additional_material_params:
     inside = jnp.all(
       jnp.abs(x_norm - jnp.asarray(box.point, x_norm.dtype))
       < jnp.asarray(box.size, x_norm.dtype), axis=-1,
     )
-    if box.E is not None:
-      E = jnp.where(inside, box.E, E)
-    if box.nu is not None:
-      nu = jnp.where(inside, box.nu, nu)
-    if box.density is not None:
-      rho = jnp.where(inside, box.density, rho)
+    E = jnp.where(inside, base_E if box.E is None else box.E, E)
+    nu = jnp.where(inside, base_nu if box.nu is None else box.nu, nu)
+    rho = jnp.where(inside, base_rho if box.density is None else box.density,
+                    rho)
   return E, nu, rho
 
 
