@@ -1,7 +1,8 @@
 """MPDP: per-point material property fields from a Flax point network.
 
-``predict(params, points, means, mask)`` -> (N, 3) multipliers of (E, nu, rho)
-with masked mean exactly 1; ``load_pretrained()`` gives the shipped params.
+``predict(params, points, means, mask, weights=None)`` -> (N, 3) multipliers
+of (E, nu, rho) with masked (weighted) mean exactly 1; ``load_pretrained()``
+gives the shipped params.
 See docs/mpdp.md.
 """
 

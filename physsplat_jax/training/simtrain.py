@@ -640,8 +640,8 @@ def fit_material(task: Task, observe: str = 'trajectory',
   Unknowns: ``log_E`` (the object's log-multiplier of its mean E,
   ``Params.log_scale[0, 0]``) and the coefficients ``c`` of a smooth
   log-field ``m_E = exp(B c) / mean exp(B c)`` (``B``: monomials of the
-  normalised driver rest positions up to ``field_degree``; mean 1 as in
-  MPDP), passed to :func:`physsplat_jax.pipeline.simulate` as ``field``.
+  normalised driver rest positions up to ``field_degree``; volume-weighted
+  mean 1, as the pipeline's MPDP field and the truth), passed to :func:`physsplat_jax.pipeline.simulate` as ``field``.
   nu and rho stay at their true per-driver values (only E is unknown). A
   free per-driver field is ill-posed at this resolution (it fits the
   observations with unobservable drivers anywhere), hence the smooth
@@ -690,7 +690,8 @@ def fit_material(task: Task, observe: str = 'trajectory',
            'coef': jnp.zeros((basis.shape[1],), dtype)}
 
   def field_of(th):
-    mE = model_lib.normalize_field((basis @ th['coef'])[:, None], mask)
+    mE = model_lib.normalize_field((basis @ th['coef'])[:, None], mask,
+                                   prepared.volume)
     return jnp.concatenate([mE, gt[:, 1:]], axis=-1)
 
   def loss_fn(th):
