@@ -685,12 +685,19 @@ class ParsingTest(absltest.TestCase):
         ('1e6 Pa to 1e7 Pa', 5.5e6),
         ('1 MPa - 5 MPa', 3e6),
         ('500 kPa to 5 MPa', 2.75e6),
-        ('5 ± 1 MPa', 5e6)):  # was unreadable: unknown unit '±1 MPa'
+        ('5 ± 1 MPa', 5e6),  # was unreadable: unknown unit '±1 MPa'
+        # Ranges in words, '~' on each bound (were unreadable).
+        ('between 1 and 5 MPa', 3e6), ('from 1 to 3 MPa', 2e6),
+        ('~1e6 - ~1e7 Pa', 5.5e6)):
       with self.subTest(value):
         p = parsing.validate_properties(
           json.dumps({'youngs_modulus': value}), rubber)
         self.assertNotIn('E', p.from_library)
         self.assertAlmostEqual(p.E / want, 1.0)
+    # 'kg/m^-3', a common slip for kg/m^3 (was an unknown unit).
+    p = parsing.validate_properties('{"density": "1100 kg/m^-3"}',
+                                    _LIB['rubber'])
+    self.assertEqual(p.rho, 1100.0)
     # A fraction (was read as 1 and refused).
     p = parsing.validate_properties('{"poisson_ratio": "1/3"}',
                                     _LIB['aluminum'])

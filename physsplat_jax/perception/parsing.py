@@ -15,7 +15,8 @@ wrong. Nothing here trusts the model:
   ``'~2.7 g/cm³'``, ``'−70 GPa'`` with a Unicode minus, a decimal comma
   where it cannot be a thousands separator: ``'0,05 GPa'``; a range
   ``'5-10 GPa'``, ``'1.5-2.5 × 10^6 Pa'``, ``'1 MPa - 5 MPa'`` give their
-  midpoint; a tolerance ``'5 ± 1 MPa'`` is dropped); units from the
+  midpoint, as do ``'between 1 and 5 MPa'`` and ``'~1e6 - ~1e7 Pa'``; a
+  tolerance ``'5 ± 1 MPa'`` is dropped); units from the
   string, from ``*_unit`` fields or from key suffixes
   (``youngs_modulus_gpa``). A string that does not read as one such
   quantity, or an unknown unit, makes the field unreadable (library
@@ -58,6 +59,7 @@ _PRESSURE_UNITS = {
 }
 _DENSITY_UNITS = {
   'kg/m3': 1.0, 'kgm-3': 1.0, 'kgm3': 1.0, 'kg_m3': 1.0, 'si': 1.0,
+  'kg/m-3': 1.0, 'g/cm-3': 1e3,  # (a common slip for kg/m^3, g/cm^3)
   'g/cm3': 1e3, 'gcm-3': 1e3, 'g_cm3': 1e3, 'g/cc': 1e3, 'g/ml': 1e3,
   'kg/l': 1e3, 'kg/dm3': 1e3, 'g/l': 1.0, 'lb/ft3': 16.0185,
 }
@@ -78,7 +80,10 @@ _NUMBER = re.compile(
   rf'(?:e(?P<e>[-+]?\d+)|\s*[x×*·]\s*{_POWER}(?P<p>[-+]?\d+))?)', re.I)
 _APPROX = re.compile(r'(?:~|≈|approx(?:imately|\.)?|about|around|roughly|'
                      r'circa|ca\.)\s*', re.I)
-_RANGE = re.compile(r'\s*(?:-|to\b)\s*', re.I)
+# A range's separator, and any '~' / 'about' before its second bound.
+_RANGE = re.compile(r'\s*(?:-|to\b|and\b)\s*(?:' + _APPROX.pattern + ')?',
+                    re.I)
+_BETWEEN = re.compile(r'(?:between|from)\s+', re.I)
 _TOLERANCE = re.compile(r'\s*(?:±|\+/-|\+-)\s*')
 
 
@@ -353,8 +358,9 @@ def _quantity(text: str, table: Mapping[str, float] | None = None
   t = re.sub(r'10([⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁺]+)',
              lambda m: '10^' + m.group(1).translate(_SUPERSCRIPTS), text)
   t = t.translate(_SUPERSCRIPTS).translate(_DASHES).strip()
-  a = _APPROX.match(t)
-  m = _NUMBER.match(t, a.end() if a else 0)
+  b = _BETWEEN.match(t)  # 'between 1 and 5 MPa'
+  a = _APPROX.match(t, b.end() if b else 0)
+  m = _NUMBER.match(t, a.end() if a else (b.end() if b else 0))
   if not m:
     return 'is not a number'
   x, note = _plain(m), ''
