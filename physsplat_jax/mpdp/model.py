@@ -275,21 +275,18 @@ def normalize_field(logits, mask, weights=None):
   lmax = jnp.max(jnp.where(m, logits, -jnp.inf), axis=0)
   lmax = jax.lax.stop_gradient(jnp.where(jnp.isfinite(lmax), lmax, 0.0))
   w = jnp.where(m, jnp.exp(jnp.where(m, logits, 0.0) - lmax), 0.0)
-  if weights is None:
-    n = jnp.maximum(jnp.sum(mask.astype(logits.dtype)), 1.0)
-    field = w * (n / jnp.sum(w, axis=0))
-  else:
+  n = jnp.maximum(jnp.sum(mask.astype(logits.dtype)), 1.0)
+  field = w * (n / jnp.sum(w, axis=0))
+  if weights is not None:
     a = jnp.where(mask, weights.astype(logits.dtype), 0.0)[:, None]
     # Scaled to a largest weight of 1 (the field does not depend on the
     # scale): volumes of 1e-25 m^3 underflowed the sums in float32.
     top = jax.lax.stop_gradient(jnp.max(a))
     a = a / jnp.where(top > 0, top, 1.0)
     den = jnp.sum(a * w, axis=0)
-    # (an object whose weights are all 0: the plain field, no 0 / 0)
+    # (an object whose weights are all 0 keeps the plain field, no 0 / 0)
     ok = den > 0
-    field = w * jnp.where(ok, jnp.sum(a) / jnp.where(ok, den, 1.0), 0.0)
-    n = jnp.maximum(jnp.sum(mask.astype(logits.dtype)), 1.0)
-    field = jnp.where(ok, field, w * (n / jnp.sum(w, axis=0)))
+    field = jnp.where(ok, w * (jnp.sum(a) / jnp.where(ok, den, 1.0)), field)
   return jnp.where(m, field, 1.0)
 
 

@@ -358,9 +358,11 @@ def _quantity(text: str, table: Mapping[str, float] | None = None
   t = re.sub(r'10([⁰¹²³⁴⁵⁶⁷⁸⁹⁻⁺]+)',
              lambda m: '10^' + m.group(1).translate(_SUPERSCRIPTS), text)
   t = t.translate(_SUPERSCRIPTS).translate(_DASHES).strip()
-  b = _BETWEEN.match(t)  # 'between 1 and 5 MPa'
-  a = _APPROX.match(t, b.end() if b else 0)
-  m = _NUMBER.match(t, a.end() if a else (b.end() if b else 0))
+  start = 0
+  for prefix in (_BETWEEN, _APPROX):  # 'between ~1 and 5 MPa'
+    p = prefix.match(t, start)
+    start = p.end() if p else start
+  m = _NUMBER.match(t, start)
   if not m:
     return 'is not a number'
   x, note = _plain(m), ''

@@ -310,14 +310,13 @@ def select_drivers(
     if budget is None:
       raise SamplingError("select_drivers: method='kmeans' needs budget=")
     xs, obs = [], []
-    objs = np.unique(cand.object_ids)
+    objs, sizes = np.unique(cand.object_ids, return_counts=True)
     # Budget split by candidate count with largest-remainder rounding, so
     # the counts sum to the budget (rounding each share gave up to half a
     # driver more or less per object), at least 4 per object and at most
     # its candidates (more centres than points are duplicates of volume 0).
-    sizes = np.array([np.sum(cand.object_ids == o) for o in objs])
-    counts = centroidal.allocate(budget, sizes, np.minimum(4, sizes), sizes,
-                                 min_count=4)
+    counts = centroidal.allocate(budget, sizes, np.full(len(sizes), 4),
+                                 sizes, min_count=4)
     for i, o in enumerate(objs):
       sel = cand.object_ids == o
       nb = int(counts[i])

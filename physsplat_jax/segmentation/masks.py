@@ -14,10 +14,10 @@ weight: a view that sees it outvotes the views that see it only through
 an occluder, but a Gaussian seen in no view except through one takes the
 occluder's label (raise ``min_weight`` to count it unseen instead). A view
 counts in proportion to the pixels a Gaussian covers there: closer or
-higher-resolution views weigh more. The renderer is linear in the per-Gaussian colours
-``c``: ``image(p) = sum_k c_k alpha_k(p) T_k(p)`` with a black background,
-so ``W_v[:, l]`` is the vector-Jacobian product of the image with the
-one-hot image of label l -- one reverse pass of
+higher-resolution views weigh more. The renderer is linear in the
+per-Gaussian colours ``c``: ``image(p) = sum_k c_k alpha_k(p) T_k(p)``
+with a black background, so ``W_v[:, l]`` is the vector-Jacobian product
+of the image with the one-hot image of label l -- one reverse pass of
 :func:`~physsplat_jax.render.render_differentiable` per three labels (one
 per colour channel), exact with the renderer's semantics (tiles, alpha cap,
 early stop).
@@ -138,7 +138,7 @@ def _check_aspect(i: int, cam: Camera, shape) -> None:
   (one pixel)."""
   H, W = cam.height, cam.width
   h, w = shape
-  if (h, w) == (H, W) or abs(W * h / H - w) <= 1 or abs(H * w / W - h) <= 1:
+  if abs(W * h / H - w) <= 1 or abs(H * w / W - h) <= 1:
     return
   hint = ' (transposed? masks are (H, W) = (rows, columns))' if (
     (h, w) == (W, H)) else ''

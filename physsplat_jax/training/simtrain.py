@@ -639,9 +639,10 @@ def fit_material(task: Task, observe: str = 'trajectory',
 
   Unknowns: ``log_E`` (the object's log-multiplier of its mean E,
   ``Params.log_scale[0, 0]``) and the coefficients ``c`` of a smooth
-  log-field ``m_E = exp(B c) / mean exp(B c)`` (``B``: monomials of the
-  normalised driver rest positions up to ``field_degree``; volume-weighted
-  mean 1, as the pipeline's MPDP field and the truth), passed to :func:`physsplat_jax.pipeline.simulate` as ``field``.
+  log-field ``m_E = exp(B c) / mean_V exp(B c)`` (``B``: monomials of the
+  normalised driver rest positions up to ``field_degree``; ``mean_V`` the
+  volume-weighted mean, as for the pipeline's MPDP field and the truth),
+  passed to :func:`physsplat_jax.pipeline.simulate` as ``field``.
   nu and rho stay at their true per-driver values (only E is unknown). A
   free per-driver field is ill-posed at this resolution (it fits the
   observations with unobservable drivers anywhere), hence the smooth
