@@ -102,7 +102,7 @@ def _check_directional(test, fn, params, seed=0, fields=None):
 
 
 def _from_rest(models, ground):
-  """(value_and_grad, params, prepared) of a weighted final-frame loss."""
+  """(value_and_grad, params, loss) of a weighted final-frame loss."""
   mats = [pl.ObjectMaterial(m, 2e4, 0.3, 1000.0, rigid=(m == 'rigid'))
           for m in models]
   mats.append(pl.ObjectMaterial('rigid', 1e10, 0.3, 700.0, rigid=True))
@@ -128,7 +128,7 @@ def _from_rest(models, ground):
             + 1e-2 * jnp.sum(wc * t.covariances[-1]) / 0.004 ** 2
             + 1e-2 * jnp.sum(wr * t.rotations[-1]))
 
-  return jax.jit(jax.value_and_grad(loss)), params
+  return jax.jit(jax.value_and_grad(loss)), params, loss
 
 
 class PipelineFromRestTest(absltest.TestCase):
@@ -143,12 +143,21 @@ class PipelineFromRestTest(absltest.TestCase):
   def _check(self, ground, velocity=None):
     models = _GROUPS[ground]
     with jax.enable_x64(True):
-      fn, params = _from_rest(models, ground)
+      fn, params, loss = _from_rest(models, ground)
       self.assertFalse(np.any(np.asarray(params.velocity)))  # from rest
       if velocity is not None:  # F = I still, moving
         params = params.replace(velocity=jnp.asarray(velocity, jnp.float64))
       g = _check_directional(self, fn, params,
                              fields=('log_scale', 'velocity'))
+      # Forward mode (the custom JVPs as written; reverse mode is their
+      # transpose) along another direction: against the gradient.
+      rng = np.random.default_rng(7)
+      d = jax.tree.map(
+        lambda a: jnp.asarray(rng.normal(size=a.shape), a.dtype), params)
+      _, fwd = jax.jit(lambda p, d: jax.jvp(loss, (p,), (d,)))(params, d)
+      rev = sum(float(jnp.sum(a * b)) for a, b in
+                zip(jax.tree.leaves(g), jax.tree.leaves(d)))
+      np.testing.assert_allclose(float(fwd), rev, rtol=1e-9)
       # Every object's velocity gradient is non-zero (no silent zero), and
       # every deformable object's stiffness matters.
       self.assertTrue(np.all(np.any(np.asarray(g.velocity) != 0, axis=1)))
@@ -175,7 +184,7 @@ class PipelineFromRestTest(absltest.TestCase):
   @pytest.mark.slow
   def test_sand_from_rest_is_finite_x64(self):
     with jax.enable_x64(True):
-      fn, params = _from_rest(('drucker_prager',), 'slip')
+      fn, params, _ = _from_rest(('drucker_prager',), 'slip')
       _, g = fn(params)
       for leaf in jax.tree.leaves(g):
         self.assertTrue(np.all(np.isfinite(np.asarray(leaf))))

@@ -84,9 +84,11 @@ class PolarTest(parameterized.TestCase):
       self.assertGreater(np.linalg.eigvalsh(S).min(), 0)
 
   @parameterized.named_parameters(*_CASES)
-  def test_vjp_matches_finite_differences(self, F):
+  def test_derivatives_match_finite_differences(self, F):
+    # Forward (jvp) and reverse mode (its transpose), at F = I too.
     with jax.enable_x64(True):
-      check_grads(la.polar, (jnp.asarray(F),), 1, modes=('rev',), eps=1e-6)
+      check_grads(la.polar, (jnp.asarray(F),), 1, modes=('fwd', 'rev'),
+                  eps=1e-6)
 
   def test_grad_finite_at_identity_in_float32(self):
     g = jax.grad(lambda F: jnp.sum(la.polar(F) * jnp.arange(9.).reshape(
@@ -139,23 +141,39 @@ class SvdTest(parameterized.TestCase):
     self.assertTrue(np.all(np.abs(s[:, :2]) >= np.abs(s[:, 1:]) - tol))
     np.testing.assert_array_equal(s[:, 2] < 0, np.linalg.det(F) < 0)
 
-  def test_svd_vjp_distinct_values(self):
+  def test_svd_derivatives_distinct_values(self):
     with jax.enable_x64(True):
       f = lambda F: la.svd(F)[1]  # noqa: E731
       check_grads(f, (jnp.asarray(_random_F(3, seed=2)),), 1,
-                  modes=('rev',), eps=1e-6)
+                  modes=('fwd', 'rev'), eps=1e-6)
       g = lambda F: jnp.einsum(  # noqa: E731
         'nij,nkj->nik', la.svd(F)[0], la.svd(F)[2])
       check_grads(g, (jnp.asarray(_random_F(3, seed=3)),), 1,
-                  modes=('rev',), eps=1e-6)
+                  modes=('fwd', 'rev'), eps=1e-6)
 
-  def test_svd_vjp_finite_at_identity(self):
+  def test_svd_derivatives_finite_at_identity(self):
     g = jax.grad(lambda F: jnp.sum(la.svd(F)[0] * la.svd(F)[1][..., None, :]))
     self.assertTrue(np.all(np.isfinite(g(jnp.eye(3)[None]))))
+    # The tangents of U and V stay tangent to the rotations (U^T dU skew)
+    # where singular values repeat exactly, and ds is diag(U^T dF V).
+    rng = np.random.default_rng(6)
+    for F in (np.eye(3)[None], np.diag([1.2, 1.2, 0.8])[None],
+              _random_F(2, seed=7)):
+      dF = jnp.asarray(rng.normal(size=F.shape), jnp.float32)
+      (U, _, V), (dU, ds, dV) = jax.jvp(la.svd, (jnp.asarray(F, jnp.float32),),
+                                        (dF,))
+      for Q, dQ in ((U, dU), (V, dV)):
+        K = np.swapaxes(np.asarray(Q), 1, 2) @ np.asarray(dQ)
+        self.assertTrue(np.all(np.isfinite(K)))
+        np.testing.assert_allclose(K, -np.swapaxes(K, 1, 2), atol=1e-3 *
+                                   max(1.0, np.abs(K).max()))
+      P = np.swapaxes(np.asarray(U), 1, 2) @ np.asarray(dF) @ np.asarray(V)
+      np.testing.assert_allclose(ds, np.diagonal(P, 0, 1, 2), atol=1e-5)
 
   @parameterized.named_parameters(*_CASES)
-  def test_spectral_map_vjp(self, F):
-    """Return map + Hencky stress: exact gradients, also at F = I."""
+  def test_spectral_map_derivatives(self, F):
+    """Return map + Hencky stress: exact derivatives in forward and reverse
+    mode, also at F = I."""
     apply = la.make_spectral_map(_hencky_return)
 
     def f(F, mu, lam):
@@ -165,7 +183,7 @@ class SvdTest(parameterized.TestCase):
     with jax.enable_x64(True):
       n = F.shape[0]
       args = (jnp.asarray(F), jnp.full((n,), 2.0), jnp.full((n,), 3.0))
-      check_grads(f, args, 1, modes=('rev',), eps=1e-6)
+      check_grads(f, args, 1, modes=('fwd', 'rev'), eps=1e-6)
 
   def test_spectral_map_forward(self):
     with jax.enable_x64(True):

@@ -69,10 +69,10 @@ class TransferTest(absltest.TestCase):
     np.testing.assert_allclose(g, 2.0 * x)
     np.testing.assert_array_equal(jax.vmap(transfer.materialize)(x), x)
 
-  def test_p2g_reverse_pass_is_the_window_sums(self):
+  def test_p2g_derivatives_are_the_window_sums(self):
     # transfer._p2g_window's CPU reverse pass (batched products) against
-    # XLA's own transpose of the same scatter, and the cotangent of F/C
-    # materialized is the identity's.
+    # XLA's own transpose of the same scatter, its tangent against XLA's,
+    # and the (co)tangent of F/C materialized is the identity's.
     with jax.enable_x64(True):
       rng = np.random.default_rng(3)
       n, G, C = 40, 10, 8
@@ -88,10 +88,20 @@ class TransferTest(absltest.TestCase):
       np.testing.assert_array_equal(out, ref)
       for a, b in zip(ours(g), xla(g)):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+      # Forward mode: its tangent (products) is XLA's jvp of the sum.
+      tangents = [jnp.asarray(rng.normal(size=a.shape)) for a in [W] + parts]
+      _, t_ours = jax.jvp(lambda *a: transfer._p2g_window(G, *a, base),
+                          [W] + parts, tangents)
+      _, t_xla = jax.jvp(lambda *a: transfer._p2g_window_sum(G, *a, base),
+                         [W] + parts, tangents)
+      np.testing.assert_allclose(t_ours, t_xla, rtol=1e-12, atol=1e-12)
       x = jnp.asarray(rng.normal(size=(5,)))
       np.testing.assert_array_equal(
         jax.grad(lambda y: jnp.sum(jnp.sin(
           transfer.materialize_cotangent(y))))(x), jnp.cos(x))
+      np.testing.assert_array_equal(
+        jax.jvp(lambda y: jnp.sin(transfer.materialize_cotangent(y)),
+                (x,), (jnp.ones_like(x),))[1], jnp.cos(x))
 
   def test_p2g_g2p_conserve_mass_and_momentum(self):
     with jax.enable_x64(True):

@@ -293,19 +293,58 @@ class SimulateTest(absltest.TestCase):
           'scene is float64: cast both alike'):
         pl.simulate_jit(params, p64, cfg)
 
-  def test_forward_mode_is_refused_by_name(self):
-    # JAX's TypeError from a custom_vjp deep inside the solver before.
+  def test_forward_mode_equals_reverse_mode(self):
+    # jax.jvp was refused before (custom VJPs in the solver); now the
+    # solver's rules are custom JVPs, transposed for the reverse pass. A
+    # neo-Hookean cube (its stress through the SVD) resting on the rigid
+    # slab from F = I: <grad, t> against the jvp along t, for the
+    # velocities and stiffness scales at once.
     cfg = _config(num_frames=1, substeps_per_frame=40)
+    nh = pl.ObjectMaterial('neo_hookean', 3e4, 0.3, 1000.0)
+    prep, _ = pl.prepare_scene(0, _scene(), [nh, _WOOD], cfg)
+    params = pl.init_params(prep, cfg)
+    rng = np.random.default_rng(0)
+    w = jnp.asarray(rng.normal(size=prep.rest_means.shape), jnp.float32)
+
+    def f(v, s):
+      p = params.replace(velocity=v, log_scale=s)
+      return jnp.sum(w * pl.simulate(p, prep, cfg).means[-1])
+
+    args = (params.velocity + 0.3, params.log_scale)
+    t = tuple(jnp.asarray(rng.normal(size=a.shape), a.dtype) for a in args)
+    _, fwd = jax.jit(lambda a, t: jax.jvp(f, a, t))(args, t)
+    g = jax.jit(jax.grad(f, (0, 1)))(*args)
+    rev = sum(float(jnp.vdot(a, b)) for a, b in zip(g, t))
+    self.assertTrue(np.isfinite(float(fwd)))
+    self.assertGreater(abs(rev), 1e-6)
+    np.testing.assert_allclose(float(fwd), rev, rtol=1e-4)
+
+  def test_forward_mode_through_the_images(self):
+    # The JAX compositor of render='differentiable' works in forward mode
+    # (its jvp is the reverse pass's transpose); render='fast', whose
+    # compositor has no derivative, says what to use.
+    cfg = _config(num_frames=1, substeps_per_frame=20,
+                  render='differentiable')
     prep, _ = pl.prepare_scene(0, _scene(), [_RUBBER, _WOOD], cfg)
     params = pl.init_params(prep, cfg)
+    w = jnp.asarray(np.random.default_rng(2).normal(
+      size=(2, cfg.height, cfg.width, 3)), jnp.float32)
 
-    def f(v):
-      return pl.simulate(params.replace(velocity=v), prep, cfg).means.sum()
+    def f(v, cfg=cfg):
+      return jnp.sum(w * pl.simulate(params.replace(velocity=v), prep,
+                                     cfg).images)
 
-    with self.assertRaisesRegex(pl.PipelineError, 'reverse-mode derivatives '
-                                'only: jax.grad, .* jax.jvp, jacfwd and '
-                                'hessian do not'):
-      jax.jvp(f, (params.velocity,), (jnp.ones_like(params.velocity),))
+    v = params.velocity + jnp.asarray([[0.2, -0.1, 0.3]])  # the cube's
+    t = jnp.ones_like(v)
+    _, fwd = jax.jit(lambda v, t: jax.jvp(f, (v,), (t,)))(v, t)
+    rev = float(jnp.vdot(jax.jit(jax.grad(f))(v), t))
+    self.assertGreater(abs(rev), 1e-6)
+    np.testing.assert_allclose(float(fwd), rev, rtol=1e-3)
+    fast = dataclasses.replace(cfg, render='fast')
+    with self.assertRaisesRegex(pl.PipelineError, "forward mode .* through "
+                                "the images: render='fast' .* has no "
+                                "derivative: use render='differentiable'"):
+      jax.jvp(lambda v: f(v, fast), (v,), (t,))
 
   def test_params_round_trip_through_a_file(self):
     # orbax refuses the (0, 3) forces of a scene without forces.

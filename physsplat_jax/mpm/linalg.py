@@ -12,22 +12,23 @@ by the scaled Newton iteration of Higham (1986)::
   R_0 = F,  R_{k+1} = (g_k R_k + g_k^{-1} R_k^{-T}) / 2,
   g_k = (|R_k^{-1}|_F / |R_k|_F)^{1/2}.
 
-Its custom VJP differentiates the converged factor, not the iteration: with
-``dR = R [w]_x`` and ``R^T dF - dF^T R = [(tr(S) I - S) w]_x`` one gets, for a
-cotangent ``Rbar``::
+Its custom JVP differentiates the converged factor, not the iteration: with
+``dR = R [w]_x`` and ``R^T dF - dF^T R = [(tr(S) I - S) w]_x``::
 
-  a = axial(R^T Rbar - Rbar^T R),  b = (tr(S) I - S)^{-1} a,
-  Fbar = R [b]_x.
+  a = axial(R^T dF - dF^T R),  w = (tr(S) I - S)^{-1} a,  dR = R [w]_x.
 
-``tr(S) I - S`` has eigenvalues ``s_i + s_j > 0``, so the gradient is finite
+The map ``dF -> dR`` is self-adjoint, so the reverse pass (JAX's transpose
+of it) is the same expression with a cotangent ``Rbar`` for ``dF``.
+``tr(S) I - S`` has eigenvalues ``s_i + s_j > 0``, so the derivative is finite
 everywhere ``F`` is invertible, including at ``F = I`` where SVD-based
 gradients divide by ``s_i^2 - s_j^2 = 0`` (REFERENCE.md section 13: a plain
 ``jnp.linalg.svd`` gave NaN gradients there).
 
 SVD ``F = U diag(s) V^T``: the forward pass is ``jnp.linalg.svd`` with signs
 fixed so that ``U, V`` are rotations (a reflection goes into the smallest
-singular value, Irving et al. 2004). ``svd`` has Townsend's (2016) VJP, split
-into a ``1 / (s_j - s_i)`` part (its denominator clamped away from zero) and
+singular value, Irving et al. 2004). ``svd`` has Townsend's (2016) JVP, split
+into a ``1 / (s_j - s_i)`` part (its denominator clamped away from zero,
+antisymmetrically, so that ``U^T dU`` stays skew) and
 a regular ``1 / (s_j + s_i)`` part: finite everywhere, exact for distinct
 singular values and for ``U V^T``, but at exactly repeated singular values it
 drops limits of the form ``(g_j - g_i) / (s_j - s_i)`` (the factors U, V are
@@ -42,8 +43,15 @@ of a permutation-symmetric map ``s -> (h, k, aux)`` (return maps on the
 singular values, principal Kirchhoff stresses), with the divided
 differences ``(h_j - h_i) / (s_j - s_i)`` replaced by their limit
 ``dh_i/ds_i - dh_i/ds_j`` (from the Jacobian of the map) when the singular
-values are (nearly) equal. Its gradient is exact, including at F = I
+values are (nearly) equal. Its derivative is exact, including at F = I
 (a Daleckii-Krein formula for the SVD).
+
+Every rule here is a custom JVP, linear in the tangents: forward mode
+(``jax.jvp``, ``jacfwd``) uses it as written, reverse mode (``grad``,
+``vjp``, ``jacrev``) its transpose, which JAX derives. Second derivatives
+(``jax.hessian``) are right through :func:`polar_mat` but not through
+:func:`make_spectral_map` (its rule's own derivative goes through the
+Jacobi sweeps of the SVD: NaN or wrong, measured).
 """
 
 from __future__ import annotations
@@ -72,7 +80,7 @@ _MODE = _Mode()
 @contextlib.contextmanager
 def kernel_mode():
   """Traces this module's functions for the body of a Pallas kernel: the
-  forward computations only, without their custom VJPs (a kernel has no
+  forward computations only, without their custom JVPs (a kernel has no
   lowering for them; the caller differentiates the pure-JAX path instead),
   and the polar iteration and Jacobi sweeps as loops (no platform choice
   inside a kernel; unrolled, the tabletop's update took 5-8 s to compile
@@ -306,7 +314,7 @@ def polar_mat(F: Mat) -> Mat:
   return _polar_mat(F)
 
 
-@jax.custom_vjp
+@jax.custom_jvp
 def _polar_mat(F: Mat) -> Mat:
   return _polar_newton(F, _iters(F))
 
@@ -315,30 +323,25 @@ def _iters(F):
   return _POLAR_ITERS.get(jnp.dtype(F[0][0].dtype).itemsize, 9)
 
 
-def _polar_fwd(F):
+@_polar_mat.defjvp
+def _polar_jvp(primals, tangents):
+  # dR = R [w]_x with [w]_x S + S [w]_x = R^T dF - dF^T R (module doc); the
+  # map dF -> dR is self-adjoint, so its transpose (the reverse pass) is the
+  # same expression.
+  (F,), (dF,) = primals, tangents
   R = _polar_newton(F, _iters(F))
-  return R, (F, R)
-
-
-def _polar_bwd(res, Rbar):
-  F, R = res
   S = t_matmul(R, F)
   S = tuple(tuple(0.5 * (S[i][j] + S[j][i]) for j in range(3))
             for i in range(3))
   A = add_diag(scale(S, -1.0), trace(S))
-  M = t_matmul(R, Rbar)
-  a = axial(M)
-  b = solve_sym(A, a)
-  return (matmul(R, skew_from(b)),)
-
-
-_polar_mat.defvjp(_polar_fwd, _polar_bwd)
+  w = solve_sym(A, axial(t_matmul(R, dF)))
+  return R, matmul(R, skew_from(w))
 
 
 def polar(F: Array) -> Array:
   """Rotation ``R`` of the polar decomposition ``F = R S``.
 
-  Scaled Newton iteration with a custom VJP that is finite at ``F = I``.
+  Scaled Newton iteration with a custom JVP that is finite at ``F = I``.
 
   Args:
     F: (..., 3, 3) invertible matrices.
@@ -351,12 +354,13 @@ def polar(F: Array) -> Array:
   return jnp.moveaxis(from_mat(polar_mat(m)), (0, 1), (-2, -1))
 
 
-@jax.custom_vjp
+@jax.custom_jvp
 def svd(F: Array):
   """Rotation-variant SVD ``F = U diag(s) V^T`` of (..., 3, 3) matrices.
 
   ``U`` and ``V`` are rotations (det +1); if ``det F < 0`` the smallest
-  singular value is negative. The VJP is finite for repeated singular values.
+  singular value is negative. The derivative (forward and reverse mode) is
+  finite for repeated singular values.
 
   Args:
     F: (..., 3, 3) matrices.
@@ -381,41 +385,39 @@ def _svd_fwd_impl(F):
   return U, s, V
 
 
-def _svd_fwd(F):
-  out = _svd_fwd_impl(F)
-  return out, out
-
-
-def _svd_bwd(res, cot):
-  U, s, V = res
-  Ub, sb, Vb = cot
-  # Off-diagonal (i, j) of Townsend's inner matrix,
-  #   (a s_j + b s_i) / (s_j^2 - s_i^2)
-  #   = (a + b) / (2 (s_j - s_i)) + (a - b) / (2 (s_j + s_i)),
-  # a = (U^T Ubar)_ij - (U^T Ubar)_ji, b likewise for V. Only the first term
-  # is singular, and a + b -> 0 there for any isotropic function of F, so
-  # clamping its denominator keeps gradients right and finite.
+@svd.defjvp
+def _svd_jvp(primals, tangents):
+  # With P = U^T dF V: ds = diag(P), dU = U Wu, dV = V Wv and, off the
+  # diagonal, with sym / skw the symmetric / skew parts of P,
+  #   Wu_ij = sym_ij / (s_j - s_i) + skw_ij / (s_j + s_i),
+  #   Wv_ij = sym_ij / (s_j - s_i) - skw_ij / (s_j + s_i)
+  # (Townsend 2016, split so that only the first term is singular). Both
+  # denominators are clamped away from zero: finite everywhere, exact for
+  # distinct singular values and for U V^T.
+  (F,), (dF,) = primals, tangents
+  U, s, V = _svd_fwd_impl(F)
   eye3 = jnp.eye(3, dtype=s.dtype)
-  Ut = jnp.swapaxes(U, -1, -2)
-  Vt = jnp.swapaxes(V, -1, -2)
-  J = Ut @ Ub
-  K = Vt @ Vb
-  a = J - jnp.swapaxes(J, -1, -2)
-  b = K - jnp.swapaxes(K, -1, -2)
+  P = jnp.swapaxes(U, -1, -2) @ dF @ V
+  Pt = jnp.swapaxes(P, -1, -2)
+  sym = 0.5 * (P + Pt)
+  skw = 0.5 * (P - Pt)
   sj = s[..., None, :]
   si = s[..., :, None]
-  dm = sj - si
-  dp = sj + si
   ref = jnp.maximum(jnp.max(jnp.abs(s), -1), 1e-30)[..., None, None]
   gap = _SVD_GAP * ref
-  dm = jnp.where(jnp.abs(dm) < gap, jnp.where(dm < 0, -gap, gap), dm)
+  # Clamped keeping dm_ji = -dm_ij (ties broken by the index order), so
+  # that Wu and Wv stay skew: U + dU remains a rotation to first order.
+  upper = jnp.triu(jnp.ones((3, 3), bool), 1)
+  dm = sj - si
+  dp = sj + si
+  neg = jnp.where(dm == 0, ~upper, dm < 0)
+  dm = jnp.where(jnp.abs(dm) < gap, jnp.where(neg, -gap, gap), dm)
   dp = jnp.where(jnp.abs(dp) < gap, jnp.where(dp < 0, -gap, gap), dp)
-  off = 0.5 * (a + b) / dm + 0.5 * (a - b) / dp
-  inner = jnp.where(eye3 > 0, 0.0, off) + sb[..., None, :] * eye3
-  return (U @ inner @ Vt,)
-
-
-svd.defvjp(_svd_fwd, _svd_bwd)
+  off = eye3 == 0
+  Wu = jnp.where(off, sym / dm + skw / dp, 0.0)
+  Wv = jnp.where(off, sym / dm - skw / dp, 0.0)
+  ds = jnp.diagonal(P, axis1=-2, axis2=-1)
+  return (U, s, V), (U @ Wu, ds, V @ Wv)
 
 
 # ------------------------------------------------------------ spectral maps
@@ -571,7 +573,7 @@ def make_spectral_map(fn):
   Returns:
     ``apply(F, p) -> (Fh, Tk, aux)`` for a nested-tuple field ``F``:
     ``Fh = U diag(h(s)) V^T``, ``Tk = U diag(k(s)) U^T`` and ``aux(s)``, with
-    a custom VJP that is exact at repeated singular values (module doc).
+    a custom JVP that is exact at repeated singular values (module doc).
   """
 
   def forward(F, p):
@@ -581,38 +583,44 @@ def make_spectral_map(fn):
     Tk = matmul_t(scale_cols(U, k), U)
     return (Fh, Tk, aux), (U, s, V, h, k, p)
 
-  @jax.custom_vjp
+  @jax.custom_jvp
   def apply(F, p):
     return forward(F, p)[0]
 
-  def fwd(F, p):
-    return forward(F, p)
-
-  def bwd(res, cts):
-    U, s, V, h, k, p = res
-    Fh_bar, Tk_bar, aux_bar = cts
-    Ph = t_matmul(U, matmul(Fh_bar, V))     # U^T Fh_bar V
-    Pk = t_matmul(U, matmul(Tk_bar, U))     # U^T Tk_bar U
-    _, vjp_fn = jax.vjp(fn, s, p)
-    s_bar, p_bar = vjp_fn((tuple(Ph[i][i] for i in range(3)),
-                           tuple(Pk[i][i] for i in range(3)), aux_bar))
+  @apply.defjvp
+  def jvp(primals, tangents):
+    # The tangent of Fh = U diag(h) V^T is U Qh V^T and that of
+    # Tk = U diag(k) U^T is U Qk U^T with, for P = U^T dF V (sym / skw its
+    # symmetric / skew parts) and the SVD's tangent (see _svd_jvp),
+    #   Qh_ii = dh_i,  Qh_ij = Dh_ij sym_ij + Sh_ij skw_ij,
+    #   Qk_ii = dk_i,  Qk_ij = Dk_ij (s_j P_ij + s_i P_ji) / (s_j + s_i),
+    # Dh_ij = (h_j - h_i) / (s_j - s_i) (its limit from the map's Jacobian
+    # where s_i ~ s_j), Sh_ij = (h_j + h_i) / (s_j + s_i). Linear in the
+    # tangents: JAX transposes it for the reverse pass.
+    (F, p), (dF, dp) = primals, tangents
+    out, (U, s, V, h, k, _) = forward(F, p)
+    P = t_matmul(U, matmul(dF, V))                  # U^T dF V
+    ds = tuple(P[i][i] for i in range(3))
+    _, (dh, dk, daux) = jax.jvp(fn, (s, p), (ds, dp))
     # Jacobians dh_i/ds_j, dk_i/ds_j for the repeated-value limits.
     zero_p = jax.tree.map(jnp.zeros_like, p)
     Jh, Jk = [], []
     for j in range(3):
       e = tuple(jnp.ones_like(s[0]) if i == j else jnp.zeros_like(s[0])
                 for i in range(3))
-      _, (dh, dk, _) = jax.jvp(fn, (s, p), (e, zero_p))
-      Jh.append(dh)
-      Jk.append(dk)
+      _, (dhj, dkj, _) = jax.jvp(fn, (s, p), (e, zero_p))
+      Jh.append(dhj)
+      Jk.append(dkj)
     # Jh[j][i] = dh_i / ds_j.
     ref = jnp.maximum(jnp.maximum(jnp.abs(s[0]), jnp.abs(s[1])),
                       jnp.abs(s[2]))
     ref = jnp.maximum(ref, jnp.finfo(s[0].dtype).tiny)
     gap = _gap(s)
-    P = [[None] * 3 for _ in range(3)]
+    Qh = [[None] * 3 for _ in range(3)]
+    Qk = [[None] * 3 for _ in range(3)]
     for i in range(3):
-      P[i][i] = s_bar[i]
+      Qh[i][i] = dh[i]
+      Qk[i][i] = dk[i]
     for i in range(3):
       for j in range(3):
         if i == j:
@@ -620,21 +628,19 @@ def make_spectral_map(fn):
         dm = s[j] - s[i]
         close = jnp.abs(dm) < gap * ref
         dm = _safe_den(dm, ref, gap)
-        dp = _safe_den(s[j] + s[i], ref, gap)
+        dps = _safe_den(s[j] + s[i], ref, gap)
         lim_h = 0.5 * (Jh[i][i] - Jh[j][i] + Jh[j][j] - Jh[i][j])
         lim_k = 0.5 * (Jk[i][i] - Jk[j][i] + Jk[j][j] - Jk[i][j])
         Dh = jnp.where(close, lim_h, (h[j] - h[i]) / dm)
         Dk = jnp.where(close, lim_k, (k[j] - k[i]) / dm)
-        Sh = (h[j] + h[i]) / dp
-        sym_h = 0.5 * (Ph[i][j] + Ph[j][i])
-        skw_h = 0.5 * (Ph[i][j] - Ph[j][i])
-        P[i][j] = (Dh * sym_h + Sh * skw_h
-                   + Dk * s[j] * (Pk[i][j] + Pk[j][i]) / dp)
-    P = tuple(tuple(r) for r in P)
-    F_bar = matmul_t(matmul(U, P), V)
-    return F_bar, p_bar
-
-  apply.defvjp(fwd, bwd)
+        Sh = (h[j] + h[i]) / dps
+        sym = 0.5 * (P[i][j] + P[j][i])
+        skw = 0.5 * (P[i][j] - P[j][i])
+        Qh[i][j] = Dh * sym + Sh * skw
+        Qk[i][j] = Dk * (s[j] * P[i][j] + s[i] * P[j][i]) / dps
+    dFh = matmul_t(matmul(U, tuple(map(tuple, Qh))), V)
+    dTk = matmul_t(matmul(U, tuple(map(tuple, Qk))), U)
+    return out, (dFh, dTk, daux)
 
   def apply_or_primal(F, p):
     if _MODE.on:

@@ -14,8 +14,9 @@ blocks of particles, one ``pl.when`` per slice of particles sorted by model
 The kernel computes exactly what :func:`constitutive.constitute_slices`
 computes (the same functions, traced in ``linalg.kernel_mode``: forward
 code only, the polar iteration and Jacobi sweeps as loops). Its derivative
-is that of the pure-JAX path (``jax.custom_vjp``: the backward pass
-differentiates ``constitute_slices``), so gradients are unchanged. Off a
+is that of the pure-JAX path (``jax.custom_jvp``: the tangent is
+``constitute_slices``' own, and the reverse pass its transpose), so
+gradients are unchanged, in forward and reverse mode. Off a
 GPU it runs in Pallas interpret mode (slow; for tests).
 """
 
@@ -186,7 +187,7 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
       **params,
     )(F, C, Jpep, *leaves, *bodies)
 
-  @jax.custom_vjp
+  @jax.custom_jvp
   def update(F, C, Jpep, leaves, bodies):
     return kernel_call(F, C, Jpep, leaves, bodies)
 
@@ -197,15 +198,13 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
                       jax.tree.unflatten(treedef, leaves),
                       bodies[0] if has_body else None)
 
-  def fwd(F, C, Jpep, leaves, bodies):
-    return (kernel_call(F, C, Jpep, leaves, bodies),
-            (F, C, Jpep, leaves, bodies))
+  @update.defjvp
+  def jvp(primals, tangents):
+    # The value from the kernel, the tangent from the pure-JAX update's own
+    # (JAX transposes it for the reverse pass).
+    return (kernel_call(*primals),
+            jax.jvp(reference, primals, tangents)[1])
 
-  def bwd(res, cot):
-    _, vjp = jax.vjp(reference, *res)
-    return vjp(cot)
-
-  update.defvjp(fwd, bwd)
   return update(F, C, Jpep, leaves, bodies)
 
 

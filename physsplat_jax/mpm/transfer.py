@@ -190,7 +190,7 @@ def _o4(dtype):
                                      np.asarray(OFFSETS, float)], 1), dtype)
 
 
-def materialize(a):
+def materialize(a, like=None):
   """``a`` (an array or a pytree of arrays) itself, computed once into
   memory before its consumers.
 
@@ -204,16 +204,20 @@ def materialize(a):
   ``a`` has no NaN in its first entry, only picks which). Other platforms
   (where a conditional costs a host round trip and fusion is not the
   problem) get ``a`` unchanged, chosen by
-  ``platforms.platform_dependent``.
+  ``platforms.platform_dependent``. With ``like`` (a pytree of arrays) the
+  predicate is taken from ``like`` instead: a tangent or cotangent ``a``
+  then stays linear (JAX can transpose the conditional).
   """
-  def on_cpu(a):
-    first = jax.tree.leaves(a)[0].reshape(-1)[0]
+  def on_cpu(a, like):
+    first = jax.tree.leaves(like)[0].reshape(-1)[0]
     return jax.lax.cond(first == first, lambda b: b,
                         lambda b: jax.tree.map(lambda q: q + 0, b), a)
-  return platforms.platform_dependent(a, cpu=on_cpu, default=lambda b: b)
+  like = a if like is None else like
+  return platforms.platform_dependent(a, like, cpu=on_cpu,
+                                      default=lambda b, _: b)
 
 
-@jax.custom_vjp
+@jax.custom_jvp
 def materialize_cotangent(a):
   """``a`` itself; in the reverse pass its cotangent is computed once into
   memory (:func:`materialize`) before it flows on.
@@ -221,21 +225,20 @@ def materialize_cotangent(a):
   Where ``a`` is sliced from a packed array (F and C from the carried
   ``FC``), the slices' transposes are pads summed into one loop fusion;
   XLA:CPU fused the whole stress VJP into it and evaluated it per row of
-  the (18, N) result.
+  the (18, N) result. The tangent goes through :func:`materialize`'s
+  conditional (its predicate taken from ``a``), and the reverse pass, its
+  transpose, through the same conditional: a custom JVP rather than a
+  custom VJP, so that forward mode works too.
   """
   return a
 
 
-def _materialize_cotangent_fwd(a):
-  return a, None
+@materialize_cotangent.defjvp
+def _materialize_cotangent_jvp(primals, tangents):
+  (a,), (t,) = primals, tangents
+  return a, materialize(t, like=a)
 
 
-def _materialize_cotangent_bwd(_, ct):
-  return (materialize(ct),)
-
-
-materialize_cotangent.defvjp(_materialize_cotangent_fwd,
-                             _materialize_cotangent_bwd)
 
 
 def p2g(grid: GridSpec, st: Stencil, v, mass, A, extra=None):
@@ -295,53 +298,50 @@ def _p2g_window_sum(G: int, W, Q, Ae0, Ae1, Ae2, base):
   return _scatter(G, base, U)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _p2g_window(G: int, W, Q, Ae0, Ae1, Ae2, base):
-  """:func:`_p2g_window_sum`, whose reverse pass on the CPU is two batched
-  products instead of XLA's reductions over the 27 nodes.
+  """:func:`_p2g_window_sum`, whose tangent on the CPU is formed as batched
+  products, so that its transpose (the reverse pass) is products too
+  instead of XLA's reductions over the 27 nodes.
 
   XLA:CPU reduced the (N, 3, 3, 3, C) window cotangent over the nodes at
   about 1 GB/s: the tabletop's backward spent ~18 of its ~44 ms per
   substep there. The same sums as products (:func:`window_moments`' 'dot'
   form, which G2P's forward uses for the same reason) take a fraction of
-  that. Elsewhere the reverse pass is XLA's own (``jax.vjp``).
+  that. Elsewhere the tangent is XLA's own (``jax.jvp`` of the sum). A
+  custom JVP (not a VJP): forward mode works too.
   """
   return _p2g_window_sum(G, W, Q, Ae0, Ae1, Ae2, base)
 
 
-def _p2g_window_fwd(G, W, Q, Ae0, Ae1, Ae2, base):
-  return (_p2g_window_sum(G, W, Q, Ae0, Ae1, Ae2, base),
-          (W, Q, Ae0, Ae1, Ae2, base))
+@_p2g_window.defjvp
+def _p2g_window_jvp(G, primals, tangents):
+  W, Q, Ae0, Ae1, Ae2, base = primals
+  dW, dQ, dAe0, dAe1, dAe2, _ = tangents
+  out = _p2g_window_sum(G, W, Q, Ae0, Ae1, Ae2, base)
 
-
-def _p2g_window_bwd(G, res, g):
-  W, Q, Ae0, Ae1, Ae2, base = res
-
-  def by_products(W, Q, Ae0, Ae1, Ae2, base, g):
-    n, c = W.shape[0], g.shape[-1]
-    dU = _window_block(g, base)                                    # (N,27,C)
+  def by_products(W, Q, Ae0, Ae1, Ae2, base, dW, dQ, dAe0, dAe1, dAe2):
+    # U_k = W_k sum_j o4_kj P_j with P = (Q, Ae0, Ae1, Ae2): its tangent
+    # as two batched products, whose transposes are products as well.
+    n, c = W.shape[0], Q.shape[-1]
     o4 = _o4(W.dtype)                                              # (27, 4)
-    # dQ and dAe_e: sum_k W_k (1, o_k) dU_k.
-    dP = _window_moments_dot(W.reshape(n, 27), o4, dU)             # (N,4,C)
-    # dW_k: sum_c dU_kc (Q + o_k . Ae)_c.
     P = jnp.stack([Q, Ae0, Ae1, Ae2], 1).reshape(n, 4, c)
-    T = jnp.einsum('nkc,njc->nkj', dU, P,
-                   precision=jax.lax.Precision.HIGHEST)            # (N,27,4)
-    dW = jnp.sum(T * o4[None], -1).reshape(W.shape)
-    shape = Q.shape
-    return (dW,) + tuple(dP[:, j].reshape(shape) for j in range(4))
+    dP = jnp.stack([dQ, dAe0, dAe1, dAe2], 1).reshape(n, 4, c)
+    hi = jax.lax.Precision.HIGHEST
+    dU = (jnp.einsum('nk,kj,njc->nkc', W.reshape(n, 27), o4, dP,
+                     precision=hi)
+          + jnp.einsum('nk,kj,njc->nkc', dW.reshape(n, 27), o4, P,
+                       precision=hi))
+    return _scatter(G, base, dU.reshape(n, 3, 3, 3, c))
 
-  def by_xla(W, Q, Ae0, Ae1, Ae2, base, g):
-    _, vjp = jax.vjp(
-      lambda *a: _p2g_window_sum(G, *a, base), W, Q, Ae0, Ae1, Ae2)
-    return vjp(g)
+  def by_xla(W, Q, Ae0, Ae1, Ae2, base, dW, dQ, dAe0, dAe1, dAe2):
+    return jax.jvp(lambda *a: _p2g_window_sum(G, *a, base),
+                   (W, Q, Ae0, Ae1, Ae2), (dW, dQ, dAe0, dAe1, dAe2))[1]
 
-  cts = platforms.platform_dependent(W, Q, Ae0, Ae1, Ae2, base, g,
-                                   cpu=by_products, default=by_xla)
-  return tuple(cts) + (None,)
-
-
-_p2g_window.defvjp(_p2g_window_fwd, _p2g_window_bwd)
+  dout = platforms.platform_dependent(
+    W, Q, Ae0, Ae1, Ae2, base, dW, dQ, dAe0, dAe1, dAe2,
+    cpu=by_products, default=by_xla)
+  return out, dout
 
 
 def _scatter(G: int, base, U):

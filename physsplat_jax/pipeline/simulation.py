@@ -368,26 +368,30 @@ def simulate(params: Params, prepared: PreparedScene,
   rollout_fn = mpm.rollout if rollout_fn is None else rollout_fn
   state, materials, forces, sim_config = initial_state(params, prepared,
                                                        config, field)
-  try:
-    _, xs, Fs = rollout_fn(state, materials, forces, sim_config,
-                           config.num_frames)
-  except TypeError as e:  # JAX's words, from deep inside the solver
-    if 'forward-mode autodiff' not in str(e):
-      raise
-    raise PipelineError(
-      'simulate has reverse-mode derivatives only: jax.grad, '
-      'value_and_grad, vjp and jacrev work; jax.jvp, jacfwd and hessian do '
-      "not (the solver's SVD and polar derivatives are custom VJPs; "
-      'docs/pipeline.md, "Working with params")') from None
+  _, xs, Fs = rollout_fn(state, materials, forces, sim_config,
+                         config.num_frames)
   per_frame = jax.vmap(lambda x, F: deformed_gaussians(prepared, config, x, F))
   means, covs, rots = per_frame(xs, Fs)
   images = overflow = None
   if config.render is not RenderMode.NONE:
     diff = config.render is RenderMode.DIFFERENTIABLE
-    outs = jax.lax.map(
-      lambda a: render_frame(prepared, config, *a[:3], differentiable=diff,
-                             frame=a[3]),
-      (means, covs, rots, jnp.arange(config.num_frames + 1)))
+    try:
+      outs = jax.lax.map(
+        lambda a: render_frame(prepared, config, *a[:3], differentiable=diff,
+                               frame=a[3]),
+        (means, covs, rots, jnp.arange(config.num_frames + 1)))
+    except TypeError as e:  # JAX's words, from deep inside the renderer
+      if 'forward-mode autodiff' not in str(e):
+        raise
+      what = ("render='fast' (the render-only compositor) has no "
+              "derivative: use render='differentiable'" if not diff else
+              "the GPU's Pallas compositor has reverse-mode derivatives "
+              'only: use render_config=RenderConfig(backend=\'jax\')')
+      raise PipelineError(
+        f'forward mode (jax.jvp, jacfwd) through the images: {what}, '
+        "whose JAX compositor works in both modes, or render='none' and a "
+        'loss on the trajectory (docs/pipeline.md, "Working with '
+        'params")') from None
     images, overflow = outs.image, outs.overflow
   x_scene = prepared.frame.to_scene(xs)
   ok = jnp.all(jnp.isfinite(xs), axis=(1, 2))
