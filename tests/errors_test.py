@@ -925,6 +925,27 @@ class FailureTest(absltest.TestCase):
       self.assertIn('one material per object', report['error'])
       self.assertEqual([f for f in os.listdir(d) if 'partial' in f], [])
 
+  def test_report_written_when_the_run_is_interrupted(self):
+    # Ctrl-C (KeyboardInterrupt is no Exception) left the frames so far
+    # without a report.json, or beside an earlier run's.
+    cfg = pl.PipelineConfig(num_frames=3, grid_res=16, max_particles=200,
+                            use_mpdp=False, fill=False, render='none')
+
+    def on_frame(frame, *_):
+      if frame == 1:
+        raise KeyboardInterrupt
+
+    with tempfile.TemporaryDirectory() as d:
+      with open(os.path.join(d, 'report.json'), 'w') as fh:
+        fh.write('{"scene": "an earlier run"}')
+      with self.assertRaises(KeyboardInterrupt):
+        pl.simulate_scene(_block_scene(), cfg, d, materials=[_RUBBER],
+                          on_frame=on_frame)
+      report = json.load(open(os.path.join(d, 'report.json')))
+      self.assertEqual(report['error'], 'KeyboardInterrupt')
+      self.assertEqual(report['scene'], 'block')
+      self.assertIn('total', report['stage_seconds'])
+
 
 class ValuesTest(absltest.TestCase):
   """physsplat_jax.values: the one definition of a number in user input."""

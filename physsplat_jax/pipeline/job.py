@@ -132,8 +132,11 @@ def simulate_scene(
     out = _run_stages(scene, config, out_dir, materials, perception_options,
                       segment, ply, stages, report, mpdp_params, pipelined,
                       on_frame)
-  except Exception as e:
-    report['error'] = f'{type(e).__name__}: {e}'
+  except (Exception, KeyboardInterrupt) as e:
+    # (Ctrl-C too: the frames so far stay, and without this a report.json
+    # of an earlier run in out_dir went on describing them.)
+    report['error'] = (f'{type(e).__name__}: {e}' if str(e) else
+                       type(e).__name__)
     stages['total'] = time.perf_counter() - t0
     report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
     _note_earlier_outputs(out_dir, started, report)
