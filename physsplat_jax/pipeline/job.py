@@ -250,6 +250,13 @@ def summary(report: dict) -> str:
     f'{report["particle_substeps_per_s"] / 1e6:.2f} M particle-substeps/s',
     f'time {total:.1f} s: {parts}',
   ]
+  if (report.get('pipelined')
+      and sum(st.get(k, 0.0) for k in main) > 1.05 * total):
+    # Pipelined, deform and render are the host's waits and frame 0's
+    # compiles on a second thread, beside 'compile': a sum of 147% read
+    # as a bookkeeping error.
+    lines.append('(pipelined: the stages overlap, so they add up to more '
+                 'than the total; --nopipelined times them one by one)')
   proc = report.get('process_seconds')
   if proc:  # what a script spent before the pipeline (experiments.simulate)
     start = ('' if proc.get('start') is None
