@@ -429,7 +429,13 @@ class ErrorPathTest(absltest.TestCase):
                 f"'{blocker}' is a file; give a folder name"),
                ([f'--out={d}/x.png', '--background=2,0,0'], 2,
                 'error: --background=2,0,0: give a name (black, white, '
-                'grey, gray) or three numbers in [0, 1]')]
+                'grey, gray) or three numbers in [0, 1]'),
+               ([f'--out={d}/x.png', '--width=0'], 2,
+                'error: --width=0: give a whole number of pixels >= 1'),
+               ([f'--out={d}/x.png', '--height=-4'], 2,
+                'error: --height=-4: give a whole number of pixels >= 1'),
+               ([f'--out={d}/x.png', '--sh_degree=4'], 2,
+                'error: --sh_degree=4: give 0..3')]
       if os.path.isdir('/proc'):
         cases.append((['--out=/proc/x.png'], 1,
                       "error: --out=/proc/x.png: output folder '/proc' "
