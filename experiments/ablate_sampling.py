@@ -42,7 +42,7 @@ Lloyd iterations), ``+lloyd`` (one Lloyd step on a Poisson disk), and
 colon, separated by slashes:
 ``pgas-cvt:density_power=0.5/weights=volume``.
 
-Usage: python experiments/ablate_sampling.py --scene=spheres \
+Usage: python experiments/ablate_sampling.py --scene=spheres \\
   --budgets=500,1000,2000,5000 --json=/tmp/ablate.json (once per seed,
   ``--seed=N``), then ``--summarize --json=/tmp/ablate.json`` for
   ``pgas-cvt`` over ``kmeans`` per scene and budget across the seeds.

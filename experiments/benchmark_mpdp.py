@@ -1,7 +1,7 @@
 """MPDP at scale: time and peak memory of ``predict`` by neighbour search.
 
   python -m experiments.benchmark_mpdp --sizes=10000,50000,200000 --k=8
-  python -m experiments.benchmark_mpdp --sizes=200000 --methods=grid \
+  python -m experiments.benchmark_mpdp --sizes=200000 --methods=grid \\
       --shapes=donut --out=/tmp/mpdp_bench.json
 
 For every (shape, size, method) a fresh subprocess builds the object, jits

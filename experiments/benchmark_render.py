@@ -1,7 +1,7 @@
 """Renderer benchmark: compile and steady time per frame, CPU or GPU.
 
   python -m experiments.benchmark_render --num=100000,1000000 --size=512
-  python -m experiments.benchmark_render --scene=ficus --width=512 \
+  python -m experiments.benchmark_render --scene=ficus --width=512 \\
       --height=384 --repeats=10
 
 Scenes: Gaussians on a sphere shell (radius 1, opacity 0.95, scales ~ 1/sqrt(K)
@@ -29,7 +29,7 @@ and camera (quaternions wxyz, OpenCV world-to-camera viewmat, black
 background), forward and (with ``--grad``) the gradient of the mean
 image w.r.t. means and SH, with the PSNR of our image against gsplat's::
 
-  python -m experiments.benchmark_render --num=100000,1000000 --size=1024 \
+  python -m experiments.benchmark_render --num=100000,1000000 --size=1024 \\
       --grad --pallas --repeats=10
 
 ``--video_frames=F`` also renders a video: F frames with the camera
@@ -41,7 +41,7 @@ of the F frames. With gsplat, ``gsplat_video_s`` is the same loop through
 ``rasterization`` (image clamped, converted to uint8 on the device and
 copied to the host)::
 
-  python -m experiments.benchmark_render --num=100000 --width=800 \
+  python -m experiments.benchmark_render --num=100000 --width=800 \\
       --height=800 --video_frames=150
 """
 
