@@ -169,6 +169,30 @@ class ScriptProcessTest(absltest.TestCase):
     # A simulation imports neither the training libraries nor Flax (the
     # network is imported when it is first traced).
     self.assertEqual(proc.stdout.split(), ['[]', 'True', 'True'])
+  def test_demo_reports_its_own_command_and_revision(self):
+    """experiments.demo's report said command 'make demo' whatever the
+    command line, and had no git revision (a run refused for its time step
+    still writes report.json)."""
+    import json
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as d:
+      out = os.path.join(d, 'out')
+      proc = subprocess.run(
+        [sys.executable, '-m', 'experiments.demo', f'--out={out}',
+         '--compile_cache=off', '--config.substeps_per_frame=1',
+         '--config.grid_res=16', '--config.max_particles=300'],
+        capture_output=True, text=True, check=False, timeout=300, cwd=repo)
+      self.assertEqual(proc.returncode, 1, proc.stderr[-2000:])
+      self.assertIn('error: substeps_per_frame=1', proc.stderr)
+      report = json.load(open(os.path.join(out, 'report.json')))
+      self.assertIn('--config.substeps_per_frame=1', report['command'])
+      self.assertIn('git', report)
+
 
 if __name__ == '__main__':
   absltest.main()
