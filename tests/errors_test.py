@@ -471,6 +471,54 @@ class ErrorPathTest(absltest.TestCase):
                     error)
     self.assertNotIn('free_fall', stderr.replace('--cases=free_fall', ''))
 
+  def test_benchmarks_check_their_flags_before_the_runs(self):
+    # Each was found after the runs (a bad --out: the results lost to a
+    # raw errno message), only inside a case's subprocess (exit 0), or as
+    # a traceback (--repeats=0: min() of an empty sequence).
+    with tempfile.TemporaryDirectory() as d:
+      blocker = os.path.join(d, 'somefile')
+      open(blocker, 'w').close()
+      out = os.path.join(blocker, 'x.json')
+      cases = [
+        (['experiments.benchmark_mpm', '--sizes=64', '--steps=1',
+          '--repeats=1', '--nonaive', '--nograd', f'--out={out}'], 1,
+         f'error: --out={out}: output folder'),
+        (['experiments.benchmark_mpm', '--steps=0'], 2,
+         'error: flag --steps=0: 0 is not a positive integer'),
+        (['experiments.benchmark_render', '--repeats=0'], 2,
+         'error: flag --repeats=0: 0 is not a positive integer'),
+        (['experiments.benchmark_mpdp', '--methods=grid,bogus'], 2,
+         "error: --methods=grid,bogus: unknown ['bogus']; use grid, brute"),
+        (['experiments.benchmark_mpdp', '--shapes=cube'], 2,
+         "error: --shapes=cube: unknown ['cube']; use torus, donut, plate"),
+        (['experiments.benchmark_substep', '--variants=foo'], 2,
+         "error: --variants: unknown ['foo']; use some of scene"),
+      ]
+      for args, want_code, want in cases:
+        code, error, stderr = _script(*args)
+        with self.subTest(' '.join(args[:2])):
+          self.assertEqual(code, want_code, stderr)
+          self.assertNotIn('Traceback', stderr)
+          self.assertTrue(error.startswith(want), error)
+
+  def test_benchmarks_name_the_machine_and_a_failed_childs_error(self):
+    info = cli.machine()
+    self.assertTrue(info['cpu'])
+    self.assertEqual(info['device_kind'], jax.devices()[0].device_kind)
+    self.assertEqual(info['cores'], os.cpu_count())
+    self.assertNotIn('device_kind', cli.machine(devices=False))
+    # JAX prints its note on filtered frames after the error itself.
+    stderr = ('Traceback (most recent call last):\n  File "x.py"\n'
+              "RuntimeError: Unable to initialize backend 'bogus'\n"
+              '--------------------\nFor simplicity, JAX has removed its '
+              'internal frames from the traceback\n')
+    self.assertEqual(cli.last_error(stderr),
+                     "RuntimeError: Unable to initialize backend 'bogus'")
+    self.assertEqual(cli.last_error('log\nerror: --x=1: bad\nmore\n'),
+                     'error: --x=1: bad')
+    self.assertEqual(cli.last_error('a\nkilled\n'), 'killed')
+    self.assertEqual(cli.last_error(''), '')
+
   def test_physgaussian_missing_file_names_its_flag(self):
     # It said 'pass --config=PATH.json': --config is the .py config.
     code, error, stderr = _script(

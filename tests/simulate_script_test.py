@@ -152,6 +152,7 @@ class ScriptProcessTest(absltest.TestCase):
       self.assertIn('before it: ', proc.stdout)
       self.assertIn('video: ', proc.stdout)  # the summary's last lines
       report = json.load(open(os.path.join(out, 'report.json')))
+      self.assertIn('device_kind', report)  # what benchmarks compare
       times = report['process_seconds']
       self.assertGreater(times['start'], 0.0)
       self.assertGreaterEqual(times['setup'], 0.0)

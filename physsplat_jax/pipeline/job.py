@@ -124,7 +124,8 @@ def simulate_scene(
   stages: dict[str, float] = {}
   report: dict[str, Any] = dict(
     scene=scene.name, num_frames=config.num_frames, fps=config.fps,
-    devices=[str(d) for d in jax.devices()], jax_version=jax.__version__,
+    devices=[str(d) for d in jax.devices()],
+    device_kind=jax.devices()[0].device_kind, jax_version=jax.__version__,
     config=dataclasses.asdict(config), **(extra_report or {}))
   t0 = time.perf_counter()
   started = time.time()
