@@ -42,7 +42,7 @@ Lloyd iterations), ``+lloyd`` (one Lloyd step on a Poisson disk), and
 colon, separated by slashes:
 ``pgas-cvt:density_power=0.5/weights=volume``.
 
-Usage: python experiments/ablate_sampling.py --scene=spheres \
+Usage: python experiments/ablate_sampling.py --scene=spheres \\
   --budgets=500,1000,2000,5000 --json=/tmp/ablate.json (once per seed,
   ``--seed=N``), then ``--summarize --json=/tmp/ablate.json`` for
   ``pgas-cvt`` over ``kmeans`` per scene and budget across the seeds.
@@ -50,6 +50,7 @@ Usage: python experiments/ablate_sampling.py --scene=spheres \
 
 import dataclasses
 import json
+import os
 import time
 
 import jax
@@ -228,19 +229,48 @@ def _pad(d, budget):
   return x, vol, ob
 
 
+def _cvt_config(opts: str) -> sampling.CVTConfig:
+  """The CVTConfig of ``pgas-cvt:field=value/...``'s ``opts``."""
+  kw = {}
+  for item in filter(None, opts.split('/')):
+    k, _, v = item.partition('=')
+    f = {f.name: f for f in dataclasses.fields(sampling.CVTConfig)}[k]
+    kw[k] = v if f.type == 'str' else type(getattr(
+      sampling.CVTConfig(), k))(float(v))
+  return sampling.CVTConfig(**kw)
+
+
+def check_methods(methods) -> None:
+  """Each ``--methods`` value is one :func:`_select` knows, or a usage
+  error naming it (an unknown one was found after the reference run, a
+  bad ``pgas-cvt`` field was a KeyError traceback)."""
+  for method in methods:
+    base, _, opts = method.partition(':')
+    if base == 'pgas-cvt':
+      try:
+        _cvt_config(opts)
+      except (KeyError, ValueError) as e:
+        fields = ', '.join(f.name for f in
+                           dataclasses.fields(sampling.CVTConfig))
+        raise cli.usage_error(
+          f'--methods: {method!r}: {e}; give pgas-cvt:FIELD=VALUE/... with '
+          f'fields of CVTConfig ({fields})') from None
+      continue
+    name, _, extra = base.partition('+')
+    if (name not in ('pgas', 'pgas-scaled', 'uniform', 'kmeans')
+        or extra not in ('', 'lloyd') or opts):
+      raise cli.usage_error(
+        f'--methods: unknown {method!r}; use pgas, pgas-scaled, uniform, '
+        'kmeans (each with +lloyd) or pgas-cvt[:FIELD=VALUE/...]')
+
+
 def _select(key, cand, method, e_obj, cfg, budget):
   """Drivers of one method (see the module docstring for the names)."""
   base, _, opts = method.partition(':')
   if base == 'pgas-cvt':
-    kw = {}
-    for item in filter(None, opts.split('/')):
-      k, _, v = item.partition('=')
-      f = {f.name: f for f in dataclasses.fields(sampling.CVTConfig)}[k]
-      kw[k] = v if f.type == 'str' else type(getattr(
-        sampling.CVTConfig(), k))(float(v))
     return sampling.select_drivers(key, cand, 'pgas-cvt', E=e_obj,
                                    config=cfg, budget=budget,
-                                   cvt=sampling.CVTConfig(**kw))
+                                   cvt=_cvt_config(opts))
   base, _, extra = base.partition('+')
   name = base.split('-')[0]
   # 'pgas-scaled': one factor on every PGAS radius for the budget (the base
@@ -417,14 +447,22 @@ def main(argv, f):
   if f['summarize'].value:
     if not f['json'].value:
       raise app.UsageError('--summarize reads the rows of --json=FILE')
+    if not os.path.isfile(f['json'].value):
+      raise cli.usage_error(f'--json={f["json"].value}: no such file; give '
+                            'the rows of earlier runs (--json=FILE)')
     with open(f['json'].value) as fh:
       summarize(json.load(fh), method=f['summarize_method'].value)
     return
+  # The flags before the reference run (--budgets=abc was a traceback, a
+  # bad --json's folder lost the rows after every run).
+  budgets = cli.positive_ints('budgets', f['budgets'].value)
+  check_methods(f['methods'].value)
+  cli.check_output_file('json', f['json'].value)
   print('devices:', jax.devices())
   print('| budget | method | drivers (obj 0/obj 1) | err obj 0 | err obj 1 | '
         'err all | err last frame | select s | simulate s |')
   print('|---|---|---|---|---|---|---|---|---|')
-  rows = run([int(b) for b in f['budgets'].value], f['seed'].value,
+  rows = run(budgets, f['seed'].value,
              f['num'].value, f['grid_res'].value, f['num_frames'].value,
              tuple(f['methods'].value), f['ppc'].value, f['fill_res'].value,
              log=lambda s: print(s, flush=True), scene=f['scene'].value)

@@ -1,7 +1,7 @@
 """MPDP at scale: time and peak memory of ``predict`` by neighbour search.
 
   python -m experiments.benchmark_mpdp --sizes=10000,50000,200000 --k=8
-  python -m experiments.benchmark_mpdp --sizes=200000 --methods=grid \
+  python -m experiments.benchmark_mpdp --sizes=200000 --methods=grid \\
       --shapes=donut --out=/tmp/mpdp_bench.json
 
 For every (shape, size, method) a fresh subprocess builds the object, jits
@@ -13,7 +13,10 @@ times the neighbour search alone, and reports its peak resident memory
 on a GPU, the device allocator's peak (``device_peak_mib``; set
 ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` so that it is what the case
 needed) as one JSON line. ``brute`` (the O(N^2) search) is skipped where its
-distance matrix alone would exceed ``--brute_max_gib``.
+distance matrix alone would exceed ``--brute_max_gib``. A case whose
+subprocess fails is a ``failed`` row, and the script exits 1 after the
+other cases. Every row names the machine (``machine``: host, CPU model,
+JAX's device kind).
 
 Shapes (all valid points, scaled to about 0.1 m):
 - ``torus``: uniform random points in a solid torus;
@@ -40,6 +43,7 @@ from absl import flags
 
 from experiments.lib import cli
 from physsplat_jax import mpdp
+from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpdp import knn as knn_lib
 from physsplat_jax.mpdp import model as model_lib
 
@@ -52,12 +56,21 @@ _METHODS = flags.DEFINE_list('methods', ['grid', 'brute'],
 _K = flags.DEFINE_integer(
   'k', 8, 'Neighbours of the search-only timing (predict uses the '
   'shipped architecture, k = 8).')
-_REPEATS = flags.DEFINE_integer('repeats', 2, 'Timed runs per case.')
+_REPEATS = flags.DEFINE_integer('repeats', 2, 'Timed runs per case.',
+                                lower_bound=1)
 _BRUTE_MAX_GIB = flags.DEFINE_float(
   'brute_max_gib', 8.0, 'Skip brute where 4 N^2 bytes exceed this.')
 _OUT = flags.DEFINE_string('out', None, 'Optional JSON results file.')
 _CASE = flags.DEFINE_string('case', None,
                             'Internal: run one shape,size,method here.')
+
+
+SHAPES = ('torus', 'donut', 'plate')
+_KNOWN_METHODS = ('grid', 'brute')
+
+
+class CaseError(PhysSplatError, RuntimeError):
+  """A benchmark case's subprocess failed."""
 
 
 def make_points(shape: str, n: int, seed: int = 0) -> np.ndarray:
@@ -128,6 +141,7 @@ def run_case(shape: str, n: int, method: str, k: int, repeats: int) -> dict:
   _, compile_s, wall, cpu = _timed(predict, (params, pts, means, mask),
                                    repeats)
   res = dict(shape=shape, N=n, method=method, devices=str(jax.devices()),
+             machine=cli.machine(),
              predict_compile_s=round(compile_s, 2),
              predict_s=round(wall, 3), predict_cpu_s=round(cpu, 3))
   if method == 'grid':
@@ -154,12 +168,20 @@ def main(argv):
     print(json.dumps(run_case(shape, int(n), method, _K.value,
                               _REPEATS.value)), flush=True)
     return
+  # All checked before the first case (a bad method or shape was found
+  # after the cases before it had run, or only inside its subprocess).
+  sizes = cli.positive_ints('sizes', _SIZES.value)
+  for flag, given, known in (('methods', _METHODS.value, _KNOWN_METHODS),
+                             ('shapes', _SHAPES.value, SHAPES)):
+    bad = [v for v in given if v not in known]
+    if bad or not given:
+      raise cli.usage_error(f'--{flag}={",".join(given)}: unknown '
+                            f'{bad or "(none given)"}; use {", ".join(known)}')
+  cli.check_output_file('out', _OUT.value)  # (else lost after the cases)
   results = []
   for shape in _SHAPES.value:
-    for n in cli.positive_ints('sizes', _SIZES.value):
+    for n in sizes:
       for method in _METHODS.value:
-        if method not in ('grid', 'brute'):
-          raise app.UsageError(f'unknown method {method!r}; use grid, brute')
         if method == 'brute' and 4.0 * n * n > _BRUTE_MAX_GIB.value * 2**30:
           res = dict(shape=shape, N=n, method=method,
                      skipped=f'distance matrix {4.0 * n * n / 2**30:.0f} GiB '
@@ -176,12 +198,15 @@ def main(argv):
           else:
             res = dict(shape=shape, N=n, method=method,
                        failed=f'exit {p.returncode}: '
-                       f'{p.stderr.strip().splitlines()[-1:]}')
+                       f'{cli.last_error(p.stderr)}')
         print(json.dumps(res), flush=True)
         results.append(res)
-  if _OUT.value:
-    with open(_OUT.value, 'w') as f:
-      json.dump(results, f, indent=1)
+  cli.write_json(_OUT.value, results)
+  failed = [f'{r["shape"]},{r["N"]},{r["method"]}: {r["failed"]}'
+            for r in results if 'failed' in r]
+  if failed:
+    # (exited 0.) The cases that worked are printed and in --out.
+    raise CaseError(f'{len(failed)} case(s) failed: {"; ".join(failed)}')
 
 
 if __name__ == '__main__':

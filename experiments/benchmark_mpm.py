@@ -18,7 +18,6 @@ python -m experiments.benchmark_mpm [--sizes=10000,50000,200000] [--grad]
 import itertools
 import json
 import os
-import platform
 import time
 
 import jax
@@ -31,8 +30,10 @@ from physsplat_jax import mpm
 
 _SIZES = flags.DEFINE_list('sizes', ['10000', '50000', '200000'],
                            'particle counts')
-_STEPS = flags.DEFINE_integer('steps', 100, 'substeps per timed run')
-_REPEATS = flags.DEFINE_integer('repeats', 3, 'timed runs (median)')
+_STEPS = flags.DEFINE_integer('steps', 100, 'substeps per timed run',
+                              lower_bound=1)
+_REPEATS = flags.DEFINE_integer('repeats', 3, 'timed runs (median)',
+                                lower_bound=1)
 _NAIVE = flags.DEFINE_bool('naive', True, 'also time the naive reference')
 _GRAD = flags.DEFINE_bool('grad', True, 'time a gradient at the first size')
 _OUT = cli.define_out(None, 'optional JSON output')
@@ -198,13 +199,12 @@ def bench_grad(n, steps):
 
 def main(argv):
   del argv
-  info = dict(jax=jax.__version__, backend=jax.default_backend(),
-              devices=str(jax.devices()), cpu=platform.processor() or
-              platform.machine(), cores=os.cpu_count(),
+  sizes = cli.positive_ints('sizes', _SIZES.value)
+  cli.check_output_file('out', _OUT.value)  # (else lost after the runs)
+  info = dict(cli.machine(), devices=str(jax.devices()),
               load=os.getloadavg())
   print(json.dumps(info), flush=True)
   rows = []
-  sizes = cli.positive_ints('sizes', _SIZES.value)
   for n in sizes:
     r = bench_package(n, _STEPS.value, _REPEATS.value)
     print(json.dumps(r), flush=True)
@@ -229,9 +229,7 @@ def main(argv):
     print(f"| {r['n']} | {r['variant']} | {r['mpss']:.3f} | "
           f"{r['cpu_mpss']:.3f} | {r['substep_ms']:.2f} | "
           f"{r['compile_s']:.1f} | {r['memory_mb']:.0f} |")
-  if _OUT.value:
-    with open(_OUT.value, 'w') as f:
-      json.dump(dict(info=info, rows=rows), f, indent=1)
+  cli.write_json(_OUT.value, dict(info=info, rows=rows))
 
 
 if __name__ == '__main__':

@@ -73,7 +73,7 @@ def run_once(scene: str, preset: dict, out: str, cache: str,
   proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
   wall = time.perf_counter() - t0
   if proc.returncode != 0:
-    return dict(error=proc.stderr.strip().splitlines()[-1:], wall_s=wall)
+    return dict(error=[cli.last_error(proc.stderr)], wall_s=wall)
   with open(os.path.join(out, 'report.json')) as f:
     report = json.load(f)
   extra = {}
@@ -93,7 +93,8 @@ def run_once(scene: str, preset: dict, out: str, cache: str,
               substeps_per_frame=report['time_step']['substeps_per_frame'],
               particle_substeps_per_s=report['particle_substeps_per_s'],
               render_stats=report.get('render_stats'),
-              devices=report['devices'], **extra)
+              devices=report['devices'],
+              device_kind=report.get('device_kind'), **extra)
 
 
 def _pairs(what: str, items) -> dict:
@@ -130,8 +131,10 @@ def main(argv):
   window = ','.join(_PROFILE_FRAMES.value or
                     [str(frames // 3), str(max(2 * frames // 3, 1))])
   os.makedirs(_OUT.value, exist_ok=True)
+  # (not JAX's devices: this process leaves the GPU to the runs; each
+  # run has its device_kind)
   results = dict(preset=_PRESET.value, settings=preset, overrides=overrides,
-                 scenes={})
+                 machine=cli.machine(devices=False), scenes={})
   for scene in _SCENES.value:
     cache = tempfile.mkdtemp(prefix='physsplat_cache_')
     try:

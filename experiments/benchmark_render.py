@@ -1,7 +1,7 @@
 """Renderer benchmark: compile and steady time per frame, CPU or GPU.
 
   python -m experiments.benchmark_render --num=100000,1000000 --size=512
-  python -m experiments.benchmark_render --scene=ficus --width=512 \
+  python -m experiments.benchmark_render --scene=ficus --width=512 \\
       --height=384 --repeats=10
 
 Scenes: Gaussians on a sphere shell (radius 1, opacity 0.95, scales ~ 1/sqrt(K)
@@ -29,7 +29,7 @@ and camera (quaternions wxyz, OpenCV world-to-camera viewmat, black
 background), forward and (with ``--grad``) the gradient of the mean
 image w.r.t. means and SH, with the PSNR of our image against gsplat's::
 
-  python -m experiments.benchmark_render --num=100000,1000000 --size=1024 \
+  python -m experiments.benchmark_render --num=100000,1000000 --size=1024 \\
       --grad --pallas --repeats=10
 
 ``--video_frames=F`` also renders a video: F frames with the camera
@@ -41,7 +41,7 @@ of the F frames. With gsplat, ``gsplat_video_s`` is the same loop through
 ``rasterization`` (image clamped, converted to uint8 on the device and
 copied to the host)::
 
-  python -m experiments.benchmark_render --num=100000 --width=800 \
+  python -m experiments.benchmark_render --num=100000 --width=800 \\
       --height=800 --video_frames=150
 """
 
@@ -68,12 +68,16 @@ from physsplat_jax.types import Gaussians
 from physsplat_jax.types import make_camera
 
 _NUM = flags.DEFINE_list('num', ['100000'], 'Gaussian counts (sphere).')
-_SIZE = flags.DEFINE_integer('size', 512, 'Sphere image width and height.')
+_SIZE = flags.DEFINE_integer('size', 512, 'Sphere image width and height.',
+                             lower_bound=1)
 _WIDTH = flags.DEFINE_integer('width', None,
-                              'Image width [px] (sphere: instead of size).')
+                              'Image width [px] (sphere: instead of size).',
+                              lower_bound=1)
 _HEIGHT = flags.DEFINE_integer('height', None,
-                               'Image height [px] (sphere: instead of size).')
-_REPEATS = flags.DEFINE_integer('repeats', 3, 'Timed runs per setting.')
+                               'Image height [px] (sphere: instead of size).',
+                               lower_bound=1)
+_REPEATS = flags.DEFINE_integer('repeats', 3, 'Timed runs per setting.',
+                                lower_bound=1)
 _SCENE = flags.DEFINE_string('scene', None, 'Built-in scene or PLY instead.')
 _BASELINE = flags.DEFINE_bool('baseline', False,
                               'Also time 16-px tiles with 3-sigma rects.')
@@ -95,7 +99,8 @@ _WARPS = flags.DEFINE_integer('num_warps', None,
 _GSPLAT = flags.DEFINE_bool('gsplat', True,
                             'Also time gsplat when importable with CUDA.')
 _VIDEO = flags.DEFINE_integer(
-  'video_frames', 0, 'Also time a video of this many orbiting frames.')
+  'video_frames', 0, 'Also time a video of this many orbiting frames.',
+  lower_bound=0)
 _OUT = flags.DEFINE_string('out', None, 'Optional JSON results file.')
 
 
@@ -336,6 +341,7 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
     c2, t2, tc2, out2 = _time(_render_fn(base), g, cam, repeats=repeats)
     res.update(baseline_render_s=t2, baseline_render_cpu_s=tc2,
                baseline_intersections=int(out2.num_intersections),
+               speedup_vs_baseline=t2 / t,  # (on a GPU: CPU time idles)
                speedup_vs_baseline_cpu=tc2 / tc,
                baseline_max_abs_diff=float(
                  jnp.abs(out2.image - out.image).max()))
@@ -343,6 +349,7 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
     cfg2 = dataclasses.replace(config, prefix='cumsum')
     c2, t2, tc2, out2 = _time(_render_fn(cfg2), g, cam, repeats=repeats)
     res.update(cumsum_render_s=t2, cumsum_render_cpu_s=tc2,
+               speedup_vs_cumsum=t2 / t,
                speedup_vs_cumsum_cpu=tc2 / tc,
                cumsum_max_abs_diff=float(
                  jnp.abs(out2.image - out.image).max()))
@@ -385,7 +392,9 @@ def bench(g: Gaussians, cam, config: raster.RenderConfig, repeats: int,
 
 def main(argv):
   del argv
+  cli.check_output_file('out', _OUT.value)  # (else lost after the runs)
   print('devices', jax.devices())
+  machine = cli.machine()
   config = raster.RenderConfig(chunk_size=_CHUNK.value,
                                subtile_size=_SUBTILE.value,
                                tile_batch=_BATCH.value,
@@ -416,11 +425,10 @@ def main(argv):
       print(json.dumps(r), flush=True)  # what is measured so far
       print(f'video: {_VIDEO.value} frames', flush=True)
       r.update(bench_video(g, cam, config, _VIDEO.value, up, _GSPLAT.value))
+    r['machine'] = machine
     print(json.dumps(r))
     results.append(r)
-  if _OUT.value:
-    with open(_OUT.value, 'w') as f:
-      json.dump(results, f, indent=1)
+  cli.write_json(_OUT.value, results)
 
 
 if __name__ == '__main__':

@@ -45,8 +45,10 @@ from physsplat_jax.mpm import graphs
 
 _SCENE = flags.DEFINE_string('scene', 'tabletop', 'built-in scene or PLY')
 _PRESET = substep_lib.define_preset()
-_SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call')
-_ROUNDS = flags.DEFINE_integer('rounds', 5, 'timed calls per variant')
+_SUBSTEPS = flags.DEFINE_integer('substeps', 40, 'substeps per timed call',
+                                 lower_bound=1)
+_ROUNDS = flags.DEFINE_integer('rounds', 5, 'timed calls per variant',
+                               lower_bound=1)
 _VARIANTS = flags.DEFINE_list(
   'variants', [v for v in substep_lib.VARIANTS if v != 'split'],
   f'variants to time, of {", ".join(substep_lib.VARIANTS)}')
@@ -54,11 +56,13 @@ _CLOCK = flags.DEFINE_enum('clock', 'wall', ['wall', 'cpu'], 'what to time')
 _OUT = flags.DEFINE_string('out', None, 'JSON file for the results')
 _START_FRAME = flags.DEFINE_integer(
   'start_frame', 0, 'time from the state after this many frames of the '
-  'scene (objects resting on the support) instead of its initial state')
+  'scene (objects resting on the support) instead of its initial state',
+  lower_bound=0)
 _PROFILE = flags.DEFINE_boolean(
   'profile', False, 'also trace each variant once: device-busy time per '
   'substep and the most expensive kernels')
-_TOP = flags.DEFINE_integer('top', 12, '--profile: kernels listed per variant')
+_TOP = flags.DEFINE_integer('top', 12, '--profile: kernels listed per variant',
+                            lower_bound=1)
 _KERNELS = flags.DEFINE_list(
   'constitutive_kernels', ['auto'], 'SimConfig.constitutive_kernel values '
   "(auto, jax, pallas); with more than one, each variant runs with each, "
@@ -88,6 +92,22 @@ def _profile(name, fn, args, substeps):
 
 def main(argv):
   del argv
+  # The flags first: they were checked after the scene's preparation.
+  bad = sorted(set(_VARIANTS.value) - set(substep_lib.VARIANTS))
+  if bad or not _VARIANTS.value:
+    raise cli.usage_error(f'--variants: unknown {bad or "(none given)"}; '
+                          f'use some of {", ".join(substep_lib.VARIANTS)}')
+  kernels = _KERNELS.value
+  bad = sorted(set(kernels) - set(mpm.CONSTITUTIVE_KERNELS))
+  if bad:
+    raise cli.usage_error(f'--constitutive_kernels: unknown {bad}; use '
+                          f'{", ".join(mpm.CONSTITUTIVE_KERNELS)}')
+  launches = _GRAPHS.value
+  bad = sorted(set(launches) - set(mpm.GPU_GRAPHS))
+  if bad:
+    raise cli.usage_error(f'--gpu_graphs: unknown {bad}; use '
+                          f'{", ".join(mpm.GPU_GRAPHS)}')
+  cli.check_output_file('out', _OUT.value)
   prepared, state, mats, forces, sim_config = (
     substep_lib.demo_scene_state(_SCENE.value, _PRESET.value))
   if _START_FRAME.value > 0:
@@ -99,16 +119,6 @@ def main(argv):
   n = prepared.num_particles
   clock = time.perf_counter if _CLOCK.value == 'wall' else time.process_time
   runs = {}
-  kernels = _KERNELS.value
-  bad = sorted(set(kernels) - set(mpm.CONSTITUTIVE_KERNELS))
-  if bad:
-    raise cli.usage_error(f'--constitutive_kernels: unknown {bad}; use '
-                          f'{", ".join(mpm.CONSTITUTIVE_KERNELS)}')
-  launches = _GRAPHS.value
-  bad = sorted(set(launches) - set(mpm.GPU_GRAPHS))
-  if bad:
-    raise cli.usage_error(f'--gpu_graphs: unknown {bad}; use '
-                          f'{", ".join(mpm.GPU_GRAPHS)}')
   for kernel in kernels:
     for graph in launches:
       for name in _VARIANTS.value:
@@ -148,7 +158,8 @@ def main(argv):
                 num_bodies=sim_config.num_bodies, clock=_CLOCK.value,
                 substeps=_SUBSTEPS.value, devices=[str(d) for d in
                                                    jax.devices()],
-                jax_version=jax.__version__, rows=rows)
+                jax_version=jax.__version__, machine=cli.machine(),
+                rows=rows)
   cli.write_json(_OUT.value, result)
 
 

@@ -11,8 +11,10 @@ where the video is and where the time went. ``make demo`` runs it.
 """
 
 import os
+import sys
 
 from absl import flags
+from absl import logging
 
 from experiments.lib import cli
 from experiments.lib import simulate as lib
@@ -33,10 +35,14 @@ _PIPELINED = flags.DEFINE_bool(
 def main(argv):
   del argv
   process = cli.start_run()
+  sha = lib.git_sha()
   config = lib.build_config(_SCENE.value, _CONFIG.value,
                             motions=lib.load_config_file()[1])
+  logging.info('git %s, config %s', sha, config)
+  # (the report said 'make demo' for any command line, and no revision)
   report = lib.run_scene(_SCENE.value, config, _OUT.value,
-                         extra_report=dict(command='make demo'),
+                         extra_report=dict(command=' '.join(sys.argv),
+                                           git=sha),
                          pipelined=_PIPELINED.value,
                          process=process)
   print(pl.summary(report))

@@ -1,7 +1,7 @@
 """Renders a scene to a PNG.
 
   python -m experiments.render --scene=donut --out=/tmp/donut.png
-  python -m experiments.render --scene=path/to/point_cloud.ply \
+  python -m experiments.render --scene=path/to/point_cloud.ply \\
       --camera_file=path/to/cameras.json --camera_index=3 --out=view.png
 
 --scene is a built-in name (tabletop, ficus, donut) or a 3DGS .ply/.splat
@@ -32,8 +32,9 @@ _SCENE = flags.DEFINE_string('scene', None, 'Built-in name or 3DGS path.')
 _OUT = flags.DEFINE_string('out', None, 'Output PNG.')
 _CAMERA_FILE = flags.DEFINE_string('camera_file', None,
                                    'cameras.json or transforms.json.')
-_CAMERA_INDEX = flags.DEFINE_integer('camera_index', 0,
-                                     'Camera index; -1: fitted to the scene.')
+_CAMERA_INDEX = flags.DEFINE_integer(
+  'camera_index', 0, "Camera index, of --camera_file's cameras if given; "
+  '-1: fitted to the scene (with --camera_file: its first).')
 _WIDTH = flags.DEFINE_integer('width', None, 'Width [px] (default: camera).')
 _HEIGHT = flags.DEFINE_integer('height', None, 'Height [px].')
 _BACKGROUND = flags.DEFINE_string('background', 'white',
@@ -58,6 +59,14 @@ def main(argv):
       f'--background={_BACKGROUND.value}: give a name '
       f'({", ".join(views.BACKGROUNDS)}) or three numbers in [0, 1] such as '
       '"1,1,1"') from None
+  for flag in (_WIDTH, _HEIGHT):  # (was 'image size must be positive')
+    if flag.value is not None and flag.value < 1:
+      raise cli.usage_error(f'--{flag.name}={flag.value}: give a whole '
+                            'number of pixels >= 1, or leave it out for '
+                            "the camera's")
+  if _SH_DEGREE.value is not None and not 0 <= _SH_DEGREE.value <= 3:
+    raise cli.usage_error(f'--sh_degree={_SH_DEGREE.value}: give 0..3, or '
+                          "leave it out for all the scene's")
   logging.info('devices %s', jax.devices())
   scene = load_scene(_SCENE.value)
   camera = _CAMERA_INDEX.value

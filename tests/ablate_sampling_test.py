@@ -30,6 +30,17 @@ class AblateSamplingTest(absltest.TestCase):
 
 class SummarizeTest(absltest.TestCase):
 
+  def test_methods_are_checked_before_the_reference_run(self):
+    from absl import app  # noqa: PLC0415
+    ablate_sampling.check_methods(
+      ['pgas', 'pgas-scaled', 'pgas+lloyd', 'uniform', 'kmeans', 'pgas-cvt',
+       'pgas-cvt:density_power=0.5/weights=volume'])
+    for bad in ('bogus', 'pgas+more', 'uniform:x=1', 'pgas-cvt:nosuch=1',
+                'pgas-cvt:density_power=x'):
+      with self.subTest(bad), self.assertRaisesRegex(app.UsageError,
+                                                     '--methods'):
+        ablate_sampling.check_methods([bad])
+
   def test_ratio_interval_and_wins_over_seeds(self):
     ratios = [0.5, 0.8, 1.25, 0.4]
     rows = []

@@ -429,7 +429,13 @@ class ErrorPathTest(absltest.TestCase):
                 f"'{blocker}' is a file; give a folder name"),
                ([f'--out={d}/x.png', '--background=2,0,0'], 2,
                 'error: --background=2,0,0: give a name (black, white, '
-                'grey, gray) or three numbers in [0, 1]')]
+                'grey, gray) or three numbers in [0, 1]'),
+               ([f'--out={d}/x.png', '--width=0'], 2,
+                'error: --width=0: give a whole number of pixels >= 1'),
+               ([f'--out={d}/x.png', '--height=-4'], 2,
+                'error: --height=-4: give a whole number of pixels >= 1'),
+               ([f'--out={d}/x.png', '--sh_degree=4'], 2,
+                'error: --sh_degree=4: give 0..3')]
       if os.path.isdir('/proc'):
         cases.append((['--out=/proc/x.png'], 1,
                       "error: --out=/proc/x.png: output folder '/proc' "
@@ -464,6 +470,54 @@ class ErrorPathTest(absltest.TestCase):
     self.assertTrue(error.startswith(f'error: --out={out}: output folder'),
                     error)
     self.assertNotIn('free_fall', stderr.replace('--cases=free_fall', ''))
+
+  def test_benchmarks_check_their_flags_before_the_runs(self):
+    # Each was found after the runs (a bad --out: the results lost to a
+    # raw errno message), only inside a case's subprocess (exit 0), or as
+    # a traceback (--repeats=0: min() of an empty sequence).
+    with tempfile.TemporaryDirectory() as d:
+      blocker = os.path.join(d, 'somefile')
+      open(blocker, 'w').close()
+      out = os.path.join(blocker, 'x.json')
+      cases = [
+        (['experiments.benchmark_mpm', '--sizes=64', '--steps=1',
+          '--repeats=1', '--nonaive', '--nograd', f'--out={out}'], 1,
+         f'error: --out={out}: output folder'),
+        (['experiments.benchmark_mpm', '--steps=0'], 2,
+         'error: flag --steps=0: 0 is not a positive integer'),
+        (['experiments.benchmark_render', '--repeats=0'], 2,
+         'error: flag --repeats=0: 0 is not a positive integer'),
+        (['experiments.benchmark_mpdp', '--methods=grid,bogus'], 2,
+         "error: --methods=grid,bogus: unknown ['bogus']; use grid, brute"),
+        (['experiments.benchmark_mpdp', '--shapes=cube'], 2,
+         "error: --shapes=cube: unknown ['cube']; use torus, donut, plate"),
+        (['experiments.benchmark_substep', '--variants=foo'], 2,
+         "error: --variants: unknown ['foo']; use some of scene"),
+      ]
+      for args, want_code, want in cases:
+        code, error, stderr = _script(*args)
+        with self.subTest(' '.join(args[:2])):
+          self.assertEqual(code, want_code, stderr)
+          self.assertNotIn('Traceback', stderr)
+          self.assertTrue(error.startswith(want), error)
+
+  def test_benchmarks_name_the_machine_and_a_failed_childs_error(self):
+    info = cli.machine()
+    self.assertTrue(info['cpu'])
+    self.assertEqual(info['device_kind'], jax.devices()[0].device_kind)
+    self.assertEqual(info['cores'], os.cpu_count())
+    self.assertNotIn('device_kind', cli.machine(devices=False))
+    # JAX prints its note on filtered frames after the error itself.
+    stderr = ('Traceback (most recent call last):\n  File "x.py"\n'
+              "RuntimeError: Unable to initialize backend 'bogus'\n"
+              '--------------------\nFor simplicity, JAX has removed its '
+              'internal frames from the traceback\n')
+    self.assertEqual(cli.last_error(stderr),
+                     "RuntimeError: Unable to initialize backend 'bogus'")
+    self.assertEqual(cli.last_error('log\nerror: --x=1: bad\nmore\n'),
+                     'error: --x=1: bad')
+    self.assertEqual(cli.last_error('a\nkilled\n'), 'killed')
+    self.assertEqual(cli.last_error(''), '')
 
   def test_physgaussian_missing_file_names_its_flag(self):
     # It said 'pass --config=PATH.json': --config is the .py config.
@@ -924,6 +978,27 @@ class FailureTest(absltest.TestCase):
       self.assertIn('PipelineError', report['error'])
       self.assertIn('one material per object', report['error'])
       self.assertEqual([f for f in os.listdir(d) if 'partial' in f], [])
+
+  def test_report_written_when_the_run_is_interrupted(self):
+    # Ctrl-C (KeyboardInterrupt is no Exception) left the frames so far
+    # without a report.json, or beside an earlier run's.
+    cfg = pl.PipelineConfig(num_frames=3, grid_res=16, max_particles=200,
+                            use_mpdp=False, fill=False, render='none')
+
+    def on_frame(frame, *_):
+      if frame == 1:
+        raise KeyboardInterrupt
+
+    with tempfile.TemporaryDirectory() as d:
+      with open(os.path.join(d, 'report.json'), 'w') as fh:
+        fh.write('{"scene": "an earlier run"}')
+      with self.assertRaises(KeyboardInterrupt):
+        pl.simulate_scene(_block_scene(), cfg, d, materials=[_RUBBER],
+                          on_frame=on_frame)
+      report = json.load(open(os.path.join(d, 'report.json')))
+      self.assertEqual(report['error'], 'KeyboardInterrupt')
+      self.assertEqual(report['scene'], 'block')
+      self.assertIn('total', report['stage_seconds'])
 
 
 class ValuesTest(absltest.TestCase):

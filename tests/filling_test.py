@@ -185,6 +185,9 @@ class FillingTest(absltest.TestCase):
                            config=filling.FillConfig(grid_res=16))
     with self.assertRaisesRegex(ValueError, 'grid_res'):
       filling.FillConfig(grid_res=1024)
+    # The margins left no cell (ZeroDivisionError in the fill).
+    with self.assertRaisesRegex(ValueError, r'grid_res=8: .* margin_cells'):
+      filling.FillConfig(grid_res=8)
 
   def test_fill_objects_two_spheres(self):
     a = _shell(n=2000)

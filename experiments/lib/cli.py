@@ -18,6 +18,7 @@ import contextlib
 import difflib
 import json
 import os
+import platform
 import re
 import sys
 import threading
@@ -281,6 +282,41 @@ def write_json(path: str | None, result) -> None:
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
   with open(path, 'w') as fh:
     json.dump(result, fh, indent=1)
+
+
+def machine(devices: bool = True) -> dict:
+  """What a benchmark ran on, for its JSON results: the host's name, the
+  CPU's model (``/proc/cpuinfo``; ``platform.processor()`` gives only
+  'x86_64' or nothing on Linux) and cores and, with ``devices``, JAX's
+  version, backend, device kind (``NVIDIA H200``; ``cpu`` on the CPU)
+  and device count. ``devices=False`` leaves JAX's backend unstarted (a
+  parent process whose children use the GPU)."""
+  cpu = platform.processor() or platform.machine()
+  try:
+    with open('/proc/cpuinfo') as f:
+      cpu = next((line.split(':', 1)[1].strip() for line in f
+                  if line.startswith('model name')), cpu)
+  except OSError:
+    pass
+  out = dict(host=platform.node(), cpu=cpu, cores=os.cpu_count())
+  if devices:
+    devs = jax.devices()
+    out.update(jax=jax.__version__, backend=jax.default_backend(),
+               device_kind=devs[0].device_kind, num_devices=len(devs))
+  return out
+
+
+def last_error(stderr: str) -> str:
+  """The line of a failed child process's ``stderr`` that says why: its
+  last ``error: ...`` line, else the last ``SomethingError: ...`` of a
+  traceback, else its last line (the last line alone was often JAX's note
+  on filtered traceback frames, printed after the error)."""
+  lines = [ln.strip() for ln in stderr.splitlines() if ln.strip()]
+  for pattern in (r'error: ', r'[\w.]*(Error|Exception|Interrupt)\b'):
+    found = [ln for ln in lines if re.match(pattern, ln)]
+    if found:
+      return found[-1]
+  return lines[-1] if lines else ''
 
 
 def _verbose() -> bool:

@@ -126,6 +126,9 @@ class FillConfig:
     if not 0 <= self.closing_cells < self.margin_cells:
       bad('closing_cells', f'use 0..margin_cells - 1 ({self.margin_cells - 1})'
           '; raise margin_cells for a wider closing')
+    if self.grid_res <= 2 * self.margin_cells:  # (a ZeroDivisionError)
+      bad('grid_res', f'use more than 2 * margin_cells '
+          f'({2 * self.margin_cells}): the margins take that many cells')
 
 
 class FillResult(struct.PyTreeNode):
