@@ -13,6 +13,7 @@ argument checks, cluster detection) run in-process.
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -44,6 +45,12 @@ _X64_ENV = dict(
 _STATE_RTOL = 1e-9
 _GRAD_RTOL = 1e-8
 _BATCH_RTOL = 1e-12
+
+
+def _free_port() -> int:
+  with socket.socket() as s:
+    s.bind(('127.0.0.1', 0))
+    return s.getsockname()[1]
 
 
 def run_worker(checks, env=None, args=(), timeout=_TIMEOUT_S):
@@ -347,6 +354,36 @@ class RuntimeTest(absltest.TestCase):
       runtime.initialize(num_processes=2, process_id=2)
     with self.assertRaisesRegex(ValueError, 'cpu_collectives'):
       runtime.initialize(cpu_collectives='nccl')
+
+  def test_coordinator_address_needs_a_port(self):
+    # JAX's own answer was a bare IndexError (no port) or a failed RPC
+    # server (a port that is not a number).
+    for addr in ('127.0.0.1', '127.0.0.1:abc', ':1234', 'host:70000'):
+      with self.assertRaisesRegex(dist.DistributedError, 'give HOST:PORT'):
+        runtime.initialize(coordinator_address=addr, num_processes=2,
+                           process_id=0)
+    with mock.patch.dict(os.environ, JAX_COORDINATOR_ADDRESS='10.0.0.1'):
+      with self.assertRaisesRegex(dist.DistributedError,
+                                  'JAX_COORDINATOR_ADDRESS'):
+        runtime.initialize(num_processes=2, process_id=0)
+
+  def test_a_join_that_times_out_is_explained_before_jax_aborts(self):
+    # Process 1 of 2 with no coordinator running: JAX ends the process with
+    # a C++ fatal error (no Python exception), so the hint is logged first.
+    port = _free_port()
+    code = ('from absl import logging; logging.set_verbosity("info"); '
+            'from physsplat_jax.distributed import runtime; '
+            'runtime.initialize(coordinator_address="127.0.0.1:%d", '
+            'num_processes=2, process_id=1, initialization_timeout=1)' % port)
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True,
+                          text=True, timeout=120, cwd=_REPO,
+                          env=dict(os.environ, JAX_PLATFORMS='cpu'))
+    self.assertNotEqual(proc.returncode, 0)
+    self.assertIn('DEADLINE_EXCEEDED', proc.stderr)
+    hint = proc.stderr.index('an abort with DEADLINE_EXCEEDED means not all')
+    self.assertLess(hint, proc.stderr.index('Terminating process'))
+    self.assertIn(f'joining 127.0.0.1:{port} as process 1 of 2',
+                  proc.stderr)
 
   def test_cluster_detection(self):
     slurm = dict(SLURM_JOB_ID='7', SLURM_STEP_NODELIST='node[01-02]',
