@@ -218,6 +218,28 @@ class PaddingTest(absltest.TestCase):
     np.testing.assert_array_equal(sp.bc_data[0][10:], [0, 0])
     self.assertEqual(float(state.bc_data[0][1]), 1.0)
 
+  def test_ghosts_skip_particles_held_by_a_sequential_release(self):
+    # A release's unselected particles carry -inf, not 0: the ghosts copied
+    # particle 0 (here rigid) whenever a release was configured.
+    config = mpm.SimConfig(
+      grid=mpm.GridSpec(res=8), models=('fixed_corotated', 'rigid'),
+      num_bodies=1, boundary_conditions=(
+        mpm.SequentialRelease(axis=0, start_position=0.45, end_position=0.5,
+                              num_layers=2),))
+    x = np.asarray([[0.4, 0.5, 0.5], [0.49, 0.5, 0.5], [0.3, 0.5, 0.5],
+                    [0.35, 0.4, 0.5], [0.6, 0.6, 0.6]])
+    mat = mpm.make_materials(np.asarray([1, 0, 0, 0, 0]), 1e4, 0.3, 1000.0,
+                             config_models=config.models)
+    state = mpm.init_state(x, (0.0, 0.0, 0.0), 1e-3, mat, config,
+                           body_id=np.asarray([0, -1, -1, -1, -1]))
+    held = np.asarray(state.bc_data[0])
+    self.assertTrue(np.isfinite(held[1]) and np.isneginf(held[2]))
+    sp, mp = dist.pad_particles(state, mat, 4)
+    # Particle 0 is rigid and particle 1 held: the ghosts copy particle 2.
+    np.testing.assert_array_equal(sp.x[5:], np.broadcast_to(state.x[2],
+                                                            (3, 3)))
+    np.testing.assert_array_equal(mp.model_id[5:], [0, 0, 0])
+
   def test_no_padding_when_divisible(self):
     state, mat, _ = _tiny_state(8)
     sp, mp = dist.pad_particles(state, mat, 4)
