@@ -88,8 +88,8 @@ class MultiDeviceTest(absltest.TestCase):
   @classmethod
   def setUpClass(cls):
     super().setUpClass()
-    cls.result = run_worker(['particles', 'sweep', 'render_device'],
-                            env=_X64_ENV)
+    cls.result = run_worker(['particles', 'sweep', 'render_device',
+                             'helpers'], env=_X64_ENV)
 
   def test_worker_saw_four_devices_in_float64(self):
     self.assertLen(self.result['devices'], 4)
@@ -106,6 +106,19 @@ class MultiDeviceTest(absltest.TestCase):
     self.assertGreater(r['image_range'], 0.1)  # something was drawn
     self.assertEqual(r['image_err'], 0.0)
     self.assertEqual(r['pos_err'], 0.0)
+
+  def test_batches_that_do_not_divide_are_padded_and_cut(self):
+    # 1 and 5 items on 4 devices: the padded copies must neither show in
+    # the results nor weigh in the mean loss and its gradient.
+    r = self.result['helpers']
+    for b, padded in ((1, 4), (5, 8)):
+      self.assertEqual(r[f'padded{b}'], padded)
+      self.assertEqual(r[f'vmap{b}_shape'], [b, 7])
+      self.assertEqual(r[f'losses{b}_shape'], [b])
+      self.assertLessEqual(r[f'vmap{b}_err'], 1e-14)
+      self.assertLessEqual(r[f'loss{b}_err'], 1e-12)
+      self.assertLessEqual(r[f'grad{b}_err'],
+                           _GRAD_RTOL * r[f'grad{b}_scale'])
 
   def test_particle_sharded_rollout_matches_single_device(self):
     r = self.result['particles']
