@@ -339,6 +339,8 @@ class BatchHelpersTest(absltest.TestCase):
       dist.sweep_params(base, E_scale=(0.0,))
     with self.assertRaisesRegex(ValueError, '3 components'):
       dist.sweep_params(base, velocity=[(1.0, 2.0)])
+    with self.assertRaisesRegex(ValueError, 'velocity = \\[\\]'):
+      dist.sweep_params(base, velocity=[])  # was NumPy's 'need at least one'
 
 
   def test_sweep_substeps_cover_the_stiffest_item(self):
