@@ -25,7 +25,8 @@ one after another, each with its driving particles split over all devices
 ``com`` (B, T+1, 3) the plain mean of those centres (every Gaussian of
 the scene counts alike: not a mass-weighted centre), scene coordinates;
 ``t`` (T+1,) seconds) and ``sweep.json`` (the items, devices, processes,
-compile and run seconds, ``final_com``: the last frame's ``com``). Material perception is the offline library by object name.
+compile and run seconds, ``final_com``: the last frame's ``com``).
+Material perception is the offline library by object name.
 """
 
 from __future__ import annotations
