@@ -22,9 +22,11 @@ prepared scene with its own material multipliers and initial velocity
 one after another, each with its driving particles split over all devices
 (``distributed.simulate_sharded``: one large simulation). Process 0 writes
 ``sweep.npz`` (``means`` (B, T+1, K, 3) float32 simulated Gaussian centres,
-``com`` (B, T+1, 3) their centre of mass, scene coordinates; ``t`` (T+1,)
-seconds) and ``sweep.json`` (the items, devices, processes, compile and run
-seconds). Material perception is the offline library by object name.
+``com`` (B, T+1, 3) the plain mean of those centres (every Gaussian of
+the scene counts alike: not a mass-weighted centre), scene coordinates;
+``t`` (T+1,) seconds) and ``sweep.json`` (the items, devices, processes,
+compile and run seconds, ``final_com``: the last frame's ``com``).
+Material perception is the offline library by object name.
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ argument checks, cluster detection) run in-process.
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -44,6 +45,12 @@ _X64_ENV = dict(
 _STATE_RTOL = 1e-9
 _GRAD_RTOL = 1e-8
 _BATCH_RTOL = 1e-12
+
+
+def _free_port() -> int:
+  with socket.socket() as s:
+    s.bind(('127.0.0.1', 0))
+    return s.getsockname()[1]
 
 
 def run_worker(checks, env=None, args=(), timeout=_TIMEOUT_S):
@@ -81,8 +88,8 @@ class MultiDeviceTest(absltest.TestCase):
   @classmethod
   def setUpClass(cls):
     super().setUpClass()
-    cls.result = run_worker(['particles', 'sweep', 'render_device'],
-                            env=_X64_ENV)
+    cls.result = run_worker(['particles', 'sweep', 'render_device',
+                             'helpers'], env=_X64_ENV)
 
   def test_worker_saw_four_devices_in_float64(self):
     self.assertLen(self.result['devices'], 4)
@@ -99,6 +106,19 @@ class MultiDeviceTest(absltest.TestCase):
     self.assertGreater(r['image_range'], 0.1)  # something was drawn
     self.assertEqual(r['image_err'], 0.0)
     self.assertEqual(r['pos_err'], 0.0)
+
+  def test_batches_that_do_not_divide_are_padded_and_cut(self):
+    # 1 and 5 items on 4 devices: the padded copies must neither show in
+    # the results nor weigh in the mean loss and its gradient.
+    r = self.result['helpers']
+    for b, padded in ((1, 4), (5, 8)):
+      self.assertEqual(r[f'padded{b}'], padded)
+      self.assertEqual(r[f'vmap{b}_shape'], [b, 7])
+      self.assertEqual(r[f'losses{b}_shape'], [b])
+      self.assertLessEqual(r[f'vmap{b}_err'], 1e-14)
+      self.assertLessEqual(r[f'loss{b}_err'], 1e-12)
+      self.assertLessEqual(r[f'grad{b}_err'],
+                           _GRAD_RTOL * r[f'grad{b}_scale'])
 
   def test_particle_sharded_rollout_matches_single_device(self):
     r = self.result['particles']
@@ -211,6 +231,28 @@ class PaddingTest(absltest.TestCase):
     np.testing.assert_array_equal(sp.bc_data[0][10:], [0, 0])
     self.assertEqual(float(state.bc_data[0][1]), 1.0)
 
+  def test_ghosts_skip_particles_held_by_a_sequential_release(self):
+    # A release's unselected particles carry -inf, not 0: the ghosts copied
+    # particle 0 (here rigid) whenever a release was configured.
+    config = mpm.SimConfig(
+      grid=mpm.GridSpec(res=8), models=('fixed_corotated', 'rigid'),
+      num_bodies=1, boundary_conditions=(
+        mpm.SequentialRelease(axis=0, start_position=0.45, end_position=0.5,
+                              num_layers=2),))
+    x = np.asarray([[0.4, 0.5, 0.5], [0.49, 0.5, 0.5], [0.3, 0.5, 0.5],
+                    [0.35, 0.4, 0.5], [0.6, 0.6, 0.6]])
+    mat = mpm.make_materials(np.asarray([1, 0, 0, 0, 0]), 1e4, 0.3, 1000.0,
+                             config_models=config.models)
+    state = mpm.init_state(x, (0.0, 0.0, 0.0), 1e-3, mat, config,
+                           body_id=np.asarray([0, -1, -1, -1, -1]))
+    held = np.asarray(state.bc_data[0])
+    self.assertTrue(np.isfinite(held[1]) and np.isneginf(held[2]))
+    sp, mp = dist.pad_particles(state, mat, 4)
+    # Particle 0 is rigid and particle 1 held: the ghosts copy particle 2.
+    np.testing.assert_array_equal(sp.x[5:], np.broadcast_to(state.x[2],
+                                                            (3, 3)))
+    np.testing.assert_array_equal(mp.model_id[5:], [0, 0, 0])
+
   def test_no_padding_when_divisible(self):
     state, mat, _ = _tiny_state(8)
     sp, mp = dist.pad_particles(state, mat, 4)
@@ -297,6 +339,8 @@ class BatchHelpersTest(absltest.TestCase):
       dist.sweep_params(base, E_scale=(0.0,))
     with self.assertRaisesRegex(ValueError, '3 components'):
       dist.sweep_params(base, velocity=[(1.0, 2.0)])
+    with self.assertRaisesRegex(ValueError, 'velocity = \\[\\]'):
+      dist.sweep_params(base, velocity=[])  # was NumPy's 'need at least one'
 
 
   def test_sweep_substeps_cover_the_stiffest_item(self):
@@ -347,6 +391,36 @@ class RuntimeTest(absltest.TestCase):
       runtime.initialize(num_processes=2, process_id=2)
     with self.assertRaisesRegex(ValueError, 'cpu_collectives'):
       runtime.initialize(cpu_collectives='nccl')
+
+  def test_coordinator_address_needs_a_port(self):
+    # JAX's own answer was a bare IndexError (no port) or a failed RPC
+    # server (a port that is not a number).
+    for addr in ('127.0.0.1', '127.0.0.1:abc', ':1234', 'host:70000'):
+      with self.assertRaisesRegex(dist.DistributedError, 'give HOST:PORT'):
+        runtime.initialize(coordinator_address=addr, num_processes=2,
+                           process_id=0)
+    with mock.patch.dict(os.environ, JAX_COORDINATOR_ADDRESS='10.0.0.1'):
+      with self.assertRaisesRegex(dist.DistributedError,
+                                  'JAX_COORDINATOR_ADDRESS'):
+        runtime.initialize(num_processes=2, process_id=0)
+
+  def test_a_join_that_times_out_is_explained_before_jax_aborts(self):
+    # Process 1 of 2 with no coordinator running: JAX ends the process with
+    # a C++ fatal error (no Python exception), so the hint is logged first.
+    port = _free_port()
+    code = ('from absl import logging; logging.set_verbosity("info"); '
+            'from physsplat_jax.distributed import runtime; '
+            'runtime.initialize(coordinator_address="127.0.0.1:%d", '
+            'num_processes=2, process_id=1, initialization_timeout=1)' % port)
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True,
+                          text=True, timeout=120, cwd=_REPO,
+                          env=dict(os.environ, JAX_PLATFORMS='cpu'))
+    self.assertNotEqual(proc.returncode, 0)
+    self.assertIn('DEADLINE_EXCEEDED', proc.stderr)
+    hint = proc.stderr.index('an abort with DEADLINE_EXCEEDED means not all')
+    self.assertLess(hint, proc.stderr.index('Terminating process'))
+    self.assertIn(f'joining 127.0.0.1:{port} as process 1 of 2',
+                  proc.stderr)
 
   def test_cluster_detection(self):
     slurm = dict(SLURM_JOB_ID='7', SLURM_STEP_NODELIST='node[01-02]',

@@ -29,6 +29,8 @@ Checks:
                 over 4 devices (simulate_sharded).
   grad          gradient of the mean MPDP trajectory loss over a batch of 4
                 scenes, batch split over 4 devices, vs one device (slow).
+  helpers       sharded_vmap and sharded_value_and_grad on 1 and 5 items
+                (padded to 4 and 8) vs the unsharded vmap.
   multiprocess  (2 processes) batch sweep of mpm.rollout over E and a
                 particle-sharded rollout with a rigid body on the global
                 mesh of both processes, vs this process's single device.
@@ -377,6 +379,37 @@ def check_multiprocess():
   return out
 
 
+def check_helpers():
+  """sharded_vmap and sharded_value_and_grad on batches that 4 devices do
+  not divide (1 and 5 items: padded to 4 and 8) vs the unsharded vmap."""
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+  from physsplat_jax import distributed as dist
+  mesh = dist.make_mesh(4)
+  fn = lambda a, b: jnp.sin(a) * b + jnp.sum(a)  # noqa: E731
+  loss = lambda w, x, y: jnp.sum((w * x - y) ** 2)  # noqa: E731
+  vfn = dist.sharded_vmap(fn, mesh, in_axes=(0, None))
+  grad_fn = dist.sharded_value_and_grad(loss, mesh, in_axes=(0, 0))
+  w = jnp.asarray([0.3, -0.2])
+  out = {}
+  for b in (1, 5):
+    rng = np.random.default_rng(b)
+    a = rng.normal(size=(b, 7))
+    x, y = rng.normal(size=(b, 2)), rng.normal(size=(b, 2))
+    res = vfn(a, 2.0)
+    out[f'vmap{b}_shape'] = list(res.shape)
+    out[f'vmap{b}_err'], _ = _max_err(jax.vmap(fn, (0, None))(a, 2.0), res)
+    out[f'padded{b}'] = vfn.place(a, 2.0)[0][0].shape[0]
+    (l, losses), g = grad_fn(w, x, y)
+    lref, gref = jax.value_and_grad(lambda w: jnp.mean(  # noqa: B023
+      jax.vmap(loss, (None, 0, 0))(w, x, y)))(w)
+    out[f'loss{b}_err'] = float(abs(l - lref))
+    out[f'grad{b}_err'], out[f'grad{b}_scale'] = _max_err(gref, g)
+    out[f'losses{b}_shape'] = list(losses.shape)
+  return out
+
+
 def check_render_device():
   """pipeline.run rendering on a second CPU device ('auto') against the
   simulation's own device: the same frames, bit for bit."""
@@ -404,6 +437,7 @@ def check_render_device():
 
 
 CHECKS = dict(render_device=check_render_device, particles=check_particles,
+              helpers=check_helpers,
               particles_grad=check_particles_grad, sweep=check_sweep,
               grad=check_grad, multiprocess=check_multiprocess)
 

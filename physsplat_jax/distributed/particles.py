@@ -77,7 +77,8 @@ def pad_particles(state: mpm.MPMState, materials: mpm.Materials,
     return state, materials
   ok = state.body_id < 0
   for b in state.bc_data:
-    ok = ok & (b == 0)
+    # Unselected: a 0 mask, or a SequentialRelease time of -inf.
+    ok = ok & ((b == 0) | jnp.isneginf(b))
   src = jnp.argmax(ok)
 
   def rep(a, scale=None):

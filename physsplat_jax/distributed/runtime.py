@@ -130,8 +130,11 @@ def initialize(
 
   Raises:
     DistributedError: a bad argument (named, with the fix).
-    DistributedStartError: JAX was already used before this call, or the
-      processes could not reach each other within the timeout.
+    DistributedStartError: JAX was already used before this call, or
+      JAX refused the settings. Processes that do not all join within
+      ``initialization_timeout`` are aborted by JAX itself (a C++ fatal
+      error, DEADLINE_EXCEEDED), which no exception can report: the log
+      line before the join names what to check.
   """
   if mode not in MODES:
     raise DistributedError(f'initialize: mode = {mode!r}; use one of {MODES}.')
@@ -165,6 +168,7 @@ def initialize(
     explicit, mode = False, 'off'
   detected = cluster_environment()
   if mode == 'on' or (mode == 'auto' and (explicit or detected)):
+    _check_address(coordinator_address)
     if cpu_collectives != 'none':
       jax.config.update('jax_cpu_collectives_implementation', cpu_collectives)
     if (explicit and coordinator_address is None and detected is None
@@ -173,6 +177,20 @@ def initialize(
         'initialize: num_processes/process_id given without '
         'coordinator_address and no cluster launcher detected; pass '
         '--coordinator_address=HOST:PORT (process 0\'s host, a free port).')
+    # Past this point a process that waits longer than the timeout for the
+    # others is aborted inside JAX (a C++ fatal error: DEADLINE_EXCEEDED in
+    # RegisterTask), not given an exception, so the hint comes first.
+    logging.info(
+      'jax.distributed: joining %s as process %s of %s (waits up to %d s '
+      'for every process; an abort with DEADLINE_EXCEEDED means not all '
+      'joined: start every one with the same --coordinator_address and '
+      '--num_processes and its own --process_id, and check that process '
+      "0's host and port are reachable)",
+      coordinator_address or os.environ.get('JAX_COORDINATOR_ADDRESS',
+                                            '(auto-detected)'),
+      'auto' if process_id is None else process_id,
+      'auto' if num_processes is None else num_processes,
+      initialization_timeout)
     try:
       jax.distributed.initialize(
         coordinator_address=coordinator_address, num_processes=num_processes,
@@ -199,6 +217,24 @@ def initialize(
                info.process_count, info.num_local_devices, info.num_devices,
                info.platform)
   return info
+
+
+def _check_address(coordinator_address: str | None) -> None:
+  """Raises DistributedError unless the coordinator (argument, else
+  ``JAX_COORDINATOR_ADDRESS``) is None or ``HOST:PORT``; JAX's own errors
+  for a bad one were an IndexError or a failed RPC server."""
+  source = 'coordinator_address'
+  if coordinator_address is None:
+    coordinator_address = os.environ.get('JAX_COORDINATOR_ADDRESS')
+    source = 'JAX_COORDINATOR_ADDRESS'
+  if coordinator_address is None:
+    return
+  host, _, port = str(coordinator_address).rpartition(':')
+  if not (host and port.isdigit() and 0 < int(port) < 65536):
+    raise DistributedError(
+      f'initialize: {source} = {coordinator_address!r}; give HOST:PORT, '
+      "process 0's host and a free port that every process uses (e.g. "
+      '--coordinator_address=10.0.0.1:12355).')
 
 
 def define_flags(flag_values: flags.FlagValues = flags.FLAGS) -> None:

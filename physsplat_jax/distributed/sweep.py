@@ -51,8 +51,8 @@ def sweep_params(
     ``PARAMS_AXES``), and one dict per item with its settings.
 
   Raises:
-    DistributedError: a non-positive multiplier or a velocity that is not 3
-      numbers.
+    DistributedError: a non-positive multiplier, no velocities or a
+      velocity that is not 3 numbers.
   """
   for name, vals in (('E_scale', E_scale), ('nu_scale', nu_scale),
                      ('rho_scale', rho_scale)):
@@ -62,6 +62,9 @@ def sweep_params(
         'more multipliers > 0.')
   vels = [None] if velocity is None else [tuple(float(c) for c in v)
                                           for v in velocity]
+  if not vels:
+    raise DistributedError('sweep_params: velocity = []; give one or more '
+                           'velocities, or None to keep params.velocity.')
   for v in vels:
     if v is not None and len(v) != 3:
       raise DistributedError(
