@@ -11,9 +11,13 @@ Where the processes come from:
 
 - explicit flags: ``--coordinator_address=host:port --num_processes=P
   --process_id=i`` (the address of process 0; any free port agreed by all);
-- auto-detected by JAX under Slurm (``srun``; one process per task), Open MPI
-  (``mpirun``) and Cloud TPU (JAX also reads ``JAX_COORDINATOR_ADDRESS``
-  and ``JAX_LOCAL_DEVICE_IDS`` when the flags leave them unset);
+- auto-detected under Slurm (``srun``; one process per task) and Open MPI
+  (``mpirun``): :func:`cluster_environment` sees the launcher and JAX
+  reads its variables (and ``JAX_COORDINATOR_ADDRESS`` and
+  ``JAX_LOCAL_DEVICE_IDS`` when the flags leave them unset);
+- other launchers JAX knows (Cloud TPU pods, Kubernetes, MPI4Py): mode
+  'auto' does not see them; ``--distributed=on`` (``mode='on'``) calls
+  ``jax.distributed.initialize`` without the flags and JAX detects them;
 - nothing: a single process, nothing to initialise.
 
 On CPU, processes exchange collectives over TCP with gloo
@@ -61,7 +65,8 @@ class RuntimeInfo:
     num_local_devices: devices of this process.
     platform: 'cpu', 'gpu' or 'tpu'.
     method: how the processes were found: 'explicit' (flags/arguments),
-      'auto' (cluster environment: Slurm, Open MPI, TPU, JAX_* variables)
+      'auto' (cluster environment: Slurm, Open MPI; with mode 'on', what
+      JAX detects itself, e.g. a Cloud TPU pod)
       or 'single' (no distributed runtime).
   """
 
@@ -247,10 +252,11 @@ def define_flags(flag_values: flags.FlagValues = flags.FLAGS) -> None:
   """
   flags.DEFINE_string(
     'coordinator_address', None, 'host:port of process 0 for '
-    'jax.distributed (auto-detected under Slurm/Open MPI/TPU).',
+    'jax.distributed (auto-detected under Slurm/Open MPI; '
+    '--distributed=on for a Cloud TPU pod or Kubernetes).',
     flag_values=flag_values)
   flags.DEFINE_integer('num_processes', None, 'Processes in the job '
-                       '(auto-detected under Slurm/Open MPI/TPU).',
+                       '(auto-detected under Slurm/Open MPI).',
                        flag_values=flag_values)
   flags.DEFINE_integer('process_id', None, 'Index of this process in '
                        '[0, num_processes).', flag_values=flag_values)
