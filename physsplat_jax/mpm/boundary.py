@@ -158,16 +158,21 @@ def apply_particle_bcs(config: base.SimConfig, forces, bc_data, t, x, v, C,
   bcs = ([e for e in bcs if isinstance(e[1], (ParticleImpulse, PointForce))]
          + [e for e in bcs
             if not isinstance(e[1], (ParticleImpulse, PointForce))])
+  # A particle of volume 0 (init_state allows it) has no mass: a force per
+  # particle moves it not at all instead of dividing by 0 (its NaN velocity
+  # times its zero mass was NaN momentum on the grid). A select on the
+  # input, so that the derivative is finite too.
+  inv_mass = jnp.where(mass > 0, 1.0 / jnp.where(mass > 0, mass, 1.0), 0.0)
   for i, bc, data in bcs:
     val = forces.values[i]
     if isinstance(bc, ParticleImpulse):
       on = _active(t, bc.start_time, bc.start_time + bc.num_dt * dt, dt)
-      s = jnp.where(on, dt, 0.0) * data / mass
+      s = jnp.where(on, dt, 0.0) * data * inv_mass
       v = [v[d] + s * val[d] for d in range(3)]
     elif isinstance(bc, PointForce):
       on = _active(t, bc.start_time, bc.end_time, dt)
       if bc.per_particle:
-        s = jnp.where(on, dt, 0.0) * data / mass
+        s = jnp.where(on, dt, 0.0) * data * inv_mass
       else:
         total = jnp.sum(data * mass)
         if reduce_fn is not None:
