@@ -12,6 +12,7 @@ import dataclasses
 import functools
 import json
 import os
+import shutil
 import tempfile
 import warnings
 
@@ -179,6 +180,18 @@ class TrainTest(absltest.TestCase):
       self.assertGreater(held['baseline'][0], 0.0)
 
 
+      # Interrupted after its last checkpoint (that of step 3 lost): the
+      # run resumes at step 2, ends with the same weights and logs step 3
+      # once (it was in metrics.jsonl twice).
+      shutil.rmtree(os.path.join(workdir, 'checkpoints', '3'))
+      r3 = simtrain.train_and_evaluate(config, workdir)
+      for a, b in zip(jax.tree.leaves(r2['params']),
+                      jax.tree.leaves(r3['params'])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+      with open(os.path.join(workdir, 'metrics.jsonl')) as f:
+        again = [json.loads(line) for line in f]
+      self.assertEqual([r['step'] for r in again], [1, 2, 3])
+      self.assertEqual(again[-1]['train_loss'], losses[-1])
 class FitTest(absltest.TestCase):
 
   def test_fit_from_trajectory_moves_E_toward_truth(self):

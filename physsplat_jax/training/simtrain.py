@@ -574,6 +574,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
   with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints'),
                              options=options) as mngr:
     state = train_lib.restore_latest(mngr, state)
+    train_lib.trim_metrics(workdir, int(state['step']))
     for step in range(int(state['step']), config.num_steps):
       state, loss, per = step_fn(state, train)
       done = step + 1
