@@ -51,11 +51,12 @@ def _check_flags() -> list[int]:
   """The seeds; a flag no fit can use is a usage error before any work."""
   try:
     seeds = [int(s) for s in _SEEDS.value]
-    if not seeds:  # (it ran nothing and exited 0)
+    # (none ran nothing and exited 0; a negative one was NumPy's traceback)
+    if not seeds or min(seeds) < 0:
       raise ValueError
   except ValueError:
     raise cli.usage_error(f'--seeds={",".join(_SEEDS.value)}: give integer '
-                          'seeds separated by commas') from None
+                          'seeds >= 0 separated by commas') from None
   for name, ok, want in (
       ('E_init', math.isfinite(_E_INIT.value) and _E_INIT.value > 0,
        'a finite fraction of the true mean E > 0'),
@@ -72,6 +73,8 @@ def _check_flags() -> list[int]:
   if bad:
     raise cli.usage_error(f'--observe: unknown {bad}; use trajectory and/or '
                           'video')
+  if not _OBSERVE.value:  # (it ran nothing and exited 0)
+    raise cli.usage_error('--observe=: give trajectory and/or video')
   if _OUT.value:
     folder = os.path.dirname(os.path.abspath(_OUT.value))
     if os.path.isdir(_OUT.value) or not os.path.isdir(folder) or not (

@@ -259,6 +259,8 @@ class ChecksTest(absltest.TestCase):
           ('grad_clip', 0.0, 'sim.grad_clip = 0.0'),
           ('train_seeds', (), r'sim.train_seeds = \(\); give a non-empty'),
           ('eval_seeds', ('a',), 'sim.eval_seeds'),
+          ('eval_seeds', (10, -1), r'sim.eval_seeds = \(10, -1\); give a '
+           'non-empty list of integer seeds >= 0'),
           ('init', 'zeros', "sim.init = 'zeros'; give 'zero' or"),
           ('log_every', 0, 'sim.log_every = 0'),
           ('checkpoint_every', 0, 'sim.checkpoint_every = 0'),
@@ -290,6 +292,9 @@ class ChecksTest(absltest.TestCase):
         simtrain.fit_material(None, 'trajectory', **kw)
     with self.assertRaisesRegex(simtrain.TrainingError, 'learning_rate'):
       simtrain.train_through_simulator({}, [], 1, learning_rate=-1.0)
+    with self.assertRaisesRegex(simtrain.TrainingError,
+                                'make_task.seed = -1'):
+      simtrain.make_task(-1, _TINY)  # NumPy's ValueError after the scene
 
   def test_field_correlation_of_a_uniform_field_is_null_not_nan(self):
     truth = np.linspace(0.5, 2.0, 16)

@@ -35,8 +35,8 @@ FIELD_DEGREES = (0, 1, 2)
 FIT_OPTIMIZERS = ('lbfgs', 'adam')
 DTYPES = ('float32', 'float64')
 _SEEDS = (lambda v: isinstance(v, (tuple, list)) and len(v) >= 1
-          and all(is_int(s) for s in v),
-          'a non-empty list of integer seeds')
+          and all(is_int(s) and s >= 0 for s in v),
+          'a non-empty list of integer seeds >= 0')
 
 
 def check(owner: str, values) -> None:

@@ -284,6 +284,7 @@ def make_task(seed: int, tc: TaskConfig = TaskConfig(),
     DivergedError (a FloatingPointError): the target simulation is not
       finite (raise ``tc.substeps_per_frame``).
   """
+  checks.check('make_task', [('seed', seed, 'int>=0')])  # (NumPy's rule)
   scene, materials, obj = make_cantilever(seed, tc)
   rc = None
   if render != 'none':
