@@ -6,10 +6,11 @@ cantilever (physsplat_jax.training.simtrain.make_task, the ``sim.task`` section
 of the config). E is then fitted through the MLS-MPM rollout, starting from
 ``--E_init`` x the true mean and a uniform field, either from the Gaussian
 centres ('trajectory') or from the frames rendered by the differentiable
-renderer ('video'). Prints recovered vs true, one JSON line per fit.
+renderer ('video'), by L-BFGS (default) or Adam (``--optimizer=adam``).
+Prints recovered vs true, one JSON line per fit.
 
 python experiments/fit_material.py --config=experiments/configs/mpdp.py \
-  [--seeds=10,11] [--observe=trajectory,video] [--steps=60] [--out=f.json]
+  [--seeds=10,11] [--observe=trajectory,video] [--steps=20] [--out=f.json]
 """
 
 import json
@@ -29,8 +30,12 @@ from physsplat_jax.training import simtrain
 _SEEDS = flags.DEFINE_list('seeds', ['10', '11'], 'beam seeds')
 _OBSERVE = flags.DEFINE_list('observe', ['trajectory', 'video'],
                              "what is observed: 'trajectory' and/or 'video'")
-_STEPS = flags.DEFINE_integer('steps', 60, 'Adam steps per fit')
-_LR = flags.DEFINE_float('learning_rate', 0.1, 'peak Adam step size')
+_OPTIMIZER = flags.DEFINE_enum('optimizer', 'lbfgs', checks.FIT_OPTIMIZERS,
+                               'L-BFGS with a line search, or Adam')
+_STEPS = flags.DEFINE_integer('steps', None, 'optimiser steps per fit '
+                              '(default: 20 L-BFGS, 60 Adam)')
+_LR = flags.DEFINE_float('learning_rate', 0.1, 'peak Adam step size (Adam '
+                         'only)')
 _E_INIT = flags.DEFINE_float('E_init', 0.3, 'initial E / true mean E')
 _DEGREE = flags.DEFINE_integer('field_degree', 2, 'polynomial log-field '
                                'degree: 0 (mean only), 1 or 2')
@@ -46,11 +51,12 @@ def _check_flags() -> list[int]:
   """The seeds; a flag no fit can use is a usage error before any work."""
   try:
     seeds = [int(s) for s in _SEEDS.value]
-    if not seeds:  # (it ran nothing and exited 0)
+    # (none ran nothing and exited 0; a negative one was NumPy's traceback)
+    if not seeds or min(seeds) < 0:
       raise ValueError
   except ValueError:
     raise cli.usage_error(f'--seeds={",".join(_SEEDS.value)}: give integer '
-                          'seeds separated by commas') from None
+                          'seeds >= 0 separated by commas') from None
   for name, ok, want in (
       ('E_init', math.isfinite(_E_INIT.value) and _E_INIT.value > 0,
        'a finite fraction of the true mean E > 0'),
@@ -58,7 +64,8 @@ def _check_flags() -> list[int]:
        'a finite step size > 0'),
       ('field_degree', _DEGREE.value in checks.FIELD_DEGREES,
        f'one of {checks.FIELD_DEGREES} (0: the mean only)'),
-      ('steps', _STEPS.value >= 1, 'an integer >= 1')):
+      ('steps', _STEPS.value is None or _STEPS.value >= 1,
+       'an integer >= 1')):
     if not ok:
       raise cli.usage_error(f'--{name}={flags.FLAGS[name].value}: give '
                             f'{want}')
@@ -66,6 +73,8 @@ def _check_flags() -> list[int]:
   if bad:
     raise cli.usage_error(f'--observe: unknown {bad}; use trajectory and/or '
                           'video')
+  if not _OBSERVE.value:  # (it ran nothing and exited 0)
+    raise cli.usage_error('--observe=: give trajectory and/or video')
   if _OUT.value:
     folder = os.path.dirname(os.path.abspath(_OUT.value))
     if os.path.isdir(_OUT.value) or not os.path.isdir(folder) or not (
@@ -92,6 +101,7 @@ def main(argv):
       r = simtrain.fit_material(
         task, observe, num_steps=_STEPS.value, learning_rate=_LR.value,
         E_init=_E_INIT.value, field_degree=_DEGREE.value,
+        optimizer=_OPTIMIZER.value,
         log_fn=lambda i, loss, E: logging.info('step %d loss %.4g E %.4g',
                                                i, loss, E))
       true = np.asarray(task.field[:, 0], np.float64)
@@ -114,6 +124,7 @@ def main(argv):
   if _OUT.value:
     with open(_OUT.value, 'w') as f:
       json.dump({'task_config': tc.__dict__, 'steps': _STEPS.value,
+                 'optimizer': _OPTIMIZER.value,
                  'learning_rate': _LR.value, 'E_init': _E_INIT.value,
                  'field_degree': _DEGREE.value, 'fits': rows}, f, indent=1)
 

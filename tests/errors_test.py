@@ -388,6 +388,21 @@ class ErrorPathTest(absltest.TestCase):
     self.assertEqual(proc.stderr.strip().splitlines()[-1],
                      'error: --E_init=-1.0: give a finite fraction of the '
                      'true mean E > 0')
+    # A negative seed was NumPy's traceback after the scene was prepared;
+    # no --observe ran nothing and exited 0.
+    for arg, want in (('--seeds=-1', 'error: --seeds=-1: give integer seeds '
+                       '>= 0'),
+                      ('--observe=', 'error: --observe=: give trajectory '
+                       'and/or video')):
+      proc = subprocess.run(
+        [sys.executable, '-m', 'experiments.fit_material',
+         '--config=experiments/configs/mpdp.py', arg],
+        capture_output=True, text=True, check=False, timeout=120,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+      with self.subTest(arg):
+        self.assertEqual(proc.returncode, 2, proc.stderr[-500:])
+        self.assertTrue(proc.stderr.strip().splitlines()[-1].startswith(
+          want), proc.stderr[-300:])
 
   def test_every_script_runs_through_cli_run(self):
     # app.run directly would keep absl's 'FATAL Flags parsing error' (exit

@@ -8,6 +8,7 @@ import functools
 import json
 import os
 import re
+import shutil
 import tempfile
 
 import jax
@@ -314,6 +315,31 @@ class TrainTest(absltest.TestCase):
       np.testing.assert_array_equal(
         np.asarray(predict(p, pts, means, mask)),
         np.asarray(predict(r2['params'], pts, means, mask)))
+
+  def test_interrupted_run_resumes_exactly_and_logs_each_step_once(self):
+    # A run interrupted after its last checkpoint (here: the checkpoint of
+    # step 4 lost) resumes at step 2 and ends where an uninterrupted run
+    # does; metrics.jsonl held steps 3 and 4 twice (and a cut line).
+    config = test_config.get_config()
+    config.train.log_every = 1
+    with tempfile.TemporaryDirectory() as tmp:
+      whole, cut = os.path.join(tmp, 'whole'), os.path.join(tmp, 'cut')
+      r1 = train_lib.train_and_evaluate(config, whole)
+      train_lib.train_and_evaluate(config, cut)
+      shutil.rmtree(os.path.join(cut, 'checkpoints', '4'))
+      with open(os.path.join(cut, 'metrics.jsonl'), 'a') as f:
+        f.write('{"step": 5, "train_lo')  # cut short by the interruption
+      r2 = train_lib.train_and_evaluate(config, cut)
+      for a, b in zip(jax.tree.leaves(r1['params']),
+                      jax.tree.leaves(r2['params'])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+      records = []
+      for w in (whole, cut):
+        with open(os.path.join(w, 'metrics.jsonl')) as f:
+          records.append([json.loads(line) for line in f])
+      self.assertEqual([r['step'] for r in records[1]], [1, 2, 3, 4])
+      self.assertEqual([r['train_loss'] for r in records[0]],
+                       [r['train_loss'] for r in records[1]])
 
   def test_bad_settings_and_a_diverging_run_stop_with_a_message(self):
     # A NaN learning rate used to train to a NaN checkpoint, exit 0.

@@ -246,6 +246,32 @@ def _write_metrics(workdir, record):
     f.write(json.dumps(record) + '\n')
 
 
+def trim_metrics(workdir: str, step: int) -> None:
+  """Drops the records of ``workdir/metrics.jsonl`` past ``step``.
+
+  A run resumed from the checkpoint of ``step`` logs the steps after it
+  again: the records that an interrupted run wrote for them (after its last
+  checkpoint) appeared twice. A line cut short by the interruption goes too.
+  """
+  path = os.path.join(workdir, 'metrics.jsonl')
+  if not os.path.exists(path):
+    return
+  with open(path) as f:
+    lines = f.readlines()
+
+  def kept(line):
+    try:
+      return line.endswith('\n') and json.loads(line)['step'] <= step
+    except (ValueError, KeyError, TypeError):
+      return False
+
+  keep = [line for line in lines if kept(line)]
+  if len(keep) < len(lines):
+    with open(path + '.tmp', 'w') as f:
+      f.writelines(keep)
+    os.replace(path + '.tmp', path)
+
+
 def restore_latest(mngr: ocp.CheckpointManager, state):
   """The latest checkpoint of ``mngr`` restored into ``state``'s structure.
 
@@ -389,6 +415,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
                              options=options) as mngr:
     state = restore_latest(mngr, state)
     start = int(state['step'])
+    trim_metrics(workdir, start)
     t_start = time.time()
     for step in range(start, tc.num_steps):
       batch = _batch(train_data, tc.seed, step, tc.batch_size)

@@ -32,10 +32,11 @@ class DivergedError(PhysSplatError, FloatingPointError):
 
 # Polynomial degrees of fit_material's log-field: 0 (mean only), 1, 2.
 FIELD_DEGREES = (0, 1, 2)
+FIT_OPTIMIZERS = ('lbfgs', 'adam')
 DTYPES = ('float32', 'float64')
 _SEEDS = (lambda v: isinstance(v, (tuple, list)) and len(v) >= 1
-          and all(is_int(s) for s in v),
-          'a non-empty list of integer seeds')
+          and all(is_int(s) and s >= 0 for s in v),
+          'a non-empty list of integer seeds >= 0')
 
 
 def check(owner: str, values) -> None:
@@ -96,10 +97,13 @@ def check_sim_config(config) -> None:
       'an integer >= 1 (or None: keep every checkpoint)'))])
 
 
-def check_fit(num_steps, learning_rate, E_init, field_degree) -> None:
+def check_fit(num_steps, learning_rate, E_init, field_degree,
+              optimizer='lbfgs') -> None:
   """Checks the arguments of :func:`~.simtrain.fit_material`."""
   check_optimizer('fit_material', num_steps, learning_rate, min_steps=1)
   check('fit_material', [
+    ('optimizer', optimizer, (lambda v: v in FIT_OPTIMIZERS,
+                              f'one of {FIT_OPTIMIZERS}')),
     ('E_init', E_init, (lambda v: is_real(v) and v > 0,
                         'a finite fraction of the true mean E > 0')),
     ('field_degree', field_degree, (
