@@ -3,6 +3,7 @@
 Training through the simulator is tested in tests/mpdp_sim_test.py.
 """
 
+import copy
 import dataclasses
 import functools
 import json
@@ -316,6 +317,30 @@ class TrainTest(absltest.TestCase):
         np.asarray(predict(p, pts, means, mask)),
         np.asarray(predict(r2['params'], pts, means, mask)))
 
+  def test_resume_under_another_config_is_refused(self):
+    # A resume took a changed config silently (another learning rate, other
+    # seeds); only logging, checkpointing and num_steps may change.
+    config = test_config.get_config().to_dict()
+    with tempfile.TemporaryDirectory() as w:
+      train_lib.record_config(w, config)           # no checkpoints: any
+      os.makedirs(os.path.join(w, 'checkpoints', '2'))
+      other = copy.deepcopy(config)
+      other['train']['learning_rate'] *= 2
+      other['data']['seed'] = 7
+      with self.assertRaisesRegex(
+          model_lib.MPDPError, r"another config \(data.seed: .* -> 7; "
+          r"train.learning_rate: .*\): resume with the same --config"):
+        train_lib.record_config(w, other)
+      same = copy.deepcopy(config)
+      same['train']['log_every'] = 1
+      same['train']['num_steps'] += 2
+      with self.assertLogs(level='WARNING') as logs:
+        train_lib.record_config(w, same)
+      self.assertIn('num_steps', logs.output[0])
+      with open(os.path.join(w, 'config.json')) as f:
+        self.assertEqual(json.load(f)['train']['log_every'], 1)
+      train_lib.record_config(w, same)  # the saved one is the new one
+
   def test_interrupted_run_resumes_exactly_and_logs_each_step_once(self):
     # A run interrupted after its last checkpoint (here: the checkpoint of
     # step 4 lost) resumes at step 2 and ends where an uninterrupted run
@@ -343,11 +368,16 @@ class TrainTest(absltest.TestCase):
 
   def test_bad_settings_and_a_diverging_run_stop_with_a_message(self):
     # A NaN learning rate used to train to a NaN checkpoint, exit 0.
+    # A negative seed was NumPy's ValueError from inside the data or batch
+    # generator.
     for field, value, want in (('learning_rate', float('nan'),
                                 'learning_rate = nan; give a finite'),
-                               ('batch_size', 0, 'batch_size = 0')):
+                               ('batch_size', 0, 'batch_size = 0'),
+                               ('seed', -1, r'train.seed = -1'),
+                               ('data.seed', -2, r'data.seed = -2')):
       config = test_config.get_config()
-      config.train[field] = value
+      section, _, name = ('train.' + field).rpartition('.')
+      config[section.rsplit('.', 1)[-1]][name] = value
       with self.subTest(field), tempfile.TemporaryDirectory() as workdir, \
           self.assertRaisesRegex(model_lib.MPDPError, want):
         train_lib.train_and_evaluate(config, workdir)
@@ -372,8 +402,15 @@ class TrainTest(absltest.TestCase):
     with tempfile.TemporaryDirectory() as workdir:
       train_lib.train_and_evaluate(config, workdir)
       config.model.global_features = 8
-      # Named from the checkpoint's metadata, before any restore starts
-      # (a restore failing part-way left orbax's reads pending).
+      # Named from the config saved beside the checkpoints first.
+      with self.assertRaisesRegex(
+          model_lib.MPDPError, r'another config \(model.global_features: '
+          r'16 -> 8\)'):
+        train_lib.train_and_evaluate(config, workdir)
+      # Without it (a workdir of an older version): named from the
+      # checkpoint's metadata, before any restore starts (a restore failing
+      # part-way left orbax's reads pending).
+      os.remove(os.path.join(workdir, 'config.json'))
       with self.assertRaisesRegex(model_lib.MPDPError,
                                   'cannot resume from the checkpoint of step '
                                   r"2 .*\(params\['Dense_\d+'\]"

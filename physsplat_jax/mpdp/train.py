@@ -165,7 +165,7 @@ def validate_config(config) -> model_lib.ModelConfig:
     ('learning_rate', tc.learning_rate, '>0'),
     ('batch_size', tc.batch_size, 'int>=1'),
     ('num_steps', tc.num_steps, 'int>=0'),
-    ('seed', tc.seed, 'int'),
+    ('seed', tc.seed, 'int>=0'),  # (NumPy's rule: _batch)
     ('weight_decay', tc.weight_decay, '>=0'),
     ('warmup_steps', tc.warmup_steps, 'int>=0'),
     ('grad_clip', tc.grad_clip, '>0'),
@@ -178,7 +178,7 @@ def validate_config(config) -> model_lib.ModelConfig:
       lambda v: v is None or (model_lib.is_int(v) and v >= 1),
       'an integer >= 1 (or None: keep every checkpoint)'))])
   check('config.data', [
-    ('seed', d.seed, 'int'), ('eval_seed', d.eval_seed, 'int'),
+    ('seed', d.seed, 'int>=0'), ('eval_seed', d.eval_seed, 'int>=0'),
     ('num_train', d.num_train, 'int>=1'),
     ('num_eval', d.num_eval, 'int>=1'),
     ('num_points', d.num_points, (
@@ -218,6 +218,72 @@ def check_workdir(workdir, error: type = MPDPError) -> str:
       raise error(f'{where}: {p} is not writable; give a folder you can '
                   'write to.')
   return path
+
+
+# Settings that may change between a run and its resume: how often it logs
+# and saves, how many checkpoints it keeps, and (with a warning) how long it
+# trains.
+_RESUME_FREE = ('log_every', 'checkpoint_every', 'max_to_keep', 'num_steps')
+
+
+def _flat(d, prefix=''):
+  out = {}
+  for k, v in d.items():
+    if isinstance(v, dict):
+      out.update(_flat(v, f'{prefix}{k}.'))
+    else:
+      out[prefix + k] = v
+  return out
+
+
+def record_config(workdir: str, config: dict, error: type = MPDPError,
+                  flag: str = '--config') -> None:
+  """Writes ``config`` to ``workdir/config.json``; refuses, before any
+  work, to resume the checkpoints there under another config.
+
+  A resumed run took the new settings silently: another learning rate or
+  other seeds gave a run that neither config describes. Only
+  ``log_every``, ``checkpoint_every``, ``max_to_keep`` and ``num_steps``
+  may change; a longer (or shorter) ``num_steps`` is logged as a warning,
+  as the learning-rate schedule, which spans ``num_steps``, then differs
+  from the one the checkpoints were trained on.
+
+  Raises:
+    error: naming each changed field (old and new value) and the fix.
+  """
+  path = os.path.join(workdir, 'config.json')
+  ckpt = os.path.join(workdir, 'checkpoints')
+  resumes = os.path.isdir(ckpt) and any(n.isdigit() for n in os.listdir(ckpt))
+  new = json.loads(json.dumps(config))  # tuples as lists, as in the file
+  if resumes and os.path.exists(path):
+    with open(path) as f:
+      try:
+        old = json.load(f)
+      except ValueError:
+        old = None
+    if isinstance(old, dict):
+      a, b = _flat(old), _flat(new)
+      changed = [k for k in sorted(set(a) | set(b))
+                 if a.get(k) != b.get(k)
+                 and k.rsplit('.', 1)[-1] not in _RESUME_FREE]
+      steps = [k for k in set(a) | set(b)
+               if k.rsplit('.', 1)[-1] == 'num_steps' and a.get(k) != b.get(k)]
+      for k in steps:
+        logging.warning(
+          '%s: %s -> %s on resume; the learning-rate schedule spans it, so '
+          'the steps from here follow another schedule than a run of %s '
+          'steps from the start would', k, a.get(k), b.get(k), b.get(k))
+      if changed:
+        what = '; '.join(f'{k}: {a.get(k)!r} -> {b.get(k)!r}'
+                         for k in changed[:6])
+        raise error(
+          f'workdir {workdir!r} holds checkpoints trained under another '
+          f'config ({what}{"; ..." if len(changed) > 6 else ""}): resume '
+          f'with the same {flag} (saved in {path}) or train in a new '
+          '--workdir.')
+  with open(path + '.tmp', 'w') as f:
+    json.dump(new, f, indent=1)
+  os.replace(path + '.tmp', path)
 
 
 def make_datasets(config):
@@ -272,10 +338,14 @@ def trim_metrics(workdir: str, step: int) -> None:
     os.replace(path + '.tmp', path)
 
 
-def restore_latest(mngr: ocp.CheckpointManager, state):
+def restore_latest(mngr: ocp.CheckpointManager, state,
+                   error: type = MPDPError):
   """The latest checkpoint of ``mngr`` restored into ``state``'s structure.
 
   Returns ``state`` unchanged when there is no checkpoint yet (a new run).
+  A checkpoint that does not fit ``state``, or is damaged, raises
+  ``error`` (the caller's: MPDPError, or TrainingError for the simulator's
+  training).
   """
   latest = mngr.latest_step()
   if latest is None:
@@ -285,13 +355,13 @@ def restore_latest(mngr: ocp.CheckpointManager, state):
             'optimiser')
   misfit = _checkpoint_misfit(mngr, latest, state)
   if misfit:
-    raise MPDPError(f'{cannot} ({misfit}); train in a new --workdir, or with '
-                    'the config that wrote it.')
+    raise error(f'{cannot} ({misfit}); train in a new --workdir, or with '
+                'the config that wrote it.')
   try:
     restored = mngr.restore(latest, args=ocp.args.StandardRestore(
       jax.tree.map(ocp.utils.to_shape_dtype_struct, state)))
   except Exception as e:  # noqa: BLE001 (orbax raises many kinds)
-    raise MPDPError(
+    raise error(
       f'{cannot}, or it is damaged ({type(e).__name__}: '
       f'{" ".join(str(e).split())[:200]}); train in a new --workdir, or '
       'with the config that wrote it.') from None
@@ -392,8 +462,9 @@ def train_and_evaluate(config, workdir: str) -> dict:
   mcfg = validate_config(config)
   workdir = check_workdir(workdir)
   logging.info('MPDP training on %s; workdir %s', jax.devices(), workdir)
-  with open(os.path.join(workdir, 'config.json'), 'w') as f:
-    json.dump(config.to_dict(), f, indent=1)
+  # (The sections this training reads; config.sim is the simulator's.)
+  record_config(workdir, {k: v for k, v in config.to_dict().items()
+                          if k in ('model', 'data', 'train')})
 
   t0 = time.time()
   train_data, eval_data = make_datasets(config)

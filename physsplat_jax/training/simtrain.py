@@ -554,6 +554,9 @@ def train_and_evaluate(config, workdir: str) -> dict:
   tc = TaskConfig.from_dict(config.task)
   checks.check_sim_config(config)
   workdir = train_lib.check_workdir(workdir, TrainingError)
+  train_lib.record_config(
+    workdir, config.to_dict() if hasattr(config, 'to_dict') else dict(config),
+    TrainingError)
   t0 = time.perf_counter()
   train = make_tasks(config.train_seeds, tc)
   held = make_tasks(config.eval_seeds, tc)
@@ -575,7 +578,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
   t1 = time.perf_counter()
   with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints'),
                              options=options) as mngr:
-    state = train_lib.restore_latest(mngr, state)
+    state = train_lib.restore_latest(mngr, state, TrainingError)
     train_lib.trim_metrics(workdir, int(state['step']))
     for step in range(int(state['step']), config.num_steps):
       state, loss, per = step_fn(state, train)
