@@ -6,7 +6,8 @@
 Runs the whole pipeline (perception from the material library, MPDP, PGAS,
 MLS-MPM, deformed Gaussians, rendering) with the CPU-sized settings of
 experiments/configs/demo.py (``--config.num_frames=12`` etc. override them)
-and the scene's motion from experiments/configs/simulate.py, then prints
+and the scene's motion from the config file's ``SCENE_MOTIONS`` (those of
+experiments/configs/simulate.py where it has none), then prints
 where the video is and where the time went. ``make demo`` runs it.
 """
 
@@ -15,6 +16,7 @@ import sys
 
 from absl import flags
 from absl import logging
+from ml_collections import config_flags
 
 from experiments.lib import cli
 from experiments.lib import simulate as lib
@@ -36,8 +38,10 @@ def main(argv):
   del argv
   process = cli.start_run()
   sha = lib.git_sha()
-  config = lib.build_config(_SCENE.value, _CONFIG.value,
-                            motions=lib.load_config_file()[1])
+  # The --config file's motions (a user's file was ignored for simulate.py's).
+  path = config_flags.get_config_filename(flags.FLAGS['config'])
+  motions = lib.load_config_file(path)[1] or lib.load_config_file()[1]
+  config = lib.build_config(_SCENE.value, _CONFIG.value, motions=motions)
   logging.info('git %s, config %s', sha, config)
   # (the report said 'make demo' for any command line, and no revision)
   report = lib.run_scene(_SCENE.value, config, _OUT.value,

@@ -7,7 +7,8 @@ of the config). E is then fitted through the MLS-MPM rollout, starting from
 ``--E_init`` x the true mean and a uniform field, either from the Gaussian
 centres ('trajectory') or from the frames rendered by the differentiable
 renderer ('video'), by L-BFGS (default) or Adam (``--optimizer=adam``).
-Prints recovered vs true, one JSON line per fit.
+Prints recovered vs true, one JSON line per fit; ``--out`` is rewritten
+after each fit (``complete`` is true once every fit has run).
 
 python experiments/fit_material.py --config=experiments/configs/mpdp.py \
   [--seeds=10,11] [--observe=trajectory,video] [--steps=20] [--out=f.json]
@@ -121,12 +122,14 @@ def main(argv):
         row['field_corr_note'] = checks.UNDEFINED_CORRELATION
       print(json.dumps(row), flush=True)
       rows.append(row)
-  if _OUT.value:
-    with open(_OUT.value, 'w') as f:
-      json.dump({'task_config': tc.__dict__, 'steps': _STEPS.value,
-                 'optimizer': _OPTIMIZER.value,
-                 'learning_rate': _LR.value, 'E_init': _E_INIT.value,
-                 'field_degree': _DEGREE.value, 'fits': rows}, f, indent=1)
+      # After every fit, not at the end: an interrupted or failed later fit
+      # lost the earlier ones' results ('complete' says whether all ran).
+      cli.write_json(_OUT.value, {
+        'task_config': tc.__dict__, 'steps': _STEPS.value,
+        'optimizer': _OPTIMIZER.value, 'learning_rate': _LR.value,
+        'E_init': _E_INIT.value, 'field_degree': _DEGREE.value,
+        'complete': len(rows) == len(seeds) * len(_OBSERVE.value),
+        'fits': rows})
 
 
 if __name__ == '__main__':

@@ -170,6 +170,7 @@ class ScriptProcessTest(absltest.TestCase):
     # A simulation imports neither the training libraries nor Flax (the
     # network is imported when it is first traced).
     self.assertEqual(proc.stdout.split(), ['[]', 'True', 'True'])
+
   def test_demo_reports_its_own_command_and_revision(self):
     """experiments.demo's report said command 'make demo' whatever the
     command line, and had no git revision (a run refused for its time step
@@ -193,6 +194,23 @@ class ScriptProcessTest(absltest.TestCase):
       report = json.load(open(os.path.join(out, 'report.json')))
       self.assertIn('--config.substeps_per_frame=1', report['command'])
       self.assertIn('git', report)
+      # A --config file's own SCENE_MOTIONS drive the demo (simulate.py's
+      # were used whatever the file said).
+      conf = os.path.join(d, 'mine.py')
+      with open(conf, 'w') as f:
+        f.write('from experiments.configs.demo import get_config\n'
+                "SCENE_MOTIONS = {'tabletop': dict(initial_velocity="
+                "{'': (0.0, 0.0, 0.7)})}\n")
+      proc = subprocess.run(
+        [sys.executable, '-m', 'experiments.demo', f'--out={out}',
+         f'--config={conf}', '--compile_cache=off',
+         '--config.substeps_per_frame=1', '--config.grid_res=16',
+         '--config.max_particles=300'],
+        capture_output=True, text=True, check=False, timeout=300, cwd=repo)
+      self.assertEqual(proc.returncode, 1, proc.stderr[-2000:])
+      report = json.load(open(os.path.join(out, 'report.json')))
+      self.assertEqual(report['config']['initial_velocity'],
+                       [['', [0.0, 0.0, 0.7]]])
 
 
 if __name__ == '__main__':

@@ -276,12 +276,16 @@ def check_output_file(flag: str, path: str | None) -> None:
 
 def write_json(path: str | None, result) -> None:
   """Writes ``result`` as indented JSON to ``path`` (its folder created);
-  nothing when ``path`` is None or empty."""
+  nothing when ``path`` is None or empty. Through a temporary file and a
+  rename: an interruption leaves the previous file whole, never half of
+  it (scripts that rewrite it after each result keep what they had)."""
   if not path:
     return
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  with open(path, 'w') as fh:
+  tmp = f'{path}.tmp{os.getpid()}'
+  with open(tmp, 'w') as fh:
     json.dump(result, fh, indent=1)
+  os.replace(tmp, path)
 
 
 def machine(devices: bool = True) -> dict:

@@ -300,9 +300,10 @@ def _p2g_window_sum(G: int, W, Q, Ae0, Ae1, Ae2, base):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _p2g_window(G: int, W, Q, Ae0, Ae1, Ae2, base):
-  """:func:`_p2g_window_sum`, whose tangent on the CPU is formed as batched
-  products, so that its transpose (the reverse pass) is products too
-  instead of XLA's reductions over the 27 nodes.
+  """:func:`_p2g_window_sum`, whose tangent on the CPU is formed as one
+  product with the constant (27, 4) offset matrix, so that its transpose
+  (the reverse pass) is that product too instead of XLA's reductions over
+  the 27 nodes.
 
   XLA:CPU reduced the (N, 3, 3, 3, C) window cotangent over the nodes at
   about 1 GB/s: the tabletop's backward spent ~18 of its ~44 ms per
@@ -321,17 +322,22 @@ def _p2g_window_jvp(G, primals, tangents):
   out = _p2g_window_sum(G, W, Q, Ae0, Ae1, Ae2, base)
 
   def by_products(W, Q, Ae0, Ae1, Ae2, base, dW, dQ, dAe0, dAe1, dAe2):
-    # U_k = W_k sum_j o4_kj P_j with P = (Q, Ae0, Ae1, Ae2): its tangent
-    # as two batched products, whose transposes are products as well.
+    # U_k = W_k V_k, V_k = sum_j o4_kj P_j with P = (Q, Ae0, Ae1, Ae2):
+    # dU_k = W_k (o4 dP)_k + dW_k V_k, where o4 dP is one product with the
+    # constant (27, 4) matrix over all particles. Its transpose is the same
+    # product after W's elementwise one, and a sum over the C channels: the
+    # reverse pass of a (6000, 32^3, C = 8) window took 1.0 ms this way,
+    # 1.95 ms by the earlier custom VJP's batched products and 4.5 ms with
+    # the tangent as per-particle products ('nk,kj,njc->nkc').
     n, c = W.shape[0], Q.shape[-1]
     o4 = _o4(W.dtype)                                              # (27, 4)
     P = jnp.stack([Q, Ae0, Ae1, Ae2], 1).reshape(n, 4, c)
     dP = jnp.stack([dQ, dAe0, dAe1, dAe2], 1).reshape(n, 4, c)
     hi = jax.lax.Precision.HIGHEST
-    dU = (jnp.einsum('nk,kj,njc->nkc', W.reshape(n, 27), o4, dP,
-                     precision=hi)
-          + jnp.einsum('nk,kj,njc->nkc', dW.reshape(n, 27), o4, P,
-                       precision=hi))
+    V = jnp.einsum('kj,njc->nkc', o4, P, precision=hi)             # (N,27,C)
+    dU = (W.reshape(n, 27, 1) * jnp.einsum('kj,njc->nkc', o4, dP,
+                                           precision=hi)
+          + dW.reshape(n, 27, 1) * V)
     return _scatter(G, base, dU.reshape(n, 3, 3, 3, c))
 
   def by_xla(W, Q, Ae0, Ae1, Ae2, base, dW, dQ, dAe0, dAe1, dAe2):
