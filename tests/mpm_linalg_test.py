@@ -185,6 +185,35 @@ class SvdTest(parameterized.TestCase):
       args = (jnp.asarray(F), jnp.full((n,), 2.0), jnp.full((n,), 3.0))
       check_grads(f, args, 1, modes=('fwd', 'rev'), eps=1e-6)
 
+  def test_second_derivatives_where_singular_values_differ(self):
+    """jax.hessian of the polar factor (also at F = I) and of a spectral
+    map (its rule evaluates svd_mat, whose own derivative is a custom JVP:
+    the Jacobi sweeps' gave NaN) against central differences of the
+    gradient, float64."""
+    apply = la.make_spectral_map(_hencky_return)
+    rng = np.random.default_rng(8)
+    w = rng.normal(size=(3, 3))
+
+    def spectral(F):
+      Fh, Tk, aux = apply(_soa(F), (jnp.full((1,), 2.0), jnp.full((1,), 3.0)))
+      return (jnp.sum(w * _aos(Fh)[0]) + jnp.sum(w.T * _aos(Tk)[0])
+              + jnp.sum(aux['dg']))
+
+    def polar(F):
+      return jnp.sum(w * la.polar(F)[0])
+
+    with jax.enable_x64(True):
+      for fn, F in ((polar, np.eye(3)), (polar, _random_F(1, seed=9)[0]),
+                    (spectral, np.eye(3) + 0.05 * rng.normal(size=(3, 3)))):
+        F = jnp.asarray(F)[None]
+        H = jax.hessian(fn)(F)
+        d = jnp.asarray(rng.normal(size=F.shape))
+        g = jax.grad(fn)
+        fd = (g(F + 1e-6 * d) - g(F - 1e-6 * d)) / 2e-6
+        np.testing.assert_allclose(
+          jnp.einsum('aijbkl,bkl->aij', H, d), fd,
+          atol=1e-6 * max(1.0, float(jnp.abs(fd).max())))
+
   def test_spectral_map_forward(self):
     with jax.enable_x64(True):
       F = _random_F(3, seed=4)

@@ -48,10 +48,11 @@ values are (nearly) equal. Its derivative is exact, including at F = I
 
 Every rule here is a custom JVP, linear in the tangents: forward mode
 (``jax.jvp``, ``jacfwd``) uses it as written, reverse mode (``grad``,
-``vjp``, ``jacrev``) its transpose, which JAX derives. Second derivatives
-(``jax.hessian``) are right through :func:`polar_mat` but not through
-:func:`make_spectral_map` (its rule's own derivative goes through the
-Jacobi sweeps of the SVD: NaN or wrong, measured).
+``vjp``, ``jacrev``) its transpose, which JAX derives. The rules can be
+differentiated in turn (``jax.hessian``): exactly through
+:func:`polar_mat`, also at F = I; through :func:`make_spectral_map` where
+the singular values are distinct (its rule evaluates :func:`svd_mat`,
+whose own derivative is a custom JVP), not at exactly repeated ones.
 """
 
 from __future__ import annotations
@@ -506,7 +507,7 @@ def _jacobi_eigh(S: Mat, sweeps: int, unroll: bool | None = None):
 
 
 def svd_mat(F: Mat):
-  """Rotation-variant SVD of a nested-tuple field (forward only).
+  """Rotation-variant SVD of a nested-tuple field.
 
   Structure of arrays throughout: ``F = R S`` by the scaled Newton polar
   iteration, then ``S = V diag(s) V^T`` by cyclic Jacobi and ``U = R V``,
@@ -515,10 +516,55 @@ def svd_mat(F: Mat):
   LAPACK calls dominated the SVD-based material models). ``F`` must be
   invertible (the solver keeps ``det F`` away from 0).
 
+  Its derivative is :func:`svd`'s (a custom JVP, exact for distinct
+  singular values), not that of the Jacobi sweeps (NaN where an
+  off-diagonal entry is 0). :func:`make_spectral_map`'s rule evaluates it,
+  so that the rule can be differentiated in turn (``jax.hessian``).
+
   Returns:
     ``(U, s, V)``: U, V nested tuples (rotations), s a 3-tuple of (N,)
     singular values in descending order (the last negative if det F < 0).
   """
+  if _MODE.on:
+    return _svd_mat_impl(F)
+  return _svd_mat(F)
+
+
+@jax.custom_jvp
+def _svd_mat(F: Mat):
+  return _svd_mat_impl(F)
+
+
+@_svd_mat.defjvp
+def _svd_mat_jvp(primals, tangents):
+  # _svd_jvp's formulas, per component.
+  (F,), (dF,) = primals, tangents
+  U, s, V = _svd_mat_impl(F)
+  P = t_matmul(U, matmul(dF, V))                    # U^T dF V
+  ref = jnp.maximum(jnp.maximum(jnp.abs(s[0]), jnp.abs(s[1])),
+                    jnp.abs(s[2]))
+  gap = _SVD_GAP * jnp.maximum(ref, 1e-30)
+  z = jnp.zeros_like(s[0])
+  Wu = [[z] * 3 for _ in range(3)]
+  Wv = [[z] * 3 for _ in range(3)]
+  for i in range(3):
+    for j in range(3):
+      if i == j:
+        continue
+      dm = s[j] - s[i]
+      neg = (dm < 0) if i < j else (dm <= 0)   # ties: dm_ji = -dm_ij
+      dm = jnp.where(jnp.abs(dm) < gap, jnp.where(neg, -gap, gap), dm)
+      dp = _safe_den(s[j] + s[i], jnp.maximum(ref, 1e-30), _SVD_GAP)
+      sym = 0.5 * (P[i][j] + P[j][i])
+      skw = 0.5 * (P[i][j] - P[j][i])
+      Wu[i][j] = sym / dm + skw / dp
+      Wv[i][j] = sym / dm - skw / dp
+  dU = matmul(U, tuple(map(tuple, Wu)))
+  dV = matmul(V, tuple(map(tuple, Wv)))
+  return (U, s, V), (dU, tuple(P[i][i] for i in range(3)), dV)
+
+
+def _svd_mat_impl(F: Mat):
   size = jnp.dtype(F[0][0].dtype).itemsize
   R = _polar_newton(F, _POLAR_ITERS.get(size, 9))
   S = t_matmul(R, F)
