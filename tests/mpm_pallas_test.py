@@ -197,6 +197,19 @@ class PallasConstitutiveTest(absltest.TestCase):
       want = jax.grad(lambda *a: loss(reference, *a), (0, 1))(F, mat.E)
       _assert_close(self, got, want, 1e-12)
       self.assertTrue(all(np.all(np.isfinite(g)) for g in got))
+      # Forward mode, and a second derivative (reverse over forward): the
+      # rule's value went through pallas_call's JVP, which refuses the
+      # aliased plastic state ('JVP with aliasing not supported').
+      dF = jnp.asarray(np.random.default_rng(4).standard_normal(F.shape))
+
+      def hvp(fn):
+        return jax.grad(lambda F: jax.jvp(
+          lambda G: loss(fn, G, mat.E), (F,), (dF,))[1])(F)
+
+      jk = jax.jvp(lambda G: loss(kernel, G, mat.E), (F,), (dF,))[1]
+      jr = jax.jvp(lambda G: loss(reference, G, mat.E), (F,), (dF,))[1]
+      _assert_close(self, (jk,), (jr,), 1e-12)
+      _assert_close(self, (hvp(kernel),), (hvp(reference),), 1e-12)
 
   def test_a_frame_with_the_kernel_equals_the_jax_frame(self):
     """Two substeps of a scene of three materials and a rigid body on a

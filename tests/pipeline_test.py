@@ -345,6 +345,10 @@ class SimulateTest(absltest.TestCase):
                                 "the images: render='fast' .* has no "
                                 "derivative: use render='differentiable'"):
       jax.jvp(lambda v: f(v, fast), (v,), (t,))
+    # simulate_jit too (a jvp of the jitted call was JAX's TypeError).
+    with self.assertRaisesRegex(pl.PipelineError, "render='fast'"):
+      jax.jvp(lambda v: pl.simulate_jit(params.replace(velocity=v), prep,
+                                        fast).images.sum(), (v,), (t,))
 
   def test_params_round_trip_through_a_file(self):
     # orbax refuses the (0, 3) forces of a scene without forces.

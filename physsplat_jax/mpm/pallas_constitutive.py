@@ -201,9 +201,10 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
   @update.defjvp
   def jvp(primals, tangents):
     # The value from the kernel, the tangent from the pure-JAX update's own
-    # (JAX transposes it for the reverse pass).
-    return (kernel_call(*primals),
-            jax.jvp(reference, primals, tangents)[1])
+    # (JAX transposes it for the reverse pass). The value through update
+    # itself: a derivative of this rule (second order) uses the rule again,
+    # not pallas_call's JVP (which refuses the aliased plastic state).
+    return (update(*primals), jax.jvp(reference, primals, tangents)[1])
 
   return update(F, C, Jpep, leaves, bodies)
 

@@ -381,17 +381,7 @@ def simulate(params: Params, prepared: PreparedScene,
                                frame=a[3]),
         (means, covs, rots, jnp.arange(config.num_frames + 1)))
     except TypeError as e:  # JAX's words, from deep inside the renderer
-      if 'forward-mode autodiff' not in str(e):
-        raise
-      what = ("render='fast' (the render-only compositor) has no "
-              "derivative: use render='differentiable'" if not diff else
-              "the GPU's Pallas compositor has reverse-mode derivatives "
-              'only: use render_config=RenderConfig(backend=\'jax\')')
-      raise PipelineError(
-        f'forward mode (jax.jvp, jacfwd) through the images: {what}, '
-        "whose JAX compositor works in both modes, or render='none' and a "
-        'loss on the trajectory (docs/pipeline.md, "Working with '
-        'params")') from None
+      _raise_forward_mode(e, config)
     images, overflow = outs.image, outs.overflow
   x_scene = prepared.frame.to_scene(xs)
   ok = jnp.all(jnp.isfinite(xs), axis=(1, 2))
@@ -407,15 +397,36 @@ def simulate(params: Params, prepared: PreparedScene,
 _simulate_jit = jax.jit(simulate, static_argnames=('config', 'rollout_fn'))
 
 
+def _raise_forward_mode(e: TypeError, config: SimulateConfig):
+  """JAX's TypeError for forward mode through the renderer's custom VJPs
+  as a PipelineError that names the fix; any other TypeError as it is."""
+  if 'forward-mode autodiff' not in str(e):
+    raise e
+  if config.render is RenderMode.DIFFERENTIABLE:
+    what = ("the GPU's Pallas compositor has reverse-mode derivatives only: "
+            "use render_config=RenderConfig(backend='jax')")
+  else:
+    what = ("render='fast' (the render-only compositor) has no derivative: "
+            "use render='differentiable'")
+  raise PipelineError(
+    f'forward mode (jax.jvp, jacfwd) through the images: {what}, whose JAX '
+    "compositor works in both modes, or render='none' and a loss on the "
+    'trajectory (docs/pipeline.md, "Working with params")') from None
+
+
 def simulate_jit(params: Params, prepared: PreparedScene,
                  config: SimulateConfig | PipelineConfig,
                  field: Array | None = None, *,
                  rollout_fn: Callable | None = None) -> Trajectory:
   """:func:`simulate`, jitted; compiles once per :class:`SimulateConfig`
   and prepared-scene spec (host-side settings never recompile it)."""
-  _check_params(params, prepared, as_simulate_config(config))
-  return _simulate_jit(params, prepared, as_simulate_config(config), field,
-                       rollout_fn=rollout_fn)
+  config = as_simulate_config(config)
+  _check_params(params, prepared, config)
+  try:
+    return _simulate_jit(params, prepared, config, field,
+                         rollout_fn=rollout_fn)
+  except TypeError as e:  # (a jvp of the jitted call: traced outside it)
+    _raise_forward_mode(e, config)
 
 
 def check_finite(traj: Trajectory, prepared: PreparedScene) -> Trajectory:
