@@ -16,7 +16,6 @@ import sys
 
 from absl import flags
 from absl import logging
-from ml_collections import config_flags
 
 from experiments.lib import cli
 from experiments.lib import simulate as lib
@@ -39,9 +38,8 @@ def main(argv):
   process = cli.start_run()
   sha = lib.git_sha()
   # The --config file's motions (a user's file was ignored for simulate.py's).
-  path = config_flags.get_config_filename(flags.FLAGS['config'])
-  motions = lib.load_config_file(path)[1] or lib.load_config_file()[1]
-  config = lib.build_config(_SCENE.value, _CONFIG.value, motions=motions)
+  config = lib.build_config(_SCENE.value, _CONFIG.value,
+                            motions=lib.flag_motions(fallback=True))
   logging.info('git %s, config %s', sha, config)
   # (the report said 'make demo' for any command line, and no revision)
   report = lib.run_scene(_SCENE.value, config, _OUT.value,

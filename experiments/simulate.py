@@ -21,7 +21,6 @@ import sys
 
 from absl import flags
 from absl import logging
-from ml_collections import config_flags
 
 from experiments.lib import cli
 from experiments.lib import profile
@@ -86,7 +85,7 @@ def main(argv):
   sha = lib.git_sha()
   motion = lib.motion_from_flags(_VELOCITY.value, _IMPULSE.value, _POKE.value)
   config = lib.build_config(_SCENE.value, _CONFIG.value, motion=motion,
-                            motions=_motions())
+                            motions=lib.flag_motions())
   logging.info('git %s, config %s', sha, config)
   if _PHYSGAUSSIAN.value:
     _check_physgaussian_flags()
@@ -172,12 +171,6 @@ def _profile_window(config):
       f'0 <= START < STOP <= {config.num_frames} (the run\'s frames)')
   return profile.FrameWindow(start, stop,
                              os.path.join(_OUT.value, 'profile'))
-
-
-def _motions() -> dict:
-  """The config file's per-scene motions (SCENE_MOTIONS)."""
-  path = config_flags.get_config_filename(flags.FLAGS['config'])
-  return lib.load_config_file(path)[1]
 
 
 if __name__ == '__main__':

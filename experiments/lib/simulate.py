@@ -12,6 +12,8 @@ import time
 from typing import Any, Sequence
 
 from absl import app
+from absl import flags
+from ml_collections import config_flags
 
 from physsplat_jax import cameras
 from physsplat_jax import mpdp
@@ -99,6 +101,15 @@ def load_config_file(path: str | None = None) -> tuple[dict, dict]:
   mod = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(mod)
   return dict(mod.get_config().to_dict()), getattr(mod, 'SCENE_MOTIONS', {})
+
+
+def flag_motions(flag: str = 'config', fallback: bool = False) -> dict:
+  """The ``SCENE_MOTIONS`` of the .py file given as ``--flag``; with
+  ``fallback``, experiments/configs/simulate.py's where that file has
+  none."""
+  path = config_flags.get_config_filename(flags.FLAGS[flag])
+  motions = load_config_file(path)[1]
+  return motions or (load_config_file()[1] if fallback else {})
 
 
 def build_config(scene_name: str, config: Any = None, overrides=None,

@@ -541,9 +541,9 @@ def _svd_mat_jvp(primals, tangents):
   (F,), (dF,) = primals, tangents
   U, s, V = _svd_mat_impl(F)
   P = t_matmul(U, matmul(dF, V))                    # U^T dF V
-  ref = jnp.maximum(jnp.maximum(jnp.abs(s[0]), jnp.abs(s[1])),
-                    jnp.abs(s[2]))
-  gap = _SVD_GAP * jnp.maximum(ref, 1e-30)
+  ref = jnp.maximum(jnp.maximum(jnp.maximum(jnp.abs(s[0]), jnp.abs(s[1])),
+                                jnp.abs(s[2])), 1e-30)
+  gap = _SVD_GAP * ref
   z = jnp.zeros_like(s[0])
   Wu = [[z] * 3 for _ in range(3)]
   Wv = [[z] * 3 for _ in range(3)]
@@ -554,7 +554,7 @@ def _svd_mat_jvp(primals, tangents):
       dm = s[j] - s[i]
       neg = (dm < 0) if i < j else (dm <= 0)   # ties: dm_ji = -dm_ij
       dm = jnp.where(jnp.abs(dm) < gap, jnp.where(neg, -gap, gap), dm)
-      dp = _safe_den(s[j] + s[i], jnp.maximum(ref, 1e-30), _SVD_GAP)
+      dp = _safe_den(s[j] + s[i], ref, _SVD_GAP)
       sym = 0.5 * (P[i][j] + P[j][i])
       skw = 0.5 * (P[i][j] - P[j][i])
       Wu[i][j] = sym / dm + skw / dp
