@@ -9,9 +9,11 @@ import contextlib
 import io
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 
 import jax
 import jax.numpy as jnp
@@ -99,6 +101,34 @@ class ErrorPathTest(absltest.TestCase):
     code, text = _run_guarded(app.UsageError('--poke: expected NAME:values'))
     self.assertEqual(code, 2)
     self.assertEqual(text, 'error: --poke: expected NAME:values\n')
+
+  def test_sigterm_takes_the_interrupts_way_out(self):
+    # SIGTERM (a batch system's time limit, kill) ended a script at once:
+    # frames queued for the writers, report.json and the training steps
+    # since the last checkpoint were lost. Now it is raised as Terminated,
+    # a KeyboardInterrupt, and the script exits 143.
+    seen = []
+
+    def main(argv):
+      del argv
+      try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(500):
+          time.sleep(0.01)
+      except KeyboardInterrupt as e:
+        seen.append(e)
+        raise
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), absltest.mock.patch.object(
+        cli, '_verbose', return_value=False), absltest.mock.patch.object(
+          cli, '_setup'):
+      with self.assertRaises(SystemExit) as cm:
+        cli.guard(main)([])
+    self.assertEqual(cm.exception.code, 143)
+    self.assertEqual(err.getvalue(), 'error: terminated (SIGTERM)\n')
+    self.assertIsInstance(seen[0], cli.Terminated)
+    self.assertIs(signal.getsignal(signal.SIGTERM), signal.SIG_DFL)
 
   def test_unknown_config_field_is_one_line_exit_2(self):
     # ml_collections applies --config.* overrides while the script's flag

@@ -366,6 +366,36 @@ class TrainTest(absltest.TestCase):
       self.assertEqual([r['train_loss'] for r in records[0]],
                        [r['train_loss'] for r in records[1]])
 
+  def test_interrupt_saves_the_step_reached(self):
+    # Ctrl-C (or SIGTERM in the scripts) lost the steps since the last
+    # periodic checkpoint; now the step reached is saved, and the resumed
+    # run ends where an uninterrupted one does.
+    config = test_config.get_config()
+    config.train.log_every = 1
+    batch = train_lib._batch  # noqa: SLF001
+
+    def interrupt_at_3(data, seed, step, size):
+      if step == 3:
+        raise KeyboardInterrupt
+      return batch(data, seed, step, size)
+
+    with tempfile.TemporaryDirectory() as tmp:
+      whole, cut = os.path.join(tmp, 'whole'), os.path.join(tmp, 'cut')
+      r1 = train_lib.train_and_evaluate(config, whole)
+      with absltest.mock.patch.object(train_lib, '_batch', interrupt_at_3), \
+          self.assertLogs(level='WARNING') as logs, \
+          self.assertRaises(KeyboardInterrupt):
+        train_lib.train_and_evaluate(config, cut)
+      self.assertIn('interrupted: step 3 saved', logs.output[-1])
+      self.assertIn('3', os.listdir(os.path.join(cut, 'checkpoints')))
+      r2 = train_lib.train_and_evaluate(config, cut)
+      for a, b in zip(jax.tree.leaves(r1['params']),
+                      jax.tree.leaves(r2['params'])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+      with open(os.path.join(cut, 'metrics.jsonl')) as f:
+        self.assertEqual([json.loads(line)['step'] for line in f],
+                         [1, 2, 3, 4])
+
   def test_bad_settings_and_a_diverging_run_stop_with_a_message(self):
     # A NaN learning rate used to train to a NaN checkpoint, exit 0.
     # A negative seed was NumPy's ValueError from inside the data or batch

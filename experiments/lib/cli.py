@@ -20,6 +20,7 @@ import json
 import os
 import platform
 import re
+import signal
 import sys
 import threading
 import time
@@ -363,7 +364,8 @@ def guard(main, cpu_devices: int | None = None,
   def wrapped(argv):
     _setup(cpu_devices, cache_default)
     try:
-      return _main(argv)
+      with _sigterm_as_interrupt():
+        return _main(argv)
     finally:
       _join_backend()
 
@@ -387,11 +389,46 @@ def guard(main, cpu_devices: int | None = None,
       logging.flush()
       print(f'error: {e}', file=sys.stderr)
       sys.exit(1)
+    except Terminated:
+      logging.flush()
+      print('error: terminated (SIGTERM)', file=sys.stderr)
+      sys.exit(128 + signal.SIGTERM)
     except KeyboardInterrupt:
       print('error: interrupted', file=sys.stderr)
       sys.exit(130)
 
   return wrapped
+
+
+class Terminated(KeyboardInterrupt):
+  """SIGTERM (a batch system's time limit or preemption, ``kill``) raised
+  in the main thread while a script runs (:func:`guard`). A
+  KeyboardInterrupt, so that it takes Ctrl-C's way out: the pipeline closes
+  its writers and records the stop in ``report.json``; training saves the
+  step it reached. The process then exits with 143 (128 + SIGTERM)."""
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+  """SIGTERM raises :class:`Terminated` in the main thread while the block
+  runs (before, the process died at once: frames still queued for the
+  writers, ``report.json`` and training since the last checkpoint were
+  lost). Left alone outside the main thread or where someone else set a
+  handler."""
+  if (threading.current_thread() is not threading.main_thread()
+      or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
+    yield
+    return
+
+  def handler(signum, frame):
+    del signum, frame
+    raise Terminated('SIGTERM')
+
+  signal.signal(signal.SIGTERM, handler)
+  try:
+    yield
+  finally:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def process_age() -> float | None:

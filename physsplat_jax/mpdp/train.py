@@ -435,6 +435,35 @@ def _placed_like(restored, template):
   return restored
 
 
+def save_interrupted(mngr: ocp.CheckpointManager, state) -> int | None:
+  """On an interruption (Ctrl-C, or the experiment scripts' SIGTERM), the
+  state of the last finished step saved as a checkpoint, so that a rerun in
+  the same workdir resumes there instead of at the last periodic
+  checkpoint (up to ``checkpoint_every - 1`` steps earlier).
+
+  Nothing is saved when that step is saved already, when the state is not
+  finite, or when the interruption came inside a step whose call had
+  consumed (donated) the state. Returns the step saved, or None.
+  """
+  leaves = jax.tree.leaves(state)
+  if any(getattr(a, 'is_deleted', lambda: False)() for a in leaves):
+    logging.warning('interrupted inside a step: the latest checkpoint in %s '
+                    'stays the one to resume from', mngr.directory)
+    return None
+  step = int(state['step'])
+  if step == 0 or step == mngr.latest_step():
+    return None
+  if not _finite(jnp.zeros(()), state['params']):
+    logging.warning('interrupted at step %d with non-finite weights: not '
+                    'saved', step)
+    return None
+  mngr.save(step, args=ocp.args.StandardSave(state), force=True)
+  mngr.wait_until_finished()
+  logging.warning('interrupted: step %d saved in %s; run again with the '
+                  'same workdir to resume', step, mngr.directory)
+  return step
+
+
 def _finite(loss, params) -> bool:
   """Whether the loss and every weight are finite (one host sync)."""
   leaves = [jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(params)]
@@ -488,28 +517,32 @@ def train_and_evaluate(config, workdir: str) -> dict:
     start = int(state['step'])
     trim_metrics(workdir, start)
     t_start = time.time()
-    for step in range(start, tc.num_steps):
-      batch = _batch(train_data, tc.seed, step, tc.batch_size)
-      state, loss, per = step_fn(state, batch)
-      done = step + 1
-      log = done % tc.log_every == 0 or done == tc.num_steps
-      save = done % tc.checkpoint_every == 0 or done == tc.num_steps
-      if (log or save) and not _finite(loss, state['params']):
-        raise MPDPError(
-          f'MPDP training went non-finite by step {done} (train loss '
-          f'{float(loss)}); nothing from it was saved (the last checkpoint '
-          f'in {workdir} is from before). Lower config.train.learning_rate '
-          f'(now {tc.learning_rate}) or config.train.grad_clip.')
-      if log:
-        rec = {'step': done, 'train_loss': float(loss),
-               'train_msle': [float(x) for x in per],
-               'elapsed_s': time.time() - t_start}
-        if done % tc.eval_every == 0 or done == tc.num_steps:
-          rec.update(evaluate(state['params'], mcfg, eval_data))
-        logging.info('step %d: %s', done, rec)
-        _write_metrics(workdir, rec)
-      if save:
-        mngr.save(done, args=ocp.args.StandardSave(state))
+    try:
+      for step in range(start, tc.num_steps):
+        batch = _batch(train_data, tc.seed, step, tc.batch_size)
+        state, loss, per = step_fn(state, batch)
+        done = step + 1
+        log = done % tc.log_every == 0 or done == tc.num_steps
+        save = done % tc.checkpoint_every == 0 or done == tc.num_steps
+        if (log or save) and not _finite(loss, state['params']):
+          raise MPDPError(
+            f'MPDP training went non-finite by step {done} (train loss '
+            f'{float(loss)}); nothing from it was saved (the last checkpoint '
+            f'in {workdir} is from before). Lower config.train.learning_rate '
+            f'(now {tc.learning_rate}) or config.train.grad_clip.')
+        if log:
+          rec = {'step': done, 'train_loss': float(loss),
+                 'train_msle': [float(x) for x in per],
+                 'elapsed_s': time.time() - t_start}
+          if done % tc.eval_every == 0 or done == tc.num_steps:
+            rec.update(evaluate(state['params'], mcfg, eval_data))
+          logging.info('step %d: %s', done, rec)
+          _write_metrics(workdir, rec)
+        if save:
+          mngr.save(done, args=ocp.args.StandardSave(state))
+    except KeyboardInterrupt:  # (Ctrl-C, or SIGTERM in the scripts)
+      save_interrupted(mngr, state)
+      raise
     mngr.wait_until_finished()
   result = evaluate(state['params'], mcfg, eval_data)
   result.update(step=int(state['step']),

@@ -580,17 +580,21 @@ def train_and_evaluate(config, workdir: str) -> dict:
                              options=options) as mngr:
     state = train_lib.restore_latest(mngr, state, TrainingError)
     train_lib.trim_metrics(workdir, int(state['step']))
-    for step in range(int(state['step']), config.num_steps):
-      state, loss, per = step_fn(state, train)
-      done = step + 1
-      if done % config.log_every == 0 or done == config.num_steps:
-        rec = {'step': done, 'train_loss': loss, 'per_task': per,
-               'elapsed_s': time.perf_counter() - t1}
-        logging.info('sim step %d: %s', done, rec)
-        with open(os.path.join(workdir, 'metrics.jsonl'), 'a') as f:
-          f.write(json.dumps(rec) + '\n')
-      if done % config.checkpoint_every == 0 or done == config.num_steps:
-        mngr.save(done, args=ocp.args.StandardSave(state))
+    try:
+      for step in range(int(state['step']), config.num_steps):
+        state, loss, per = step_fn(state, train)
+        done = step + 1
+        if done % config.log_every == 0 or done == config.num_steps:
+          rec = {'step': done, 'train_loss': loss, 'per_task': per,
+                 'elapsed_s': time.perf_counter() - t1}
+          logging.info('sim step %d: %s', done, rec)
+          with open(os.path.join(workdir, 'metrics.jsonl'), 'a') as f:
+            f.write(json.dumps(rec) + '\n')
+        if done % config.checkpoint_every == 0 or done == config.num_steps:
+          mngr.save(done, args=ocp.args.StandardSave(state))
+    except KeyboardInterrupt:  # (Ctrl-C, or SIGTERM in the scripts)
+      train_lib.save_interrupted(mngr, state)
+      raise
     mngr.wait_until_finished()
   t_train = time.perf_counter() - t1
   models = {'baseline': 'baseline',
