@@ -391,6 +391,9 @@ class RuntimeTest(absltest.TestCase):
       runtime.initialize(num_processes=2, process_id=2)
     with self.assertRaisesRegex(ValueError, 'cpu_collectives'):
       runtime.initialize(cpu_collectives='nccl')
+    for bad in (0, 2.5, True):
+      with self.assertRaisesRegex(ValueError, 'initialization_timeout = '):
+        runtime.initialize(initialization_timeout=bad)
 
   def test_coordinator_address_needs_a_port(self):
     # JAX's own answer was a bare IndexError (no port) or a failed RPC
@@ -408,10 +411,13 @@ class RuntimeTest(absltest.TestCase):
     # Process 1 of 2 with no coordinator running: JAX ends the process with
     # a C++ fatal error (no Python exception), so the hint is logged first.
     port = _free_port()
-    code = ('from absl import logging; logging.set_verbosity("info"); '
+    # (Through the flags, as a script: --initialization_timeout reaches JAX.)
+    code = ('from absl import flags, logging; logging.set_verbosity("info"); '
             'from physsplat_jax.distributed import runtime; '
-            'runtime.initialize(coordinator_address="127.0.0.1:%d", '
-            'num_processes=2, process_id=1, initialization_timeout=1)' % port)
+            'runtime.define_flags(); flags.FLAGS(["p", '
+            '"--coordinator_address=127.0.0.1:%d", "--num_processes=2", '
+            '"--process_id=1", "--initialization_timeout=1"]); '
+            'runtime.initialize_from_flags()' % port)
     proc = subprocess.run([sys.executable, '-c', code], capture_output=True,
                           text=True, timeout=120, cwd=_REPO,
                           env=dict(os.environ, JAX_PLATFORMS='cpu'))
@@ -419,8 +425,8 @@ class RuntimeTest(absltest.TestCase):
     self.assertIn('DEADLINE_EXCEEDED', proc.stderr)
     hint = proc.stderr.index('an abort with DEADLINE_EXCEEDED means not all')
     self.assertLess(hint, proc.stderr.index('Terminating process'))
-    self.assertIn(f'joining 127.0.0.1:{port} as process 1 of 2',
-                  proc.stderr)
+    self.assertIn(f'joining 127.0.0.1:{port} as process 1 of 2 (waits up '
+                  'to 1 s', proc.stderr)
 
   def test_cluster_detection(self):
     slurm = dict(SLURM_JOB_ID='7', SLURM_STEP_NODELIST='node[01-02]',

@@ -29,6 +29,7 @@ tests check multi-device code on one machine.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import os
 from typing import Sequence
 
@@ -155,6 +156,13 @@ def initialize(
       0 <= process_id < num_processes):
     raise DistributedError(f'initialize: process_id = {process_id} must be in '
                            f'[0, num_processes = {num_processes}).')
+  if (isinstance(initialization_timeout, bool)
+      or not isinstance(initialization_timeout, numbers.Integral)
+      or initialization_timeout < 1):
+    raise DistributedError(
+      f'initialize: initialization_timeout = {initialization_timeout!r}; '
+      'give whole seconds >= 1 (e.g. --initialization_timeout=600 where '
+      'processes start minutes apart).')
   if cpu_devices is not None:
     if cpu_devices < 1:
       raise DistributedError(f'initialize: cpu_devices = {cpu_devices} must be '
@@ -189,8 +197,9 @@ def initialize(
       'jax.distributed: joining %s as process %s of %s (waits up to %d s '
       'for every process; an abort with DEADLINE_EXCEEDED means not all '
       'joined: start every one with the same --coordinator_address and '
-      '--num_processes and its own --process_id, and check that process '
-      "0's host and port are reachable)",
+      '--num_processes and its own --process_id, check that process '
+      "0's host and port are reachable, or wait longer with "
+      '--initialization_timeout)',
       coordinator_address or os.environ.get('JAX_COORDINATOR_ADDRESS',
                                             '(auto-detected)'),
       'auto' if process_id is None else process_id,
@@ -247,7 +256,8 @@ def define_flags(flag_values: flags.FlagValues = flags.FLAGS) -> None:
 
   ``--coordinator_address``, ``--num_processes``, ``--process_id``,
   ``--local_device_ids``, ``--distributed`` (auto|on|off),
-  ``--cpu_devices`` and ``--cpu_collectives``; read them with
+  ``--initialization_timeout``, ``--cpu_devices`` and
+  ``--cpu_collectives``; read them with
   :func:`initialize_from_flags`.
   """
   flags.DEFINE_string(
@@ -267,6 +277,10 @@ def define_flags(flag_values: flags.FlagValues = flags.FLAGS) -> None:
                     'jax.distributed when flags are given or a launcher is '
                     'detected; on: always; off: never.',
                     flag_values=flag_values)
+  flags.DEFINE_integer('initialization_timeout', 300, 'Seconds every '
+                       'process waits for all to join jax.distributed '
+                       '(JAX aborts the ones left waiting).',
+                       flag_values=flag_values)
   flags.DEFINE_integer('cpu_devices', None, 'Split the CPU into this many '
                        'devices per process (testing sharding on one '
                        'machine).', flag_values=flag_values)
@@ -290,4 +304,5 @@ def initialize_from_flags(
     coordinator_address=f.coordinator_address,
     num_processes=f.num_processes, process_id=f.process_id,
     local_device_ids=ids, mode=f.distributed, cpu_devices=f.cpu_devices,
-    cpu_collectives=f.cpu_collectives)
+    cpu_collectives=f.cpu_collectives,
+    initialization_timeout=f.initialization_timeout)
