@@ -31,6 +31,12 @@ data flows (imports run one way, down this list):
 import importlib as _importlib
 import warnings as _warnings
 
+from physsplat_jax import platforms as _platforms
+
+# XLA:CPU's setting for the solver's reductions (platforms.tune_xla_cpu:
+# before JAX's first computation; PHYSSPLAT_JAX_XLA_CPU_TUNING=0 opts out).
+_platforms.tune_xla_cpu()
+
 # Subpackages, reachable by their names (ps.render.project, ps.mpm.rollout).
 from physsplat_jax import cameras as cameras
 from physsplat_jax import deform as deform

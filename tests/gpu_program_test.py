@@ -374,6 +374,39 @@ ENTRY %main (e: f32[4]) -> f32[4] {
 """
 
 
+class XlaCpuTuningTest(absltest.TestCase):
+  """platforms.tune_xla_cpu: the package's XLA:CPU flag, added only where
+  it can take effect and nobody chose otherwise."""
+
+  def test_added_once_and_only_where_it_can_apply(self):
+    from jax._src import xla_bridge  # noqa: PLC0415
+    flag = '--xla_cpu_experimental_ynn_fusion_type=dot,individual_dot'
+    with absltest.mock.patch.dict(xla_bridge._backends, clear=True), \
+        absltest.mock.patch('jaxlib.__version__', '0.10.2'):
+      env = {'XLA_FLAGS': '--xla_foo=1'}
+      self.assertTrue(platforms.tune_xla_cpu(env))
+      self.assertEqual(env['XLA_FLAGS'], f'--xla_foo=1 {flag}')
+      self.assertFalse(platforms.tune_xla_cpu(env))  # there already
+      self.assertEqual(env['XLA_FLAGS'], f'--xla_foo=1 {flag}')
+      mine = {'XLA_FLAGS': '--xla_cpu_experimental_ynn_fusion_type=reduce'}
+      self.assertFalse(platforms.tune_xla_cpu(mine))  # the user's stands
+      self.assertEqual(mine['XLA_FLAGS'],
+                       '--xla_cpu_experimental_ynn_fusion_type=reduce')
+      for off in ('0', 'off', 'False'):
+        env = {platforms.OPT_OUT: off}
+        self.assertFalse(platforms.tune_xla_cpu(env))
+        self.assertNotIn('XLA_FLAGS', env)
+      with absltest.mock.patch('jaxlib.__version__', '0.99.0'):
+        env = {}
+        self.assertFalse(platforms.tune_xla_cpu(env))  # flag not known
+        self.assertEqual(env, {})
+    # This process's backends have started: too late to apply.
+    jax.devices()
+    env = {}
+    self.assertFalse(platforms.tune_xla_cpu(env))
+    self.assertEqual(env, {})
+
+
 class TraceTimeChoiceTest(absltest.TestCase):
   """``platforms.platform_dependent`` traces the CPU's form alone where only
   the CPU can run the program, every form inside ``every_platform``."""
