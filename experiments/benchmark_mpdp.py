@@ -31,7 +31,6 @@ from __future__ import annotations
 import json
 import os
 import resource
-import subprocess
 import sys
 import time
 
@@ -190,8 +189,7 @@ def main(argv):
           cmd = [sys.executable, '-m', 'experiments.benchmark_mpdp',
                  f'--case={shape},{n},{method}', f'--k={_K.value}',
                  f'--repeats={_REPEATS.value}']
-          p = subprocess.run(cmd, capture_output=True, text=True,
-                             env=dict(os.environ))
+          p = cli.run_child(cmd, env=dict(os.environ))
           lines = [ln for ln in p.stdout.splitlines() if ln.startswith('{')]
           if p.returncode == 0 and lines:
             res = json.loads(lines[-1])

@@ -26,7 +26,6 @@ CPU (the ``make demo`` settings).
 import json
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -70,7 +69,7 @@ def run_once(scene: str, preset: dict, out: str, cache: str,
   settings = {**preset, **(overrides or {})}
   cmd += [f'--config.{k}={v}' for k, v in settings.items()]
   t0 = time.perf_counter()
-  proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+  proc = cli.run_child(cmd)
   wall = time.perf_counter() - t0
   if proc.returncode != 0:
     return dict(error=[cli.last_error(proc.stderr)], wall_s=wall)

@@ -279,6 +279,7 @@ def main(argv):
   del argv
   f = flags.FLAGS
   info = runtime.initialize_from_flags()  # before any JAX computation
+  cli.catch_sigterm()  # (jax.distributed's preemption service took it)
   import jax
 
   from physsplat_jax import distributed as dist

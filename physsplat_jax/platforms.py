@@ -90,7 +90,7 @@ def every_platform():
 # in XLA_FLAGS aborts the process, so others are left alone).
 _CPU_FLAG_NAME = 'xla_cpu_experimental_ynn_fusion_type'
 _CPU_FLAG = f'--{_CPU_FLAG_NAME}=dot,individual_dot'
-_CPU_FLAG_JAXLIB = ('0.10.',)
+_CPU_FLAG_JAXLIB = ('0.10.2',)
 OPT_OUT = 'PHYSSPLAT_JAX_XLA_CPU_TUNING'
 
 
@@ -116,8 +116,7 @@ def tune_xla_cpu(environ=None) -> bool:
   if _CPU_FLAG_NAME in flags:
     return False
   import jaxlib  # noqa: PLC0415
-  if not str(getattr(jaxlib, '__version__', '')).startswith(
-      _CPU_FLAG_JAXLIB):
+  if str(getattr(jaxlib, '__version__', '')) not in _CPU_FLAG_JAXLIB:
     return False
   try:
     from jax._src import xla_bridge  # noqa: PLC0415

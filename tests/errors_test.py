@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 
 import jax
@@ -129,6 +130,53 @@ class ErrorPathTest(absltest.TestCase):
     self.assertEqual(err.getvalue(), 'error: terminated (SIGTERM)\n')
     self.assertIsInstance(seen[0], cli.Terminated)
     self.assertIs(signal.getsignal(signal.SIGTERM), signal.SIG_DFL)
+
+  def test_sigterm_still_caught_after_jax_distributed_starts(self):
+    # jax.distributed's preemption service installs its own SIGTERM handler
+    # (C level): the signal was swallowed and a sweep under Slurm ran on
+    # until SIGKILL. cli.catch_sigterm() (sweep.py calls it) takes it back.
+    code = (
+      'import os, signal, socket, time\n'
+      'from experiments.lib import cli\n'
+      'def main(argv):\n'
+      '  import jax\n'
+      '  s = socket.socket(); s.bind(("127.0.0.1", 0))\n'
+      '  port = s.getsockname()[1]; s.close()\n'
+      '  jax.distributed.initialize(f"127.0.0.1:{port}", 1, 0)\n'
+      '  cli.catch_sigterm()\n'
+      '  os.kill(os.getpid(), signal.SIGTERM)\n'
+      '  for _ in range(1000): time.sleep(0.01)\n'
+      '  print("ran on")\n'
+      'cli.run(main)\n')
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True,
+                          text=True, timeout=120, cwd=_ROOT,
+                          env=dict(os.environ, JAX_PLATFORMS='cpu'))
+    self.assertEqual(proc.returncode, 143, proc.stderr[-2000:])
+    self.assertIn('error: terminated (SIGTERM)', proc.stderr)
+    self.assertNotIn('ran on', proc.stdout)
+
+  def test_a_terminated_parent_lets_its_child_end_in_order(self):
+    # benchmark_pipeline's experiments.simulate runs: subprocess.run
+    # SIGKILLed the child 0.25 s after the parent's interruption, so the
+    # child lost the frames and report.json it would have written.
+    child = ('import signal, sys, time\n'
+             'def bye(*_):\n'
+             '  time.sleep(0.5)\n'
+             '  open(sys.argv[1], "w").write("closed")\n'
+             '  sys.exit(0)\n'
+             'signal.signal(signal.SIGTERM, bye)\n'
+             'print("ready", flush=True)\n'
+             'time.sleep(30)\n')
+    with tempfile.TemporaryDirectory() as d:
+      done = os.path.join(d, 'done')
+      timer = threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGTERM))
+      with cli._sigterm_as_interrupt():  # noqa: SLF001
+        timer.start()
+        with self.assertRaises(cli.Terminated):
+          cli.run_child([sys.executable, '-c', child, done])
+      timer.join()
+      with open(done) as f:
+        self.assertEqual(f.read(), 'closed')
 
   def test_unknown_config_field_is_one_line_exit_2(self):
     # ml_collections applies --config.* overrides while the script's flag

@@ -14,8 +14,11 @@ platform got, and check on the CPU that the two forms agree in value.
 """
 
 import dataclasses
+import os
 import pathlib
 import re
+import subprocess
+import sys
 import tempfile
 
 import jax
@@ -400,6 +403,19 @@ class XlaCpuTuningTest(absltest.TestCase):
         env = {}
         self.assertFalse(platforms.tune_xla_cpu(env))  # flag not known
         self.assertEqual(env, {})
+    # In a fresh process, importing the package is enough: the reduction
+    # compiles without YNNPACK (its fusion kind named in the program).
+    code = ('import physsplat_jax, jax, jax.numpy as jnp, jaxlib, os\n'
+            'y = jnp.ones((6000, 27, 4))\n'
+            't = jax.jit(lambda y: (y * y).sum(1)).lower(y).compile()\n'
+            'print(jaxlib.__version__, t.as_text().count("__ynn_fusion"))\n')
+    env = {k: v for k, v in os.environ.items()
+           if k not in ('XLA_FLAGS', platforms.OPT_OUT)}
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True,
+                         text=True, timeout=120, check=True,
+                         env=dict(env, JAX_PLATFORMS='cpu')).stdout.split()
+    if out[0] in platforms._CPU_FLAG_JAXLIB:  # noqa: SLF001
+      self.assertEqual(out[1], '0')
     # This process's backends have started: too late to apply.
     jax.devices()
     env = {}

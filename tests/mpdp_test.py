@@ -396,6 +396,30 @@ class TrainTest(absltest.TestCase):
         self.assertEqual([json.loads(line)['step'] for line in f],
                          [1, 2, 3, 4])
 
+      # Where a signal usually lands: after the 4th step's call returned,
+      # before its result is assigned. The state of step 3 must still be
+      # there to save (a donated state was deleted: nothing was saved).
+      compile_step = train_lib._compile_step  # noqa: SLF001
+
+      def cut_after_4th_call(step):
+        jitted, calls = compile_step(step), []
+
+        def call(*args):
+          out = jitted(*args)
+          calls.append(1)
+          if len(calls) == 4:
+            raise KeyboardInterrupt
+          return out
+        return call
+
+      late = os.path.join(tmp, 'late')
+      with absltest.mock.patch.object(train_lib, '_compile_step',
+                                      cut_after_4th_call), \
+          self.assertLogs(level='WARNING') as logs, \
+          self.assertRaises(KeyboardInterrupt):
+        train_lib.train_and_evaluate(config, late)
+      self.assertIn('interrupted: step 3 saved', logs.output[-1])
+
   def test_bad_settings_and_a_diverging_run_stop_with_a_message(self):
     # A NaN learning rate used to train to a NaN checkpoint, exit 0.
     # A negative seed was NumPy's ValueError from inside the data or batch

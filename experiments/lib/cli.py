@@ -21,6 +21,7 @@ import os
 import platform
 import re
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -408,6 +409,48 @@ class Terminated(KeyboardInterrupt):
   step it reached. The process then exits with 143 (128 + SIGTERM)."""
 
 
+def _raise_terminated(signum, frame):
+  del signum, frame
+  raise Terminated('SIGTERM')
+
+
+_SIGTERM_CAUGHT = False  # inside guard's _sigterm_as_interrupt
+
+
+def catch_sigterm() -> None:
+  """Installs the SIGTERM handler of :func:`guard` again, inside a guarded
+  script, after something replaced it at the C level: ``jax.distributed``'s
+  preemption service installs its own, which swallowed SIGTERM (the
+  process ran on until SIGKILL) while ``signal.getsignal`` still named
+  ours. Nothing outside a guard or off the main thread."""
+  if (_SIGTERM_CAUGHT
+      and threading.current_thread() is threading.main_thread()):
+    signal.signal(signal.SIGTERM, _raise_terminated)
+
+
+def run_child(cmd, **kwargs) -> subprocess.CompletedProcess:
+  """``subprocess.run(cmd, capture_output=True, text=True, **kwargs)``
+  that hands an interruption on to the child: on Ctrl-C or SIGTERM
+  (:class:`Terminated`) the child gets the same signal and up to 30 s to
+  end in order (a guarded script closes its writers and writes
+  ``report.json``) before it is killed; ``subprocess.run`` killed it
+  after 0.25 s."""
+  with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                        text=True, **kwargs) as p:
+    try:
+      out, err = p.communicate()
+    except KeyboardInterrupt as e:
+      p.send_signal(signal.SIGTERM if isinstance(e, Terminated)
+                    else signal.SIGINT)
+      try:
+        p.communicate(timeout=30)
+      except subprocess.TimeoutExpired:
+        p.kill()
+        p.communicate()
+      raise
+  return subprocess.CompletedProcess(cmd, p.returncode, out, err)
+
+
 @contextlib.contextmanager
 def _sigterm_as_interrupt():
   """SIGTERM raises :class:`Terminated` in the main thread while the block
@@ -415,19 +458,17 @@ def _sigterm_as_interrupt():
   writers, ``report.json`` and training since the last checkpoint were
   lost). Left alone outside the main thread or where someone else set a
   handler."""
+  global _SIGTERM_CAUGHT
   if (threading.current_thread() is not threading.main_thread()
       or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
     yield
     return
-
-  def handler(signum, frame):
-    del signum, frame
-    raise Terminated('SIGTERM')
-
-  signal.signal(signal.SIGTERM, handler)
+  signal.signal(signal.SIGTERM, _raise_terminated)
+  _SIGTERM_CAUGHT = True
   try:
     yield
   finally:
+    _SIGTERM_CAUGHT = False
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 

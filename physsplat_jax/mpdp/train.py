@@ -435,15 +435,21 @@ def _placed_like(restored, template):
   return restored
 
 
+def _compile_step(step):
+  return jax.jit(step)
+
+
 def save_interrupted(mngr: ocp.CheckpointManager, state) -> int | None:
   """On an interruption (Ctrl-C, or the experiment scripts' SIGTERM), the
   state of the last finished step saved as a checkpoint, so that a rerun in
   the same workdir resumes there instead of at the last periodic
   checkpoint (up to ``checkpoint_every - 1`` steps earlier).
 
-  Nothing is saved when that step is saved already, when the state is not
-  finite, or when the interruption came inside a step whose call had
-  consumed (donated) the state. Returns the step saved, or None.
+  Nothing is saved when that step is saved already or the state is not
+  finite (nor when a step that donated its state was cut off: the training
+  loops here do not donate, so that an interruption between a step's
+  return and its assignment leaves the step before). Returns the step
+  saved, or None.
   """
   leaves = jax.tree.leaves(state)
   if any(getattr(a, 'is_deleted', lambda: False)() for a in leaves):
@@ -506,7 +512,9 @@ def train_and_evaluate(config, workdir: str) -> dict:
   state = {'step': jnp.asarray(0, jnp.int32), 'params': params,
            'opt_state': tx.init(params)}
   loss_fn = make_loss(mcfg, tuple(tc.channel_weights))
-  step_fn = jax.jit(make_train_step(loss_fn, tx), donate_argnums=0)
+  # (Not donated: an interruption between the step's return and the
+  # assignment would leave `state` deleted and nothing to save.)
+  step_fn = _compile_step(make_train_step(loss_fn, tx))
 
   options = ocp.CheckpointManagerOptions(max_to_keep=tc.max_to_keep,
                                          create=True)
