@@ -379,7 +379,7 @@ class SimConfig:
     body_fixed: per-body flag (length ``num_bodies``): fixed bodies never
       move (tables, pots).
     remat_frames: ``jax.checkpoint`` each frame (backward memory grows with
-      frames, not substeps).
+      frames, not substeps; False: far more memory, docs/mpm.md).
     sort_particles: sort particles by grid cell at the start of every frame
       (better memory locality in the scatter; transparent to callers).
     dtype: 'float32' or 'float64'.

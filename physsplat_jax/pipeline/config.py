@@ -380,7 +380,10 @@ class SimulateConfig:
     use_mpdp: per-point material fields from MPDP (else uniform means).
     render: :class:`RenderMode`.
     render_config: static rasterizer settings.
-    remat_frames: ``jax.checkpoint`` each frame (memory ~ frames).
+    remat_frames: ``jax.checkpoint`` each frame (memory ~ frames). False
+      stores every substep's residuals: the tabletop's two-frame
+      gradient took 9.1 GB of temporaries and 1.5x the time on the CPU
+      (docs/mpm.md); keep True unless the rollout is a few substeps.
     constitutive_kernel: the MPM stress update: 'auto' (one Pallas kernel
       on a CUDA GPU, pure JAX elsewhere), 'jax' or 'pallas'
       (``mpm.SimConfig.constitutive_kernel``).
