@@ -414,17 +414,15 @@ def _raise_terminated(signum, frame):
   raise Terminated('SIGTERM')
 
 
-_SIGTERM_CAUGHT = False  # inside guard's _sigterm_as_interrupt
-
-
 def catch_sigterm() -> None:
   """Installs the SIGTERM handler of :func:`guard` again, inside a guarded
   script, after something replaced it at the C level: ``jax.distributed``'s
   preemption service installs its own, which swallowed SIGTERM (the
   process ran on until SIGKILL) while ``signal.getsignal`` still named
-  ours. Nothing outside a guard or off the main thread."""
-  if (_SIGTERM_CAUGHT
-      and threading.current_thread() is threading.main_thread()):
+  ours. Nothing outside a guard (where Python's handler is another) or off
+  the main thread."""
+  if (threading.current_thread() is threading.main_thread()
+      and signal.getsignal(signal.SIGTERM) is _raise_terminated):
     signal.signal(signal.SIGTERM, _raise_terminated)
 
 
@@ -458,17 +456,14 @@ def _sigterm_as_interrupt():
   writers, ``report.json`` and training since the last checkpoint were
   lost). Left alone outside the main thread or where someone else set a
   handler."""
-  global _SIGTERM_CAUGHT
   if (threading.current_thread() is not threading.main_thread()
       or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
     yield
     return
   signal.signal(signal.SIGTERM, _raise_terminated)
-  _SIGTERM_CAUGHT = True
   try:
     yield
   finally:
-    _SIGTERM_CAUGHT = False
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
