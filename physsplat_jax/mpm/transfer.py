@@ -217,6 +217,33 @@ def materialize(a, like=None):
                                       default=lambda b, _: b)
 
 
+def _transpose_stop_gradient():
+  """Gives JAX's ``stop_gradient`` a transpose (a zero cotangent) where it
+  has none.
+
+  Batched by ``jax.vmap`` (a batch of scenes), :func:`materialize`'s
+  conditional becomes a select whose operands JAX passes through
+  ``stop_gradient`` (the untaken branch). For the tangent that
+  :func:`materialize_cotangent` materializes, that puts ``stop_gradient``
+  on a linear value, and ``jax.grad`` of a vmapped rollout raised
+  "Transpose rule ... for 'stop_gradient' not implemented" (the batch and
+  particle-sharded gradients of MPDP training). The untaken branch's
+  cotangent is zero, which is what the rule returns. (Internal JAX names:
+  where they have moved, nothing is registered.)
+  """
+  try:
+    from jax._src import ad_util  # noqa: PLC0415
+    from jax._src.interpreters import ad  # noqa: PLC0415
+    prim = ad_util.stop_gradient_p
+  except (ImportError, AttributeError):
+    return
+  if prim not in ad.primitive_transposes:
+    ad.primitive_transposes[prim] = lambda ct, x: [ad.Zero(x.aval)]
+
+
+_transpose_stop_gradient()
+
+
 @jax.custom_jvp
 def materialize_cotangent(a):
   """``a`` itself; in the reverse pass its cotangent is computed once into
