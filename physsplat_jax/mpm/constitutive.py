@@ -125,13 +125,27 @@ def _log_sig(s):
   return tuple(jnp.log(jnp.maximum(x, _SIG_FLOOR)) for x in s)
 
 
+def _norm3(v):
+  """``sqrt(|v|^2 + tiny)``, with derivatives of every order finite at 0.
+
+  The floor keeps the value and the first derivative finite at ``v = 0``
+  (F = I), but the second derivative of the floored norm is ``1 / n`` and
+  its third ``1 / n^3``, which overflow there (``jax.hessian`` of the von
+  Mises family was NaN from rest). Below ``|v|^2 = 1e-30`` the norm is held
+  constant instead (derivative 0, the least-norm subgradient of ``|v|`` at
+  0); the value is the same bit for bit.
+  """
+  n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+  tiny = jnp.finfo(n2.dtype).tiny
+  far = n2 > _N2_MIN
+  return jnp.where(far, jnp.sqrt(jnp.where(far, n2, 1.0) + tiny),
+                   jnp.sqrt(jax.lax.stop_gradient(n2) + tiny))
+
+
 def _dev(e):
   tr = e[0] + e[1] + e[2]
   eh = tuple(x - tr / 3.0 for x in e)
-  # Norm with a floor so that d|e^| stays finite at e^ = 0 (F = I).
-  n = jnp.sqrt(eh[0] * eh[0] + eh[1] * eh[1] + eh[2] * eh[2]
-               + jnp.finfo(tr.dtype).tiny)
-  return tr, eh, n
+  return tr, eh, _norm3(eh)
 
 
 def _hencky_k(e, mu, lam):
@@ -188,7 +202,7 @@ def _von_mises_core(s, p, softening, damage):
     ys = jnp.maximum(ys, 0.0)
   dg = n - ys / (2.0 * mu)
   plastic = (dg > 0.0) & (ys > 0.0) if damage else dg > 0.0
-  f = jnp.where(plastic, dg / n, 0.0)
+  f = jnp.where(plastic, dg / jnp.where(plastic, n, 1.0), 0.0)
   e_new = tuple(x - f * y for x, y in zip(e, eh))
   s_new = tuple(jnp.where(plastic, jnp.exp(x), y) for x, y in zip(e_new, s))
   ep = p['ep'] + jnp.where(plastic, dg, 0.0)
@@ -232,10 +246,9 @@ def _drucker_prager(s, p):
   # dg > 0 there and select the cone formula, whose derivative at the apex
   # is meaningless).
   cone = (~tip) & (dg > 0.0) & (jax.lax.stop_gradient(n * n) > _N2_MIN)
-  f = jnp.where(cone, dg / n, 0.0)
+  f = jnp.where(cone, dg / jnp.where(cone, n, 1.0), 0.0)
   e_new = tuple(jnp.where(tip, 0.0, x - f * y) for x, y in zip(e, eh))
-  e_norm = jnp.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
-                    + jnp.finfo(tr.dtype).tiny)
+  e_norm = _norm3(e)
   dq = jnp.where(tip, e_norm, jnp.where(cone, dg, 0.0))
   # The correction is spent (log Jp -> 0) once the state is elastic or on
   # the cone (both keep the corrected trace); at the apex the whole trace
@@ -281,7 +294,9 @@ def _viscoplastic(s, p, eta, bingham):
     mu_hat = mu * (sc[0] * sc[0] + sc[1] * sc[1] + sc[2] * sc[2]) / 3.0
     relax = 1.0 + eta / (2.0 * mu_hat * p['dt'])
   new_norm = s_norm - y / relax
-  f = jnp.where(plastic, new_norm / s_norm, 1.0)
+  # Divided only where plastic: at F = I, s_norm ~ 1e-150 and the second
+  # derivative of the unused quotient would be 0 * inf.
+  f = jnp.where(plastic, new_norm / jnp.where(plastic, s_norm, 1.0), 1.0)
   e_new = tuple(f * y_ + tr / 3.0 for y_ in eh)
   s_new = tuple(jnp.where(plastic, jnp.exp(x), y_) for x, y_ in zip(e_new, s))
   ep = p['ep'] + jnp.where(plastic, (1.0 - f) * n, 0.0)

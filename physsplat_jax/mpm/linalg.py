@@ -52,7 +52,12 @@ Every rule here is a custom JVP, linear in the tangents: forward mode
 differentiated in turn (``jax.hessian``): exactly through
 :func:`polar_mat`, also at F = I; through :func:`make_spectral_map` where
 the singular values are distinct (its rule evaluates :func:`svd_mat`,
-whose own derivative is a custom JVP), not at exactly repeated ones.
+whose own derivative is a custom JVP), not at exactly repeated ones. Inside
+``lax.scan`` (a rollout) take them reverse over forward (``jacrev`` of
+``jacfwd``, ``grad`` of ``jvp``): forward over reverse, JAX has inlined the
+primal functions of the rules when it partially evaluated the scan body for
+the reverse pass, and the second pass differentiates the Jacobi sweeps
+(NaN where a pair has converged; docs/mpm.md).
 """
 
 from __future__ import annotations
