@@ -109,11 +109,9 @@ class ConstitutiveHessianTest(absltest.TestCase):
       for m in mpm.constitutive.SVD_MODELS:
         mat = mpm.make_materials(m, 2e4, 0.3, 1000.0, num=2,
                                  dtype=jnp.float64)
-        mu, lam = mat.lame()
-        p = {'mu': mu, 'lam': lam, 'Jp': jnp.ones(2), 'ep': jnp.zeros(2),
-             'dt': jnp.full(2, 1e-4)}
-        for f in mpm.constitutive.MODEL_PARAMS[m]:
-          p[f] = getattr(mat, f)
+        p = mpm.constitutive.spectral_params(
+          (m,), (m,), None, mat, *mat.lame(), jnp.ones(2), jnp.zeros(2),
+          1e-4)
 
         def g(s, p, m=m):
           h, k, aux = mpm.constitutive._SPECTRAL[m](tuple(s), p)
@@ -192,6 +190,7 @@ class VmapGradTest(absltest.TestCase):
     each = jnp.stack([jax.jit(jax.grad(loss))(e) for e in scales])
     self.assertTrue(np.all(np.asarray(each) != 0))
     np.testing.assert_allclose(batched, each, rtol=1e-5)
+
 
 if __name__ == '__main__':
   absltest.main()

@@ -343,6 +343,22 @@ def jax_tree_where(c, a, b):
   return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
 
 
+def spectral_params(svd_models, models, model_id, mat, mu, lam, Jp, ep, dt):
+  """The parameters ``p`` of the spectral maps ``fn(s, p)`` of
+  ``svd_models`` (a sub-tuple of ``models``): the (N,) Lame parameters
+  ``mu, lam`` (``mat.lame()``), the plastic state, the substep and each
+  model's own fields of ``mat``, and with more than one model a 0/1
+  selector ``sel_<model>`` per model from ``model_id`` (an index into
+  ``models``)."""
+  p = {'mu': mu, 'lam': lam, 'Jp': Jp, 'ep': ep, 'dt': jnp.full_like(mu, dt)}
+  for m in svd_models:
+    for f in _PARAMS[m]:
+      p[f] = getattr(mat, f)
+    if len(svd_models) > 1:
+      p['sel_' + m] = (model_id == models.index(m)).astype(mu.dtype)
+  return p
+
+
 def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
                         zero_stress=None):
   """Return mapping and Kirchhoff stress for all models present.
@@ -381,13 +397,8 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
     svd_models = tuple(m for m in models
                        if m in SVD_MODELS or m in SPECTRAL_ELASTIC)
   if svd_models:
-    p = {'mu': mu, 'lam': lam, 'Jp': Jp, 'ep': ep,
-         'dt': jnp.full_like(mu, dt)}
-    for m in svd_models:
-      for f in _PARAMS[m]:
-        p[f] = getattr(mat, f)
-      if len(svd_models) > 1:
-        p['sel_' + m] = (model_id == models.index(m)).astype(mu.dtype)
+    p = spectral_params(svd_models, models, model_id, mat, mu, lam, Jp, ep,
+                        dt)
     Fe, tau, aux = _spectral_map(svd_models)(F, p)
     r = (Fe, aux['Jp'], aux['ep'], tau)
     for m in svd_models:
