@@ -368,6 +368,71 @@ class MaskLiftingTest(absltest.TestCase):
     self.assertGreater(np.mean(s.object_ids == self.gt), _NOISY_MASK_ACCURACY)
 
 
+class MaskOcclusionTest(absltest.TestCase):
+  """A blob behind a wall, three views from the wall's side: the masks
+  label its hidden part (and the floor behind the wall) with the wall."""
+
+  @classmethod
+  def setUpClass(cls):
+    super().setUpClass()
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-1, 1, (300, 2)), np.zeros(300)]
+    yy, zz = np.meshgrid(np.linspace(-0.5, 0.5, 21), np.linspace(0.02, 0.4, 9))
+    wall = np.c_[np.full(yy.size, 0.35), yy.ravel(), zz.ravel()]
+    blob = _blob(rng, (0.0, 0.0, 0.3), 150, 0.22)
+    cls.gt = np.r_[np.zeros(len(floor)), np.ones(len(wall)),
+                   2 * np.ones(len(blob))].astype(int)
+    cls.g = concatenate_gaussians([
+      _gaussians(floor, opacity_logit=2.0),
+      _gaussians(wall, (1, 0, 0), scale=0.04, opacity_logit=4.0),
+      _gaussians(blob, (0, 0, 1), opacity_logit=2.0)])
+    cls.cams = []
+    for az in np.radians([-30.0, 0.0, 30.0]):
+      eye = np.array([2.2 * np.cos(az), 2.2 * np.sin(az), 0.45])
+      cls.cams.append(make_camera(
+        look_at(eye, np.array([0.0, 0.0, 0.25]), (0, 0, 1)), 60.0, 60.0,
+        64, 64))
+    cls.masks = []
+    for cam in cls.cams:
+      img, alpha, _ = render_reference(
+        np.asarray(cls.g.means), np.asarray(cls.g.covariances),
+        np.eye(3)[cls.gt], np.asarray(cls.g.opacities),
+        np.asarray(cam.viewmat), cam.fx, cam.fy, cam.cx, cam.cy, 64, 64,
+        cam.near, cam.far)
+      share = img.max(-1) / np.maximum(alpha, 1e-9)
+      cls.masks.append(np.where((alpha > 0.5) & (share > 0.6),
+                                img.argmax(-1), -1).astype(np.int32))
+
+  def test_unoccluded_weights_are_each_gaussian_drawn_alone(self):
+    cam = self.cams[1]
+    A = seg.unoccluded_weights(self.g, cam)
+    W = seg.contribution_weights(self.g, cam, self.masks[1], 3).sum(1)
+    self.assertTrue(np.all(W <= A * (1 + 1e-3) + 1e-7))
+    for k in (0, 310, 400, 480, 500, 628):
+      img, _, _ = render_reference(
+        np.asarray(self.g.means[k:k + 1]),
+        np.asarray(self.g.covariances[k:k + 1]), np.ones((1, 3)),
+        np.asarray(self.g.opacities[k:k + 1]), np.asarray(cam.viewmat),
+        cam.fx, cam.fy, cam.cx, cam.cy, 64, 64, cam.near, cam.far)
+      np.testing.assert_allclose(A[k], img[..., 0].sum(), rtol=1e-2,
+                                 atol=1e-6, err_msg=f'Gaussian {k}')
+    # Behind the wall (seen through it) the blob keeps a few per cent.
+    hidden = (self.gt == 2) & (np.asarray(self.g.means)[:, 2] < 0.3)
+    self.assertLess(np.median(W[hidden] / A[hidden]), 0.05)
+
+  def test_what_only_an_occluder_shows_is_not_given_its_label(self):
+    blob = self.gt == 2
+    old = seg.lift_masks(self.g, self.cams, self.masks, min_visibility=0.0)
+    new = seg.lift_masks(self.g, self.cams, self.masks)
+    # Voting through the wall gave most of the blob the wall's id.
+    self.assertLess(np.mean(old.object_ids[blob] == 2), 0.6)
+    self.assertGreater(np.mean(new.object_ids[blob] == 2), 0.8)
+    self.assertGreater(np.mean(new.object_ids == self.gt), 0.9)
+    with self.assertRaisesRegex(seg.SegmentationError,
+                                r'min_visibility=1\.5 .* \[0, 1\]'):
+      seg.lift_masks(self.g, self.cams, self.masks, min_visibility=1.5)
+
+
 class HoleFillingTest(absltest.TestCase):
 
   def test_hole_under_moved_object_is_covered(self):

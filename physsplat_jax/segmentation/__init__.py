@@ -33,3 +33,6 @@ from physsplat_jax.segmentation.masks import (
   contribution_weights as contribution_weights,
 )
 from physsplat_jax.segmentation.masks import lift_masks as lift_masks
+from physsplat_jax.segmentation.masks import (
+  unoccluded_weights as unoccluded_weights,
+)

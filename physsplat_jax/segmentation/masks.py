@@ -8,11 +8,7 @@ over the pixels that the view's mask gives label l::
 
 (``alpha_k(p) T_k(p)`` is exactly the weight of k's colour in pixel p, so
 an occluded Gaussian's say shrinks with the transmittance in front of it,
-and a Gaussian seen across a mask border splits its vote by area). Behind
-one opaque layer (alpha capped at 0.99) a Gaussian keeps about 1 % of its
-weight: a view that sees it outvotes the views that see it only through
-an occluder, but a Gaussian seen in no view except through one takes the
-occluder's label (raise ``min_weight`` to count it unseen instead). A view
+and a Gaussian seen across a mask border splits its vote by area). A view
 counts in proportion to the pixels a Gaussian covers there: closer or
 higher-resolution views weigh more. The renderer is linear in the
 per-Gaussian colours ``c``: ``image(p) = sum_k c_k alpha_k(p) T_k(p)``
@@ -22,11 +18,23 @@ of the image with the one-hot image of label l -- one reverse pass of
 per colour channel), exact with the renderer's semantics (tiles, alpha cap,
 early stop).
 
+A view votes for Gaussian k only where k is visible in it: its visible
+fraction ``sum_l W_v[k, l] / A_v[k]``, against its unoccluded weight
+``A_v[k] = sum_p alpha_k(p)`` (:func:`unoccluded_weights`: the same
+pass with every opacity, ``alpha_min`` and ``alpha_max`` scaled by 1e-4,
+so that nothing occludes and the same pixels count), must reach
+``min_visibility`` (5 %). The label of a pixel is that of the surface in
+front, so a Gaussian seen only through an occluder (behind one opaque
+layer it keeps under 1 % of its weight) would take the occluder's label:
+a wall's id on the object behind it, a cup's on the table under it. With
+the rule no view votes for it, and it is filled like an unseen Gaussian.
+
 Votes are summed over views; pixels without a label (-1) vote for
 "unlabelled". Gaussian k gets ``argmax_l sum_v W_v[k, l]`` if that beats its
 unlabelled weight, else background (-1). Gaussians seen in no view (total
-weight below ``min_weight``, e.g. the inside of an object) take the id of
-the nearest decided Gaussian (``fill_unseen='nearest'``) or stay background.
+weight of the views that vote for them below ``min_weight``: the inside of
+an object, what only an occluder shows) take the id of the nearest decided
+Gaussian (``fill_unseen='nearest'``) or stay background.
 Labels must be consistent across views (the same object has the same id in
 every mask, e.g. SAM masks with a tracker or hand-matched ids).
 """
@@ -114,6 +122,55 @@ def contribution_weights(
   onehot = np.zeros((G * 3, H, W), np.float32)
   onehot[cols, np.arange(H)[:, None], np.arange(W)[None, :]] = 1.0
   cot = onehot.reshape(G, 3, H, W).transpose(0, 2, 3, 1)
+  w = _vjp_weights(gaussians, camera, cot, config)
+  return w.transpose(1, 0, 2).reshape(-1, G * 3)[:, :L + 1]
+
+
+# Opacities and alpha bounds scaled by this make every transmittance
+# 1 - O(_UNOCCLUDED_SCALE * depth complexity) with the same pixels drawn.
+_UNOCCLUDED_SCALE = 1e-4
+
+
+def unoccluded_weights(
+  gaussians: Gaussians,
+  camera: Camera,
+  config: RenderConfig | None = None,
+) -> np.ndarray:
+  """Each Gaussian's weight in a view as if nothing were in front of it.
+
+  ``A[k] = sum_p alpha_k(p)`` over the pixels the renderer draws k in
+  (alpha cap, ``alpha_min``, tiles), with every transmittance 1. Against
+  :func:`contribution_weights` summed over labels (the same sum with the
+  transmittance ``T_k(p)``) it gives the fraction of k that the view sees.
+  Computed as the reverse pass of an image in which every opacity and
+  both alpha bounds are scaled by 1e-4: the same pixels are drawn and each
+  transmittance is ``1 - O(1e-4)`` per Gaussian in front.
+
+  Args:
+    gaussians: K Gaussians.
+    camera: the view.
+    config: renderer settings (as :func:`contribution_weights`).
+
+  Returns:
+    (K,) float64, 0 for Gaussians the view does not draw.
+  """
+  eps = _UNOCCLUDED_SCALE
+  dtype = gaussians.opacity_logits.dtype
+  log_o = jnp.log(eps) + jax.nn.log_sigmoid(gaussians.opacity_logits)
+  logits = (log_o - jnp.log1p(-jnp.exp(log_o))).astype(dtype)
+  faint = gaussians.replace(opacity_logits=logits)
+  config = config or RenderConfig()
+  if config.capacity is None or config.max_chunks is None:
+    config = fit_render_config(gaussians, camera.unlabelled(), config)
+  config = dataclasses.replace(config, alpha_min=config.alpha_min * eps,
+                               alpha_max=config.alpha_max * eps)
+  cot = np.ones((1, camera.height, camera.width, 3), np.float32)
+  return _vjp_weights(faint, camera, cot, config)[0, :, 0] / eps
+
+
+def _vjp_weights(gaussians, camera, cot, config) -> np.ndarray:
+  """(G, K, 3) reverse passes of the colours for G (H, W, 3) cotangents,
+  the render's capacity grown until it does not overflow."""
   cot = jnp.asarray(cot, gaussians.means.dtype)
   camera = camera.unlabelled()
   config = config or RenderConfig()
@@ -122,13 +179,10 @@ def contribution_weights(
   for _ in range(4):
     w, overflow = _weights_jit(gaussians, camera, cot, config)
     if not bool(overflow):
-      break
+      return np.asarray(w, np.float64)
     config = fit_render_config(gaussians, camera, config, margin=2.0)
-  else:
-    raise RuntimeError('contribution_weights: the renderer kept overflowing; '
-                       'pass a RenderConfig with a larger capacity')
-  w = np.asarray(w, np.float64).transpose(1, 0, 2).reshape(-1, G * 3)
-  return w[:, :L + 1]
+  raise RuntimeError('contribution_weights: the renderer kept overflowing; '
+                     'pass a RenderConfig with a larger capacity')
 
 
 def _check_aspect(i: int, cam: Camera, shape) -> None:
@@ -156,6 +210,7 @@ def lift_masks(
   names: Sequence[str] | None = None,
   num_labels: int | None = None,
   min_weight: float = 1e-3,
+  min_visibility: float = 0.05,
   fill_unseen: str = 'nearest',
   config: RenderConfig | None = None,
 ) -> Segmentation:
@@ -169,8 +224,12 @@ def lift_masks(
     masks: V (H, W) int label images (-1 = no object).
     names: object names by label (default ``'object_<l>'``).
     num_labels: L (default: largest label + 1, or ``len(names)`` if more).
-    min_weight: a Gaussian whose summed weight over all views is below this
-      counts as unseen.
+    min_weight: a Gaussian whose summed weight over the views that vote for
+      it is below this counts as unseen.
+    min_visibility: a view votes for a Gaussian only if this fraction of
+      its unoccluded weight reaches the image there (module doc); 0 lets
+      every view vote, so that what is seen only through an occluder
+      takes the occluder's label.
     fill_unseen: 'nearest' (id of the nearest decided Gaussian) or
       'background'.
     config: renderer settings.
@@ -186,6 +245,11 @@ def lift_masks(
     raise SegmentationError(
       f"fill_unseen must be 'nearest' or 'background', got "
       f'{fill_unseen!r}')
+  if not 0.0 <= min_visibility <= 1.0:
+    raise SegmentationError(
+      f'min_visibility={min_visibility!r} is a fraction of a Gaussian\'s '
+      'weight that a view must see: give a value in [0, 1] (default 0.05; '
+      '0 lets views vote through occluders)')
   for i, cam in enumerate(cameras):
     if not isinstance(cam, Camera):
       raise SegmentationError(
@@ -217,14 +281,20 @@ def lift_masks(
       m.shape[1], m.shape[0]) for cam, m in zip(cameras, masks)]
   config = shared_render_config(gaussians, cameras, config)
   total = np.zeros((gaussians.num, L + 1))
+  seen_any = False
   for i, (cam, m) in enumerate(zip(cameras, masks)):
     w = contribution_weights(gaussians, cam, m, L, config)
     if not w.sum() > 0:
       logging.warning('lift_masks: camera %d sees none of the %d Gaussians '
                       '(its mask is ignored); check its pose', i,
                       gaussians.num)
+      continue
+    seen_any = True
+    if min_visibility > 0:  # views vote only where they see the Gaussian
+      full = unoccluded_weights(gaussians, cam, config)
+      w = np.where((w.sum(1) >= min_visibility * full)[:, None], w, 0.0)
     total += w
-  if gaussians.num and not total.sum() > 0:
+  if gaussians.num and not seen_any:
     raise SegmentationError(
       f'lift_masks: none of the {len(cameras)} cameras sees any of the '
       f'{gaussians.num} Gaussians; check the cameras\' poses (world-to-'
