@@ -45,13 +45,22 @@ _IMPULSE = flags.DEFINE_multi_string(
 _POKE = flags.DEFINE_multi_string(
   'poke', None, 'NAME:ax,ay,az@x,y,z/r[@t0-t1] acceleration [m/s^2] of the '
   "object's particles within r [m] of a point (scene coordinates)")
-# The methods a command line can drive ('boxes' and 'masks' need arrays
-# that only the library call takes).
 _SEGMENT = flags.DEFINE_enum(
-  'segment', None, [m for m in segmentation.METHODS
-                    if m not in ('boxes', 'masks')],
-  'segment the scene first (default: keep its objects): auto (an object-id '
-  'property, else geometric), attribute or geometric')
+  'segment', None, list(segmentation.METHODS),
+  'segment the scene first (default: keep its objects): auto (--boxes or '
+  '--masks if given, else an object-id property, else geometric), '
+  'attribute, geometric, boxes (--boxes) or masks (--masks)')
+_BOXES = flags.DEFINE_string(
+  'boxes', None, 'JSON file of boxes, one object each: [{"name": "cup", '
+  '"box": [xmin, xmax, ymin, ymax, zmin, zmax], "fixed": false}, ...] in '
+  'the scene file\'s coordinates (implies --segment=boxes)')
+_MASKS = flags.DEFINE_string(
+  'masks', None, 'folder of label masks, one per camera, named after the '
+  'camera\'s image (IMG_0012.png): 0 = no object, v >= 1 = object v (or '
+  'one colour per object); lifted to the Gaussians (implies --segment=masks)')
+_MASK_NAMES = flags.DEFINE_list(
+  'mask_names', None, 'names of the objects of --masks, for values 1, 2, '
+  '... (default mask_1, mask_2, ...)')
 _UP = flags.DEFINE_string(
   'up_axis', None, "scene file: its up axis: x, y, z, -x, -y, -z, a "
   "direction 'x,y,z', or auto (default: from its sidecar, cameras or "
@@ -110,7 +119,8 @@ def main(argv):
   try:
     report = lib.run_scene(
       _SCENE.value, config, _OUT.value, objects=_OBJECTS.value or (),
-      ply=_PLY.value, segment=_SEGMENT.value,
+      ply=_PLY.value, segment=_segment_method(), boxes=_BOXES.value,
+      masks=_MASKS.value, mask_names=_MASK_NAMES.value,
       perception_options=lib.perception_options_from_flags(),
       scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
       mpdp_checkpoint=_MPDP.value, pipelined=_PIPELINED.value,
@@ -128,6 +138,30 @@ def main(argv):
             f'({got["device"]}): {got["wall_ms"]:.1f} ms wall and '
             f'{got["busy_ms"]:.1f} ms device-busy per frame, '
             f'{got["launches"]:.0f} kernels per frame')
+
+
+def _segment_method() -> str | None:
+  """--segment, implied by --boxes / --masks, checked against them."""
+  method = _SEGMENT.value
+  given = [f for f, v in (('boxes', _BOXES.value), ('masks', _MASKS.value))
+           if v is not None]
+  if len(given) > 1:
+    raise cli.usage_error('--boxes and --masks both given: segment with one '
+                          'of them')
+  if _MASK_NAMES.value and not _MASKS.value:
+    raise cli.usage_error('--mask_names names the objects of --masks; give '
+                          '--masks=FOLDER too')
+  if given:
+    if method not in (None, 'auto', given[0]):
+      raise cli.usage_error(
+        f'--segment={method} with --{given[0]}: drop --segment (--'
+        f'{given[0]} implies --segment={given[0]})')
+    return given[0]
+  if method in ('boxes', 'masks'):
+    what = ('--boxes=FILE.json' if method == 'boxes'
+            else '--masks=FOLDER of label images')
+    raise cli.usage_error(f'--segment={method} needs {what}')
+  return method
 
 
 # What a PhysGaussian JSON run takes from the command line besides the

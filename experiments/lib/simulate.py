@@ -13,6 +13,7 @@ from typing import Any, Sequence
 
 from absl import app
 from absl import flags
+from absl import logging
 from ml_collections import config_flags
 
 from physsplat_jax import cameras
@@ -22,6 +23,7 @@ from physsplat_jax import physgaussian
 from physsplat_jax import pipeline as pl
 from physsplat_jax import scenes
 from physsplat_jax.io import outputs
+from physsplat_jax.io import segment_inputs
 
 DEFAULT_CONFIG = os.path.join(os.path.dirname(os.path.dirname(__file__)),
                               'configs', 'simulate.py')
@@ -188,7 +190,10 @@ def load_mpdp(path: str | None):
 
 def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
               objects: Sequence[str] = (), ply: bool = False,
-              segment: str | None = None, perception_options=None,
+              segment: str | None = None, boxes: str | None = None,
+              masks: str | None = None,
+              mask_names: Sequence[str] | None = None,
+              perception_options=None,
               extra_report: dict | None = None,
               scene_options: dict | None = None,
               mpdp_checkpoint: str | None = None,
@@ -202,8 +207,12 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
   after each frame (``pipeline.run``). ``process`` (``start_s``: seconds
   from the process's start to the script's ``main``, ``main_t0``: its
   ``time.perf_counter()`` there) adds the report's ``process_seconds``: the
-  start (Python, imports), and the setup before the pipeline (config, JAX's
-  backend, reading the scene).
+  start (Python, imports), the setup before the pipeline (config, JAX's
+  backend, reading the scene) and, with ``segment``, the segmentation
+  (``segment``: reading its files, lifting masks). ``boxes`` (a JSON file) and ``masks`` (a
+  folder of label images, objects named ``mask_names``) are read by
+  :mod:`physsplat_jax.io.segment_inputs` for ``segment`` 'boxes' / 'masks'
+  (or 'auto').
   """
   outputs.check_output_dir(out)
   mpdp_params = load_mpdp(mpdp_checkpoint)
@@ -218,7 +227,17 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
   if 'details' in options:
     extra_report = {**(extra_report or {}), 'scene_frame': dict(
       details, meters_per_unit=scene.meters_per_unit)}
-  scene = pl.segment_stage(scene, segment)
+  t_seg = time.perf_counter()
+  inputs = {}
+  if boxes is not None:
+    inputs = segment_inputs.load_boxes(boxes)
+  if masks is not None:
+    cams, label_masks, names = segment_inputs.load_masks(
+      masks, scene.cameras, mask_names)
+    logging.info('masks: %d views, objects %s', len(cams), ', '.join(names))
+    inputs = dict(cameras=cams, masks=label_masks, names=names)
+  scene = pl.segment_stage(scene, segment, **inputs)
+  t_seg = time.perf_counter() - t_seg
   check_scene_objects(scene, objects, config)
   if objects:
     scene = pl.select_objects(scene, objects)
@@ -233,7 +252,9 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
     extra_report = {**(extra_report or {}), 'process_seconds': dict(
       start=None if process.get('start_s') is None
       else round(process['start_s'], 3),
-      setup=round(time.perf_counter() - process['main_t0'], 3))}
+      setup=round(time.perf_counter() - process['main_t0'] - t_seg, 3))}
+    if segment is not None:
+      extra_report['process_seconds']['segment'] = round(t_seg, 3)
   _, report = pl.simulate_scene(
     scene, config, out, perception_options=perception_options, ply=ply,
     extra_report=extra_report, mpdp_params=mpdp_params, pipelined=pipelined,

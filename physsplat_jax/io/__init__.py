@@ -4,7 +4,8 @@ The filesystem is touched only here (and in ``experiments/``). Outputs live
 in ``io.video`` (MP4/GIF/PNG, space-time slices), ``io.export`` (deformed
 Gaussians as per-frame PLY / .splat) and ``io.scene`` (scenes with object
 ids); ``io.arrays`` saves and loads pytrees of arrays (``Params``) as
-``.npz``; the MLLM client is ``io.mllm``.
+``.npz``; the MLLM client is ``io.mllm``; ``io.segment_inputs`` reads
+segmentation inputs (label masks per camera, boxes as JSON).
 """
 
 from physsplat_jax.io.arrays import TreeFileError as TreeFileError

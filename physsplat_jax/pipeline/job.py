@@ -40,16 +40,27 @@ def select_objects(scene: Scene, names: Sequence[str]) -> Scene:
   return scene.replace(objects=objs)
 
 
-def segment_stage(scene: Scene, method: str | None) -> Scene:
+def segment_stage(scene: Scene, method: str | None, **inputs) -> Scene:
   """Segments ``scene`` into objects with ``method`` (None: keep its own).
 
   Scenes that come segmented (built-ins, PLYs with an object-id property)
   keep their objects; a method ('auto', 'geometric', ...; see
   :mod:`physsplat_jax.segmentation`) replaces them.
+
+  Args:
+    scene: the scene.
+    method: a :data:`physsplat_jax.segmentation.METHODS` entry, or None.
+    **inputs: the method's inputs for :func:`physsplat_jax.segmentation.
+      segment`: ``boxes=`` (and ``names=``, ``fixed=``) for 'boxes',
+      ``masks=`` (and ``names=``; ``cameras=`` default the scene's) for
+      'masks' (:mod:`physsplat_jax.io.segment_inputs` reads both from files).
   """
   if method is None:
     return scene
-  seg = segmentation.segment(scene.gaussians, method, up=scene.up_vector)
+  if inputs.get('masks') is not None and inputs.get('cameras') is None:
+    inputs['cameras'] = scene.cameras
+  seg = segmentation.segment(scene.gaussians, method, up=scene.up_vector,
+                             **inputs)
   segmented = seg.to_scene(scene.gaussians, cameras=scene.cameras,
                            up_axis=scene.up_axis,
                            meters_per_unit=scene.meters_per_unit,
@@ -65,7 +76,8 @@ def segment_stage(scene: Scene, method: str | None) -> Scene:
       f'segmenting scene {scene.name!r} with {method!r} found '
       f'{found or "no object"}: nothing to move. Try another method '
       f'({", ".join(m for m in segmentation.METHODS if m != method)}; '
-      'boxes and masks take their boxes or masks in segmentation.segment), '
+      'boxes and masks need their boxes or masks: experiments.simulate '
+      '--boxes / --masks, segment_stage(..., boxes=) / (masks=)), '
       'or a scene whose objects stand apart from the support.')
   return segmented
 
@@ -262,8 +274,10 @@ def summary(report: dict) -> str:
   if proc:  # what a script spent before the pipeline (experiments.simulate)
     start = ('' if proc.get('start') is None
              else f'{proc["start"]:.1f} s to start (Python, imports), ')
+    seg = ('' if proc.get('segment') is None
+           else f', {proc["segment"]:.1f} s to segment it')
     lines.append(f'before it: {start}{proc.get("setup", 0.0):.1f} s to set '
-                 'up (config, JAX\'s backend, reading the scene)')
+                 f'up (config, JAX\'s backend, reading the scene){seg}')
   for f, p in sorted(report.get('files', {}).items()):
     lines.append(f'  {f}: {p}')
   return '\n'.join(lines)

@@ -283,6 +283,9 @@ def lift_masks(
   total = np.zeros((gaussians.num, L + 1))
   seen_any = False
   for i, (cam, m) in enumerate(zip(cameras, masks)):
+    if len(cameras) > 1:
+      logging.info('lift_masks: view %d/%d (%dx%d)', i + 1, len(cameras),
+                   m.shape[1], m.shape[0])
     w = contribution_weights(gaussians, cam, m, L, config)
     if not w.sum() > 0:
       logging.warning('lift_masks: camera %d sees none of the %d Gaussians '
