@@ -228,6 +228,24 @@ class MasksThroughThePipelineTest(absltest.TestCase):
                          names=names)
     np.testing.assert_array_equal(direct.object_ids, ids)
 
+  def test_segment_stage_takes_a_boxes_file(self):
+    from physsplat_jax import scenes
+    d = _tempdir(self)
+    gt = _two_blob_capture(d)
+    path = os.path.join(d, 'boxes.json')
+    with open(path, 'w', encoding='utf-8') as f:
+      json.dump([{'name': 'red', 'box': [0.15, 0.65, -0.25, 0.25, 0.0, 0.5]},
+                 {'name': 'floor', 'box': [-1, 1, -1, 1, -0.01, 0.01],
+                  'fixed': True}], f)
+    out = job.segment_stage(scenes.load_scene(d), 'boxes',
+                            **si.load_boxes(path))
+    self.assertEqual([(o.name, o.fixed) for o in out.objects],
+                     [('red', False), ('floor', True)])
+    ids = np.asarray(out.object_ids)
+    np.testing.assert_array_equal(ids[:200], 1)
+    np.testing.assert_array_equal(ids[gt == 0], 0)
+    np.testing.assert_array_equal(ids[gt == 1], -1)
+
   def test_the_script_simulates_the_objects_its_masks_name(self):
     with tempfile.TemporaryDirectory() as d:
       gt = _two_blob_capture(d)
