@@ -246,6 +246,23 @@ class MasksThroughThePipelineTest(absltest.TestCase):
     np.testing.assert_array_equal(ids[gt == 0], 0)
     np.testing.assert_array_equal(ids[gt == 1], -1)
 
+  def test_masks_on_a_scene_without_cameras_are_refused(self):
+    # load_scene fits an orbit to a bare PLY: masks paired with it in
+    # sorted order would have labelled the Gaussians at random.
+    from experiments.lib import simulate as lib
+    from physsplat_jax import pipeline as pl
+    d = _tempdir(self)
+    _two_blob_capture(d)
+    os.makedirs(os.path.join(d, 'alone'))
+    bare = os.path.join(d, 'alone', 'bare.ply')  # no cameras.json beside
+    os.rename(os.path.join(d, 'point_cloud', 'iteration_30000',
+                           'point_cloud.ply'), bare)
+    with self.assertRaisesRegex(pl.PipelineError, r'has no cameras of its '
+                                r'own \(an orbit was fitted\)'):
+      lib.run_scene(bare, pl.PipelineConfig(num_frames=1),
+                    os.path.join(d, 'out'), segment='masks',
+                    masks=os.path.join(d, 'masks'))
+
   def test_the_script_simulates_the_objects_its_masks_name(self):
     with tempfile.TemporaryDirectory() as d:
       gt = _two_blob_capture(d)

@@ -231,6 +231,13 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
   inputs = {}
   if boxes is not None:
     inputs = segment_inputs.load_boxes(boxes)
+  if masks is not None and options.get('details', {}).get(
+      'cameras') == 'fitted':
+    raise pl.PipelineError(
+      f'--masks={masks}: scene {scene_name} has no cameras of its own (an '
+      'orbit was fitted), so no mask can be placed; put the capture\'s '
+      'cameras.json (INRIA) or transforms.json beside the PLY, or give the '
+      'INRIA output folder as --scene')
   if masks is not None:
     cams, label_masks, names = segment_inputs.load_masks(
       masks, scene.cameras, mask_names)

@@ -297,7 +297,9 @@ def load_scene(path: str | PathLike, **options) -> Scene:
       ``height`` (image size of fitted cameras, default 384x288; file
       cameras are resized when given), ``fov_deg`` (fitted cameras),
       ``name``, ``dtype`` (float32), ``details`` (a dict that receives
-      how the up axis was chosen: ``UpGuess.to_dict()``).
+      how the up axis was chosen: ``UpGuess.to_dict()``, and where the
+      cameras came from: ``cameras`` 'file', 'sidecar', 'fitted' or
+      'none').
 
   Returns:
     A :class:`~physsplat_jax.types.Scene`.
@@ -504,6 +506,9 @@ def load_scene_file(
       )
     except _cameras.CameraError as e:
       raise SceneFileError(f'{path}: {e}') from None
+  if details is not None:  # (masks need the cameras they were taken with)
+    details['cameras'] = ('file' if from_file else 'sidecar' if exact
+                          else 'fitted' if cams else 'none')
   if meters_per_unit is None:
     meters_per_unit = side.get('meters_per_unit', 1.0) if side else 1.0
   if name is None:
