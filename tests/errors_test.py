@@ -155,6 +155,33 @@ class ErrorPathTest(absltest.TestCase):
     self.assertIn('error: terminated (SIGTERM)', proc.stderr)
     self.assertNotIn('ran on', proc.stdout)
 
+  def test_a_second_sigterm_lets_the_cleanup_finish(self):
+    # A second SIGTERM during the cleanup (writers closing, a checkpoint
+    # being saved) raised again and lost the output.
+    with tempfile.TemporaryDirectory() as d:
+      done = os.path.join(d, 'done')
+      code = (
+        'import os, signal, sys, time\n'
+        'from experiments.lib import cli\n'
+        'def main(argv):\n'
+        '  try:\n'
+        '    os.kill(os.getpid(), signal.SIGTERM)\n'
+        '    for _ in range(1000): time.sleep(0.01)\n'
+        '  finally:\n'
+        '    os.kill(os.getpid(), signal.SIGTERM)\n'
+        '    for _ in range(20): time.sleep(0.01)\n'
+        '    open(sys.argv[1], "w").write("closed")\n'
+        'cli.run(main)\n')
+      proc = subprocess.run([sys.executable, '-c', code, done],
+                            capture_output=True, text=True, timeout=120,
+                            cwd=_ROOT, env=dict(os.environ,
+                                                JAX_PLATFORMS='cpu'))
+      self.assertEqual(proc.returncode, 143, proc.stderr[-2000:])
+      self.assertIn('SIGTERM again: still closing', proc.stderr)
+      self.assertIn('error: terminated (SIGTERM)', proc.stderr)
+      with open(done) as f:
+        self.assertEqual(f.read(), 'closed')
+
   def test_a_terminated_parent_lets_its_child_end_in_order(self):
     # benchmark_pipeline's experiments.simulate runs: subprocess.run
     # SIGKILLed the child 0.25 s after the parent's interruption, so the

@@ -409,8 +409,25 @@ class Terminated(KeyboardInterrupt):
   step it reached. The process then exits with 143 (128 + SIGTERM)."""
 
 
+class _Term(threading.local):
+  raised = False  # a Terminated is on its way out: cleanup runs
+
+
+_TERM = _Term()
+
+
 def _raise_terminated(signum, frame):
+  """The first SIGTERM raises :class:`Terminated`; one more while that
+  unwinds (the writers closing, a checkpoint being saved) is only logged,
+  so the cleanup completes (it was interrupted, and the output lost).
+  Ctrl-C still interrupts it, and SIGKILL (a batch system's end after its
+  grace period) ends the process."""
   del signum, frame
+  if _TERM.raised:
+    logging.warning('SIGTERM again: still closing the outputs (Ctrl-C or '
+                    'SIGKILL ends at once, losing them)')
+    return
+  _TERM.raised = True
   raise Terminated('SIGTERM')
 
 
@@ -460,11 +477,13 @@ def _sigterm_as_interrupt():
       or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL):
     yield
     return
+  _TERM.raised = False
   signal.signal(signal.SIGTERM, _raise_terminated)
   try:
     yield
   finally:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _TERM.raised = False
 
 
 def process_age() -> float | None:
