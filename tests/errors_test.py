@@ -98,6 +98,23 @@ class ErrorPathTest(absltest.TestCase):
           app.UsageError, '--sizes=.*: give whole numbers >= 1'):
         cli.positive_ints('sizes', bad)
 
+  def test_out_of_memory_is_one_line_with_what_to_shrink(self):
+    # XLA's RESOURCE_EXHAUSTED came out as a JAX traceback.
+    try:
+      jax.jit(lambda: jnp.zeros((2 ** 44,), jnp.float32))().block_until_ready()
+    except RuntimeError as e:
+      oom = e
+    else:
+      self.skipTest('this machine allocated 64 TiB')
+    code, text = _run_guarded(oom)
+    self.assertEqual(code, 1)
+    self.assertRegex(text, r'^error: out of memory \(Out of memory '
+                     r'allocating 70368744177664 bytes\.\): .*'
+                     r'--config\.max_particles, --config\.grid_res')
+    self.assertEqual(text.count('\n'), 1)
+    with self.assertRaisesRegex(RuntimeError, 'something else'):
+      _run_guarded(RuntimeError('something else'))
+
   def test_usage_errors_exit_2(self):
     code, text = _run_guarded(app.UsageError('--poke: expected NAME:values'))
     self.assertEqual(code, 2)

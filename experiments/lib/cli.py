@@ -390,6 +390,12 @@ def guard(main, cpu_devices: int | None = None,
       logging.flush()
       print(f'error: {e}', file=sys.stderr)
       sys.exit(1)
+    except RuntimeError as e:
+      if _verbose() or 'RESOURCE_EXHAUSTED' not in str(e):
+        raise
+      logging.flush()
+      print(f'error: {out_of_memory_message(e)}', file=sys.stderr)
+      sys.exit(1)
     except Terminated:
       logging.flush()
       print('error: terminated (SIGTERM)', file=sys.stderr)
@@ -399,6 +405,19 @@ def guard(main, cpu_devices: int | None = None,
       sys.exit(130)
 
   return wrapped
+
+
+def out_of_memory_message(e: BaseException) -> str:
+  """One line for XLA's RESOURCE_EXHAUSTED (a run too large for the
+  device's memory): what XLA said and what to make smaller."""
+  said = str(e).strip().splitlines()[0] if str(e).strip() else ''
+  said = said.split('RESOURCE_EXHAUSTED:', 1)[-1].strip()
+  return (f'out of memory ({said[:200]}): the run holds more than the '
+          'device has. Make it smaller: --config.max_particles, '
+          '--config.grid_res, --config.width / --config.height (frames '
+          'rendered), fewer frames or substeps per differentiated call; '
+          'or free the device (another process on the GPU: '
+          'XLA_PYTHON_CLIENT_PREALLOCATE=false). --debug shows where')
 
 
 class Terminated(KeyboardInterrupt):
