@@ -48,7 +48,8 @@ _POKE = flags.DEFINE_multi_string(
 _SEGMENT = flags.DEFINE_enum(
   'segment', None, list(segmentation.METHODS),
   'segment the scene first (default: keep its objects): auto (--boxes or '
-  '--masks if given, else an object-id property, else geometric), '
+  '--masks if given, else the objects of an object-id property, else '
+  'geometric), '
   'attribute, geometric, boxes (--boxes) or masks (--masks)')
 _BOXES = flags.DEFINE_string(
   'boxes', None, 'JSON file of boxes, one object each: [{"name": "cup", '

@@ -246,6 +246,29 @@ class MasksThroughThePipelineTest(absltest.TestCase):
     np.testing.assert_array_equal(ids[gt == 0], 0)
     np.testing.assert_array_equal(ids[gt == 1], -1)
 
+  def test_attribute_and_auto_keep_the_ids_the_file_gave(self):
+    # load_scene moves the object-id property into object_ids: 'attribute'
+    # then found none and 'auto' re-segmented geometrically.
+    from physsplat_jax import scenes
+    d = _tempdir(self)
+    _two_blob_capture(d)
+    ply = os.path.join(d, 'point_cloud', 'iteration_30000', 'point_cloud.ply')
+    from physsplat_jax.io.ply import load_ply
+    g = load_ply(ply)
+    ids = np.r_[np.zeros(200), np.ones(80), 2 * np.ones(80)].astype(np.int32)
+    save_ply(ply, g.replace(extras={'object_id': ids}))
+    scene = scenes.load_scene(d)
+    for method in ('attribute', 'auto'):
+      out = job.segment_stage(scene, method)
+      self.assertLen(out.objects, 3, method)
+      np.testing.assert_array_equal(np.asarray(out.object_ids), ids)
+    bare = scene.replace(object_ids=np.zeros(360, np.int32),
+                         objects=scene.objects[:1])
+    bare = bare.replace(objects=(bare.objects[0].__class__('bare'),))
+    with self.assertRaisesRegex(seg.SegmentationError,
+                                'no object-id property'):
+      job.segment_stage(bare, 'attribute')
+
   def test_masks_on_a_scene_without_cameras_are_refused(self):
     # load_scene fits an orbit to a bare PLY: masks paired with it in
     # sorted order would have labelled the Gaussians at random.

@@ -25,6 +25,7 @@ from physsplat_jax.pipeline.host import RunOutput
 from physsplat_jax.pipeline.host import run
 from physsplat_jax.pipeline.prepare import prepare_scene
 from physsplat_jax.pipeline.simulation import init_params
+from physsplat_jax.segmentation.attributes import find_attribute
 from physsplat_jax.types import Scene
 
 
@@ -57,6 +58,17 @@ def segment_stage(scene: Scene, method: str | None, **inputs) -> Scene:
   """
   if method is None:
     return scene
+  if (method in ('attribute', 'auto') and not inputs
+      and find_attribute(scene.gaussians) is None
+      and _segmented_on_load(scene)):
+    # load_scene moved the file's object-id property into object_ids (and
+    # out of the Gaussians' extras): 'attribute' found none, and 'auto'
+    # replaced the file's objects with the geometric method's.
+    logging.info('segment %r: scene %r keeps the %d objects of its '
+                 'object-id property (read when loaded): %s', method,
+                 scene.name, len(scene.objects),
+                 ', '.join(o.name for o in scene.objects))
+    return scene
   if inputs.get('masks') is not None and inputs.get('cameras') is None:
     inputs['cameras'] = scene.cameras
   seg = segmentation.segment(scene.gaussians, method, up=scene.up_vector,
@@ -80,6 +92,13 @@ def segment_stage(scene: Scene, method: str | None, **inputs) -> Scene:
       '--boxes / --masks, segment_stage(..., boxes=) / (masks=)), '
       'or a scene whose objects stand apart from the support.')
   return segmented
+
+
+def _segmented_on_load(scene: Scene) -> bool:
+  """The scene's objects came with it (a file's object-id property, a
+  sidecar, a built-in scene), not the single default object."""
+  return len(scene.objects) > 1 or any(
+    t.startswith('ply_id=') for o in scene.objects for t in o.tags)
 
 
 def simulate_scene(
