@@ -209,10 +209,10 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
   ``time.perf_counter()`` there) adds the report's ``process_seconds``: the
   start (Python, imports), the setup before the pipeline (config, JAX's
   backend, reading the scene) and, with ``segment``, the segmentation
-  (``segment``: reading its files, lifting masks). ``boxes`` (a JSON file) and ``masks`` (a
-  folder of label images, objects named ``mask_names``) are read by
-  :mod:`physsplat_jax.io.segment_inputs` for ``segment`` 'boxes' / 'masks'
-  (or 'auto').
+  (``segment``: reading its files, lifting masks). ``boxes`` (a JSON file)
+  and ``masks`` (a folder of label images, objects named ``mask_names``)
+  are read by :mod:`physsplat_jax.io.segment_inputs`; either implies its
+  ``segment`` method when ``segment`` is None.
   """
   outputs.check_output_dir(out)
   mpdp_params = load_mpdp(mpdp_checkpoint)
@@ -230,15 +230,16 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
   t_seg = time.perf_counter()
   inputs = {}
   if boxes is not None:
+    segment = segment or 'boxes'
     inputs = segment_inputs.load_boxes(boxes)
-  if masks is not None and options.get('details', {}).get(
-      'cameras') == 'fitted':
-    raise pl.PipelineError(
-      f'--masks={masks}: scene {scene_name} has no cameras of its own (an '
-      'orbit was fitted), so no mask can be placed; put the capture\'s '
-      'cameras.json (INRIA) or transforms.json beside the PLY, or give the '
-      'INRIA output folder as --scene')
   if masks is not None:
+    segment = segment or 'masks'
+    if options.get('details', {}).get('cameras') == 'fitted':
+      raise pl.PipelineError(
+        f'--masks={masks}: scene {scene_name} has no cameras of its own (an '
+        'orbit was fitted), so no mask can be placed; put the capture\'s '
+        'cameras.json (INRIA) or transforms.json beside the PLY, or give '
+        'the INRIA output folder as --scene')
     cams, label_masks, names = segment_inputs.load_masks(
       masks, scene.cameras, mask_names)
     logging.info('masks: %d views, objects %s', len(cams), ', '.join(names))

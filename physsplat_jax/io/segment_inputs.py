@@ -71,9 +71,10 @@ def _read_image(path: str) -> tuple[np.ndarray, str]:
         return np.where(a[..., 1] > 0, a[..., 0], 0).astype(np.int64), 'labels'
       rgba = np.asarray(im.convert('RGBA'))
   except OSError as e:
-    raise SegmentInputError(f'{path}: not an image Pillow reads ({e})') from None
+    raise SegmentInputError(
+      f'{path}: not an image Pillow reads ({e})') from None
   rgb = np.where(rgba[..., 3:] > 0, rgba[..., :3], 0)
-  if (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all():
+  if (rgb == rgb[..., :1]).all():
     return rgb[..., 0].astype(np.int64), 'labels'  # grey stored as RGB
   return rgb, 'colours'
 
