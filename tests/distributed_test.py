@@ -337,10 +337,26 @@ class BatchHelpersTest(absltest.TestCase):
                                     rho_scale=1.0, velocity=[1.0, 0.0, 0.0]))
     with self.assertRaisesRegex(ValueError, 'E_scale'):
       dist.sweep_params(base, E_scale=(0.0,))
-    with self.assertRaisesRegex(ValueError, '3 components'):
-      dist.sweep_params(base, velocity=[(1.0, 2.0)])
     with self.assertRaisesRegex(ValueError, 'velocity = \\[\\]'):
       dist.sweep_params(base, velocity=[])  # was NumPy's 'need at least one'
+    # One number, or one 3-vector, is a sweep of one value (they were
+    # Python TypeErrors).
+    one, table = dist.sweep_params(base, E_scale=2.0, velocity=(0, 0, 1))
+    self.assertLen(table, 1)
+    np.testing.assert_allclose(np.exp(one.log_scale[0, :, 0]), 2.0,
+                               rtol=1e-6)
+    np.testing.assert_allclose(one.velocity[0], [[0, 0, 1]] * 2)
+    for kwargs, message in (
+        (dict(E_scale=(0.0,)), 'E_scale = \\(0.0,\\); give one or more finite'),
+        (dict(nu_scale=float('inf')), 'nu_scale = inf'),
+        (dict(rho_scale=('a',)), 'rho_scale'),
+        (dict(rho_scale=(True,)), 'rho_scale'),
+        (dict(velocity=[(1.0, 2.0)]), 'must be 3 finite numbers'),
+        (dict(velocity=[(0, 0, float('nan'))]), 'must be 3 finite numbers'),
+        (dict(velocity=3.0), 'velocity 3.0 must be 3 finite')):
+      with self.subTest(**kwargs):
+        with self.assertRaisesRegex(dist.DistributedError, message):
+          dist.sweep_params(base, **kwargs)
 
 
   def test_sweep_substeps_cover_the_stiffest_item(self):

@@ -493,8 +493,19 @@ class HoleFillingTest(absltest.TestCase):
                   objects=(ObjectInfo('a'), ObjectInfo('b')))
     with self.assertRaisesRegex(ValueError, "object 1 \\('b'\\) has no"):
       seg.fill_support_hole(scene, 1)
-    with self.assertRaisesRegex(ValueError, 'out of range'):
+    with self.assertRaisesRegex(ValueError, r'object_index=5: .*\[0, 2\)'):
       seg.fill_support_hole(scene, 5)
+    for kwargs, message in (
+        (dict(support_index=1), 'is the object itself'),
+        (dict(support_index=2), r'support_index=2: .*-1 for the background'),
+        (dict(dilate=-1), r'dilate=-1: must be an integer >= 0'),
+        (dict(num_donors=0), r'num_donors=0: must be an integer >= 1'),
+        (dict(max_new=2.5), r'max_new=2.5: must be an integer'),
+        (dict(ring_width=0.0), r'ring_width=0.0: must be a positive length'),
+        (dict(ring_width=float('nan')), r'ring_width=nan')):
+      with self.subTest(**kwargs):
+        with self.assertRaisesRegex(seg.SegmentationError, message):
+          seg.fill_support_hole(scene, 1, **kwargs)
 
 
 if __name__ == '__main__':

@@ -23,9 +23,52 @@ from jax.sharding import Mesh
 from physsplat_jax import pipeline as pl
 from physsplat_jax.distributed import sharding as sh
 from physsplat_jax.distributed.runtime import DistributedError
+from physsplat_jax.values import is_number
+from physsplat_jax.values import is_real
 
 # vmap axes of a batch of Params: the MPDP weights are shared.
 PARAMS_AXES = pl.Params(mpdp=None, log_scale=0, velocity=0, forces=0)
+
+
+def _multipliers(name: str, vals) -> list[float]:
+  """``vals`` as a list of finite floats > 0 (a scalar is one item)."""
+  items = [vals] if is_number(vals) else vals
+  try:
+    out = [float(v) for v in items]
+    ok = bool(out) and all(is_real(v) and v > 0 for v in items)
+  except (TypeError, ValueError):
+    ok = False
+  if not ok:
+    raise DistributedError(
+      f'sweep_params: {name} = {vals!r}; give one or more finite '
+      'multipliers > 0 (a number or a list of numbers).')
+  return out
+
+
+def _velocities(velocity) -> list[tuple[float, float, float]]:
+  """``velocity`` as a list of 3-tuples of finite floats (one 3-vector is
+  one item)."""
+  items = np.asarray(velocity, dtype=object)
+  if items.ndim == 1 and items.size == 3 and all(is_number(c)
+                                                  for c in items):
+    velocity = [velocity]
+  if is_number(velocity) or isinstance(velocity, (str, bytes)):
+    velocity = [velocity]  # (refused below, with the item named)
+  if len(velocity) == 0:
+    raise DistributedError('sweep_params: velocity = []; give one or more '
+                           'velocities, or None to keep params.velocity.')
+  out = []
+  for v in velocity:
+    try:
+      ok = len(v) == 3 and all(is_real(c) for c in v)
+    except TypeError:
+      ok = False
+    if not ok:
+      raise DistributedError(
+        f'sweep_params: velocity {v!r} must be 3 finite numbers [m/s] '
+        '(e.g. (0, 0, 1)); give a list of them for several items.')
+    out.append(tuple(float(c) for c in v))
+  return out
 
 
 def sweep_params(
@@ -50,26 +93,18 @@ def sweep_params(
     len(rho_scale) * len(velocity)`` items (``mpdp`` shared: vmap with
     ``PARAMS_AXES``), and one dict per item with its settings.
 
+  A single number for a multiplier, or a single 3-vector for
+  ``velocity``, is a sweep of one value.
+
   Raises:
-    DistributedError: a non-positive multiplier, no velocities or a
-      velocity that is not 3 numbers.
+    DistributedError: a multiplier that is not a finite number > 0, no
+      velocities, or a velocity that is not 3 finite numbers.
   """
-  for name, vals in (('E_scale', E_scale), ('nu_scale', nu_scale),
-                     ('rho_scale', rho_scale)):
-    if not len(vals) or any(not float(v) > 0 for v in vals):
-      raise DistributedError(
-        f'sweep_params: {name} = {list(vals)}; give one or '
-        'more multipliers > 0.')
-  vels = [None] if velocity is None else [tuple(float(c) for c in v)
-                                          for v in velocity]
-  if not vels:
-    raise DistributedError('sweep_params: velocity = []; give one or more '
-                           'velocities, or None to keep params.velocity.')
-  for v in vels:
-    if v is not None and len(v) != 3:
-      raise DistributedError(
-        f'sweep_params: velocity {v} must have 3 components '
-        '[m/s].')
+  E_scale, nu_scale, rho_scale = (
+    _multipliers(name, vals) for name, vals in (
+      ('E_scale', E_scale), ('nu_scale', nu_scale),
+      ('rho_scale', rho_scale)))
+  vels = [None] if velocity is None else _velocities(velocity)
   base_ls = np.asarray(params.log_scale)
   base_v = np.asarray(params.velocity)
   ls, vs, table = [], [], []

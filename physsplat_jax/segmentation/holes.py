@@ -35,6 +35,8 @@ import scipy.spatial
 from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.types import Scene
 from physsplat_jax.types import concatenate_gaussians
+from physsplat_jax.values import is_int
+from physsplat_jax.values import is_real
 
 
 def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,6 +44,35 @@ def _plane_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
   e1 = np.cross(n, a)
   e1 /= np.linalg.norm(e1)
   return e1, np.cross(n, e1)
+
+
+def _check_fill_args(scene, object_index, support_index, ring_width, dilate,
+                     num_donors, max_new) -> None:
+  """Refuses arguments that would fail deep inside NumPy or be misread."""
+  n = scene.num_objects
+  if not is_int(object_index) or not 0 <= object_index < n:
+    raise SegmentationError(
+      f'object_index={object_index!r}: must be an object of the scene, an '
+      f'integer in [0, {n}) ({n} objects)')
+  if support_index is not None:
+    if not is_int(support_index) or not -1 <= support_index < n:
+      raise SegmentationError(
+        f'support_index={support_index!r}: must be another object, an '
+        f'integer in [0, {n}), or -1 for the background; or None to pick '
+        'the support automatically')
+    if support_index == object_index:
+      raise SegmentationError(
+        f'support_index={support_index} is the object itself; pass the '
+        'object it rests on (or -1 for the background, None to pick it)')
+  if ring_width is not None and not (is_real(ring_width) and ring_width > 0):
+    raise SegmentationError(
+      f'ring_width={ring_width!r}: must be a positive length in scene '
+      'units, or None for 30 % of the footprint\'s size')
+  for name, value, low in (('dilate', dilate, 0), ('num_donors', num_donors, 1),
+                           ('max_new', max_new, 1)):
+    if not is_int(value) or value < low:
+      raise SegmentationError(
+        f'{name}={value!r}: must be an integer >= {low}')
 
 
 def fill_support_hole(
@@ -73,13 +104,13 @@ def fill_support_hole(
     the support's id). If nothing needs filling the scene is returned as is.
 
   Raises:
-    ValueError: unknown object, no support Gaussians around the footprint,
-      or too many Gaussians to add.
+    SegmentationError (a ValueError): an argument out of range (unknown
+      object or support, the support being the object, ``ring_width`` not
+      positive, ``dilate`` < 0, ``num_donors`` or ``max_new`` < 1), no
+      support Gaussians around the footprint, or too many Gaussians to add.
   """
-  if not 0 <= object_index < scene.num_objects:
-    raise SegmentationError(
-      f'object_index {object_index} out of range (scene has '
-      f'{scene.num_objects} objects)')
+  _check_fill_args(scene, object_index, support_index, ring_width, dilate,
+                   num_donors, max_new)
   g = scene.gaussians
   ids = np.asarray(scene.object_ids)
   x = np.asarray(g.means, np.float64)
