@@ -25,6 +25,7 @@ import numpy as np
 
 from physsplat_jax import gaussians as gs
 from physsplat_jax.types import Array
+from physsplat_jax.types import DataError
 from physsplat_jax.types import sh_degree_from_bases
 
 
@@ -57,10 +58,14 @@ def rotate_sh(sh: Array, rotations: Array) -> Array:
     d)`` for every direction ``d`` (the DC term is unchanged).
   """
   if sh.ndim != 3 or sh.shape[-1] != 3:
-    raise ValueError(f'rotate_sh: sh has shape {sh.shape}; expected (K, B, 3)')
+    raise DataError(f'rotate_sh: sh has shape {sh.shape}; expected (K, B, 3)')
   degree = sh_degree_from_bases(sh.shape[1])
   if degree == 0:
     return sh
+  if jnp.shape(rotations) not in ((3, 3), (sh.shape[0], 3, 3)):
+    raise DataError(
+      f'rotate_sh: rotations has shape {jnp.shape(rotations)}; expected '
+      f'(3, 3) or (K, 3, 3) = ({sh.shape[0]}, 3, 3), one per Gaussian of sh')
   rotations = jnp.broadcast_to(rotations, (sh.shape[0], 3, 3))
   dirs, pinv = _fit_directions(degree)
   dirs = jnp.asarray(dirs, sh.dtype)

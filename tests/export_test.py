@@ -121,6 +121,11 @@ class ExportRenderTest(absltest.TestCase):
     np.testing.assert_allclose(out.log_scales, g.log_scales, atol=1e-3)
     np.testing.assert_allclose(out.means, np.asarray(g.means) @ Rm.T + t,
                                atol=1e-4)
+    # No Gaussians (an object emptied by a crop): an empty result, not
+    # range()'s 'arg 3 must not be zero'.
+    empty = export.deformed_gaussians(g.subset(np.zeros(g.num, bool)),
+                                      means[:0], covs[:0], R[:0])
+    self.assertEqual((empty.num, empty.sh.shape), (0, (0,) + g.sh.shape[1:]))
 
 
 class DecompositionTest(absltest.TestCase):

@@ -724,6 +724,16 @@ class ParsingTest(absltest.TestCase):
       ['steel', 'jelly'], 'a wobbly translucent green dessert', _LIB)
     self.assertEqual((key, method), ('jelly', 'text+rank'))
     self.assertTrue(all(0 <= v <= 1 for v in comb.values()))
+    with self.assertRaisesRegex(perception.PerceptionError, 'no candidates'):
+      perception.select_candidate([], 'a cube', _LIB)
+    with self.assertRaisesRegex(perception.PerceptionError,
+                                'three non-negative numbers'):
+      perception.select_candidate(['steel'], 'a cube', _LIB,
+                                  weights=(1.0, -1.0, 0.0))
+    # validate_properties' slacks as PerceptionOptions': factors >= 1
+    # (0.5 was accepted though the message said >= 1).
+    with self.assertRaisesRegex(perception.PerceptionError, 'E_slack=0.5'):
+      parsing.validate_properties('{}', _LIB['steel'], E_slack=0.5)
 
 
 class RenderViewTest(absltest.TestCase):

@@ -25,6 +25,7 @@ from physsplat_jax.render.config import RenderInputError
 from physsplat_jax.render import reference
 from physsplat_jax import sh_rotation
 from physsplat_jax.render import views
+from physsplat_jax.types import DataError
 from physsplat_jax.types import Scene
 from physsplat_jax.types import make_camera
 
@@ -683,6 +684,11 @@ class ShRotationTest(absltest.TestCase):
       with self.subTest(name):
         np.testing.assert_allclose(got, want, atol=1e-4)
         np.testing.assert_allclose(rot[:, 0], sh[:, 0], atol=1e-6)
+    # One rotation per Gaussian or one for all; else a message, not JAX's
+    # broadcast error.
+    with self.assertRaisesRegex(DataError, r'rotations has shape \(4, 3, 3\)'
+                                r'.*\(5, 3, 3\)'):
+      sh_rotation.rotate_sh(sh, R[:4])
 
 
 class ViewsTest(absltest.TestCase):

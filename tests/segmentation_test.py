@@ -71,6 +71,13 @@ class AttributeTest(parameterized.TestCase):
       g2 = load_ply(p)
     s = seg.segment(g2)  # auto picks the attribute
     self.assertEqual(s.method, 'attribute')
+    # An option of another method: a message naming why 'auto' chose the
+    # attribute and which method takes the option (a TypeError before).
+    with self.assertRaisesRegex(
+        seg.SegmentationError, r"option\(s\) \['eps'\] do not apply: 'auto' "
+        r"chose 'attribute' because the Gaussians carry an object-id "
+        r".*pass method='geometric'"):
+      seg.segment(g2, eps=0.1)
     self.assertEqual(s.names, ('object_2', 'object_5'))
     np.testing.assert_array_equal(
       s.object_ids, np.where(labels == 5, 1, np.where(labels == 2, 0, -1)))
@@ -85,6 +92,17 @@ class AttributeTest(parameterized.TestCase):
                                  background_values=(0,))
     self.assertEqual(s.names, ('cup', 'plate'))
     np.testing.assert_array_equal(s.object_ids, [-1, -1, 0, 0, 1, 1])
+    # Keys as a JSON file gives them (strings) name the same labels; they
+    # were ignored silently.
+    s = seg.segment_by_attribute(g, names={'1': 'cup', '3': 'plate'},
+                                 background_values=(0,))
+    self.assertEqual(s.names, ('cup', 'plate'))
+    for names, message in (({7: 'mug'}, r'label\(s\) \[7\] do not occur'),
+                           ({'cup': 'x'}, "key 'cup' is not a label value"),
+                           ('ab', "names='ab': give a list of names")):
+      with self.subTest(names=names), self.assertRaisesRegex(
+          seg.SegmentationError, message):
+        seg.segment_by_attribute(g, names=names, background_values=(0,))
 
   def test_errors(self):
     g = _gaussians(np.zeros((3, 3)))

@@ -269,7 +269,7 @@ def rotate_sh_batched(sh, rotations, batch: int = _SH_BATCH) -> np.ndarray:
   """
   sh = np.asarray(sh, np.float32)
   K, B, _ = sh.shape
-  if B == 1:
+  if B == 1 or K == 0:
     return sh
   R = np.asarray(rotations, np.float32)
   n = min(batch, K)

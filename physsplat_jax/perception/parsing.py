@@ -46,6 +46,7 @@ import re
 from collections.abc import Mapping
 
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.perception.checks import PerceptionError
 from physsplat_jax.perception.library import MaterialEntry
 from physsplat_jax.perception.library import MaterialLibrary
 
@@ -527,11 +528,12 @@ def validate_properties(text: str, entry: MaterialEntry,
 
   Raises:
     AnswerError: the answer has no JSON object at all.
+    PerceptionError: a slack below 1 (``nu_slack`` below 0).
   """
   for arg, v in (('E_slack', E_slack), ('rho_slack', rho_slack),
                  ('nu_slack', nu_slack + 1.0)):
-    if not v > 0:  # NaN too (E_slack=0 divided by zero)
-      raise ValueError(f'validate_properties: {arg}={v!r} must be a factor '
+    if not v >= 1:  # NaN too (E_slack=0 divided by zero)
+      raise PerceptionError(f'validate_properties: {arg}={v!r} must be a factor '
                        '>= 1 (nu_slack: >= 0); see PerceptionOptions')
   obj = extract_json(text)
   lib = library_properties(entry)

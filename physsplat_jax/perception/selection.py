@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+from physsplat_jax.perception.checks import PerceptionError
 from physsplat_jax.perception.library import MaterialLibrary
 
 DEFAULT_WEIGHTS = (0.6, 0.3, 0.1)
@@ -50,13 +51,13 @@ def select_candidate(
     'mllm_score+text+rank' or 'text+rank'.
 
   Raises:
-    ValueError: no candidates, or bad weights.
+    PerceptionError (a ValueError): no candidates, or bad weights.
   """
   keys = list(candidate_keys)
   if not keys:
-    raise ValueError('select_candidate: no candidates')
+    raise PerceptionError('select_candidate: no candidates')
   if len(weights) != 3 or min(weights) < 0 or sum(weights) <= 0:
-    raise ValueError(f'select_candidate: weights {weights} must be three '
+    raise PerceptionError(f'select_candidate: weights {weights} must be three '
                      'non-negative numbers, not all zero')
   w_v, w_t, w_r = weights
   method = 'mllm_score+text+rank'

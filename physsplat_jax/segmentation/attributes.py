@@ -88,9 +88,30 @@ def segment_by_attribute(
   if names is None:
     out_names = [f'object_{v}' for v in values]
   elif isinstance(names, Mapping):
-    out_names = [str(names.get(int(v), f'object_{v}')) for v in values]
+    by_value = {}
+    for k, name in names.items():
+      try:  # JSON keys are strings: {'3': 'cup'} means label 3
+        value = int(k)
+        ok = float(k) == value and not isinstance(k, bool)
+      except (TypeError, ValueError):
+        ok = False
+      if not ok:
+        raise SegmentationError(
+          f'names: key {k!r} is not a label value; key the names by the '
+          f"integer labels of property {key!r} ({list(values)[:8]}...)")
+      by_value[value] = str(name)
+    unused = sorted(set(by_value) - {int(v) for v in values})
+    if unused:
+      raise SegmentationError(
+        f'names: label(s) {unused} do not occur in property {key!r} '
+        f'(its labels are {list(values)}; background ones removed)')
+    out_names = [by_value.get(int(v), f'object_{v}') for v in values]
   else:
-    names = list(names)
+    if isinstance(names, (str, bytes)):
+      raise SegmentationError(
+        f'names={names!r}: give a list of names (one per label) or a '
+        'mapping label -> name, not one string')
+    names = [str(n) for n in names]
     if len(names) != len(values):
       raise SegmentationError(f'{len(names)} names for {len(values)} distinct '
                               f'labels {list(values)}')

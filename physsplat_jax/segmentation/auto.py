@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
 
 from physsplat_jax.segmentation.attributes import find_attribute
@@ -14,6 +15,32 @@ from physsplat_jax.segmentation.masks import lift_masks
 from physsplat_jax.types import Gaussians
 
 METHODS = ('auto', 'attribute', 'boxes', 'masks', 'geometric')
+
+_FUNCTIONS = dict(attribute=segment_by_attribute, boxes=segment_by_boxes,
+                  masks=lift_masks, geometric=segment_geometric)
+_WHY = dict(boxes='boxes= was given', masks='masks= was given',
+            attribute='the Gaussians carry an object-id property',
+            geometric='nothing else was given')
+
+
+def _check_options(method: str, kwargs, asked: str) -> None:
+  """Refuses options that the method's function does not take (a
+  TypeError from deep inside before), naming the method that takes them."""
+  params = inspect.signature(_FUNCTIONS[method]).parameters
+  taken = {n for n, p in params.items()
+           if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+  bad = sorted(set(kwargs) - taken)
+  if not bad:
+    return
+  owners = sorted(m for m, fn in _FUNCTIONS.items()
+                  if set(bad) <= set(inspect.signature(fn).parameters))
+  why = (f"'auto' chose '{method}' because {_WHY[method]}"
+         if asked == 'auto' else f"method '{method}'")
+  hint = (f"; pass method='{owners[0]}' for them" if owners else '')
+  raise SegmentationError(
+    f'segment: option(s) {bad} do not apply: {why}, which takes '
+    f'{sorted(taken - {"gaussians", "names", "boxes", "cameras", "masks"})}'
+    f'{hint}')
 
 
 def segment(
@@ -57,6 +84,9 @@ def segment(
       method = 'attribute'
     else:
       method = 'geometric'
+    _check_options(method, kwargs, 'auto')
+  else:
+    _check_options(method, kwargs, method)
   if method == 'attribute':
     return segment_by_attribute(gaussians, names=names, **kwargs)
   if method == 'boxes':

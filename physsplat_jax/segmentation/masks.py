@@ -52,6 +52,7 @@ import numpy as np
 import scipy.spatial
 from absl import logging
 
+from physsplat_jax.render import RenderCapacityError
 from physsplat_jax.render import RenderConfig
 from physsplat_jax.render import fit_render_config
 from physsplat_jax.render import render_differentiable
@@ -181,8 +182,10 @@ def _vjp_weights(gaussians, camera, cot, config) -> np.ndarray:
     if not bool(overflow):
       return np.asarray(w, np.float64)
     config = fit_render_config(gaussians, camera, config, margin=2.0)
-  raise RuntimeError('contribution_weights: the renderer kept overflowing; '
-                     'pass a RenderConfig with a larger capacity')
+  raise RenderCapacityError(
+    'contribution_weights: the renderer kept overflowing its tile lists '
+    'after growing them 4 times; pass a RenderConfig with a larger '
+    'capacity and max_chunks (render.fit_render_config(..., margin=4))')
 
 
 def _check_aspect(i: int, cam: Camera, shape) -> None:
