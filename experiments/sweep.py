@@ -314,13 +314,19 @@ def main(argv):
     f.scene, f.config, overrides, velocity=velocity,
     scales=dict(E_scale=scales['e_scale'], nu_scale=scales['nu_scale'],
                 rho_scale=scales['rho_scale']))
-  nu_max = float(np.max(np.asarray(prepared.means)[:, 1]))
-  if nu_max * max(scales['nu_scale']) >= 0.5:
+  from physsplat_jax.mpdp import NU_MAX
+
+  # (the deformable objects' means: a rigid body's nu is never used)
+  deform = ~np.asarray(prepared.spec.rigid, bool)
+  nus = np.asarray(prepared.means)[:, 1][deform]
+  nu_max = float(nus.max()) if nus.size else 0.0
+  if nu_max * max(scales['nu_scale']) > NU_MAX:
     raise cli.usage_error(
       f'--nu_scale={",".join(f.nu_scale)}: the largest Poisson ratio of the '
-      f'scene ({nu_max:.3g}) times {max(scales["nu_scale"]):g} reaches 0.5 '
-      f'(it would be clipped to 0.49 and recorded wrongly); use scales below '
-      f'{0.5 / nu_max:.3g}')
+      f'scene ({nu_max:.3g}) times {max(scales["nu_scale"]):g} exceeds '
+      f'{NU_MAX}, the largest one simulated (it would be clipped and the '
+      f'sweep would record a value it did not run); use scales up to '
+      f'{NU_MAX / nu_max:.3g}')
   axis = (dist.BATCH_AXIS if f.mode == 'batch' else dist.PARTICLE_AXIS)
   mesh = dist.make_mesh(f.num_devices, axis)
   result = run_sweep(prepared, params, config, mesh, scales['e_scale'],

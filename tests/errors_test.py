@@ -488,7 +488,9 @@ class ErrorPathTest(absltest.TestCase):
     for arg, want in (('--e_scale=1,-1', '--e_scale=1,-1: give numbers > 0'),
                       ('--rho_scale=nan', '--rho_scale=nan: give numbers'),
                       ('--num_devices=0', '--num_devices=0: give 1 to '),
-                      ('--num_devices=2', '--cpu_devices=N splits it')):
+                      ('--num_devices=2', '--cpu_devices=N splits it'),
+                      # 0.45 x 1.1 was clipped to 0.49 and recorded as run
+                      ('--nu_scale=1,1.1', 'exceeds 0.49, the largest one')):
       proc = subprocess.run(
         [sys.executable, '-m', 'experiments.sweep', '--out=/nonexistent',
          '--frames=1', arg], capture_output=True, text=True, check=False,
