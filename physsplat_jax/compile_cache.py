@@ -15,6 +15,7 @@ disables it), else ``$XDG_CACHE_HOME/physsplat_jax/jax`` (default
 from __future__ import annotations
 
 import os
+import tempfile
 
 import jax
 from absl import logging
@@ -52,9 +53,17 @@ def enable_compilation_cache(path: str | None = None,
     return None
   try:
     os.makedirs(path, exist_ok=True)
+    # A folder that cannot take a file (read-only, a full disk) made JAX
+    # warn once per program (23 warnings in a small run): one here instead.
+    with tempfile.NamedTemporaryFile(dir=path, prefix='.write_test_') as f:
+      f.write(b'x' * 4096)
+      f.flush()
   except OSError as e:
-    logging.warning('compilation cache: cannot create %s (%s); running '
-                    'without it', path, e)
+    logging.warning('compilation cache: cannot write to %s (%s); running '
+                    'without it (every program compiles again in each run; '
+                    'free space there, or choose another folder with '
+                    '--compile_cache or PHYSSPLAT_JAX_CACHE)', path,
+                    e.strerror or e)
     return None
   jax.config.update('jax_compilation_cache_dir', path)
   jax.config.update('jax_persistent_cache_min_compile_time_secs',

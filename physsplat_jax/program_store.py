@@ -32,6 +32,7 @@ render): called inside a trace, or without a cache folder, it is the plain
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import inspect
@@ -202,8 +203,7 @@ def _lower(jitted, args, leaves, tree, name, static_key, out_tree):
   exported = None
   if os.path.exists(path):
     try:
-      with open(path, 'rb') as f:
-        stored = pickle.load(f)
+      stored = pickle.loads(read_file(path))
       exported = export.deserialize(bytearray(stored['exported']))
       if out_tree is not None and stored['out_tree'] != out_tree:
         raise ValueError('its result is not of the expected tree')
@@ -282,24 +282,57 @@ def _not_stored(path: str) -> str:
   return path[:-len('.jaxexport')] + '.notstored'
 
 
+# A stored file: this tag, the SHA-256 of the content, the content. A file
+# damaged on disk (a bit flipped, a copy cut short) fails the check and is
+# built again; without it a scene read back with wrong positions, silently.
+_TAG = b'PSJSTOR1'
+
+
 def write_file(path: str, blob: bytes) -> bool:
-  """Writes ``blob`` to ``path`` whole (a temporary file renamed) and keeps
-  the :data:`KEEP` newest files of its name (``{name}_{hash}{suffix}``); a
-  failure (a full disk, a read-only folder) is logged and returns False:
+  """Writes ``blob`` to ``path`` whole (a temporary file renamed; its
+  digest first, see :func:`read_file`) and keeps the :data:`KEEP` newest
+  files of its name (``{name}_{hash}{suffix}``); a failure (a full disk, a
+  read-only folder) is logged and returns False, leaving no temporary file:
   it costs only the next process a trace or a build."""
+  tmp = None
   try:
     where = os.path.dirname(path)
     os.makedirs(where, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=where, suffix='.tmp')
     with os.fdopen(fd, 'wb') as f:
+      f.write(_TAG + hashlib.sha256(blob).digest())
       f.write(blob)
     os.replace(tmp, path)
+    tmp = None
     name, suffix = os.path.splitext(os.path.basename(path))
     prune(where, name.rsplit('_', 1)[0], suffix)
   except OSError as e:
     logging.info('program store: cannot write %s (%s)', path, e)
     return False
+  finally:
+    if tmp is not None:
+      with contextlib.suppress(OSError):
+        os.remove(tmp)
   return True
+
+
+def read_file(path: str) -> bytes:
+  """The content :func:`write_file` stored at ``path``.
+
+  Raises:
+    OSError: it cannot be read.
+    ValueError: it is damaged (its digest does not match) or was not
+      written by :func:`write_file`.
+  """
+  with open(path, 'rb') as f:
+    data = f.read()
+  head = len(_TAG) + 32
+  if len(data) < head or not data.startswith(_TAG):
+    raise ValueError('not a stored file of this version')
+  blob = data[head:]
+  if hashlib.sha256(blob).digest() != data[len(_TAG):head]:
+    raise ValueError('damaged: its content does not match its digest')
+  return blob
 
 
 def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:

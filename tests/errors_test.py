@@ -1118,6 +1118,31 @@ class FailureTest(absltest.TestCase):
       self.assertIn('one material per object', report['error'])
       self.assertEqual([f for f in os.listdir(d) if 'partial' in f], [])
 
+  def test_a_full_disk_names_the_file_and_the_report_records_it(self):
+    # Was '[Errno 28] No space left on device' alone, the report not
+    # written (its own write's error hid the trajectory's), temporary
+    # files left.
+    import errno  # noqa: PLC0415
+    from unittest import mock  # noqa: PLC0415
+    cfg = pl.PipelineConfig(num_frames=2, grid_res=16, max_particles=200,
+                            use_mpdp=False, fill=False, render='none')
+    full = OSError(errno.ENOSPC, 'No space left on device')
+    with tempfile.TemporaryDirectory() as d:
+      with mock.patch.object(np, 'savez', side_effect=full):
+        with self.assertRaisesRegex(
+            outputs.OutputError, r'trajectory\.npz: cannot write the '
+            r'trajectory file \(No space left on device: free space'):
+          pl.simulate_scene(_block_scene(), cfg, d, materials=[_RUBBER])
+      report = json.load(open(os.path.join(d, 'report.json')))
+      self.assertIn('trajectory.npz: cannot write', report['error'])
+      self.assertEqual([f for f in os.listdir(d) if f.startswith('.')], [])
+      # The report's own write failing too: the run's error is raised.
+      with mock.patch.object(outputs, 'write_json', side_effect=full):
+        with self.assertLogs(level='ERROR') as logs, self.assertRaisesRegex(
+            pl.PipelineError, 'one material per object'):
+          pl.simulate_scene(_block_scene(), cfg, d, materials=[])
+      self.assertIn('report.json not written', logs.output[0])
+
   def test_report_written_when_the_run_is_interrupted(self):
     # Ctrl-C (KeyboardInterrupt is no Exception) left the frames so far
     # without a report.json, or beside an earlier run's.

@@ -252,6 +252,18 @@ class SceneStoreTest(absltest.TestCase):
                               seed=jax.random.key(3))
       self.assertIn('building the scene again', logs.output[0])
       np.testing.assert_array_equal(d.gaussians.means, a.gaussians.means)
+      # Bytes changed in place, the length kept: read back with wrong
+      # positions and no word before the file carried its digest.
+      blob = bytearray(open(path, 'rb').read())
+      blob[len(blob) // 2] ^= 0xFF
+      with open(path, 'wb') as f:
+        f.write(blob)
+      with self.assertLogs(level='WARNING') as logs:
+        e = scenes.make_scene('tabletop', detail=0.4, num_cameras=2,
+                              seed=jax.random.key(3))
+      self.assertIn('damaged', logs.output[0])
+      self.assertIn(path, logs.output[0])
+      np.testing.assert_array_equal(e.gaussians.means, a.gaussians.means)
       # An option that cannot name a file (an array of Gaussians) is not
       # stored; a bad option still names the options.
       self.assertIsNone(registry._stored_path('donut', {'donut': a.gaussians}))

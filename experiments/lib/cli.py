@@ -36,6 +36,7 @@ from ml_collections import config_flags
 from physsplat_jax import compile_cache
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io import outputs
+from physsplat_jax.io import paths
 
 _DEBUG = flags.DEFINE_bool('debug', False,
                            'print the full traceback of an error')
@@ -284,10 +285,14 @@ def write_json(path: str | None, result) -> None:
   if not path:
     return
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  tmp = f'{path}.tmp{os.getpid()}'
-  with open(tmp, 'w') as fh:
-    json.dump(result, fh, indent=1)
-  os.replace(tmp, path)
+  text = json.dumps(result, indent=1)
+
+  def write(tmp):
+    with open(tmp, 'w') as fh:
+      fh.write(text)
+
+  # (a failed write, a full disk, leaves no temporary file behind)
+  paths.write_atomically(path, write, outputs.OutputError, what='JSON')
 
 
 def machine(devices: bool = True) -> dict:

@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import contextlib
 import dataclasses
 import json
 import math
 import os
 import re
+import socket
 import tempfile
 from typing import Any, Protocol, Sequence
 
@@ -108,10 +110,101 @@ def check_output_file(path, error: type[Exception] = OutputError, *,
   return paths.check_output_file(path, error, create=create)
 
 
-def _partial(path: str) -> str:
-  head, tail = os.path.split(path)
-  stem, ext = os.path.splitext(tail)
-  return os.path.join(head, f'.{stem}.partial{ext}')
+_LOCK = '.physsplat_run.lock'
+_held: dict[str, int] = {}  # folder -> nesting depth, in this process
+
+
+def _lock_owner(path: str) -> tuple[int, str] | None:
+  """(pid, host) written in a lock file, or None when unreadable."""
+  try:
+    with open(path) as f:
+      pid, host = f.read().split()[:2]
+    return int(pid), host
+  except (OSError, ValueError):
+    return None
+
+
+def _alive(pid: int) -> bool:
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  except PermissionError:  # another user's process
+    return True
+  return True
+
+
+@contextlib.contextmanager
+def output_lock(out_dir: str):
+  """Holds ``out_dir`` for this process while a run writes into it.
+
+  A second run into the same folder (another process) fails at once with
+  a message naming the first run, instead of both writing the same files
+  (one run's report listed the other's video). A lock left by a process
+  that has ended (killed) on this host is taken over. Nested holds by one
+  process (``simulate_scene`` around ``run``) are allowed. While held,
+  temporary files that an earlier, killed run left are removed.
+
+  Raises:
+    OutputError: another live run holds the folder.
+  """
+  key = os.path.realpath(out_dir)
+  if key in _held:
+    _held[key] += 1
+    try:
+      yield
+    finally:
+      _held[key] -= 1
+    return
+  path = os.path.join(out_dir, _LOCK)
+  host = socket.gethostname()
+  for _ in range(3):
+    try:
+      fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+      owner = _lock_owner(path)
+      if owner is not None and owner[1] == host and not _alive(owner[0]):
+        logging.info('%s: taking over the lock of an ended run (pid %d)',
+                     out_dir, owner[0])
+        with contextlib.suppress(OSError):
+          os.remove(path)
+        continue
+      who = (f'pid {owner[0]} on {owner[1]}' if owner else 'another process')
+      raise OutputError(
+        f'output folder {out_dir!r} is in use by another run ({who}); give '
+        f'another --out, or wait for that run to end (if no run writes '
+        f'there, remove {path})') from None
+    except OSError as e:
+      raise OutputError(f'output folder {out_dir!r} cannot be written '
+                        f'({paths.os_error_reason(e)})') from None
+    with os.fdopen(fd, 'w') as f:
+      f.write(f'{os.getpid()} {host}\n')
+    break
+  else:
+    raise OutputError(f'output folder {out_dir!r}: cannot take its lock '
+                      f'{path}; remove it if no run writes there')
+  _held[key] = 1
+  try:
+    _remove_partials(out_dir)
+    yield
+  finally:
+    del _held[key]
+    with contextlib.suppress(OSError):
+      os.remove(path)
+
+
+def _remove_partials(out_dir: str) -> None:
+  """Removes the temporary files (``paths.partial_path``) of runs that
+  were killed before renaming them (the folder is locked: no other run
+  writes them now)."""
+  for sub in ('', 'frames', 'ply'):
+    folder = os.path.join(out_dir, sub)
+    if not os.path.isdir(folder):
+      continue
+    for name in os.listdir(folder):
+      if paths.PARTIAL.fullmatch(name):
+        with contextlib.suppress(OSError):
+          os.remove(os.path.join(folder, name))
 
 
 def write_json(path: str, data: Any) -> str:
@@ -119,12 +212,18 @@ def write_json(path: str, data: Any) -> str:
 
   Non-finite floats are written as strings ('nan', 'inf') and NumPy values
   as plain numbers, so the file is valid JSON whatever the run produced.
+
+  Raises:
+    OutputError: it cannot be written (a full disk: naming the file and
+      the fix); nothing is left half-written.
   """
-  tmp = _partial(path)
-  with open(tmp, 'w') as f:
-    json.dump(jsonable(data), f, indent=1)
-  os.replace(tmp, path)
-  return path
+  text = json.dumps(jsonable(data), indent=1)
+
+  def write(tmp):
+    with open(tmp, 'w') as f:
+      f.write(text)
+
+  return paths.write_atomically(path, write, OutputError, what='JSON')
 
 
 def jsonable(x):
@@ -151,37 +250,59 @@ class VideoOutput:
   """``video.mp4`` (GIF when no ffmpeg) from the frames' images."""
 
   def __init__(self, path: str, fps: float):
-    self.path = check_output_file(path)
-    self._writer = video_lib.VideoWriter(_partial(self.path), fps=fps)
-    self._final = self.path
-    if self._writer.format == 'gif':
-      self._final = check_output_file(
-        os.path.splitext(self.path)[0] + '.gif')
+    self.path = self._final = check_output_file(path)
+    if (os.path.splitext(path)[1].lower() != '.gif'
+        and video_lib.find_ffmpeg() is None):
+      self._final = check_output_file(os.path.splitext(path)[0] + '.gif')
+      logging.warning('no ffmpeg (install imageio-ffmpeg, or set '
+                      'IMAGEIO_FFMPEG_EXE to an ffmpeg executable): writing '
+                      '%s instead of %s', self._final, self.path)
+    self._writer = video_lib.VideoWriter(paths.partial_path(self._final),
+                                         fps=fps)
+    self._failed = False
 
   def write(self, frame: Frame) -> None:
     if frame.image is not None:
-      self._writer.append(np.clip(np.asarray(frame.image), 0.0, 1.0))
+      try:
+        self._writer.append(np.clip(np.asarray(frame.image), 0.0, 1.0))
+      except BaseException:
+        self._failed = True  # (the writer's error is the run's)
+        raise
 
   def close(self) -> dict[str, str]:
-    self._writer.close()
-    if self._writer.num_frames == 0:
-      if os.path.exists(self._writer.path):
-        os.remove(self._writer.path)
-      return {}
-    os.replace(self._writer.path, self._final)
+    try:
+      self._writer.close()
+      if self._failed or self._writer.num_frames == 0:
+        self._discard()
+        return {}
+      os.replace(self._writer.path, self._final)
+    except BaseException as e:
+      self._discard()
+      if isinstance(e, OSError) and not isinstance(e, PhysSplatError):
+        raise OutputError(f'{self._final}: cannot write the video '
+                          f'({paths.os_error_reason(e)})') from None
+      raise
     return {'video': self._final}
 
+  def _discard(self) -> None:
+    with contextlib.suppress(OSError):
+      os.remove(self._writer.path)
 
-def _clear_frames(directory: str, ext: str) -> None:
-  """Removes an earlier run's ``frame_NNNN.<ext>`` files from
-  ``directory`` (only that pattern: nothing else of the user's), so that
-  the folder holds this run's frames only, not a longer run's tail."""
-  if not os.path.isdir(directory):
+
+def _clear_frames(directory: str, ext: str, written: set[str]) -> None:
+  """Removes the ``frame_NNNN.<ext>`` files of ``directory`` that this run
+  did not write (``written``: their names; only that pattern, nothing else
+  of the user's), so that the folder holds this run's frames only, not a
+  longer earlier run's tail. Called when the writer closes, and only when
+  it wrote a frame: a run that fails before its first frame leaves an
+  earlier run's frames as they were."""
+  if not written or not os.path.isdir(directory):
     return
   old = [f for f in os.listdir(directory)
-         if re.fullmatch(rf'frame_\d{{4,}}\.{ext}', f)]
+         if re.fullmatch(rf'frame_\d{{4,}}\.{ext}', f) and f not in written]
   for f in old:
-    os.remove(os.path.join(directory, f))
+    with contextlib.suppress(OSError):
+      os.remove(os.path.join(directory, f))
   if old:
     logging.info('removed %d frames of an earlier run from %s', len(old),
                  directory)
@@ -189,27 +310,25 @@ def _clear_frames(directory: str, ext: str) -> None:
 
 class PngOutput:
   """``frames/frame_%04d.png`` (each PNG complete when written; an
-  earlier run's frames in the folder are removed first)."""
+  earlier run's other frames in the folder are removed at the end)."""
 
   def __init__(self, directory: str):
     self.directory = os.fspath(directory)
     check_output_file(os.path.join(self.directory, 'frame_0000.png'))
-    self._count = 0
-    _clear_frames(self.directory, 'png')
+    self._written: set[str] = set()
 
   def write(self, frame: Frame) -> None:
     if frame.image is not None:
       img = video_lib.to_uint8(np.clip(np.asarray(frame.image), 0.0, 1.0),
                                self.directory)
-      path = os.path.join(self.directory, video_lib.PNG_PATTERN % frame.index)
+      name = video_lib.PNG_PATTERN % frame.index
       os.makedirs(self.directory, exist_ok=True)
-      tmp = _partial(path)
-      video_lib.save_png(tmp, img)
-      os.replace(tmp, path)
-      self._count += 1
+      video_lib.save_png(os.path.join(self.directory, name), img)
+      self._written.add(name)
 
   def close(self) -> dict[str, str]:
-    return {'frames': self.directory} if self._count else {}
+    _clear_frames(self.directory, 'png', self._written)
+    return {'frames': self.directory} if self._written else {}
 
 
 class PlyOutput:
@@ -220,22 +339,23 @@ class PlyOutput:
     self.directory = os.fspath(directory)
     check_output_file(os.path.join(self.directory, 'frame_0000.ply'))
     self._base = base
-    self._count = 0
-    _clear_frames(self.directory, 'ply')
+    self._written: set[str] = set()
 
   def write(self, frame: Frame) -> None:
     if frame.gaussians is None:
       return
     os.makedirs(self.directory, exist_ok=True)
-    path = os.path.join(self.directory, f'frame_{frame.index:04d}.ply')
-    tmp = _partial(path)
-    export_lib.save_deformed_ply(tmp, self._base, frame.gaussians.means,
-                                 frame.covariances, frame.rotations)
-    os.replace(tmp, path)
-    self._count += 1
+    name = f'frame_{frame.index:04d}.ply'
+    paths.write_atomically(
+      os.path.join(self.directory, name),
+      lambda tmp: export_lib.save_deformed_ply(
+        tmp, self._base, frame.gaussians.means, frame.covariances,
+        frame.rotations), OutputError, what='PLY')
+    self._written.add(name)
 
   def close(self) -> dict[str, str]:
-    return {'ply': self.directory} if self._count else {}
+    _clear_frames(self.directory, 'ply', self._written)
+    return {'ply': self.directory} if self._written else {}
 
 
 class TrajectoryOutput:
@@ -267,9 +387,8 @@ class TrajectoryOutput:
                 t=np.asarray(self.times, np.float64))
     if self.particles:
       data['particles'] = np.stack(self.particles)
-    tmp = _partial(self.path)
-    np.savez(tmp, **data)
-    os.replace(tmp, self.path)
+    paths.write_atomically(self.path, lambda tmp: np.savez(tmp, **data),
+                           OutputError, what='trajectory')
     return {'trajectory': self.path}
 
 
@@ -338,3 +457,14 @@ class BackgroundWriters:
     if error is not None:
       raise error
     return files
+
+
+def close_after_failure(sink: BackgroundWriters | FrameWriter) -> None:
+  """Closes ``sink`` while another error is being raised: what the writers
+  finish is kept, and an error of theirs is logged, not raised, so that
+  the run's own error (the first one) is the one reported."""
+  try:
+    sink.close()
+  except Exception as e:  # noqa: BLE001 - the error being raised wins
+    logging.error('closing the outputs after the error below failed too: '
+                  '%s: %s', type(e).__name__, e)

@@ -146,7 +146,9 @@ def find_ffmpeg() -> str | None:
   """Path of a usable ffmpeg executable, or None.
 
   Uses ``imageio_ffmpeg.get_ffmpeg_exe()`` (the binary in its wheel, or
-  ``IMAGEIO_FFMPEG_EXE``) and checks that the file exists.
+  ``IMAGEIO_FFMPEG_EXE``) and checks that the file exists. An
+  ``IMAGEIO_FFMPEG_EXE`` that names no executable is logged as such (it
+  hides the wheel's binary).
   """
   try:
     import imageio_ffmpeg
@@ -159,6 +161,11 @@ def find_ffmpeg() -> str | None:
   if os.path.isfile(exe) and os.access(exe, os.X_OK):
     return exe
   found = shutil.which(exe)
+  env = os.environ.get('IMAGEIO_FFMPEG_EXE')
+  if found is None and env:
+    logger.warning('IMAGEIO_FFMPEG_EXE=%s is not an ffmpeg executable; fix '
+                   'it, or unset it to use the ffmpeg of imageio-ffmpeg',
+                   env)
   return found
 
 
@@ -496,12 +503,12 @@ def save_png(path: PathLike, image, compress_level: int = 1) -> None:
   else:
     img = to_uint8(a, path)
   _check_output(path, create=True)
-  try:
-    Image.fromarray(img).save(path, format='PNG',
-                              compress_level=compress_level)
-  except OSError as e:
-    raise VideoError(f'{path}: cannot write the PNG ({e.strerror or e}); '
-                     'choose a writable file') from None
+  # (a temporary file renamed: a full disk leaves the earlier PNG whole,
+  # not an empty one)
+  paths.write_atomically(
+    path, lambda tmp: Image.fromarray(img).save(
+      tmp, format='PNG', compress_level=compress_level), VideoError,
+    what='PNG')
 
 
 def load_png(path: PathLike) -> np.ndarray:

@@ -129,6 +129,17 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
   """
   t0 = time.perf_counter()
   out_lib.check_output_dir(out_dir)
+  out_lib.check_output_file(os.path.join(out_dir, 'report.json'))
+  with out_lib.output_lock(out_dir):  # one run at a time per folder
+    return _run_config(t0, scene_path, config_path, out_dir, num_frames,
+                       auto_substeps, fill, video, ply, width, height,
+                       camera_index)
+
+
+def _run_config(t0, scene_path, config_path, out_dir, num_frames,
+                auto_substeps, fill, video, ply, width, height,
+                camera_index) -> dict:
+  """:func:`run_config`, its output folder checked and held."""
   report = dict(scene=scene_path, config=config_path)
   times = dict(simulate_and_write=0.0)
   writers = []
@@ -164,18 +175,26 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
       _, ids, t = driver.simulate_config(
         gaussians, cfg, num_frames=num_frames, auto_substeps=auto_substeps,
         fill=fill, on_frame_F=on_frame)
-    finally:
-      report['files'] = sink.close()
+    except BaseException:
+      out_lib.close_after_failure(sink)  # (the simulation's error wins)
+      raise
+    report['files'] = sink.close()
     times['simulate_and_write'] = time.perf_counter() - t1
     report.update(num_gaussians=int(len(ids)), num_frames=int(len(t) - 1))
-  except Exception as e:
-    report['error'] = f'{type(e).__name__}: {e}'
-    raise
-  finally:
+  except BaseException as e:
+    report['error'] = f'{type(e).__name__}: {e}' if str(e) else type(e).__name__
     times['total'] = time.perf_counter() - t0
     report['stage_seconds'] = {k: round(v, 3) for k, v in times.items()}
-    path = out_lib.write_json(os.path.join(out_dir, 'report.json'), report)
-    report.setdefault('files', {})['report'] = path
+    try:
+      out_lib.write_json(os.path.join(out_dir, 'report.json'), report)
+    except Exception as e2:  # noqa: BLE001 - the run's error is raised
+      logging.error('report.json not written (%s); the run failed with the '
+                    'error below', e2)
+    raise
+  times['total'] = time.perf_counter() - t0
+  report['stage_seconds'] = {k: round(v, 3) for k, v in times.items()}
+  path = out_lib.write_json(os.path.join(out_dir, 'report.json'), report)
+  report.setdefault('files', {})['report'] = path
   logging.info('wrote %s: %d Gaussians, %d frames (%.1f s)', out_dir,
                report['num_gaussians'], report['num_frames'], times['total'])
   return report

@@ -150,8 +150,24 @@ def simulate_scene(
       f'simulate_scene: config must be a PipelineConfig (all settings, '
       f'flat), got {type(config).__name__}; e.g. PipelineConfig(num_frames='
       '24, grid_res=32)')
-  if out_dir is not None:
-    out_lib.check_output_dir(out_dir)
+  if out_dir is None:
+    return _simulate_scene(scene, config, None, materials, perception_options,
+                           segment, ply, mpdp_params, extra_report, pipelined,
+                           on_frame)
+  out_lib.check_output_dir(out_dir)
+  # (report.json too, before the work: a folder in its place failed at the
+  # end of a finished run)
+  out_lib.check_output_file(os.path.join(out_dir, 'report.json'))
+  with out_lib.output_lock(out_dir):  # one run at a time per folder
+    return _simulate_scene(scene, config, out_dir, materials,
+                           perception_options, segment, ply, mpdp_params,
+                           extra_report, pipelined, on_frame)
+
+
+def _simulate_scene(scene, config, out_dir, materials, perception_options,
+                    segment, ply, mpdp_params, extra_report, pipelined,
+                    on_frame) -> tuple[RunOutput, dict]:
+  """:func:`simulate_scene`, its output folder checked and held."""
   stages: dict[str, float] = {}
   report: dict[str, Any] = dict(
     scene=scene.name, num_frames=config.num_frames, fps=config.fps,
@@ -172,7 +188,11 @@ def simulate_scene(
     stages['total'] = time.perf_counter() - t0
     report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
     _note_earlier_outputs(out_dir, started, report)
-    _write_report(out_dir, report)
+    try:
+      _write_report(out_dir, report)
+    except Exception as e2:  # noqa: BLE001 - the run's error is the one raised
+      logging.error('report.json not written (%s); the run failed with the '
+                    'error below', e2)
     raise
   stages['total'] = time.perf_counter() - t0
   _note_earlier_outputs(out_dir, started, report, written=out.files)

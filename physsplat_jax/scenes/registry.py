@@ -178,8 +178,7 @@ def _write(path: str, scene: Scene) -> None:
 def _read(path: str) -> Scene | None:
   """The stored scene with its arrays on the default device, or None."""
   try:
-    with open(path, 'rb') as f:
-      host = pickle.load(f)
+    host = pickle.loads(program_store.read_file(path))
     if not isinstance(host, Scene):
       raise TypeError(f'not a Scene: {type(host).__name__}')
   except Exception as e:  # noqa: BLE001 - unreadable: build it again

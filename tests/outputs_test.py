@@ -1,0 +1,212 @@
+"""Outputs when the file system misbehaves: a full disk, a writer that fails
+half-way, a rerun that fails, two runs into one folder."""
+
+import errno
+import json
+import os
+import socket
+import stat
+import subprocess
+import sys
+import tempfile
+from unittest import mock
+
+import numpy as np
+from absl.testing import absltest
+
+from physsplat_jax import pipeline as pl
+from physsplat_jax.io import outputs
+from physsplat_jax.io import paths
+from physsplat_jax.io import video
+
+_FULL = OSError(errno.ENOSPC, 'No space left on device')
+
+
+def _tmpdir(test) -> str:
+  d = tempfile.TemporaryDirectory()
+  test.addCleanup(d.cleanup)
+  return d.name
+
+
+def _hidden(folder: str) -> list[str]:
+  return sorted(f for f in os.listdir(folder) if f.startswith('.'))
+
+
+class AtomicWriteTest(absltest.TestCase):
+
+  def test_a_full_disk_keeps_the_earlier_file_and_names_this_one(self):
+    d = _tmpdir(self)
+    path = os.path.join(d, 'report.json')
+    outputs.write_json(path, {'run': 1})
+
+    def half_then_full(tmp):
+      with open(tmp, 'w') as f:
+        f.write('{"run": ')
+      raise _FULL
+
+    with self.assertRaisesRegex(
+        outputs.OutputError, r'report\.json: cannot write the JSON file \(No '
+        r'space left on device: free space on that disk'):
+      paths.write_atomically(path, half_then_full, outputs.OutputError,
+                             what='JSON')
+    self.assertEqual(json.load(open(path)), {'run': 1})
+    self.assertEqual(_hidden(d), [])  # no temporary file left
+
+  def test_trajectory_png_and_json_writers_on_a_full_disk(self):
+    d = _tmpdir(self)
+    traj = outputs.TrajectoryOutput(os.path.join(d, 'trajectory.npz'), [0])
+    traj.write(outputs.Frame(index=0, time=0.0, positions=np.zeros((1, 3))))
+    with mock.patch.object(np, 'savez', side_effect=_FULL):
+      with self.assertRaisesRegex(outputs.OutputError,
+                                  r'trajectory\.npz: cannot write.*free space'):
+        traj.close()
+    png = os.path.join(d, 'frame.png')
+    video.save_png(png, np.zeros((4, 4, 3)))
+    before = open(png, 'rb').read()
+    from PIL import Image  # noqa: PLC0415
+
+    def fail_half_way(self_img, fp, *args, **kwargs):
+      with open(fp, 'wb') as f:
+        f.write(b'\x89PNG')
+      raise _FULL
+
+    with mock.patch.object(Image.Image, 'save', fail_half_way):
+      with self.assertRaisesRegex(video.VideoError,
+                                  r'frame\.png: cannot write the PNG file'):
+        video.save_png(png, np.ones((4, 4, 3)))
+    # The earlier PNG is whole (it was truncated to 0 bytes before).
+    self.assertEqual(open(png, 'rb').read(), before)
+    self.assertEqual(_hidden(d), [])
+
+  def test_partial_names_are_per_process(self):
+    p = paths.partial_path('/x/video.mp4')
+    self.assertEqual(p, f'/x/.video.{os.getpid()}.partial.mp4')
+    self.assertTrue(paths.PARTIAL.fullmatch(os.path.basename(p)))
+
+
+class VideoFailureTest(absltest.TestCase):
+
+  def test_an_encoder_that_dies_leaves_no_file_and_no_second_error(self):
+    d = _tmpdir(self)
+    fake = os.path.join(d, 'ffmpeg')
+    with open(fake, 'w') as f:
+      f.write('#!/bin/sh\nhead -c 3000 > /dev/null\n'
+              'echo "simulated encoder crash" >&2\nexit 1\n')
+    os.chmod(fake, os.stat(fake).st_mode | stat.S_IEXEC)
+    with mock.patch.dict(os.environ, {'IMAGEIO_FFMPEG_EXE': fake}):
+      out = outputs.VideoOutput(os.path.join(d, 'video.mp4'), fps=10)
+      frame = np.full((64, 64, 3), 0.5)
+      with self.assertRaisesRegex(video.VideoError,
+                                  'simulated encoder crash'):
+        for i in range(50):
+          out.write(outputs.Frame(index=i, time=0.0, image=frame))
+      # Closing after that is quiet (it raised a FileNotFoundError of the
+      # rename, which hid the encoder's reason) and writes nothing.
+      self.assertEqual(out.close(), {})
+    self.assertEqual(sorted(os.listdir(d)), ['ffmpeg'])
+
+  def test_close_after_failure_logs_the_second_error(self):
+
+    class Broken:
+      def write(self, frame):
+        pass
+
+      def close(self):
+        raise FileNotFoundError('the rename')
+
+    with self.assertLogs(level='ERROR') as logs:
+      outputs.close_after_failure(Broken())
+    self.assertIn('FileNotFoundError: the rename', logs.output[0])
+
+
+class RerunTest(absltest.TestCase):
+
+  def test_a_run_that_writes_no_frame_keeps_the_earlier_frames(self):
+    d = _tmpdir(self)
+    frames, ply = os.path.join(d, 'frames'), os.path.join(d, 'ply')
+    for folder, name in ((frames, 'frame_0000.png'), (ply, 'frame_0000.ply')):
+      os.makedirs(folder)
+      with open(os.path.join(folder, name), 'w') as f:
+        f.write('earlier run')
+    # Creating the writers cleared both folders; a run failing after that
+    # (a later output's check, the compile) lost the earlier run's frames.
+    png_out = outputs.PngOutput(frames)
+    ply_out = outputs.PlyOutput(ply, None)
+    self.assertEqual((png_out.close(), ply_out.close()), ({}, {}))
+    self.assertEqual(os.listdir(frames), ['frame_0000.png'])
+    self.assertEqual(os.listdir(ply), ['frame_0000.ply'])
+
+
+class CompileCacheTest(absltest.TestCase):
+
+  def test_a_folder_that_takes_no_file_is_one_warning_and_no_cache(self):
+    from physsplat_jax import compile_cache  # noqa: PLC0415
+    d = _tmpdir(self)
+    before = jax_cache_dir()
+    # (a full disk: JAX warned once per program, 23 times in a small run)
+    with mock.patch.object(compile_cache.tempfile, 'NamedTemporaryFile',
+                           side_effect=_FULL):
+      with self.assertLogs(level='WARNING') as logs:
+        self.assertIsNone(compile_cache.enable_compilation_cache(d))
+    self.assertLen(logs.output, 1)
+    self.assertIn(f'cannot write to {d} (No space left on device); running '
+                  'without it', logs.output[0])
+    self.assertEqual(jax_cache_dir(), before)
+
+
+def jax_cache_dir():
+  import jax  # noqa: PLC0415
+  return jax.config.jax_compilation_cache_dir
+
+
+class LockTest(absltest.TestCase):
+
+  def _lock(self, d, pid):
+    with open(os.path.join(d, outputs._LOCK), 'w') as f:
+      f.write(f'{pid} {socket.gethostname()}\n')
+
+  def test_one_run_per_folder(self):
+    d = _tmpdir(self)
+    other = subprocess.Popen([sys.executable, '-c',
+                              'import time; time.sleep(60)'])
+    self.addCleanup(other.wait)
+    self.addCleanup(other.kill)
+    self._lock(d, other.pid)
+    with self.assertRaisesRegex(
+        outputs.OutputError, rf'in use by another run \(pid {other.pid} on '
+        r'.*give another --out, or wait.*remove .*physsplat_run\.lock'):
+      with outputs.output_lock(d):
+        pass
+    # The other run ends (killed: its lock stays): the next run takes it
+    # over, and removes the temporary files it left.
+    other.kill()
+    other.wait()
+    for name in ('.video.123.partial.mp4', '.trajectory.123.partial.npz',
+                 'notes.txt'):
+      open(os.path.join(d, name), 'w').close()
+    with outputs.output_lock(d):
+      with outputs.output_lock(d):  # nested in one process: allowed
+        owner = open(os.path.join(d, outputs._LOCK)).read().split()
+        self.assertEqual(int(owner[0]), os.getpid())
+      self.assertTrue(os.path.exists(os.path.join(d, outputs._LOCK)))
+      self.assertEqual(sorted(os.listdir(d)),
+                       [outputs._LOCK, 'notes.txt'])
+    self.assertEqual(os.listdir(d), ['notes.txt'])
+
+  def test_simulate_scene_refuses_a_held_folder_and_a_report_folder(self):
+    d = _tmpdir(self)
+    cfg = pl.PipelineConfig(num_frames=1, grid_res=16, max_particles=100,
+                            use_mpdp=False, fill=False, render='none')
+    os.mkdir(os.path.join(d, 'report.json'))
+    # A folder in the report's place failed after the whole run.
+    with self.assertRaisesRegex(outputs.OutputError,
+                                r'report\.json: is a directory'):
+      pl.simulate_scene(None, cfg, d)
+    os.rmdir(os.path.join(d, 'report.json'))
+    self._lock(d, 1)  # pid 1 lives, on this host
+    with self.assertRaisesRegex(outputs.OutputError, 'in use by another run'):
+      pl.simulate_scene(None, cfg, d)
+
+
+if __name__ == '__main__':
+  absltest.main()
