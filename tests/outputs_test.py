@@ -1,6 +1,7 @@
 """Outputs when the file system misbehaves: a full disk, a writer that fails
 half-way, a rerun that fails, two runs into one folder."""
 
+import collections
 import errno
 import json
 import os
@@ -135,6 +136,21 @@ class RerunTest(absltest.TestCase):
     self.assertEqual((png_out.close(), ply_out.close()), ({}, {}))
     self.assertEqual(os.listdir(frames), ['frame_0000.png'])
     self.assertEqual(os.listdir(ply), ['frame_0000.ply'])
+
+
+class FreeSpaceTest(absltest.TestCase):
+
+  def test_a_warning_when_the_outputs_will_not_fit(self):
+    d = _tmpdir(self)
+    Usage = collections.namedtuple('Usage', 'total used free')
+    need = {'trajectory': 3e6, 'frames': 5e8, 'video': 0.0}
+    with mock.patch.object(outputs.shutil, 'disk_usage',
+                           return_value=Usage(1e9, 9.9e8, 1e7)):
+      with self.assertLogs(level='WARNING') as logs:
+        self.assertFalse(outputs.check_free_space(d, need))
+    self.assertIn('will write about 479.7 MB (trajectory 2.9 MB, frames '
+                  '476.8 MB) and its disk has 9.5 MB free', logs.output[0])
+    self.assertTrue(outputs.check_free_space(d, {'trajectory': 1.0}))
 
 
 class CompileCacheTest(absltest.TestCase):

@@ -26,6 +26,7 @@ import json
 import math
 import os
 import re
+import shutil
 import socket
 import tempfile
 from typing import Any, Protocol, Sequence
@@ -468,3 +469,32 @@ def close_after_failure(sink: BackgroundWriters | FrameWriter) -> None:
   except Exception as e:  # noqa: BLE001 - the error being raised wins
     logging.error('closing the outputs after the error below failed too: '
                   '%s: %s', type(e).__name__, e)
+
+
+def _size(n: float) -> str:
+  for unit in ('bytes', 'KB', 'MB', 'GB'):
+    if n < 1024 or unit == 'GB':
+      return f'{n:.0f} {unit}' if unit == 'bytes' else f'{n:.1f} {unit}'
+    n /= 1024
+  return f'{n:.1f} TB'
+
+
+def check_free_space(out_dir: str, need: dict[str, float]) -> bool:
+  """Warns, before the work, when ``out_dir``'s disk has less free space
+  than the run's outputs will take (``need``: bytes per output, an
+  estimate); returns False then. A run that fills the disk stops there
+  with an error naming the file (the frames so far kept), so the warning
+  gives the chance to free space first."""
+  try:
+    free = shutil.disk_usage(out_dir).free
+  except OSError:
+    return True
+  total = sum(need.values())
+  if total <= free:
+    return True
+  parts = ', '.join(f'{k} {_size(v)}' for k, v in need.items() if v)
+  logging.warning('%s: this run will write about %s (%s) and its disk has '
+                  '%s free; it will stop where the disk is full. Free space, '
+                  'or give another --out, fewer frames or a smaller image',
+                  out_dir, _size(total), parts, _size(free))
+  return False
