@@ -475,8 +475,8 @@ def main(argv, f):
       old = []
     for r in rows:
       r['seed'] = f['seed'].value
-    with open(path, 'w') as fh:
-      json.dump(old + rows, fh, indent=1)
+    # (through a temporary file: a failed write keeps the earlier rows)
+    cli.write_json(path, old + rows)
 
 
 if __name__ == '__main__':

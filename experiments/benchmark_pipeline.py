@@ -157,8 +157,7 @@ def main(argv):
     finally:
       shutil.rmtree(cache, ignore_errors=True)
   path = os.path.join(_OUT.value, 'pipeline.json')
-  with open(path, 'w') as f:
-    json.dump(results, f, indent=1)
+  cli.write_json(path, results)
   print(json.dumps(results, indent=1))
   failed = [f'{scene} {run}: {" ".join(r["error"])}'
             for scene, runs in results['scenes'].items()

@@ -32,7 +32,6 @@ Material perception is the offline library by object name.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -47,6 +46,7 @@ from absl import logging
 from experiments.lib import cli
 from physsplat_jax.distributed import runtime
 from physsplat_jax.io import outputs
+from physsplat_jax.io import paths
 
 MODES = ('batch', 'particles')
 
@@ -153,16 +153,18 @@ def save_sweep(out_dir: str, result: SweepResult, frame_dt: float,
   os.makedirs(out_dir, exist_ok=True)
   T = result.means.shape[1]
   npz = os.path.join(out_dir, 'sweep.npz')
-  np.savez(npz, means=result.means.astype(np.float32),
-           com=result.means.mean(2).astype(np.float32),
-           t=np.arange(T) * frame_dt)
+  data = dict(means=result.means.astype(np.float32),
+              com=result.means.mean(2).astype(np.float32),
+              t=np.arange(T) * frame_dt)
+  # (whole files or none: a full disk names the file, nothing half-written)
+  paths.write_atomically(npz, lambda tmp: np.savez(tmp, **data),
+                         outputs.OutputError, what='sweep')
   report = dict(
     items=result.table, mode=result.mode, num_items=len(result.table),
     compile_s=round(result.compile_s, 3), run_s=round(result.run_s, 3),
     final_com=result.means[:, -1].mean(1).tolist(), **(extra or {}))
   js = os.path.join(out_dir, 'sweep.json')
-  with open(js, 'w') as f:
-    json.dump(outputs.jsonable(report), f, indent=1)  # NaN: "nan"
+  outputs.write_json(js, report)  # NaN: "nan"
   return dict(npz=npz, json=js)
 
 

@@ -561,8 +561,7 @@ def main(argv):
           f"| {r['value']:.4g} | {ref} | {100 * r['rel_error']:+.2f}% | "
           f"{r['wall_seconds']:.0f} |")
   if _OUT.value:
-    with open(_OUT.value, 'w') as f:
-      json.dump(results, f, indent=1)
+    cli.write_json(_OUT.value, results)
 
 
 if __name__ == '__main__':
