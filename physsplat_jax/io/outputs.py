@@ -22,6 +22,8 @@ import collections
 import concurrent.futures
 import contextlib
 import dataclasses
+import functools
+import inspect
 import json
 import math
 import os
@@ -192,6 +194,32 @@ def output_lock(out_dir: str):
     del _held[key]
     with contextlib.suppress(OSError):
       os.remove(path)
+
+
+def holds_output_dir(*files: str):
+  """Decorator of a run that writes into its ``out_dir`` argument: when it
+  is not None, the folder is checked (:func:`check_output_dir`, and each of
+  ``files`` in it, e.g. ``'report.json'``, before the work) and held
+  (:func:`output_lock`) while the run goes on."""
+
+  def decorate(fn):
+    signature = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def held(*args, **kwargs):
+      bound = signature.bind(*args, **kwargs)
+      out_dir = bound.arguments.get('out_dir')
+      if out_dir is None:
+        return fn(*args, **kwargs)
+      check_output_dir(out_dir)
+      for name in files:
+        check_output_file(os.path.join(out_dir, name))
+      with output_lock(out_dir):
+        return fn(*args, **kwargs)
+
+    return held
+
+  return decorate
 
 
 def _remove_partials(out_dir: str) -> None:

@@ -533,8 +533,9 @@ def validate_properties(text: str, entry: MaterialEntry,
   for arg, v in (('E_slack', E_slack), ('rho_slack', rho_slack),
                  ('nu_slack', nu_slack + 1.0)):
     if not v >= 1:  # NaN too (E_slack=0 divided by zero)
-      raise PerceptionError(f'validate_properties: {arg}={v!r} must be a factor '
-                       '>= 1 (nu_slack: >= 0); see PerceptionOptions')
+      raise PerceptionError(
+        f'validate_properties: {arg}={v!r} must be a factor >= 1 '
+        '(nu_slack: >= 0); see PerceptionOptions')
   obj = extract_json(text)
   lib = library_properties(entry)
   notes, from_lib = [], []

@@ -57,8 +57,8 @@ def select_candidate(
   if not keys:
     raise PerceptionError('select_candidate: no candidates')
   if len(weights) != 3 or min(weights) < 0 or sum(weights) <= 0:
-    raise PerceptionError(f'select_candidate: weights {weights} must be three '
-                     'non-negative numbers, not all zero')
+    raise PerceptionError(f'select_candidate: weights {weights} must be '
+                          'three non-negative numbers, not all zero')
   w_v, w_t, w_r = weights
   method = 'mllm_score+text+rank'
   if not visual_scores:

@@ -110,6 +110,7 @@ def _camera(cfg, scene, gaussians, rows, width, height, camera_index,
   return lambda f: camera_lib.frame_camera(cfg, base, centre, axes, f)
 
 
+@out_lib.holds_output_dir('report.json')
 def run_config(scene_path: str, config_path: str, out_dir: str, *,
                num_frames: int | None = None, auto_substeps: bool = False,
                fill: bool = True, video: bool = False, ply: bool = False,
@@ -128,18 +129,6 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
     The report dict (``files`` names what was written).
   """
   t0 = time.perf_counter()
-  out_lib.check_output_dir(out_dir)
-  out_lib.check_output_file(os.path.join(out_dir, 'report.json'))
-  with out_lib.output_lock(out_dir):  # one run at a time per folder
-    return _run_config(t0, scene_path, config_path, out_dir, num_frames,
-                       auto_substeps, fill, video, ply, width, height,
-                       camera_index)
-
-
-def _run_config(t0, scene_path, config_path, out_dir, num_frames,
-                auto_substeps, fill, video, ply, width, height,
-                camera_index) -> dict:
-  """:func:`run_config`, its output folder checked and held."""
   report = dict(scene=scene_path, config=config_path)
   times = dict(simulate_and_write=0.0)
   writers = []

@@ -353,6 +353,7 @@ def _pipeline_fix(e, prepared):
     'out of the grid.', e.frame, e.reason)
 
 
+@out_lib.holds_output_dir()
 def run(
   params: Params,
   prepared: PreparedScene,
@@ -417,34 +418,6 @@ def run(
       frame and the fix); every writer is closed first, so what was
       written so far is complete.
   """
-  names = dict(out_dir=out_dir, video=video, png=png, ply=ply,
-               writers=writers, field=field, on_frame=on_frame, fps=fps,
-               pipelined=pipelined, render_device=render_device)
-  if out_dir is None:
-    return _run(params, prepared, config, **names)
-  # One run at a time per folder (out_lib.output_lock).
-  out_lib.check_output_dir(out_dir)
-  with out_lib.output_lock(out_dir):
-    return _run(params, prepared, config, **names)
-
-
-def _run(
-  params: Params,
-  prepared: PreparedScene,
-  config: SimulateConfig | PipelineConfig,
-  *,
-  out_dir: str | None = None,
-  video: bool = True,
-  png: bool = True,
-  ply: bool = False,
-  writers: Sequence[out_lib.FrameWriter] | None = None,
-  field: Array | None = None,
-  on_frame: Callable | None = None,
-  fps: float | None = None,
-  pipelined: bool = True,
-  render_device='auto',
-) -> RunOutput:
-  """:func:`run`, its output folder held."""
   config = as_simulate_config(config)
   t_start = time.perf_counter()
   timings = dict(compile=0.0, simulate=0.0, deform=0.0, render=0.0,

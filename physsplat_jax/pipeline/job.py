@@ -101,6 +101,9 @@ def _segmented_on_load(scene: Scene) -> bool:
     t.startswith('ply_id=') for o in scene.objects for t in o.tags)
 
 
+# (report.json checked before the work too: a folder in its place failed at
+# the end of a finished run)
+@out_lib.holds_output_dir('report.json')
 def simulate_scene(
   scene: Scene,
   config: PipelineConfig,
@@ -150,24 +153,6 @@ def simulate_scene(
       f'simulate_scene: config must be a PipelineConfig (all settings, '
       f'flat), got {type(config).__name__}; e.g. PipelineConfig(num_frames='
       '24, grid_res=32)')
-  if out_dir is None:
-    return _simulate_scene(scene, config, None, materials, perception_options,
-                           segment, ply, mpdp_params, extra_report, pipelined,
-                           on_frame)
-  out_lib.check_output_dir(out_dir)
-  # (report.json too, before the work: a folder in its place failed at the
-  # end of a finished run)
-  out_lib.check_output_file(os.path.join(out_dir, 'report.json'))
-  with out_lib.output_lock(out_dir):  # one run at a time per folder
-    return _simulate_scene(scene, config, out_dir, materials,
-                           perception_options, segment, ply, mpdp_params,
-                           extra_report, pipelined, on_frame)
-
-
-def _simulate_scene(scene, config, out_dir, materials, perception_options,
-                    segment, ply, mpdp_params, extra_report, pipelined,
-                    on_frame) -> tuple[RunOutput, dict]:
-  """:func:`simulate_scene`, its output folder checked and held."""
   stages: dict[str, float] = {}
   report: dict[str, Any] = dict(
     scene=scene.name, num_frames=config.num_frames, fps=config.fps,
