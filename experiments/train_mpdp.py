@@ -14,6 +14,7 @@ python experiments/train_mpdp.py --workdir=/tmp/mpdp_sim \
 """
 
 import json
+import os
 import subprocess
 
 import jax
@@ -43,6 +44,8 @@ def main(argv):
   sha = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'],
                        capture_output=True, text=True).stdout.strip()
   config = _CONFIG.value
+  if _EXPORT.value:  # a bad --export fails now, not after the training
+    cli.check_output_file('export', os.path.join(_EXPORT.value, ''))
   if _MODE.value == 'simulator' and config.sim.task.dtype == 'float64':
     jax.config.update('jax_enable_x64', True)
   logging.info('devices %s, git %s, mode %s, config %s', jax.devices(), sha,

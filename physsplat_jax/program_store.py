@@ -32,20 +32,20 @@ render): called inside a trace, or without a cache folder, it is the plain
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import inspect
 import os
 import pickle
 import re
-import tempfile
 import threading
 from typing import Any, Callable, Sequence
 
 from absl import logging
 import jax
 import numpy as np
+
+from physsplat_jax import atomic_files
 
 FOLDER = 'physsplat_programs'
 # Pallas (Triton) kernels: JAX does not promise that a stored kernel loads
@@ -294,25 +294,21 @@ def write_file(path: str, blob: bytes) -> bool:
   files of its name (``{name}_{hash}{suffix}``); a failure (a full disk, a
   read-only folder) is logged and returns False, leaving no temporary file:
   it costs only the next process a trace or a build."""
-  tmp = None
-  try:
-    where = os.path.dirname(path)
-    os.makedirs(where, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=where, suffix='.tmp')
-    with os.fdopen(fd, 'wb') as f:
+  where = os.path.dirname(path)
+
+  def write(tmp):
+    with open(tmp, 'wb') as f:
       f.write(_TAG + hashlib.sha256(blob).digest())
       f.write(blob)
-    os.replace(tmp, path)
-    tmp = None
+
+  try:
+    os.makedirs(where, exist_ok=True)
+    atomic_files.write_atomically(path, write, OSError, what='stored')
     name, suffix = os.path.splitext(os.path.basename(path))
     prune(where, name.rsplit('_', 1)[0], suffix)
   except OSError as e:
     logging.info('program store: cannot write %s (%s)', path, e)
     return False
-  finally:
-    if tmp is not None:
-      with contextlib.suppress(OSError):
-        os.remove(tmp)
   return True
 
 

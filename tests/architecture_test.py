@@ -15,7 +15,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent / 'physsplat_jax'
 
 CORE = {'types', 'struct', 'gaussians', 'cameras', 'sh_rotation', 'errors',
         'compile_cache', 'program_store', 'sorting', 'test_util', 'values',
-        'platforms'}
+        'platforms', 'atomic_files'}
 LAYER = {
   **{m: 0 for m in CORE},
   **{m: 1 for m in ('mpm', 'render', 'sampling', 'deform', 'mpdp')},

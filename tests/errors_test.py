@@ -8,6 +8,7 @@ impossible runs, the jitted path's finite flag, and report.json on failure.
 import contextlib
 import io
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -89,6 +90,30 @@ class ErrorPathTest(absltest.TestCase):
     code, text = _run_guarded(FileNotFoundError(2, 'No such file', 'a.ply'))
     self.assertEqual(code, 1)
     self.assertIn("a.ply", text)
+
+  def test_orbax_log_lines_are_quiet_unless_debug(self):
+    # A short training run logged 97 orbax INFO lines of its 103; on a
+    # full disk four tracebacks stood above the one-line error.
+    def record(level, path, exc=None):
+      return logging.LogRecord('absl', level, path, 1, 'msg', None, exc)
+
+    orbax = os.path.join('', 'site-packages', 'orbax', 'checkpoint', 'x.py')
+    quiet = cli._QuietOrbax()  # noqa: SLF001
+    try:
+      raise ValueError('deep')
+    except ValueError:
+      exc = sys.exc_info()
+    with absltest.mock.patch.object(cli, '_verbose', return_value=False):
+      self.assertFalse(quiet.filter(record(logging.INFO, orbax)))
+      self.assertTrue(quiet.filter(record(logging.INFO, '/pkg/train.py')))
+      err = record(logging.ERROR, orbax, exc)
+      self.assertTrue(quiet.filter(err))
+      self.assertIsNone(err.exc_info)
+    with absltest.mock.patch.object(cli, '_verbose', return_value=True):
+      self.assertTrue(quiet.filter(record(logging.INFO, orbax)))
+      err = record(logging.ERROR, orbax, exc)
+      self.assertTrue(quiet.filter(err))
+      self.assertIsNotNone(err.exc_info)
 
   def test_list_flags_of_counts_are_checked(self):
     # benchmark_mpm --sizes=0 was an IndexError from inside the solver.

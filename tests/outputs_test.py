@@ -226,3 +226,112 @@ class LockTest(absltest.TestCase):
 
 if __name__ == '__main__':
   absltest.main()
+
+
+class TrainingOutputsTest(absltest.TestCase):
+  """Checkpoints, metrics and exported weights on a full disk: orbax's
+  TensorStore traceback (and its worker threads' tracebacks after it)
+  became one error naming the folder, the fix and the step to resume."""
+
+  def setUp(self):
+    super().setUp()
+    from experiments.configs import mpdp_test
+    from physsplat_jax.mpdp import train
+    self.config = mpdp_test.get_config()
+    self.train = train
+
+  def test_no_room_stops_before_the_save_and_keeps_the_last_checkpoint(self):
+    w = _tmpdir(self)
+    ckpt = os.path.join(w, 'checkpoints')
+    real = self.train.shutil.disk_usage
+
+    def full_after_step_2(path):  # room for checkpoint 2, not for 4
+      usage = real(path)
+      if os.path.isdir(os.path.join(ckpt, '2')):
+        return usage._replace(free=1000)
+      return usage
+
+    with mock.patch.object(self.train.shutil, 'disk_usage',
+                           full_after_step_2):
+      with self.assertRaisesRegex(
+          self.train.MPDPError,
+          r'checkpoints: no room for checkpoint 4: 0\.00 MB free on that '
+          r'disk, a checkpoint needs about 0\.\d\d MB \(free space there, or '
+          r'train in another --workdir\); the checkpoints written before '
+          r'are kept: a rerun with the same --workdir resumes from step 2'):
+        self.train.train_and_evaluate(self.config, w)
+    self.assertEqual(sorted(os.listdir(ckpt)), ['2'])
+    self.assertEqual(self.train.train_and_evaluate(self.config, w)['step'],
+                     4)
+
+  def test_a_full_disk_before_any_step_is_refused_up_front(self):
+    w = _tmpdir(self)
+    usage = collections.namedtuple('usage', 'total used free')
+    with mock.patch.object(self.train.shutil, 'disk_usage',
+                           return_value=usage(10**9, 10**9, 0)):
+      with self.assertRaisesRegex(
+          self.train.MPDPError, r'no room for the next checkpoint: .*no '
+          r'checkpoint was written yet: a rerun starts from step 0'):
+        self.train.train_and_evaluate(self.config, w)
+    self.assertFalse(os.path.exists(os.path.join(w, 'metrics.jsonl')))
+
+  def test_orbax_write_errors_are_named(self):
+    # TensorStore's error text carries the OS error; orbax raised it as a
+    # ValueError from the save (or, saving asynchronously, from a later
+    # call).
+    w = _tmpdir(self)
+    ckpt = os.path.join(w, 'checkpoints')
+    tensorstore = ValueError(
+      f'RESOURCE_EXHAUSTED: Error writing local file "{ckpt}/2.orbax-'
+      'checkpoint-tmp/default.orbax-checkpoint-tmp/_sharding": Failed to '
+      "write 6527 bytes to file 4: No space left on device "
+      "[os_error_code='28']")
+    with mock.patch('orbax.checkpoint.CheckpointManager.save',
+                    side_effect=tensorstore):
+      with self.assertRaisesRegex(
+          self.train.MPDPError,
+          r'checkpoints: cannot write checkpoint 2 \(No space left on '
+          r'device: free space on that disk, or write the output '
+          r'elsewhere\); no checkpoint was written yet'):
+        self.train.train_and_evaluate(self.config, w)
+    # metrics.jsonl: the file is named (Python's error on close had none).
+    os.remove(os.path.join(w, 'metrics.jsonl'))
+    os.mkdir(os.path.join(w, 'metrics.jsonl'))
+    with self.assertRaisesRegex(
+        self.train.MPDPError, r'metrics\.jsonl: cannot write the file'):
+      with self.train.checkpoint_manager(w, 2):
+        self.train.append_metrics(w, {'step': 1})
+    # Other errors pass as they are.
+    with self.assertRaisesRegex(ValueError, '^other$'):
+      with self.train.checkpoint_manager(w, 2):
+        raise ValueError('other')
+
+  def test_exported_weights_are_written_whole_or_not_at_all(self):
+    import jax
+    from physsplat_jax.mpdp import model as model_lib
+    from physsplat_jax.mpdp import pretrained
+    d = _tmpdir(self)
+    mcfg = model_lib.ModelConfig.from_dict(self.config.model.to_dict())
+    params = model_lib.init_params(jax.random.key(0), mcfg)
+    pretrained.save_params(params, mcfg, d, metadata={'run': 1})
+
+    def files():
+      return {f: open(os.path.join(d, f), 'rb').read()
+              for f in os.listdir(d)}
+
+    before = files()
+    with mock.patch.object(np, 'savez_compressed', side_effect=_FULL):
+      with self.assertRaisesRegex(
+          model_lib.MPDPError, r'mpdp_params\.npz: cannot write the weights '
+          r'file \(No space left on device: free space'):
+        pretrained.save_params(params, mcfg, d, metadata={'run': 2})
+    self.assertEqual(files(), before)
+    # The second file failing: neither is replaced.
+    blocker = paths.partial_path(os.path.join(d, 'mpdp_params.json'))
+    os.mkdir(blocker)
+    with self.assertRaisesRegex(model_lib.MPDPError,
+                                r'mpdp_params\.json: cannot write'):
+      pretrained.save_params(params, mcfg, d, metadata={'run': 2})
+    os.rmdir(blocker)
+    self.assertEqual(files(), before)
+    self.assertEqual(pretrained.load_params(d)[2], {'run': 1})

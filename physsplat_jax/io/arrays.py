@@ -13,12 +13,12 @@ another scene or config is named, not silently misassigned.
 from __future__ import annotations
 
 import os
-import tempfile
 
 import jax
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.io import paths
 from physsplat_jax.io.paths import check_output_file
 
 
@@ -58,16 +58,11 @@ def save_tree(path, tree) -> str:
         'not store; cast it to float32 first (params.astype(jnp.float32))')
   # Complete, then in place: never half a file, nor a collision between
   # two writers of one path.
-  fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)),
-                             prefix='.tree_', suffix='.npz')
-  try:
-    with os.fdopen(fd, 'wb') as fh:
+  def write(tmp):
+    with open(tmp, 'wb') as fh:
       np.savez(fh, **arrays)
-    os.replace(tmp, path)
-  except BaseException:
-    if os.path.exists(tmp):
-      os.remove(tmp)
-    raise
+
+  paths.write_atomically(path, write, TreeFileError, what='.npz')
   return path
 
 

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.io import paths
 from physsplat_jax.types import Camera, DataError
 from physsplat_jax.types import make_camera
 
@@ -274,11 +275,15 @@ def save_inria_cameras(path, cameras) -> None:
 
   The principal point is not stored (the format assumes the image centre).
   """
-  parent = os.path.dirname(os.fspath(path))
-  if parent:
-    os.makedirs(parent, exist_ok=True)
-  with open(path, 'w', encoding='utf-8') as f:
-    json.dump(inria_cameras_to_json(cameras), f)
+  text = json.dumps(inria_cameras_to_json(cameras))
+  p = paths.check_output_file(path, CameraFileError, what='cameras',
+                              create=True)
+
+  def write(tmp):
+    with open(tmp, 'w', encoding='utf-8') as f:
+      f.write(text)
+
+  paths.write_atomically(p, write, CameraFileError, what='cameras')
 
 
 # ----------------------------------------------------------------------------

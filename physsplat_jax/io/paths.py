@@ -8,13 +8,12 @@ them up front, each raising its own module's error class.
 
 from __future__ import annotations
 
-import contextlib
-import errno
 import os
-import re
-from typing import Callable
 
-from physsplat_jax.errors import PhysSplatError
+from physsplat_jax.atomic_files import PARTIAL as PARTIAL
+from physsplat_jax.atomic_files import os_error_reason as os_error_reason
+from physsplat_jax.atomic_files import partial_path as partial_path
+from physsplat_jax.atomic_files import write_atomically as write_atomically
 
 
 def check_output_file(path, error: type[Exception], *, what: str = 'output',
@@ -74,60 +73,3 @@ def open_output(path, error: type[Exception], *, what: str = 'output'):
   except OSError as e:
     raise error(f'{p}: cannot write the {what} file ({e.strerror or e}); '
                 'choose a writable output path') from None
-
-
-def os_error_reason(e: OSError) -> str:
-  """What an OS error means for an output, and its fix, in a few words."""
-  why = e.strerror or str(e)
-  if e.errno in (errno.ENOSPC, errno.EDQUOT):
-    return f'{why}: free space on that disk, or write the output elsewhere'
-  if e.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
-    return f'{why}: choose a writable output path'
-  return f'{why}; choose another output path'
-
-
-PARTIAL = re.compile(r'\..+\.\d+\.partial(\.[^.]*)?')
-
-
-def partial_path(path: str) -> str:
-  """The temporary name beside ``path`` that a writer fills before renaming
-  it to ``path``: hidden, with this process's id (two runs into one folder
-  never share one), the extension kept (writers pick the format by it).
-  Names of this form match :data:`PARTIAL`."""
-  head, tail = os.path.split(os.fspath(path))
-  stem, ext = os.path.splitext(tail)
-  return os.path.join(head, f'.{stem}.{os.getpid()}.partial{ext}')
-
-
-def write_atomically(path, write: Callable[[str], object],
-                     error: type[Exception], *, what: str = 'output') -> str:
-  """``write(tmp)`` to :func:`partial_path`, then renamed to ``path``.
-
-  On any failure the temporary file is removed, so ``path`` holds either
-  the earlier file or the complete new one, and nothing half-written is
-  left; an ``OSError`` (a full disk) is raised as ``error`` naming
-  ``path`` and the fix. Errors of the package's own classes pass (their
-  message naming ``path`` where it named the temporary file).
-
-  Returns:
-    ``os.fspath(path)``.
-  """
-  p = os.fspath(path)
-  tmp = partial_path(p)
-  try:
-    write(tmp)
-    os.replace(tmp, p)
-  except BaseException as e:
-    with contextlib.suppress(OSError):
-      os.remove(tmp)
-    if isinstance(e, OSError) and not isinstance(e, PhysSplatError):
-      raise error(f'{p}: cannot write the {what} file '
-                  f'({os_error_reason(e)})') from None
-    if isinstance(e, PhysSplatError) and tmp in str(e):
-      try:  # the message names the file the user asked for
-        renamed = type(e)(str(e).replace(tmp, p))
-      except Exception:  # noqa: BLE001 - another signature: as it is
-        raise e from None
-      raise renamed from None
-    raise
-  return p

@@ -19,6 +19,7 @@ import zlib
 
 import numpy as np
 
+from physsplat_jax import atomic_files
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp.model import MPDPError
 from physsplat_jax.types import device_array
@@ -49,14 +50,34 @@ def save_params(params, model_config: model_lib.ModelConfig, directory: str,
     directory: output directory (created if missing).
     name: file stem.
     metadata: extra JSON-serialisable info (e.g. held-out metrics).
+
+  Both files are written whole before either replaces an earlier pair.
+
+  Raises:
+    MPDPError: a file cannot be written (a full disk: the earlier files
+      are kept), naming it and the fix.
   """
-  os.makedirs(directory, exist_ok=True)
+  try:
+    os.makedirs(directory, exist_ok=True)
+  except OSError as e:
+    raise MPDPError(f'{directory}: cannot create the folder '
+                    f'({atomic_files.os_error_reason(e)})') from None
   flat = _flatten(dict(params))
-  np.savez_compressed(os.path.join(directory, name + '.npz'),
-                      **{k: v.astype(np.float32) for k, v in flat.items()})
-  with open(os.path.join(directory, name + '.json'), 'w') as f:
-    json.dump({'model_config': model_config.to_dict(),
-               'metadata': metadata or {}}, f, indent=1)
+  text = json.dumps({'model_config': model_config.to_dict(),
+                     'metadata': metadata or {}}, indent=1)
+
+  def write_text(tmp):
+    with open(tmp, 'w') as f:
+      f.write(text)
+
+  def write_both(tmp):  # both files complete before either is renamed
+    np.savez_compressed(tmp, **{k: v.astype(np.float32)
+                                for k, v in flat.items()})
+    atomic_files.write_atomically(os.path.join(directory, name + '.json'),
+                                  write_text, MPDPError, what='weights')
+
+  atomic_files.write_atomically(os.path.join(directory, name + '.npz'),
+                                write_both, MPDPError, what='weights')
 
 
 def load_params(directory: str, name: str = PRETRAINED_NAME):

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from physsplat_jax import atomic_files
 from physsplat_jax import cameras as cam_lib
 from physsplat_jax import gaussians as gs
 from physsplat_jax import pipeline as pl
@@ -546,7 +547,6 @@ def train_and_evaluate(config, workdir: str) -> dict:
   Every setting and the workdir are checked first
   (:func:`~.checks.check_sim_config`; TrainingError names the field).
   """
-  import orbax.checkpoint as ocp
   from absl import logging
 
   from physsplat_jax.mpdp import pretrained
@@ -573,12 +573,11 @@ def train_and_evaluate(config, workdir: str) -> dict:
   step_fn = make_train_step(pipe_config, tx)
   state = {'step': jnp.asarray(0, jnp.int32), 'params': params,
            'opt_state': tx.init(params)}
-  options = ocp.CheckpointManagerOptions(max_to_keep=config.max_to_keep,
-                                         create=True)
   t1 = time.perf_counter()
-  with ocp.CheckpointManager(os.path.join(workdir, 'checkpoints'),
-                             options=options) as mngr:
+  with train_lib.checkpoint_manager(workdir, config.max_to_keep,
+                                    TrainingError) as mngr:
     state = train_lib.restore_latest(mngr, state, TrainingError)
+    train_lib.check_room(mngr, state, TrainingError)
     train_lib.trim_metrics(workdir, int(state['step']))
     try:
       for step in range(int(state['step']), config.num_steps):
@@ -588,12 +587,11 @@ def train_and_evaluate(config, workdir: str) -> dict:
           rec = {'step': done, 'train_loss': loss, 'per_task': per,
                  'elapsed_s': time.perf_counter() - t1}
           logging.info('sim step %d: %s', done, rec)
-          with open(os.path.join(workdir, 'metrics.jsonl'), 'a') as f:
-            f.write(json.dumps(rec) + '\n')
+          train_lib.append_metrics(workdir, rec)
         if done % config.checkpoint_every == 0 or done == config.num_steps:
-          mngr.save(done, args=ocp.args.StandardSave(state))
+          train_lib.save_checkpoint(mngr, done, state, TrainingError)
     except KeyboardInterrupt:  # (Ctrl-C, or SIGTERM in the scripts)
-      train_lib.save_interrupted(mngr, state)
+      train_lib.save_interrupted(mngr, state, TrainingError)
       raise
     mngr.wait_until_finished()
   t_train = time.perf_counter() - t1
@@ -616,8 +614,12 @@ def train_and_evaluate(config, workdir: str) -> dict:
   }
   result['field_log_rmse_held_out']['baseline'] = [
     field_log_rmse(np.ones_like(t.field), t) for t in held]
-  with open(os.path.join(workdir, 'simulator.json'), 'w') as f:
-    json.dump(result, f, indent=1)
+  def write(tmp):
+    with open(tmp, 'w') as f:
+      json.dump(result, f, indent=1)
+
+  atomic_files.write_atomically(os.path.join(workdir, 'simulator.json'),
+                                write, TrainingError, what='result')
   result['params'] = state['params']
   return result
 

@@ -1,0 +1,99 @@
+"""Files written whole or not at all, and OS errors named with their fix.
+
+Every writer of the package (outputs, scene stores, training checkpoints'
+side files, exported weights) fills a temporary file beside the target and
+renames it: a full disk or an interruption leaves the earlier file of that
+name, never half a file, and no temporary file. Core: every layer may use it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import re
+from typing import Callable
+
+from physsplat_jax.errors import PhysSplatError
+
+
+def os_error_reason(e: OSError) -> str:
+  """What an OS error means for an output, and its fix, in a few words."""
+  why = e.strerror or str(e)
+  if e.errno in (errno.ENOSPC, errno.EDQUOT):
+    return f'{why}: free space on that disk, or write the output elsewhere'
+  if e.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+    return f'{why}: choose a writable output path'
+  return f'{why}; choose another output path'
+
+
+PARTIAL = re.compile(r'\..+\.\d+\.partial(\.[^.]*)?')
+
+
+def partial_path(path: str) -> str:
+  """The temporary name beside ``path`` that a writer fills before renaming
+  it to ``path``: hidden, with this process's id (two runs into one folder
+  never share one), the extension kept (writers pick the format by it).
+  Names of this form match :data:`PARTIAL`."""
+  head, tail = os.path.split(os.fspath(path))
+  stem, ext = os.path.splitext(tail)
+  return os.path.join(head, f'.{stem}.{os.getpid()}.partial{ext}')
+
+
+def write_atomically(path, write: Callable[[str], object],
+                     error: type[Exception], *, what: str = 'output') -> str:
+  """``write(tmp)`` to :func:`partial_path`, then renamed to ``path``.
+
+  On any failure the temporary file is removed, so ``path`` holds either
+  the earlier file or the complete new one, and nothing half-written is
+  left; an ``OSError`` (a full disk) is raised as ``error`` naming
+  ``path`` and the fix. Errors of the package's own classes pass (their
+  message naming ``path`` where it named the temporary file).
+
+  Returns:
+    ``os.fspath(path)``.
+  """
+  p = os.fspath(path)
+  tmp = partial_path(p)
+  try:
+    write(tmp)
+    os.replace(tmp, p)
+  except BaseException as e:
+    with contextlib.suppress(OSError):
+      os.remove(tmp)
+    if isinstance(e, OSError) and not isinstance(e, PhysSplatError):
+      raise error(f'{p}: cannot write the {what} file '
+                  f'({os_error_reason(e)})') from None
+    if isinstance(e, PhysSplatError) and tmp in str(e):
+      try:  # the message names the file the user asked for
+        renamed = type(e)(str(e).replace(tmp, p))
+      except Exception:  # noqa: BLE001 - another signature: as it is
+        raise e from None
+      raise renamed from None
+    raise
+  return p
+
+
+# TensorStore (orbax's array writer) raises ValueErrors whose text carries
+# the OS error: 'Error writing local file "PATH": ... [os_error_code='28']'.
+_OS_ERROR_CODE = re.compile(r"os_error_code='?(\d+)")
+_QUOTED_PATH = re.compile(r'"([^"]+)"')
+
+
+def os_error_of(e: BaseException) -> OSError | None:
+  """The OS error under ``e`` (itself, its cause or context, or one that
+  TensorStore put in its text as ``os_error_code``), or None."""
+  seen = set()
+  while e is not None and id(e) not in seen:
+    seen.add(id(e))
+    if isinstance(e, PhysSplatError):
+      return None
+    if isinstance(e, OSError) and e.errno is not None:
+      return e
+    m = _OS_ERROR_CODE.search(str(e))
+    if m:
+      code = int(m.group(1))
+      f = _QUOTED_PATH.search(str(e))
+      return OSError(code, os.strerror(code), f.group(1) if f else None)
+    e = e.__cause__ or e.__context__
+  return None
