@@ -40,23 +40,21 @@ def partial_path(path: str) -> str:
   return os.path.join(head, f'.{stem}.{os.getpid()}.partial{ext}')
 
 
-def write_atomically(path, write: Callable[[str], object],
-                     error: type[Exception], *, what: str = 'output') -> str:
-  """``write(tmp)`` to :func:`partial_path`, then renamed to ``path``.
+@contextlib.contextmanager
+def atomic_output(path, error: type[Exception], *, what: str = 'output'):
+  """The temporary path (:func:`partial_path`) to fill in the ``with``
+  block; renamed to ``path`` when the block ends without an error.
 
   On any failure the temporary file is removed, so ``path`` holds either
   the earlier file or the complete new one, and nothing half-written is
   left; an ``OSError`` (a full disk) is raised as ``error`` naming
   ``path`` and the fix. Errors of the package's own classes pass (their
   message naming ``path`` where it named the temporary file).
-
-  Returns:
-    ``os.fspath(path)``.
   """
   p = os.fspath(path)
   tmp = partial_path(p)
   try:
-    write(tmp)
+    yield tmp
     os.replace(tmp, p)
   except BaseException as e:
     with contextlib.suppress(OSError):
@@ -71,7 +69,19 @@ def write_atomically(path, write: Callable[[str], object],
         raise e from None
       raise renamed from None
     raise
-  return p
+
+
+def write_atomically(path, write: Callable[[str], object],
+                     error: type[Exception], *, what: str = 'output') -> str:
+  """``write(tmp)``, then ``tmp`` renamed to ``path``
+  (:func:`atomic_output`).
+
+  Returns:
+    ``os.fspath(path)``.
+  """
+  with atomic_output(path, error, what=what) as tmp:
+    write(tmp)
+  return os.fspath(path)
 
 
 # TensorStore (orbax's array writer) raises ValueErrors whose text carries

@@ -12,6 +12,7 @@ import sys
 import tempfile
 from unittest import mock
 
+import jax
 import numpy as np
 from absl.testing import absltest
 
@@ -52,6 +53,26 @@ class AtomicWriteTest(absltest.TestCase):
                              what='JSON')
     self.assertEqual(json.load(open(path)), {'run': 1})
     self.assertEqual(_hidden(d), [])  # no temporary file left
+
+  def test_library_ply_writers_are_whole_or_not_at_all(self):
+    # io.save_ply / save_scene / save_splat wrote into the file itself: a
+    # full disk left half a PLY and a bare '[Errno 28]'.
+    from physsplat_jax.io import ply
+    from physsplat_jax.io import ply_format
+    from physsplat_jax.test_util import random_gaussians
+    d = _tmpdir(self)
+    path = os.path.join(d, 'scene.ply')
+    g = random_gaussians(jax.random.key(0), 8)
+    ply.save_ply(path, g, binary=False)
+    before = open(path, 'rb').read()
+    with mock.patch.object(ply_format, '_format_ascii', side_effect=_FULL):
+      with self.assertRaisesRegex(
+          ply_format.PlyError, r'scene\.ply: cannot write the PLY file \(No '
+          r'space left on device: free space on that disk'):
+        ply.save_ply(path, random_gaussians(jax.random.key(1), 9),
+                     binary=False)
+    self.assertEqual(open(path, 'rb').read(), before)
+    self.assertEqual(_hidden(d), [])
 
   def test_trajectory_png_and_json_writers_on_a_full_disk(self):
     d = _tmpdir(self)

@@ -8,9 +8,11 @@ them up front, each raising its own module's error class.
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 from physsplat_jax.atomic_files import PARTIAL as PARTIAL
+from physsplat_jax.atomic_files import atomic_output as atomic_output
 from physsplat_jax.atomic_files import os_error_reason as os_error_reason
 from physsplat_jax.atomic_files import partial_path as partial_path
 from physsplat_jax.atomic_files import write_atomically as write_atomically
@@ -64,12 +66,13 @@ def check_output_file(path, error: type[Exception], *, what: str = 'output',
   return p
 
 
+@contextlib.contextmanager
 def open_output(path, error: type[Exception], *, what: str = 'output'):
-  """:func:`check_output_file` (folders created), then ``open(path, 'wb')``,
-  an OS error raised as ``error`` naming the file."""
+  """:func:`check_output_file` (folders created), then the file open for
+  writing (binary) in the ``with`` block: a temporary file, renamed to
+  ``path`` when the block ends (:func:`atomic_output`), so a full disk or
+  an error part-way leaves the earlier file and raises ``error`` naming
+  ``path``."""
   p = check_output_file(path, error, what=what, create=True)
-  try:
-    return open(p, 'wb')
-  except OSError as e:
-    raise error(f'{p}: cannot write the {what} file ({e.strerror or e}); '
-                'choose a writable output path') from None
+  with atomic_output(p, error, what=what) as tmp, open(tmp, 'wb') as f:
+    yield f
