@@ -255,6 +255,18 @@ def write_json(path: str, data: Any) -> str:
   return paths.write_atomically(path, write, OutputError, what='JSON')
 
 
+def write_failure_report(path: str, report: dict) -> str | None:
+  """:func:`write_json` of a failed run's report: an error writing it (the
+  disk full for the report too) is logged, not raised, so that the run's
+  own error is the one raised. Returns the path, or None."""
+  try:
+    return write_json(path, report)
+  except Exception as e:  # noqa: BLE001 - the run's error is the one raised
+    logging.error('%s not written (%s); the run failed with the error '
+                  'below', os.path.basename(path), e)
+    return None
+
+
 def jsonable(x):
   """``x`` with NumPy values, tuples and non-finite floats made JSON-safe."""
   if isinstance(x, dict):

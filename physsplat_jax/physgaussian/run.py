@@ -174,11 +174,8 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
     report['error'] = f'{type(e).__name__}: {e}' if str(e) else type(e).__name__
     times['total'] = time.perf_counter() - t0
     report['stage_seconds'] = {k: round(v, 3) for k, v in times.items()}
-    try:
-      out_lib.write_json(os.path.join(out_dir, 'report.json'), report)
-    except Exception as e2:  # noqa: BLE001 - the run's error is raised
-      logging.error('report.json not written (%s); the run failed with the '
-                    'error below', e2)
+    out_lib.write_failure_report(os.path.join(out_dir, 'report.json'),
+                                 report)
     raise
   times['total'] = time.perf_counter() - t0
   report['stage_seconds'] = {k: round(v, 3) for k, v in times.items()}

@@ -173,11 +173,9 @@ def simulate_scene(
     stages['total'] = time.perf_counter() - t0
     report['stage_seconds'] = {k: round(v, 3) for k, v in stages.items()}
     _note_earlier_outputs(out_dir, started, report)
-    try:
-      _write_report(out_dir, report)
-    except Exception as e2:  # noqa: BLE001 - the run's error is the one raised
-      logging.error('report.json not written (%s); the run failed with the '
-                    'error below', e2)
+    if out_dir is not None:
+      out_lib.write_failure_report(os.path.join(out_dir, 'report.json'),
+                                   report)
     raise
   stages['total'] = time.perf_counter() - t0
   _note_earlier_outputs(out_dir, started, report, written=out.files)
