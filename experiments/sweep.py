@@ -157,8 +157,7 @@ def save_sweep(out_dir: str, result: SweepResult, frame_dt: float,
               com=result.means.mean(2).astype(np.float32),
               t=np.arange(T) * frame_dt)
   # (whole files or none: a full disk names the file, nothing half-written)
-  paths.write_atomically(npz, lambda tmp: np.savez(tmp, **data),
-                         outputs.OutputError, what='sweep')
+  paths.write_npz(npz, data, outputs.OutputError, what='sweep')
   report = dict(
     items=result.table, mode=result.mode, num_items=len(result.table),
     compile_s=round(result.compile_s, 3), run_s=round(result.run_s, 3),

@@ -14,7 +14,6 @@ python experiments/train_mpdp.py --workdir=/tmp/mpdp_sim \
 """
 
 import json
-import os
 import subprocess
 
 import jax
@@ -22,6 +21,7 @@ from absl import flags
 from absl import logging
 
 from experiments.lib import cli
+from physsplat_jax.io import outputs
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import pretrained
 from physsplat_jax.training import simtrain
@@ -45,7 +45,10 @@ def main(argv):
                        capture_output=True, text=True).stdout.strip()
   config = _CONFIG.value
   if _EXPORT.value:  # a bad --export fails now, not after the training
-    cli.check_output_file('export', os.path.join(_EXPORT.value, ''))
+    try:
+      outputs.check_output_dir(_EXPORT.value)
+    except outputs.OutputError as e:
+      raise outputs.OutputError(f'--export={_EXPORT.value}: {e}') from None
   if _MODE.value == 'simulator' and config.sim.task.dtype == 'float64':
     jax.config.update('jax_enable_x64', True)
   logging.info('devices %s, git %s, mode %s, config %s', jax.devices(), sha,

@@ -12,7 +12,11 @@ import contextlib
 import errno
 import os
 import re
+import secrets
+import stat
 from typing import Callable
+
+import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
 
@@ -27,17 +31,19 @@ def os_error_reason(e: OSError) -> str:
   return f'{why}; choose another output path'
 
 
-PARTIAL = re.compile(r'\..+\.\d+\.partial(\.[^.]*)?')
+PARTIAL = re.compile(r'\..+\.\d+(-[0-9a-f]+)?\.partial(\.[^.]*)?')
 
 
 def partial_path(path: str) -> str:
-  """The temporary name beside ``path`` that a writer fills before renaming
-  it to ``path``: hidden, with this process's id (two runs into one folder
-  never share one), the extension kept (writers pick the format by it).
-  Names of this form match :data:`PARTIAL`."""
+  """A new temporary name beside ``path`` for a writer to fill before
+  renaming it to ``path``: hidden, with this process's id and a random
+  token (two threads, two runs, or two hosts with equal pids writing one
+  path never share one), the extension kept (writers pick the format by
+  it). Names of this form match :data:`PARTIAL`."""
   head, tail = os.path.split(os.fspath(path))
   stem, ext = os.path.splitext(tail)
-  return os.path.join(head, f'.{stem}.{os.getpid()}.partial{ext}')
+  token = secrets.token_hex(3)
+  return os.path.join(head, f'.{stem}.{os.getpid()}-{token}.partial{ext}')
 
 
 @contextlib.contextmanager
@@ -50,12 +56,33 @@ def atomic_output(path, error: type[Exception], *, what: str = 'output'):
   left; an ``OSError`` (a full disk) is raised as ``error`` naming
   ``path`` and the fix. Errors of the package's own classes pass (their
   message naming ``path`` where it named the temporary file).
+
+  A ``path`` that is a symbolic link has the file it points to replaced
+  (the link stays); the file keeps its permissions. A ``path`` that is not
+  a regular file (``/dev/stdout``, a named pipe) is written directly.
   """
   p = os.fspath(path)
-  tmp = partial_path(p)
+  real = os.path.realpath(p)
+  try:
+    mode = os.stat(real).st_mode
+  except OSError:
+    mode = None
+  if mode is not None and not stat.S_ISREG(mode):
+    try:
+      yield p
+    except OSError as e:
+      if isinstance(e, PhysSplatError):
+        raise
+      raise error(f'{p}: cannot write the {what} file '
+                  f'({os_error_reason(e)})') from None
+    return
+  tmp = partial_path(real)
   try:
     yield tmp
-    os.replace(tmp, p)
+    if mode is not None:
+      with contextlib.suppress(OSError):
+        os.chmod(tmp, stat.S_IMODE(mode))
+    os.replace(tmp, real)
   except BaseException as e:
     with contextlib.suppress(OSError):
       os.remove(tmp)
@@ -84,15 +111,31 @@ def write_atomically(path, write: Callable[[str], object],
   return os.fspath(path)
 
 
+def write_npz(path, arrays: dict, error: type[Exception], *,
+              what: str = '.npz', compressed: bool = False) -> str:
+  """NumPy's ``.npz`` of ``arrays`` at ``path`` exactly (``np.savez`` given
+  a name adds '.npz' when it lacks one), through :func:`atomic_output`."""
+  save = np.savez_compressed if compressed else np.savez
+
+  def write(tmp):
+    with open(tmp, 'wb') as f:
+      save(f, **arrays)
+
+  return write_atomically(path, write, error, what=what)
+
+
 # TensorStore (orbax's array writer) raises ValueErrors whose text carries
-# the OS error: 'Error writing local file "PATH": ... [os_error_code='28']'.
+# the OS error: 'Error writing "params.w/0" in OCDBT database at local file
+# "PATH/": Failed writing: "PATH/d/..." ... [os_error_code='28']'.
 _OS_ERROR_CODE = re.compile(r"os_error_code='?(\d+)")
-_QUOTED_PATH = re.compile(r'"([^"]+)"')
+_LOCAL_FILE = re.compile(r'(?:local file|Failed writing:) "([^"]+)"')
 
 
 def os_error_of(e: BaseException) -> OSError | None:
-  """The OS error under ``e`` (itself, its cause or context, or one that
-  TensorStore put in its text as ``os_error_code``), or None."""
+  """The OS error behind ``e``: itself, the errors it was raised from
+  (``__cause__``), or one that TensorStore put in its text as
+  ``os_error_code`` (the file: the first 'local file "..."'); else None.
+  The package's own errors are not OS errors."""
   seen = set()
   while e is not None and id(e) not in seen:
     seen.add(id(e))
@@ -103,7 +146,7 @@ def os_error_of(e: BaseException) -> OSError | None:
     m = _OS_ERROR_CODE.search(str(e))
     if m:
       code = int(m.group(1))
-      f = _QUOTED_PATH.search(str(e))
+      f = _LOCAL_FILE.search(str(e))
       return OSError(code, os.strerror(code), f.group(1) if f else None)
-    e = e.__cause__ or e.__context__
+    e = e.__cause__
   return None

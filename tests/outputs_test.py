@@ -10,6 +10,7 @@ import stat
 import subprocess
 import sys
 import tempfile
+import threading
 from unittest import mock
 
 import jax
@@ -100,10 +101,48 @@ class AtomicWriteTest(absltest.TestCase):
     self.assertEqual(open(png, 'rb').read(), before)
     self.assertEqual(_hidden(d), [])
 
-  def test_partial_names_are_per_process(self):
-    p = paths.partial_path('/x/video.mp4')
-    self.assertEqual(p, f'/x/.video.{os.getpid()}.partial.mp4')
+  def test_partial_names_are_per_write(self):
+    # Per process only, two threads (or two hosts with equal pids on one
+    # shared folder) writing one path shared a temporary file.
+    p, q = (paths.partial_path('/x/video.mp4') for _ in range(2))
+    self.assertRegex(p, rf'^/x/\.video\.{os.getpid()}-[0-9a-f]+\.partial'
+                     r'\.mp4$')
+    self.assertNotEqual(p, q)
     self.assertTrue(paths.PARTIAL.fullmatch(os.path.basename(p)))
+    self.assertTrue(paths.PARTIAL.fullmatch('.video.123.partial.mp4'))
+    self.assertFalse(paths.PARTIAL.fullmatch('video.mp4'))
+
+  def test_links_pipes_and_extensionless_npz(self):
+    d = _tmpdir(self)
+    # A symbolic link: the file it points to is replaced, the link stays
+    # (the rename put a plain file in the link's place).
+    real = os.path.join(d, 'real.json')
+    outputs.write_json(real, {'run': 1})
+    os.chmod(real, 0o600)
+    link = os.path.join(d, 'link.json')
+    os.symlink(real, link)
+    outputs.write_json(link, {'run': 2})
+    self.assertTrue(os.path.islink(link))
+    self.assertEqual(json.load(open(real)), {'run': 2})
+    self.assertEqual(stat.S_IMODE(os.stat(real).st_mode), 0o600)
+    # A named pipe (or /dev/stdout) is written directly, not replaced.
+    fifo = os.path.join(d, 'pipe')
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(open(fifo).read()))
+    reader.start()
+    outputs.write_json(fifo, {'run': 3})
+    reader.join(10)
+    self.assertEqual(json.loads(got[0]), {'run': 3})
+    self.assertTrue(stat.S_ISFIFO(os.stat(fifo).st_mode))
+    # np.savez given a name adds '.npz' when it lacks one: the rename then
+    # failed and the temporary file stayed.
+    traj = outputs.TrajectoryOutput(os.path.join(d, 'traj'), [0])
+    traj.write(outputs.Frame(index=0, time=0.0, positions=np.zeros((1, 3))))
+    traj.close()
+    self.assertEqual(np.load(os.path.join(d, 'traj'))['x'].shape,
+                     (1, 1, 3))
+    self.assertEqual(_hidden(d), [])
 
 
 class VideoFailureTest(absltest.TestCase):
@@ -202,33 +241,93 @@ class LockTest(absltest.TestCase):
     with open(os.path.join(d, outputs._LOCK), 'w') as f:
       f.write(f'{pid} {socket.gethostname()}\n')
 
-  def test_one_run_per_folder(self):
-    d = _tmpdir(self)
-    other = subprocess.Popen([sys.executable, '-c',
-                              'import time; time.sleep(60)'])
+  def _holder(self, d):
+    """Another process that holds ``d`` until killed."""
+    other = subprocess.Popen(
+      [sys.executable, '-c',
+       'import sys, time\n'
+       'from physsplat_jax.io import outputs\n'
+       f'with outputs.output_lock({d!r}):\n'
+       '  print("held", flush=True)\n'
+       '  time.sleep(60)\n'], stdout=subprocess.PIPE, text=True,
+      cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     self.addCleanup(other.wait)
     self.addCleanup(other.kill)
-    self._lock(d, other.pid)
+    self.assertEqual(other.stdout.readline().strip(), 'held')
+    return other
+
+  def test_one_run_per_folder(self):
+    d = _tmpdir(self)
+    other = self._holder(d)
     with self.assertRaisesRegex(
         outputs.OutputError, rf'in use by another run \(pid {other.pid} on '
-        r'.*give another --out, or wait.*remove .*physsplat_run\.lock'):
+        r'.*give another --out, or wait for that run to end'):
       with outputs.output_lock(d):
         pass
-    # The other run ends (killed: its lock stays): the next run takes it
-    # over, and removes the temporary files it left.
+    # The other run ends (killed: its lock file stays): the next run takes
+    # it over, and removes the temporary files it left.
     other.kill()
     other.wait()
-    for name in ('.video.123.partial.mp4', '.trajectory.123.partial.npz',
+    self.assertTrue(os.path.exists(os.path.join(d, outputs._LOCK)))
+    for name in ('.video.123.partial.mp4', '.trajectory.123-0a1b.partial.npz',
                  'notes.txt'):
       open(os.path.join(d, name), 'w').close()
     with outputs.output_lock(d):
-      with outputs.output_lock(d):  # nested in one process: allowed
+      with outputs.output_lock(d):  # nested in one thread: allowed
         owner = open(os.path.join(d, outputs._LOCK)).read().split()
         self.assertEqual(int(owner[0]), os.getpid())
       self.assertTrue(os.path.exists(os.path.join(d, outputs._LOCK)))
       self.assertEqual(sorted(os.listdir(d)),
                        [outputs._LOCK, 'notes.txt'])
     self.assertEqual(os.listdir(d), ['notes.txt'])
+    # A lock file whose pid lives but holds no lock (a stale file whose pid
+    # was reused; this process's own, left by an interrupted hold) is free.
+    self._lock(d, os.getpid())
+    with outputs.output_lock(d):
+      pass
+    # Released after an error too.
+    with self.assertRaisesRegex(ValueError, 'boom'):
+      with outputs.output_lock(d):
+        raise ValueError('boom')
+    self.assertEqual(os.listdir(d), ['notes.txt'])
+
+  def test_runs_starting_at_once_get_one_hold(self):
+    # A dead owner's lock file read by two runs at once: each removed it
+    # and made its own, so both held the folder.
+    d = _tmpdir(self)
+    self._lock(d, 999999)
+    n, start = 6, threading.Barrier(6)
+    results = collections.Counter()
+    inside = threading.Event()
+
+    def run():
+      start.wait()
+      try:
+        with outputs.output_lock(d):
+          results['held'] += 1
+          inside.wait(5)
+      except outputs.OutputError:
+        results['refused'] += 1
+        inside.set()
+
+    threads = [threading.Thread(target=run) for _ in range(n)]
+    for t in threads:
+      t.start()
+    for t in threads:
+      t.join(20)
+    self.assertEqual(results, {'held': 1, 'refused': n - 1})
+    self.assertEqual(os.listdir(d), [])
+
+  def test_a_lock_file_that_cannot_be_written_is_not_left(self):
+    d = _tmpdir(self)
+    with mock.patch.object(outputs, '_write_owner', side_effect=_FULL):
+      with self.assertRaisesRegex(
+          outputs.OutputError, r'cannot write its lock file .*No space left'):
+        with outputs.output_lock(d):
+          pass
+    self.assertEqual(os.listdir(d), [])
+    with outputs.output_lock(d):  # and the next run is not refused
+      pass
 
   def test_simulate_scene_refuses_a_held_folder_and_a_report_folder(self):
     d = _tmpdir(self)
@@ -240,13 +339,9 @@ class LockTest(absltest.TestCase):
                                 r'report\.json: is a directory'):
       pl.simulate_scene(None, cfg, d)
     os.rmdir(os.path.join(d, 'report.json'))
-    self._lock(d, 1)  # pid 1 lives, on this host
+    self._holder(d)
     with self.assertRaisesRegex(outputs.OutputError, 'in use by another run'):
       pl.simulate_scene(None, cfg, d)
-
-
-if __name__ == '__main__':
-  absltest.main()
 
 
 class TrainingOutputsTest(absltest.TestCase):
@@ -302,11 +397,14 @@ class TrainingOutputsTest(absltest.TestCase):
     # call).
     w = _tmpdir(self)
     ckpt = os.path.join(w, 'checkpoints')
+    # (orbax 0.12's text on a full tmpfs, the array's key quoted first)
     tensorstore = ValueError(
-      f'RESOURCE_EXHAUSTED: Error writing local file "{ckpt}/2.orbax-'
-      'checkpoint-tmp/default.orbax-checkpoint-tmp/_sharding": Failed to '
-      "write 6527 bytes to file 4: No space left on device "
-      "[os_error_code='28']")
+      'RESOURCE_EXHAUSTED: Error writing "opt_state.1.0.nu.Dense_0.bias/0" '
+      f'in OCDBT database at local file "{ckpt}/2.orbax-checkpoint-tmp/'
+      'default.orbax-checkpoint-tmp/ocdbt.process_0/": Failed writing: "'
+      f'{ckpt}/2.orbax-checkpoint-tmp/default.orbax-checkpoint-tmp/ocdbt.'
+      'process_0/d/1f2e": Failed to write 4096 bytes to file 5: No space '
+      "left on device [os_error_code='28']")
     with mock.patch('orbax.checkpoint.CheckpointManager.save',
                     side_effect=tensorstore):
       with self.assertRaisesRegex(
@@ -320,12 +418,15 @@ class TrainingOutputsTest(absltest.TestCase):
     os.mkdir(os.path.join(w, 'metrics.jsonl'))
     with self.assertRaisesRegex(
         self.train.MPDPError, r'metrics\.jsonl: cannot write the file'):
+      self.train.append_metrics(w, {'step': 1})
+    # Other errors pass as they are, also one raised while handling an OS
+    # error (it was named as a write failure).
+    with self.assertRaisesRegex(KeyError, 'other'):
       with self.train.checkpoint_manager(w, 2):
-        self.train.append_metrics(w, {'step': 1})
-    # Other errors pass as they are.
-    with self.assertRaisesRegex(ValueError, '^other$'):
-      with self.train.checkpoint_manager(w, 2):
-        raise ValueError('other')
+        try:
+          open(os.path.join(w, 'missing'))
+        except FileNotFoundError:
+          raise KeyError('other') from None
 
   def test_exported_weights_are_written_whole_or_not_at_all(self):
     import jax
@@ -348,11 +449,21 @@ class TrainingOutputsTest(absltest.TestCase):
         pretrained.save_params(params, mcfg, d, metadata={'run': 2})
     self.assertEqual(files(), before)
     # The second file failing: neither is replaced.
-    blocker = paths.partial_path(os.path.join(d, 'mpdp_params.json'))
-    os.mkdir(blocker)
-    with self.assertRaisesRegex(model_lib.MPDPError,
-                                r'mpdp_params\.json: cannot write'):
-      pretrained.save_params(params, mcfg, d, metadata={'run': 2})
-    os.rmdir(blocker)
+    real = pretrained.atomic_files.write_atomically
+
+    def json_full(path, write, error, what):
+      if path.endswith('.json'):
+        write = mock.Mock(side_effect=_FULL)
+      return real(path, write, error, what=what)
+
+    with mock.patch.object(pretrained.atomic_files, 'write_atomically',
+                           json_full):
+      with self.assertRaisesRegex(model_lib.MPDPError,
+                                  r'mpdp_params\.json: cannot write'):
+        pretrained.save_params(params, mcfg, d, metadata={'run': 2})
     self.assertEqual(files(), before)
     self.assertEqual(pretrained.load_params(d)[2], {'run': 1})
+
+
+if __name__ == '__main__':
+  absltest.main()

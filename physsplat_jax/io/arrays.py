@@ -56,13 +56,8 @@ def save_tree(path, tree) -> str:
       raise TreeFileError(
         f'{path}: the leaf {key} is {arrays[key].dtype}, which .npz does '
         'not store; cast it to float32 first (params.astype(jnp.float32))')
-  # Complete, then in place: never half a file, nor a collision between
-  # two writers of one path.
-  def write(tmp):
-    with open(tmp, 'wb') as fh:
-      np.savez(fh, **arrays)
-
-  paths.write_atomically(path, write, TreeFileError, what='.npz')
+  # Complete, then in place: never half a file.
+  paths.write_npz(path, arrays, TreeFileError)
   return path
 
 

@@ -22,6 +22,7 @@ import collections
 import concurrent.futures
 import contextlib
 import dataclasses
+import fcntl
 import functools
 import inspect
 import json
@@ -31,6 +32,7 @@ import re
 import shutil
 import socket
 import tempfile
+import threading
 from typing import Any, Protocol, Sequence
 
 import numpy as np
@@ -114,7 +116,9 @@ def check_output_file(path, error: type[Exception] = OutputError, *,
 
 
 _LOCK = '.physsplat_run.lock'
-_held: dict[str, int] = {}  # folder -> nesting depth, in this process
+# (folder, thread) -> nesting depth of this process's holds
+_held: dict[tuple[str, int], int] = {}
+_held_guard = threading.Lock()
 
 
 def _lock_owner(path: str) -> tuple[int, str] | None:
@@ -127,73 +131,111 @@ def _lock_owner(path: str) -> tuple[int, str] | None:
     return None
 
 
-def _alive(pid: int) -> bool:
-  try:
-    os.kill(pid, 0)
-  except ProcessLookupError:
-    return False
-  except PermissionError:  # another user's process
-    return True
-  return True
+def _write_owner(fd: int, text: str) -> None:
+  os.ftruncate(fd, 0)
+  os.write(fd, text.encode())
+
+
+def _take_lock(out_dir: str, path: str) -> int:
+  """The open lock file of ``out_dir``, locked (``flock``) by this process.
+
+  The kernel holds the lock for the open file and releases it when the
+  process ends however it ends, so a lock file that a killed run left is
+  taken over, and two runs starting at once cannot both hold the folder.
+  The file holds the pid and host, for the message of a run refused.
+  """
+  for _ in range(5):
+    try:
+      fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+    except OSError as e:
+      raise OutputError(f'output folder {out_dir!r} cannot be written '
+                        f'({paths.os_error_reason(e)})') from None
+    try:
+      try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+      except BlockingIOError:
+        owner = _lock_owner(path)
+        who = (f'pid {owner[0]} on {owner[1]}' if owner
+               else 'another process')
+        raise OutputError(
+          f'output folder {out_dir!r} is in use by another run ({who}); '
+          'give another --out, or wait for that run to end') from None
+      except OSError as e:  # a file system without locks (some NFS mounts)
+        logging.warning('%s: cannot lock %s (%s); a second run into this '
+                        'folder would not be refused', out_dir, path, e)
+      # Locked: but if the run before removed the file (it ended) between
+      # our open and our lock, the lock is on a file no one else sees.
+      try:
+        here, now = os.fstat(fd), os.stat(path)
+        current = (here.st_dev, here.st_ino) == (now.st_dev, now.st_ino)
+      except FileNotFoundError:
+        current = False
+      if not current:
+        os.close(fd)
+        continue
+      before = _lock_owner(path)
+      if before is not None and before[0] != os.getpid():
+        logging.info('%s: taking over the lock of an ended run (pid %d on '
+                     '%s)', out_dir, *before)
+      try:
+        _write_owner(fd, f'{os.getpid()} {socket.gethostname()}\n')
+      except OSError as e:
+        with contextlib.suppress(OSError):
+          os.remove(path)
+        raise OutputError(f'output folder {out_dir!r}: cannot write its '
+                          f'lock file {path} ({paths.os_error_reason(e)})'
+                          ) from None
+      return fd
+    except BaseException:
+      with contextlib.suppress(OSError):
+        os.close(fd)
+      raise
+  raise OutputError(f'output folder {out_dir!r}: cannot take its lock '
+                    f'{path} (other runs keep replacing it); try again')
 
 
 @contextlib.contextmanager
 def output_lock(out_dir: str):
-  """Holds ``out_dir`` for this process while a run writes into it.
+  """Holds ``out_dir`` for this run while it writes into it.
 
-  A second run into the same folder (another process) fails at once with
-  a message naming the first run, instead of both writing the same files
-  (one run's report listed the other's video). A lock left by a process
-  that has ended (killed) on this host is taken over. Nested holds by one
-  process (``simulate_scene`` around ``run``) are allowed. While held,
-  temporary files that an earlier, killed run left are removed.
+  A second run into the same folder (another process, or another thread
+  of this one) fails at once with a message naming the first run, instead
+  of both writing the same files (one run's report listed the other's
+  video). A lock file left by a run that has ended (killed) is taken over:
+  the lock itself is the kernel's (``flock``), released when its process
+  ends. Nested holds by one thread (``simulate_scene`` around ``run``) are
+  allowed. While held, temporary files that an earlier, killed run left
+  are removed.
 
   Raises:
-    OutputError: another live run holds the folder.
+    OutputError: another live run holds the folder, or its lock file
+      cannot be written.
   """
-  key = os.path.realpath(out_dir)
-  if key in _held:
-    _held[key] += 1
+  key = (os.path.realpath(out_dir), threading.get_ident())
+  with _held_guard:
+    nested = key in _held
+    if nested:
+      _held[key] += 1
+  if nested:
     try:
       yield
     finally:
-      _held[key] -= 1
+      with _held_guard:
+        _held[key] -= 1
     return
   path = os.path.join(out_dir, _LOCK)
-  host = socket.gethostname()
-  for _ in range(3):
-    try:
-      fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-    except FileExistsError:
-      owner = _lock_owner(path)
-      if owner is not None and owner[1] == host and not _alive(owner[0]):
-        logging.info('%s: taking over the lock of an ended run (pid %d)',
-                     out_dir, owner[0])
-        with contextlib.suppress(OSError):
-          os.remove(path)
-        continue
-      who = (f'pid {owner[0]} on {owner[1]}' if owner else 'another process')
-      raise OutputError(
-        f'output folder {out_dir!r} is in use by another run ({who}); give '
-        f'another --out, or wait for that run to end (if no run writes '
-        f'there, remove {path})') from None
-    except OSError as e:
-      raise OutputError(f'output folder {out_dir!r} cannot be written '
-                        f'({paths.os_error_reason(e)})') from None
-    with os.fdopen(fd, 'w') as f:
-      f.write(f'{os.getpid()} {host}\n')
-    break
-  else:
-    raise OutputError(f'output folder {out_dir!r}: cannot take its lock '
-                      f'{path}; remove it if no run writes there')
-  _held[key] = 1
+  fd = _take_lock(out_dir, path)
+  with _held_guard:
+    _held[key] = 1
   try:
     _remove_partials(out_dir)
     yield
   finally:
-    del _held[key]
+    with _held_guard:
+      del _held[key]
     with contextlib.suppress(OSError):
-      os.remove(path)
+      os.remove(path)  # still locked: no run takes it meanwhile
+    os.close(fd)
 
 
 def holds_output_dir(*files: str):
@@ -428,8 +470,7 @@ class TrajectoryOutput:
                 t=np.asarray(self.times, np.float64))
     if self.particles:
       data['particles'] = np.stack(self.particles)
-    paths.write_atomically(self.path, lambda tmp: np.savez(tmp, **data),
-                           OutputError, what='trajectory')
+    paths.write_npz(self.path, data, OutputError, what='trajectory')
     return {'trajectory': self.path}
 
 

@@ -71,7 +71,8 @@ def save_params(params, model_config: model_lib.ModelConfig, directory: str,
       f.write(text)
 
   def write_both(tmp):  # both files complete before either is renamed
-    np.savez_compressed(tmp, **{k: v.astype(np.float32)
+    with open(tmp, 'wb') as f:
+      np.savez_compressed(f, **{k: v.astype(np.float32)
                                 for k, v in flat.items()})
     atomic_files.write_atomically(os.path.join(directory, name + '.json'),
                                   write_text, MPDPError, what='weights')

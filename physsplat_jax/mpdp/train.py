@@ -314,16 +314,23 @@ def _batch(data, seed: int, step: int, batch_size: int):
           for k in ('points', 'mask', 'field', 'means')}
 
 
-def append_metrics(workdir: str, record: dict) -> None:
+def append_metrics(workdir: str, record: dict,
+                   error: type = MPDPError) -> None:
   """Appends ``record`` as a line of ``workdir/metrics.jsonl`` (a line cut
   short by a full disk or an interruption is dropped on resume,
-  :func:`trim_metrics`); an OS error names the file."""
+  :func:`trim_metrics`).
+
+  Raises:
+    error: it cannot be written, naming the file (Python's error on
+      closing a file on a full disk names none) and the fix.
+  """
   path = os.path.join(workdir, 'metrics.jsonl')
   try:
     with open(path, 'a') as f:
       f.write(json.dumps(record) + '\n')
   except OSError as e:
-    raise OSError(e.errno, e.strerror, path) from None
+    raise error(_write_failure(os.path.join(workdir, 'checkpoints'),
+                               OSError(e.errno, e.strerror, path))) from e
 
 
 def trim_metrics(workdir: str, step: int) -> None:
@@ -356,10 +363,11 @@ def trim_metrics(workdir: str, step: int) -> None:
 @contextlib.contextmanager
 def checkpoint_manager(workdir: str, max_to_keep: int,
                        error: type = MPDPError):
-  """An orbax ``CheckpointManager`` over ``workdir/checkpoints`` (created),
-  closed on exit, under which a failed write (a full disk, a folder made
-  read-only) is raised as ``error``: the file, the fix and the step a rerun
-  resumes from, instead of orbax's (TensorStore's) traceback.
+  """An orbax ``CheckpointManager`` over ``workdir/checkpoints`` (created;
+  saves synchronously), closed on exit. A failed write while it is
+  created or closed is raised as ``error`` naming the file
+  (:func:`_named_write_errors`); :func:`save_checkpoint` does the same
+  for each save.
 
   Orbax writes a step into a temporary folder and renames it when whole,
   and removes a temporary folder left behind when the next manager opens:
@@ -369,14 +377,32 @@ def checkpoint_manager(workdir: str, max_to_keep: int,
   options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep,
                                          create=True,
                                          enable_async_checkpointing=False)
+  with _named_write_errors(directory, error):
+    mngr = ocp.CheckpointManager(directory, options=options)
   try:
-    with ocp.CheckpointManager(directory, options=options) as mngr:
-      yield mngr
+    yield mngr
+  except BaseException:
+    try:  # the body's error is the one raised
+      mngr.close()
+    except Exception as e:  # noqa: BLE001
+      logging.warning('closing the checkpoints in %s: %s', directory, e)
+    raise
+  with _named_write_errors(directory, error):
+    mngr.close()
+
+
+@contextlib.contextmanager
+def _named_write_errors(directory: str, error: type):
+  """An OS error raised in the block (orbax's TensorStore ValueError
+  carrying one included) raised as ``error``: the file, the fix and the
+  step a rerun resumes from, instead of orbax's traceback."""
+  try:
+    yield
   except Exception as e:  # noqa: BLE001 (only OS errors are raised anew)
     os_error = atomic_files.os_error_of(e)
     if os_error is None:
       raise
-    raise error(_write_failure(directory, os_error)) from None
+    raise error(_write_failure(directory, os_error)) from e
 
 
 def _write_failure(directory: str, e: OSError) -> str:
@@ -443,7 +469,8 @@ def save_checkpoint(mngr: ocp.CheckpointManager, step: int, state,
   """Saves ``state`` as checkpoint ``step``, synchronously (the files are
   complete when it returns), after :func:`check_room`."""
   check_room(mngr, state, error, step)
-  mngr.save(step, args=ocp.args.StandardSave(state), force=force)
+  with _named_write_errors(os.fspath(mngr.directory), error):
+    mngr.save(step, args=ocp.args.StandardSave(state), force=force)
 
 
 def restore_latest(mngr: ocp.CheckpointManager, state,
@@ -572,7 +599,11 @@ def save_interrupted(mngr: ocp.CheckpointManager, state,
     logging.warning('interrupted at step %d with non-finite weights: not '
                     'saved', step)
     return None
-  save_checkpoint(mngr, step, state, error, force=True)
+  try:
+    save_checkpoint(mngr, step, state, error, force=True)
+  except error as e:  # no room: the interruption goes on
+    logging.warning('interrupted at step %d, not saved: %s', step, e)
+    return None
   logging.warning('interrupted: step %d saved in %s; run again with the '
                   'same workdir to resume', step, mngr.directory)
   return step

@@ -587,7 +587,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
           rec = {'step': done, 'train_loss': loss, 'per_task': per,
                  'elapsed_s': time.perf_counter() - t1}
           logging.info('sim step %d: %s', done, rec)
-          train_lib.append_metrics(workdir, rec)
+          train_lib.append_metrics(workdir, rec, TrainingError)
         if done % config.checkpoint_every == 0 or done == config.num_steps:
           train_lib.save_checkpoint(mngr, done, state, TrainingError)
     except KeyboardInterrupt:  # (Ctrl-C, or SIGTERM in the scripts)
