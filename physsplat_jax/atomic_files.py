@@ -31,7 +31,8 @@ def os_error_reason(e: OSError) -> str:
   return f'{why}; choose another output path'
 
 
-PARTIAL = re.compile(r'\..+\.\d+(-[0-9a-f]+)?\.partial(\.[^.]*)?')
+PARTIAL = re.compile(
+  r'\.(?P<stem>.+)\.\d+(-[0-9a-f]+)?\.partial(?P<ext>\.[^.]*)?')
 
 
 def partial_path(path: str) -> str:

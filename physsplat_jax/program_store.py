@@ -39,6 +39,7 @@ import os
 import pickle
 import re
 import threading
+import time
 from typing import Any, Callable, Sequence
 
 from absl import logging
@@ -331,16 +332,30 @@ def read_file(path: str) -> bytes:
   return blob
 
 
+# A temporary file older than this was left by a killed writer [s].
+_STALE_S = 3600.0
+
+
 def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:
   """Keeps the :data:`KEEP` newest files ``{name}_*{suffix}`` of ``where``
-  (stored programs, or what else is stored beside them)."""
+  (stored programs, or what else is stored beside them), and removes the
+  temporary files of its family that killed writers left (older than an
+  hour: a live writer's is seconds old)."""
   family = re.compile(re.escape(name) + r'_[0-9a-f]{40}' + re.escape(suffix)
                       + '$')
-  files = [os.path.join(where, f) for f in os.listdir(where)
-           if family.match(f)]
+  names = os.listdir(where)
+  files = [os.path.join(where, f) for f in names if family.match(f)]
   files.sort(key=os.path.getmtime)
-  for old in files[:-KEEP]:
+  stale = []
+  for f in names:
+    m = atomic_files.PARTIAL.fullmatch(f)
+    if m and family.match(m['stem'] + (m['ext'] or '')):
+      stale.append(os.path.join(where, f))
+  now = time.time()
+  for old in files[:-KEEP] + stale:
     try:
+      if old in stale and now - os.path.getmtime(old) < _STALE_S:
+        continue
       os.remove(old)
     except OSError:  # another process removed it
       pass

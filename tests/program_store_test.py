@@ -190,17 +190,25 @@ class PruneTest(absltest.TestCase):
     # Another family whose name starts alike, another suffix, other files.
     names += [f'render_count_{h(9)}.jaxexport', f'render_{h(8)}.notstored',
               'other.txt']
+    # Temporary files of killed writers (an hour old) go; a live writer's
+    # (just now), another family's and another suffix's stay.
+    killed = f'.render_{h(6)}.123-0a1b2c.partial.jaxexport'
+    live = f'.render_{h(7)}.124-0a1b2c.partial.jaxexport'
+    others = [f'.render_count_{h(6)}.123-0a.partial.jaxexport',
+              f'.render_{h(6)}.123-0a.partial.notstored']
+    names += [killed, live] + others
     for i, n in enumerate(names):
       path = os.path.join(tmp.name, n)
       with open(path, 'w') as f:
         f.write('x')
-      os.utime(path, (time.time() + i, time.time() + i))
+      t = time.time() + i - (7200 if n in [killed] + others else 0)
+      os.utime(path, (t, t))
     with mock.patch.object(program_store, 'KEEP', 2):
       program_store.prune(tmp.name, 'render')
     self.assertEqual(sorted(os.listdir(tmp.name)), sorted([
       f'render_{h(3)}.jaxexport', f'render_{h(4)}.jaxexport',
       f'render_count_{h(9)}.jaxexport', f'render_{h(8)}.notstored',
-      'other.txt']))
+      'other.txt', live] + others))
 
 
 class StoredJitTest(absltest.TestCase):
