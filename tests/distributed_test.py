@@ -455,6 +455,23 @@ class RuntimeTest(absltest.TestCase):
            if not k.startswith(('SLURM_', 'OMPI_'))}
     with mock.patch.dict(os.environ, env, clear=True):
       self.assertIsNone(runtime.cluster_environment())
+    ompi4 = dict(OMPI_MCA_orte_hnp_uri='123.0;tcp://10.0.0.1:5000',
+                 OMPI_COMM_WORLD_SIZE='2', OMPI_COMM_WORLD_RANK='1')
+    with mock.patch.dict(os.environ, dict(env, **ompi4), clear=True):
+      self.assertEqual(runtime.cluster_environment(), 'ompi')
+    with mock.patch.dict(os.environ, dict(env, **ompi4, **slurm), clear=True):
+      self.assertEqual(runtime.cluster_environment(), 'ompi')  # JAX's order
+    # Open MPI 5 sets no OMPI_MCA_orte_hnp_uri: JAX does not detect it, and
+    # each rank ran the whole sweep alone, every one writing its outputs.
+    ompi5 = dict(OMPI_COMM_WORLD_SIZE='2', OMPI_COMM_WORLD_RANK='1')
+    with mock.patch.dict(os.environ, dict(env, **ompi5), clear=True):
+      self.assertIsNone(runtime.cluster_environment())
+      with self.assertRaisesRegex(
+          runtime.DistributedError, r'one of 2 that Open MPI 5 or later '
+          r'started .*--num_processes=\$OMPI_COMM_WORLD_SIZE --process_id='
+          r'\$OMPI_COMM_WORLD_RANK.*--distributed=off'):
+        runtime.initialize()
+      self.assertEqual(runtime.initialize(mode='off').method, 'single')
 
   def test_flags(self):
     fv = flags.FlagValues()

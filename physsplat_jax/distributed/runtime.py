@@ -12,9 +12,12 @@ Where the processes come from:
 - explicit flags: ``--coordinator_address=host:port --num_processes=P
   --process_id=i`` (the address of process 0; any free port agreed by all);
 - auto-detected under Slurm (``srun``; one process per task) and Open MPI
-  (``mpirun``): :func:`cluster_environment` sees the launcher and JAX
-  reads its variables (and ``JAX_COORDINATOR_ADDRESS`` and
-  ``JAX_LOCAL_DEVICE_IDS`` when the flags leave them unset);
+  4 (``mpirun``): :func:`cluster_environment` sees the launcher and JAX
+  reads its variables (and ``JAX_COORDINATOR_ADDRESS``,
+  ``JAX_COORDINATOR_PORT`` and ``JAX_LOCAL_DEVICE_IDS`` when the flags
+  leave them unset); each process then drives the device of its local
+  rank only. Verified with Slurm 22.05 and Open MPI 4.1 on one host
+  (docs/distributed.md); Open MPI 5 is not detected, and refused;
 - other launchers JAX knows (Cloud TPU pods, Kubernetes, MPI4Py): mode
   'auto' does not see them; ``--distributed=on`` (``mode='on'``) calls
   ``jax.distributed.initialize`` without the flags and JAX detects them;
@@ -87,18 +90,35 @@ class RuntimeInfo:
 def cluster_environment() -> str | None:
   """The multi-process launcher JAX can auto-detect, or None.
 
-  Returns 'slurm' inside an ``srun`` step with more than one task, 'ompi'
-  under ``mpirun`` with more than one rank, and None otherwise (a single
-  process: an ``sbatch`` script outside ``srun``, or a plain shell).
+  Returns 'ompi' under Open MPI 4's ``mpirun`` with more than one rank (the
+  first JAX checks), 'slurm' inside an ``srun`` step with more than one
+  task, and None otherwise (a single process: an ``sbatch`` script outside
+  ``srun``, or a plain shell; Open MPI 5, which JAX does not detect:
+  :func:`initialize` refuses it).
   """
   env = os.environ
+  if 'OMPI_MCA_orte_hnp_uri' in env and int(
+      env.get('OMPI_COMM_WORLD_SIZE', '2')) > 1:
+    return 'ompi'
   slurm = ('SLURM_JOB_ID', 'SLURM_STEP_NODELIST', 'SLURM_NTASKS',
            'SLURM_PROCID', 'SLURM_LOCALID')
   if all(k in env for k in slurm) and int(env['SLURM_NTASKS']) > 1:
     return 'slurm'
-  if 'OMPI_MCA_orte_hnp_uri' in env and int(
-      env.get('OMPI_COMM_WORLD_SIZE', '2')) > 1:
-    return 'ompi'
+  return None
+
+
+def _undetected_launcher() -> str | None:
+  """Why this process looks like one of several that no one detects, or
+  None: Open MPI 5 (PRRTE) sets no ``OMPI_MCA_orte_hnp_uri``, which JAX's
+  detection keys on (jax-ml/jax#14576), so each rank ran the whole job
+  alone and every one wrote the outputs."""
+  env = os.environ
+  size = env.get('OMPI_COMM_WORLD_SIZE', '1')
+  if ('OMPI_MCA_orte_hnp_uri' not in env and size.isdigit()
+      and int(size) > 1):
+    return (f'this process is one of {size} that Open MPI 5 or later '
+            'started (OMPI_COMM_WORLD_SIZE), which JAX does not detect: '
+            'each would run the whole job alone and write the outputs')
   return None
 
 
@@ -180,6 +200,15 @@ def initialize(
   if explicit and num_processes == 1:
     explicit, mode = False, 'off'
   detected = cluster_environment()
+  undetected = _undetected_launcher()
+  if mode == 'auto' and not (explicit or detected) and undetected:
+    raise DistributedError(
+      f'initialize: {undetected}. Pass the job explicitly, e.g. mpirun ... '
+      "bash -c 'python -m experiments.sweep ... --coordinator_address="
+      'HOST:PORT --num_processes=$OMPI_COMM_WORLD_SIZE --process_id='
+      "$OMPI_COMM_WORLD_RANK' (HOST: the first rank's host, any free "
+      'port), or --distributed=on if your JAX detects this launcher, or '
+      '--distributed=off to run each process alone.')
   if mode == 'on' or (mode == 'auto' and (explicit or detected)):
     _check_address(coordinator_address)
     if cpu_collectives != 'none':
@@ -271,8 +300,9 @@ def define_flags(flag_values: flags.FlagValues = flags.FLAGS) -> None:
   flags.DEFINE_integer('process_id', None, 'Index of this process in '
                        '[0, num_processes).', flag_values=flag_values)
   flags.DEFINE_list('local_device_ids', None, 'Devices this process drives '
-                    '(default: all it sees; one GPU per task under Slurm).',
-                    flag_values=flag_values)
+                    '(default: all it sees; under Slurm/Open MPI JAX picks '
+                    'the one of the local rank: give 0,1,2,3 for one '
+                    'process driving 4 GPUs).', flag_values=flag_values)
   flags.DEFINE_enum('distributed', 'auto', MODES, 'auto: start '
                     'jax.distributed when flags are given or a launcher is '
                     'detected; on: always; off: never.',
