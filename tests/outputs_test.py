@@ -298,17 +298,22 @@ class LockTest(absltest.TestCase):
     self._lock(d, 999999)
     n, start = 6, threading.Barrier(6)
     results = collections.Counter()
-    inside = threading.Event()
+    tried = threading.Condition()
+
+    def count(what):
+      with tried:
+        results[what] += 1
+        tried.notify_all()
 
     def run():
       start.wait()
       try:
         with outputs.output_lock(d):
-          results['held'] += 1
-          inside.wait(5)
+          count('held')
+          with tried:  # held until every run has tried
+            tried.wait_for(lambda: sum(results.values()) == n, timeout=10)
       except outputs.OutputError:
-        results['refused'] += 1
-        inside.set()
+        count('refused')
 
     threads = [threading.Thread(target=run) for _ in range(n)]
     for t in threads:

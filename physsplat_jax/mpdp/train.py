@@ -22,6 +22,7 @@ the workdir, before any data, compilation or training.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import os
@@ -640,10 +641,12 @@ def train_and_evaluate(config, workdir: str) -> dict:
   record_config(workdir, {k: v for k, v in config.to_dict().items()
                           if k in ('model', 'data', 'train')})
 
-  t0 = time.time()
+  seconds = collections.Counter()
+  t0 = time.perf_counter()
   train_data, eval_data = make_datasets(config)
+  seconds['data'] = time.perf_counter() - t0
   logging.info('generated %d train / %d held-out objects in %.1f s',
-               config.data.num_train, config.data.num_eval, time.time() - t0)
+               config.data.num_train, config.data.num_eval, seconds['data'])
 
   params = model_lib.init_params(jax.random.key(tc.seed), mcfg,
                                  config.data.num_points)
@@ -656,16 +659,21 @@ def train_and_evaluate(config, workdir: str) -> dict:
   step_fn = _compile_step(make_train_step(loss_fn, tx))
 
   loss = per = None
+  t0 = time.perf_counter()
   with checkpoint_manager(workdir, tc.max_to_keep) as mngr:
     state = restore_latest(mngr, state)
     check_room(mngr, state)
     start = int(state['step'])
     trim_metrics(workdir, start)
+    seconds['checkpoints'] += time.perf_counter() - t0
     t_start = time.time()
     try:
       for step in range(start, tc.num_steps):
+        t0, aside = time.perf_counter(), 0.0  # (aside: evaluation, saves)
         batch = _batch(train_data, tc.seed, step, tc.batch_size)
         state, loss, per = step_fn(state, batch)
+        if step == start:
+          jax.block_until_ready(loss)
         done = step + 1
         log = done % tc.log_every == 0 or done == tc.num_steps
         save = done % tc.checkpoint_every == 0 or done == tc.num_steps
@@ -680,17 +688,30 @@ def train_and_evaluate(config, workdir: str) -> dict:
                  'train_msle': [float(x) for x in per],
                  'elapsed_s': time.time() - t_start}
           if done % tc.eval_every == 0 or done == tc.num_steps:
+            t1 = time.perf_counter()
             rec.update(evaluate(state['params'], mcfg, eval_data))
+            aside += time.perf_counter() - t1
+            seconds['evaluate'] += time.perf_counter() - t1
           logging.info('step %d: %s', done, rec)
           append_metrics(workdir, rec)
         if save:
+          t1 = time.perf_counter()
           save_checkpoint(mngr, done, state)
+          aside += time.perf_counter() - t1
+          seconds['checkpoints'] += time.perf_counter() - t1
+        seconds['first step (compiles)' if step == start else 'steps'] += (
+          time.perf_counter() - t0 - aside)
     except KeyboardInterrupt:  # (Ctrl-C, or SIGTERM in the scripts)
       save_interrupted(mngr, state)
       raise
     mngr.wait_until_finished()
+  t0 = time.perf_counter()
   result = evaluate(state['params'], mcfg, eval_data)
+  seconds['evaluate'] += time.perf_counter() - t0
   result.update(step=int(state['step']),
                 train_loss=None if loss is None else float(loss),
+                seconds={k: round(v, 3) for k, v in seconds.items()},
                 params=state['params'])
+  logging.info('time: %s', ', '.join(f'{k} {v:.1f} s'
+                                     for k, v in seconds.items()))
   return result
