@@ -10,13 +10,17 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 import re
 import secrets
+import socket
 import stat
+import threading
 from typing import Callable
 
 import numpy as np
+from absl import logging
 
 from physsplat_jax.errors import PhysSplatError
 
@@ -151,3 +155,129 @@ def os_error_of(e: BaseException) -> OSError | None:
       return OSError(code, os.strerror(code), f.group(1) if f else None)
     e = e.__cause__
   return None
+
+
+# ---------------------------------------------------------- folder locks
+
+LOCK = '.physsplat_run.lock'
+# (folder, thread) -> nesting depth of this process's holds
+_held: dict[tuple[str, int], int] = {}
+_held_guard = threading.Lock()
+
+
+def _lock_owner(path: str) -> tuple[int, str] | None:
+  """(pid, host) written in a lock file, or None when unreadable."""
+  try:
+    with open(path) as f:
+      pid, host = f.read().split()[:2]
+    return int(pid), host
+  except (OSError, ValueError):
+    return None
+
+
+def _write_owner(fd: int, text: str) -> None:
+  os.ftruncate(fd, 0)
+  os.write(fd, text.encode())
+
+
+def _take_lock(folder: str, path: str, error: type[Exception], where: str,
+               flag: str) -> int:
+  """The open lock file of ``folder``, locked (``flock``) by this process.
+
+  The kernel holds the lock for the open file and releases it when the
+  process ends however it ends, so a lock file that a killed run left is
+  taken over, and two runs starting at once cannot both hold the folder.
+  The file holds the pid and host, for the message of a run refused.
+  """
+  for _ in range(5):
+    try:
+      fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+    except OSError as e:
+      raise error(f'{where} cannot be written ({os_error_reason(e)})'
+                  ) from None
+    try:
+      try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+      except BlockingIOError:
+        owner = _lock_owner(path)
+        who = (f'pid {owner[0]} on {owner[1]}' if owner
+               else 'another process')
+        raise error(f'{where} is in use by another run ({who}); give '
+                    f'another {flag}, or wait for that run to end') from None
+      except OSError as e:  # a file system without locks (some NFS mounts)
+        logging.warning('%s: cannot lock %s (%s); a second run into this '
+                        'folder would not be refused', folder, path, e)
+      # Locked: but if the run before removed the file (it ended) between
+      # our open and our lock, the lock is on a file no one else sees.
+      try:
+        here, now = os.fstat(fd), os.stat(path)
+        current = (here.st_dev, here.st_ino) == (now.st_dev, now.st_ino)
+      except FileNotFoundError:
+        current = False
+      if not current:
+        os.close(fd)
+        continue
+      before = _lock_owner(path)
+      if before is not None and before[0] != os.getpid():
+        logging.info('%s: taking over the lock of an ended run (pid %d on '
+                     '%s)', folder, *before)
+      try:
+        _write_owner(fd, f'{os.getpid()} {socket.gethostname()}\n')
+      except OSError as e:
+        with contextlib.suppress(OSError):
+          os.remove(path)
+        raise error(f'{where}: cannot write its lock file {path} '
+                    f'({os_error_reason(e)})') from None
+      return fd
+    except BaseException:
+      with contextlib.suppress(OSError):
+        os.close(fd)
+      raise
+  raise error(f'{where}: cannot take its lock {path} (other runs keep '
+              'replacing it); try again')
+
+
+@contextlib.contextmanager
+def hold_folder(folder: str, error: type[Exception], *,
+                what: str = 'folder', flag: str = '--out',
+                on_take: Callable[[str], object] | None = None):
+  """Holds ``folder`` for this run (a lock file, :data:`LOCK`, locked with
+  the kernel's ``flock``) while the block runs.
+
+  A second run into the same folder (another process, or another thread
+  of this one) fails at once naming the first; the kernel releases the
+  lock when its process ends, so the file a killed run left is taken over
+  and two runs starting at once cannot both hold it. Nested holds by one
+  thread are allowed. ``on_take(folder)`` runs once the lock is taken (the
+  outputs remove the temporary files a killed run left).
+
+  Raises:
+    error: another live run holds the folder (naming it, and ``flag`` for
+      the fix), or the lock file cannot be written.
+  """
+  key = (os.path.realpath(folder), threading.get_ident())
+  with _held_guard:
+    nested = key in _held
+    if nested:
+      _held[key] += 1
+  if nested:
+    try:
+      yield
+    finally:
+      with _held_guard:
+        _held[key] -= 1
+    return
+  path = os.path.join(folder, LOCK)
+  fd = _take_lock(folder, path, error, f'{what} {folder!r}', flag)
+  with _held_guard:
+    _held[key] = 1
+  try:
+    if on_take is not None:
+      on_take(folder)
+    yield
+  finally:
+    with _held_guard:
+      del _held[key]
+    with contextlib.suppress(OSError):
+      os.remove(path)  # still locked: no run takes it meanwhile
+    os.close(fd)

@@ -17,6 +17,7 @@ import jax
 import numpy as np
 from absl.testing import absltest
 
+from physsplat_jax import atomic_files
 from physsplat_jax import pipeline as pl
 from physsplat_jax.io import outputs
 from physsplat_jax.io import paths
@@ -325,7 +326,7 @@ class LockTest(absltest.TestCase):
 
   def test_a_lock_file_that_cannot_be_written_is_not_left(self):
     d = _tmpdir(self)
-    with mock.patch.object(outputs, '_write_owner', side_effect=_FULL):
+    with mock.patch.object(atomic_files, '_write_owner', side_effect=_FULL):
       with self.assertRaisesRegex(
           outputs.OutputError, r'cannot write its lock file .*No space left'):
         with outputs.output_lock(d):
@@ -347,6 +348,14 @@ class LockTest(absltest.TestCase):
     self._holder(d)
     with self.assertRaisesRegex(outputs.OutputError, 'in use by another run'):
       pl.simulate_scene(None, cfg, d)
+
+
+def _raised(fn, *args):
+  try:
+    fn(*args)
+  except Exception as e:  # noqa: BLE001 - returned for the test to check
+    return e
+  return None
 
 
 class TrainingOutputsTest(absltest.TestCase):
@@ -432,6 +441,23 @@ class TrainingOutputsTest(absltest.TestCase):
           open(os.path.join(w, 'missing'))
         except FileNotFoundError:
           raise KeyError('other') from None
+
+  def test_one_training_per_workdir(self):
+    # Two trainings into one workdir (a job submitted twice) wrote the same
+    # checkpoints; the second now stops at once, naming the first.
+    w = _tmpdir(self)
+    with atomic_files.hold_folder(w, self.train.MPDPError, what='workdir',
+                                  flag='--workdir'):
+      errors = []
+      other = threading.Thread(target=lambda: errors.append(
+        _raised(self.train.train_and_evaluate, self.config, w)))
+      other.start()
+      other.join(60)
+    self.assertRegex(str(errors[0]), r"workdir '.*' is in use by another "
+                     r'run \(pid \d+ on .*\); give another --workdir')
+    self.assertFalse(os.path.exists(os.path.join(w, 'checkpoints')))
+    self.assertEqual(self.train.train_and_evaluate(self.config, w)['step'],
+                     4)  # free again
 
   def test_exported_weights_are_written_whole_or_not_at_all(self):
     import jax

@@ -22,7 +22,6 @@ import collections
 import concurrent.futures
 import contextlib
 import dataclasses
-import fcntl
 import functools
 import inspect
 import json
@@ -30,14 +29,13 @@ import math
 import os
 import re
 import shutil
-import socket
 import tempfile
-import threading
 from typing import Any, Protocol, Sequence
 
 import numpy as np
 from absl import logging
 
+from physsplat_jax import atomic_files
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.io import export as export_lib
 from physsplat_jax.io import paths
@@ -115,88 +113,13 @@ def check_output_file(path, error: type[Exception] = OutputError, *,
   return paths.check_output_file(path, error, create=create)
 
 
-_LOCK = '.physsplat_run.lock'
-# (folder, thread) -> nesting depth of this process's holds
-_held: dict[tuple[str, int], int] = {}
-_held_guard = threading.Lock()
-
-
-def _lock_owner(path: str) -> tuple[int, str] | None:
-  """(pid, host) written in a lock file, or None when unreadable."""
-  try:
-    with open(path) as f:
-      pid, host = f.read().split()[:2]
-    return int(pid), host
-  except (OSError, ValueError):
-    return None
-
-
-def _write_owner(fd: int, text: str) -> None:
-  os.ftruncate(fd, 0)
-  os.write(fd, text.encode())
-
-
-def _take_lock(out_dir: str, path: str) -> int:
-  """The open lock file of ``out_dir``, locked (``flock``) by this process.
-
-  The kernel holds the lock for the open file and releases it when the
-  process ends however it ends, so a lock file that a killed run left is
-  taken over, and two runs starting at once cannot both hold the folder.
-  The file holds the pid and host, for the message of a run refused.
-  """
-  for _ in range(5):
-    try:
-      fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
-    except OSError as e:
-      raise OutputError(f'output folder {out_dir!r} cannot be written '
-                        f'({paths.os_error_reason(e)})') from None
-    try:
-      try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-      except BlockingIOError:
-        owner = _lock_owner(path)
-        who = (f'pid {owner[0]} on {owner[1]}' if owner
-               else 'another process')
-        raise OutputError(
-          f'output folder {out_dir!r} is in use by another run ({who}); '
-          'give another --out, or wait for that run to end') from None
-      except OSError as e:  # a file system without locks (some NFS mounts)
-        logging.warning('%s: cannot lock %s (%s); a second run into this '
-                        'folder would not be refused', out_dir, path, e)
-      # Locked: but if the run before removed the file (it ended) between
-      # our open and our lock, the lock is on a file no one else sees.
-      try:
-        here, now = os.fstat(fd), os.stat(path)
-        current = (here.st_dev, here.st_ino) == (now.st_dev, now.st_ino)
-      except FileNotFoundError:
-        current = False
-      if not current:
-        os.close(fd)
-        continue
-      before = _lock_owner(path)
-      if before is not None and before[0] != os.getpid():
-        logging.info('%s: taking over the lock of an ended run (pid %d on '
-                     '%s)', out_dir, *before)
-      try:
-        _write_owner(fd, f'{os.getpid()} {socket.gethostname()}\n')
-      except OSError as e:
-        with contextlib.suppress(OSError):
-          os.remove(path)
-        raise OutputError(f'output folder {out_dir!r}: cannot write its '
-                          f'lock file {path} ({paths.os_error_reason(e)})'
-                          ) from None
-      return fd
-    except BaseException:
-      with contextlib.suppress(OSError):
-        os.close(fd)
-      raise
-  raise OutputError(f'output folder {out_dir!r}: cannot take its lock '
-                    f'{path} (other runs keep replacing it); try again')
+_LOCK = atomic_files.LOCK
 
 
 @contextlib.contextmanager
 def output_lock(out_dir: str):
-  """Holds ``out_dir`` for this run while it writes into it.
+  """Holds ``out_dir`` for this run while it writes into it
+  (:func:`physsplat_jax.atomic_files.hold_folder`).
 
   A second run into the same folder (another process, or another thread
   of this one) fails at once with a message naming the first run, instead
@@ -211,31 +134,9 @@ def output_lock(out_dir: str):
     OutputError: another live run holds the folder, or its lock file
       cannot be written.
   """
-  key = (os.path.realpath(out_dir), threading.get_ident())
-  with _held_guard:
-    nested = key in _held
-    if nested:
-      _held[key] += 1
-  if nested:
-    try:
-      yield
-    finally:
-      with _held_guard:
-        _held[key] -= 1
-    return
-  path = os.path.join(out_dir, _LOCK)
-  fd = _take_lock(out_dir, path)
-  with _held_guard:
-    _held[key] = 1
-  try:
-    _remove_partials(out_dir)
+  with atomic_files.hold_folder(out_dir, OutputError, what='output folder',
+                                flag='--out', on_take=_remove_partials):
     yield
-  finally:
-    with _held_guard:
-      del _held[key]
-    with contextlib.suppress(OSError):
-      os.remove(path)  # still locked: no run takes it meanwhile
-    os.close(fd)
 
 
 def holds_output_dir(*files: str):

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import json
 import os
 import shutil
@@ -616,6 +617,29 @@ def _finite(loss, params) -> bool:
   return bool(jnp.isfinite(loss) & jnp.all(jnp.stack(leaves)))
 
 
+def holds_workdir(validate, error: type = MPDPError):
+  """Decorator of a training ``fn(config, workdir)``: ``validate(config)``
+  first (a bad config fails before the workdir is made), then the workdir
+  checked (:func:`check_workdir`) and held (``atomic_files.hold_folder``)
+  while it trains, so that a second training into it (a job submitted
+  twice, a requeue while the first still runs) stops at once, naming the
+  first, instead of both writing the same checkpoints."""
+
+  def decorate(fn):
+    @functools.wraps(fn)
+    def held(config, workdir, *args, **kwargs):
+      validate(config)
+      path = check_workdir(workdir, error)
+      with atomic_files.hold_folder(path, error, what='workdir',
+                                    flag='--workdir'):
+        return fn(config, workdir, *args, **kwargs)
+
+    return held
+
+  return decorate
+
+
+@holds_workdir(validate_config)
 def train_and_evaluate(config, workdir: str) -> dict:
   """Trains MPDP on synthetic objects, checkpointing and resuming in workdir.
 
@@ -631,7 +655,9 @@ def train_and_evaluate(config, workdir: str) -> dict:
 
   Raises:
     MPDPError: a bad config field or workdir (:func:`validate_config`,
-      :func:`check_workdir`), before any data is made or code compiled.
+      :func:`check_workdir`), or a workdir that another training holds
+      (:func:`holds_workdir`), before any data is made or code compiled;
+      a disk without room for a checkpoint (:func:`check_room`).
   """
   tc = config.train
   mcfg = validate_config(config)

@@ -532,6 +532,12 @@ def field_log_rmse(field, task: Task) -> list[float]:
 # --------------------------------------------- training with checkpoints
 
 
+def _check_sim(config) -> None:
+  TaskConfig.from_dict(config.task)
+  checks.check_sim_config(config)
+
+
+@train_lib.holds_workdir(_check_sim, TrainingError)
 def train_and_evaluate(config, workdir: str) -> dict:
   """Trains MPDP through the simulator with orbax checkpoints and resume.
 
