@@ -31,6 +31,7 @@ Material perception is the offline library by object name.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -281,12 +282,21 @@ def main(argv):
   f = flags.FLAGS
   info = runtime.initialize_from_flags()  # before any JAX computation
   cli.catch_sigterm()  # (jax.distributed's preemption service took it)
+  if not f.out:
+    raise app.UsageError('--out=DIR is required')
+  with contextlib.ExitStack() as held:
+    if info.is_main:  # a bad or busy --out fails now, not after the sweep
+      outputs.check_output_dir(f.out)
+      held.enter_context(outputs.output_lock(f.out))
+    _sweep(f, info)
+
+
+def _sweep(f, info) -> None:
+  """The sweep of ``main`` (the flags ``f``; process 0 holds ``--out``)."""
   import jax
 
   from physsplat_jax import distributed as dist
 
-  if not f.out:
-    raise app.UsageError('--out=DIR is required')
   try:
     velocity = parse_velocities(f.velocity) or None
   except ValueError as e:
