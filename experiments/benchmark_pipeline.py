@@ -34,6 +34,7 @@ from absl import flags
 
 from experiments.lib import cli
 from experiments.lib.presets import PRESETS
+from physsplat_jax.io import outputs
 from physsplat_jax.pipeline import PipelineError
 
 
@@ -129,7 +130,7 @@ def main(argv):
   frames = int(overrides.get('num_frames', preset['num_frames']))
   window = ','.join(_PROFILE_FRAMES.value or
                     [str(frames // 3), str(max(2 * frames // 3, 1))])
-  os.makedirs(_OUT.value, exist_ok=True)
+  outputs.check_output_dir(_OUT.value)  # (a file there: named, at once)
   # (not JAX's devices: this process leaves the GPU to the runs; each
   # run has its device_kind)
   results = dict(preset=_PRESET.value, settings=preset, overrides=overrides,

@@ -193,6 +193,7 @@ def compile_simulate(sharding, scene_name: str, frames: int) -> list[dict]:
 
 def main(argv):
   del argv
+  cli.check_output_file('out', _OUT.value)  # before minutes of compiling
   # Lowered for a GPU this host need not have: traces keep every
   # platform's form (physsplat_jax.platforms).
   with platforms.every_platform():
