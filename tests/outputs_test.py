@@ -5,6 +5,7 @@ import collections
 import errno
 import json
 import os
+import shutil
 import socket
 import stat
 import subprocess
@@ -473,27 +474,32 @@ class TrainingOutputsTest(absltest.TestCase):
               for f in os.listdir(d)}
 
     before = files()
-    with mock.patch.object(np, 'savez_compressed', side_effect=_FULL):
-      with self.assertRaisesRegex(
-          model_lib.MPDPError, r'mpdp_params\.npz: cannot write the weights '
-          r'file \(No space left on device: free space'):
-        pretrained.save_params(params, mcfg, d, metadata={'run': 2})
-    self.assertEqual(files(), before)
-    # The second file failing: neither is replaced.
     real = pretrained.atomic_files.write_atomically
+    for failing in ('.npz', '.json'):  # either file: neither is replaced
 
-    def json_full(path, write, error, what):
-      if path.endswith('.json'):
-        write = mock.Mock(side_effect=_FULL)
-      return real(path, write, error, what=what)
+      def full(path, write, error, what, failing=failing):
+        if path.endswith(failing):
+          write = mock.Mock(side_effect=_FULL)
+        return real(path, write, error, what=what)
 
-    with mock.patch.object(pretrained.atomic_files, 'write_atomically',
-                           json_full):
-      with self.assertRaisesRegex(model_lib.MPDPError,
-                                  r'mpdp_params\.json: cannot write'):
-        pretrained.save_params(params, mcfg, d, metadata={'run': 2})
-    self.assertEqual(files(), before)
+      with mock.patch.object(pretrained.atomic_files, 'write_atomically',
+                             full):
+        with self.assertRaisesRegex(
+            model_lib.MPDPError, rf'mpdp_params\{failing}: cannot write the '
+            r'weights file \(No space left on device: free space'):
+          pretrained.save_params(params, mcfg, d, metadata={'run': 2})
+      self.assertEqual(files(), before)
     self.assertEqual(pretrained.load_params(d)[2], {'run': 1})
+    # A pair put together from two exports of one architecture loaded
+    # silently: the description holds the weights' digest.
+    other = _tmpdir(self)
+    pretrained.save_params(jax.tree.map(lambda a: a + 1.0, params), mcfg,
+                           other)
+    shutil.copy(os.path.join(other, 'mpdp_params.npz'), d)
+    with self.assertRaisesRegex(
+        model_lib.MPDPError, r'mpdp_params\.npz: not the weights that '
+        r'.*mpdp_params\.json describes \(their SHA-256 differs'):
+      pretrained.load_params(d)
 
 
 if __name__ == '__main__':

@@ -12,6 +12,8 @@ loadable without orbax.
 from __future__ import annotations
 
 import functools
+import hashlib
+import io
 import json
 import os
 import zipfile
@@ -63,7 +65,14 @@ def save_params(params, model_config: model_lib.ModelConfig, directory: str,
     raise MPDPError(f'{directory}: cannot create the folder '
                     f'({atomic_files.os_error_reason(e)})') from None
   flat = _flatten(dict(params))
+  buf = io.BytesIO()
+  np.savez_compressed(buf, **{k: v.astype(np.float32)
+                              for k, v in flat.items()})
+  blob = buf.getvalue()
+  # The weights' digest in the description: a pair put together from two
+  # exports of one architecture loaded silently.
   text = json.dumps({'model_config': model_config.to_dict(),
+                     'npz_sha256': hashlib.sha256(blob).hexdigest(),
                      'metadata': metadata or {}}, indent=1)
 
   def write_text(tmp):
@@ -72,8 +81,7 @@ def save_params(params, model_config: model_lib.ModelConfig, directory: str,
 
   def write_both(tmp):  # both files complete before either is renamed
     with open(tmp, 'wb') as f:
-      np.savez_compressed(f, **{k: v.astype(np.float32)
-                                for k, v in flat.items()})
+      f.write(blob)
     atomic_files.write_atomically(os.path.join(directory, name + '.json'),
                                   write_text, MPDPError, what='weights')
 
@@ -88,9 +96,11 @@ def load_params(directory: str, name: str = PRETRAINED_NAME):
     (params pytree of float32 jax arrays, ModelConfig, metadata dict).
 
   Raises:
-    MPDPError (a ValueError): if the files are missing or damaged, or the
-      weights do not fit the JSON's model config (a missing, extra or
-      misshapen array; a non-float or non-finite value).
+    MPDPError (a ValueError): if the files are missing or damaged, the
+      weights are not the ones the JSON describes (its ``npz_sha256``,
+      written since 2026-11-29; older files have none), or they do not fit
+      its model config (a missing, extra or misshapen array; a non-float
+      or non-finite value).
   """
   npz = os.path.join(directory, name + '.npz')
   js = os.path.join(directory, name + '.json')
@@ -108,13 +118,21 @@ def load_params(directory: str, name: str = PRETRAINED_NAME):
     raise MPDPError(f'MPDP params {js}: not a model description '
                     f'({type(e).__name__}: {e}); {fix}.') from None
   try:
-    with np.load(npz, allow_pickle=False) as data:
+    with open(npz, 'rb') as f:
+      blob = f.read()
+    with np.load(io.BytesIO(blob), allow_pickle=False) as data:
       flat = {key: data[key] for key in data.files}
   except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile,
           zlib.error) as e:
     raise MPDPError(f'MPDP params {npz}: not a weights file written by '
                     f'save_params, or damaged ({type(e).__name__}); '
                     f'{fix}.') from None
+  digest = meta.get('npz_sha256')
+  if digest is not None and hashlib.sha256(blob).hexdigest() != digest:
+    raise MPDPError(
+      f'MPDP params {npz}: not the weights that {js} describes (their '
+      'SHA-256 differs from its npz_sha256: the two files come from '
+      f'different exports, or the weights were changed); {fix}.')
   _check_weights(flat, cfg, f'MPDP params {npz}', f'{js} ({cfg})', fix)
   params = {}
   for key, value in flat.items():
