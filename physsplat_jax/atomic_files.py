@@ -76,10 +76,7 @@ def atomic_output(path, error: type[Exception], *, what: str = 'output'):
     try:
       yield p
     except OSError as e:
-      if isinstance(e, PhysSplatError):
-        raise
-      raise error(f'{p}: cannot write the {what} file '
-                  f'({os_error_reason(e)})') from None
+      _raise_named(e, p, error, what)
     return
   tmp = partial_path(real)
   try:
@@ -92,8 +89,7 @@ def atomic_output(path, error: type[Exception], *, what: str = 'output'):
     with contextlib.suppress(OSError):
       os.remove(tmp)
     if isinstance(e, OSError) and not isinstance(e, PhysSplatError):
-      raise error(f'{p}: cannot write the {what} file '
-                  f'({os_error_reason(e)})') from None
+      _raise_named(e, p, error, what)
     if isinstance(e, PhysSplatError) and tmp in str(e):
       try:  # the message names the file the user asked for
         renamed = type(e)(str(e).replace(tmp, p))
@@ -101,6 +97,14 @@ def atomic_output(path, error: type[Exception], *, what: str = 'output'):
         raise e from None
       raise renamed from None
     raise
+
+
+def _raise_named(e: OSError, p: str, error: type[Exception], what: str):
+  """``e`` again, or an OS error as ``error`` naming ``p`` and the fix."""
+  if isinstance(e, PhysSplatError):
+    raise e
+  raise error(f'{p}: cannot write the {what} file ({os_error_reason(e)})'
+              ) from None
 
 
 def write_atomically(path, write: Callable[[str], object],
@@ -114,6 +118,18 @@ def write_atomically(path, write: Callable[[str], object],
   with atomic_output(path, error, what=what) as tmp:
     write(tmp)
   return os.fspath(path)
+
+
+def write_data(path, data: str | bytes, error: type[Exception], *,
+               what: str = 'output') -> str:
+  """``data`` (text, or bytes) as the file ``path``, through
+  :func:`atomic_output`."""
+
+  def write(tmp):
+    with open(tmp, 'w' if isinstance(data, str) else 'wb') as f:
+      f.write(data)
+
+  return write_atomically(path, write, error, what=what)
 
 
 def write_npz(path, arrays: dict, error: type[Exception], *,

@@ -296,15 +296,10 @@ def write_file(path: str, blob: bytes) -> bool:
   read-only folder) is logged and returns False, leaving no temporary file:
   it costs only the next process a trace or a build."""
   where = os.path.dirname(path)
-
-  def write(tmp):
-    with open(tmp, 'wb') as f:
-      f.write(_TAG + hashlib.sha256(blob).digest())
-      f.write(blob)
-
   try:
     os.makedirs(where, exist_ok=True)
-    atomic_files.write_atomically(path, write, OSError, what='stored')
+    atomic_files.write_data(path, _TAG + hashlib.sha256(blob).digest() + blob,
+                            OSError, what='stored')
     name, suffix = os.path.splitext(os.path.basename(path))
     prune(where, name.rsplit('_', 1)[0], suffix)
   except OSError as e:

@@ -286,14 +286,9 @@ def write_json(path: str | None, result) -> None:
   if not path:
     return
   os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  text = json.dumps(result, indent=1)
-
-  def write(tmp):
-    with open(tmp, 'w') as fh:
-      fh.write(text)
-
   # (a failed write, a full disk, leaves no temporary file behind)
-  paths.write_atomically(path, write, outputs.OutputError, what='JSON')
+  paths.write_data(path, json.dumps(result, indent=1), outputs.OutputError,
+                   what='JSON')
 
 
 def machine(devices: bool = True) -> dict:

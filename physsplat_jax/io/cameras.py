@@ -278,12 +278,7 @@ def save_inria_cameras(path, cameras) -> None:
   text = json.dumps(inria_cameras_to_json(cameras))
   p = paths.check_output_file(path, CameraFileError, what='cameras',
                               create=True)
-
-  def write(tmp):
-    with open(tmp, 'w', encoding='utf-8') as f:
-      f.write(text)
-
-  paths.write_atomically(p, write, CameraFileError, what='cameras')
+  paths.write_data(p, text.encode('utf-8'), CameraFileError, what='cameras')
 
 
 # ----------------------------------------------------------------------------

@@ -189,13 +189,8 @@ def write_json(path: str, data: Any) -> str:
     OutputError: it cannot be written (a full disk: naming the file and
       the fix); nothing is left half-written.
   """
-  text = json.dumps(jsonable(data), indent=1)
-
-  def write(tmp):
-    with open(tmp, 'w') as f:
-      f.write(text)
-
-  return paths.write_atomically(path, write, OutputError, what='JSON')
+  return paths.write_data(path, json.dumps(jsonable(data), indent=1),
+                         OutputError, what='JSON')
 
 
 def write_failure_report(path: str, report: dict) -> str | None:

@@ -75,15 +75,11 @@ def save_params(params, model_config: model_lib.ModelConfig, directory: str,
                      'npz_sha256': hashlib.sha256(blob).hexdigest(),
                      'metadata': metadata or {}}, indent=1)
 
-  def write_text(tmp):
-    with open(tmp, 'w') as f:
-      f.write(text)
-
   def write_both(tmp):  # both files complete before either is renamed
     with open(tmp, 'wb') as f:
       f.write(blob)
-    atomic_files.write_atomically(os.path.join(directory, name + '.json'),
-                                  write_text, MPDPError, what='weights')
+    atomic_files.write_data(os.path.join(directory, name + '.json'), text,
+                            MPDPError, what='weights')
 
   atomic_files.write_atomically(os.path.join(directory, name + '.npz'),
                                 write_both, MPDPError, what='weights')

@@ -286,13 +286,8 @@ def record_config(workdir: str, config: dict, error: type = MPDPError,
           f'config ({what}{"; ..." if len(changed) > 6 else ""}): resume '
           f'with the same {flag} (saved in {path}) or train in a new '
           '--workdir.')
-  atomic_files.write_atomically(
-    path, lambda tmp: _write_json(tmp, new), error, what='training config')
-
-
-def _write_json(path, data):
-  with open(path, 'w') as f:
-    json.dump(data, f, indent=1)
+  atomic_files.write_data(path, json.dumps(new, indent=1), error,
+                          what='training config')
 
 
 def make_datasets(config):
@@ -356,10 +351,7 @@ def trim_metrics(workdir: str, step: int) -> None:
 
   keep = [line for line in lines if kept(line)]
   if len(keep) < len(lines):
-    def write(tmp):
-      with open(tmp, 'w') as f:
-        f.writelines(keep)
-    atomic_files.write_atomically(path, write, MPDPError, what='metrics')
+    atomic_files.write_data(path, ''.join(keep), MPDPError, what='metrics')
 
 
 @contextlib.contextmanager
@@ -716,15 +708,17 @@ def train_and_evaluate(config, workdir: str) -> dict:
           if done % tc.eval_every == 0 or done == tc.num_steps:
             t1 = time.perf_counter()
             rec.update(evaluate(state['params'], mcfg, eval_data))
-            aside += time.perf_counter() - t1
-            seconds['evaluate'] += time.perf_counter() - t1
+            dt = time.perf_counter() - t1
+            aside += dt
+            seconds['evaluate'] += dt
           logging.info('step %d: %s', done, rec)
           append_metrics(workdir, rec)
         if save:
           t1 = time.perf_counter()
           save_checkpoint(mngr, done, state)
-          aside += time.perf_counter() - t1
-          seconds['checkpoints'] += time.perf_counter() - t1
+          dt = time.perf_counter() - t1
+          aside += dt
+          seconds['checkpoints'] += dt
         seconds['first step (compiles)' if step == start else 'steps'] += (
           time.perf_counter() - t0 - aside)
     except KeyboardInterrupt:  # (Ctrl-C, or SIGTERM in the scripts)

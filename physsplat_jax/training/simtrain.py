@@ -620,12 +620,9 @@ def train_and_evaluate(config, workdir: str) -> dict:
   }
   result['field_log_rmse_held_out']['baseline'] = [
     field_log_rmse(np.ones_like(t.field), t) for t in held]
-  def write(tmp):
-    with open(tmp, 'w') as f:
-      json.dump(result, f, indent=1)
-
-  atomic_files.write_atomically(os.path.join(workdir, 'simulator.json'),
-                                write, TrainingError, what='result')
+  atomic_files.write_data(os.path.join(workdir, 'simulator.json'),
+                          json.dumps(result, indent=1), TrainingError,
+                          what='result')
   result['params'] = state['params']
   return result
 
