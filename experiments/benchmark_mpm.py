@@ -9,10 +9,12 @@ particle-substeps per second, XLA's memory estimate, and the same for a
 naive reference (array-of-structures, ``jnp.linalg.svd`` polar, ``einsum``
 3x3 algebra, ``.at[].add`` scatter), timed in the same process so that the
 ratio survives a shared machine. Optionally the cost of a gradient
-(d centre-of-mass / dE, N = 10k, 100 substeps) relative to the forward.
+(d centre-of-mass / dE, N = 10k, 100 substeps) relative to the forward,
+and (``--damped``) of a Kelvin-Voigt viscosity (``solid_viscosity``, 1 Pa
+s) against the same block without, alternating.
 
 python -m experiments.benchmark_mpm [--sizes=10000,50000,200000] [--grad]
-  [--naive] [--out=bench.json]
+  [--naive] [--damped] [--out=bench.json]
 """
 
 import itertools
@@ -35,6 +37,9 @@ _STEPS = flags.DEFINE_integer('steps', 100, 'substeps per timed run',
 _REPEATS = flags.DEFINE_integer('repeats', 3, 'timed runs (median)',
                                 lower_bound=1)
 _NAIVE = flags.DEFINE_bool('naive', True, 'also time the naive reference')
+_DAMPED = flags.DEFINE_bool(
+  'damped', False, 'also time the block with a Kelvin-Voigt viscosity '
+  '(SimConfig.solid_viscosity), alternating with the plain block')
 _GRAD = flags.DEFINE_bool('grad', True, 'time a gradient at the first size')
 _OUT = cli.define_out(None, 'optional JSON output')
 
@@ -89,17 +94,19 @@ def _memory(compiled):
     return -1
 
 
-def bench_package(n, steps, repeats):
-  cfg = make_config(steps)
+def bench_package(n, steps, repeats, viscosity=0.0):
+  cfg = make_config(steps).replace(solid_viscosity=viscosity > 0)
   x = make_block(n)
-  mat = mpm.make_materials('fixed_corotated', E, NU, RHO, num=n)
+  mat = mpm.make_materials('fixed_corotated', E, NU, RHO, num=n,
+                           viscosity=viscosity)
   s = mpm.init_state(x, (0.0, 0.0, -2.0), (GRID.dx / 2) ** 3, mat, cfg)
   t0 = time.perf_counter()
   c = jax.jit(mpm.make_frame(cfg)).lower(s, mat, None).compile()
   compile_s = time.perf_counter() - t0
   sec, cpu = _median_time(lambda s_: c(s_, mat, None), (s,), repeats)
   out = c(s, mat, None)
-  return dict(variant='physsplat_jax', n=n, compile_s=compile_s,
+  return dict(variant='physsplat_jax' + ('+kv' if viscosity else ''),
+              n=n, compile_s=compile_s,
               substep_ms=1e3 * sec / steps, mpss=n * steps / sec / 1e6,
               cpu_mpss=n * steps / cpu / 1e6, memory_mb=_memory(c) / 2 ** 20,
               com=np.asarray(out.x).mean(0).tolist())
@@ -209,6 +216,17 @@ def main(argv):
     r = bench_package(n, _STEPS.value, _REPEATS.value)
     print(json.dumps(r), flush=True)
     rows.append(r)
+    if _DAMPED.value:
+      plain, damped = [r], []
+      for _ in range(2):  # alternating: a shared machine's drift cancels
+        damped.append(bench_package(n, _STEPS.value, _REPEATS.value, 1.0))
+        plain.append(bench_package(n, _STEPS.value, _REPEATS.value))
+      q = dict(damped[-1], mpss=float(np.median([d['mpss'] for d in damped])),
+               cpu_mpss=float(np.median([d['cpu_mpss'] for d in damped])))
+      q['ratio_vs_plain'] = q['mpss'] / float(np.median(
+        [p['mpss'] for p in plain]))
+      print(json.dumps(q), flush=True)
+      rows.append(q)
     if _NAIVE.value:
       q = bench_naive(n, _STEPS.value, _REPEATS.value)
       q['ratio_vs_naive'] = r['mpss'] / q['mpss']

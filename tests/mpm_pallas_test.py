@@ -78,6 +78,17 @@ class PallasConstitutiveTest(absltest.TestCase):
         want = pc._reference(slices, 1e-4, False, F, C, Jpep, mat, None)
         self.assertEqual(got[0].dtype, dtype)
         _assert_close(self, got, want, rtol)
+        # The solids' Kelvin-Voigt stress (SimConfig.solid_viscosity).
+        visc = mat.replace(viscosity=jnp.linspace(0.5, 2.0, mat.num,
+                                                  dtype=dtype))
+        got = pc.constitute(slices, 1e-4, F, C, Jpep, visc,
+                            interpret=_INTERPRET, block=64,
+                            solid_viscosity=True)
+        want = pc._reference(slices, 1e-4, False, F, C, Jpep, visc, None,
+                             True)
+        _assert_close(self, got, want, rtol)
+        plain = pc._reference(slices, 1e-4, False, F, C, Jpep, visc, None)
+        self.assertGreater(float(jnp.max(jnp.abs(got[2] - plain[2]))), 0.1)
 
   def test_slices_inside_blocks_equal_the_per_model_update(self):
     """A pipeline-style scene sorted by model with SimConfig.model_counts:

@@ -584,7 +584,9 @@ class OfflineTest(parameterized.TestCase):
      r"both 'rho' \(1000\) and 'density' \(5\) are given"),
     ('param_not_taken', {'material': 'jelly', 'yield_stress': 5},
      r"model 'fixed_corotated' \(jelly\) takes no parameter\(s\) "
-     r"\['yield_stress'\]; its parameters: none"),
+     r"\['yield_stress'\]; its parameters: \['viscosity'\]"),
+    ('negative_viscosity', {'material': 'jelly', 'viscosity': -1.0},
+     r'viscosity=-1\.0 \(use a viscosity >= 0'),
   )
   def test_bad_override(self, spec, pattern):
     scene = _scene(('cube',))
@@ -592,6 +594,16 @@ class OfflineTest(parameterized.TestCase):
                                 + pattern):
       perception.perceive_scene(
         scene, perception.PerceptionOptions(overrides={'cube': spec}))
+
+  def test_a_solids_viscosity_override_is_kept(self):
+    # A solid's Kelvin-Voigt damping (docs/mpm.md): the pipeline turns the
+    # solver's dashpot on from this parameter.
+    scene = _scene(('cube',))
+    (m,) = perception.perceive_scene(
+      scene, perception.PerceptionOptions(
+        overrides={'cube': {'material': 'jelly', 'viscosity': 20.0}}))
+    self.assertEqual(m.model, 'fixed_corotated')
+    self.assertEqual(m.params_dict['viscosity'], 20.0)
 
   def test_parse_overrides(self):
     self.assertEqual(

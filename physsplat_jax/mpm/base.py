@@ -393,6 +393,9 @@ class SimConfig:
       GPU: tests); same values and gradients.
     gpu_graphs: how :func:`run` has a GPU launch a frame: 'substep' (a CUDA
       graph per substep, XLA's default), 'frame' (one graph) or 'off'.
+    solid_viscosity: the solids' ``Materials.viscosity`` [Pa s] adds a
+      Kelvin-Voigt stress ``J eta (C + C^T - 2/3 tr(C) I)`` (damping of
+      deformation only; ``models.KELVIN_VOIGT_MODELS``). Off: not computed.
   """
 
   grid: GridSpec = GridSpec()
@@ -413,6 +416,7 @@ class SimConfig:
   model_counts: tuple[int, ...] | None = None
   constitutive_kernel: str = 'auto'
   gpu_graphs: str = 'substep'
+  solid_viscosity: bool = False
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
@@ -461,6 +465,7 @@ class SimConfig:
         f'SimConfig.body_fixed has {len(fixed)} entries for num_bodies = '
         f'{self.num_bodies}; give one flag per body.')
     object.__setattr__(self, 'body_fixed', fixed)
+    object.__setattr__(self, 'solid_viscosity', bool(self.solid_viscosity))
     if self.model_counts is not None:
       mc = tuple(int(c) for c in self.model_counts)
       if len(mc) != len(models) or min(mc) < 0 or (
@@ -525,7 +530,8 @@ class Materials(struct.PyTreeNode):
       ``phi(q) = friction_angle + (h1 q - h3) exp(-h2 q)`` [deg, -, deg] with
       ``q`` the accumulated plastic strain; h1 = h3 = 0 disables it.
     plastic_viscosity: foam viscoplastic viscosity [Pa s].
-    viscosity: dynamic viscosity [Pa s] (newtonian; plastic for bingham).
+    viscosity: dynamic viscosity [Pa s] (newtonian; plastic for bingham;
+      a solid's Kelvin-Voigt damping with ``SimConfig.solid_viscosity``).
     theta_c, theta_s: snow critical compression and stretch.
     dp_cohesion: Drucker-Prager cohesion as the log-strain ``c`` of the cone
       apex (Tampubolon et al. 2017): the sand carries isotropic tension up
@@ -600,15 +606,9 @@ MODEL_DEFAULTS = {
 
 
 def model_default(model: str, field: str) -> float:
-  """Default value of a ``Materials`` field for a model (``MODEL_DEFAULTS``).
-
-  Args:
-    model: canonical model name.
-    field: one of ``FLOAT_FIELDS[3:]`` (E, nu, rho have no default).
-
-  Raises:
-    ValueError: unknown model or field.
-  """
+  """Default value of a ``Materials`` field (one of ``FLOAT_FIELDS[3:]``;
+  E, nu, rho have none) for a canonical model (``MODEL_DEFAULTS``); raises
+  ``MPMInputError`` (a ValueError) for an unknown model or field."""
   if model not in MODEL_DEFAULTS:
     raise MPMInputError(f'model_default: unknown model {model!r}.')
   if field not in _GENERIC:

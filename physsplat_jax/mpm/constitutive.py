@@ -73,6 +73,9 @@ the deviatoric part, ``|.|`` the Euclidean norm):
   ``C``: ``tau = -J p I + J eta (C + C^T - 2/3 tr(C) I)``.
 - ``rigid``: no stress (rigid particles move with their body, solver.py).
 
+Kelvin-Voigt damping (``SimConfig.solid_viscosity``): the solids'
+``viscosity`` adds :func:`kelvin_voigt`'s dashpot stress to their own.
+
 Singular values are floored at 0.01 inside the logarithms (PhysGaussian does
 the same "to prevent NaN in extreme cases") and ``J`` at 1e-3 in ``log J``
 (``safe_J``), so every branch is finite for every particle: several models
@@ -91,6 +94,7 @@ import jax.numpy as jnp
 from physsplat_jax import platforms
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import transfer
+from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
 from physsplat_jax.mpm.models import MODEL_PARAMS
 
 SVD_MODELS = ('stvk', 'von_mises', 'plasticine', 'drucker_prager', 'snow',
@@ -317,7 +321,10 @@ _SPECTRAL = {
   'drucker_prager': _drucker_prager, 'snow': _snow, 'foam': _foam,
   'bingham': _bingham,
 }
-_PARAMS = {m: MODEL_PARAMS[m] for m in _SPECTRAL}
+# (A solid's 'viscosity' is its Kelvin-Voigt stress, added outside the map.)
+_PARAMS = {m: tuple(f for f in MODEL_PARAMS[m]
+                    if f != 'viscosity' or m not in KELVIN_VOIGT_MODELS)
+           for m in _SPECTRAL}
 
 
 @functools.lru_cache(maxsize=None)
@@ -359,8 +366,21 @@ def spectral_params(svd_models, models, model_id, mat, mu, lam, Jp, ep, dt):
   return p
 
 
+def kelvin_voigt(F, C, eta):
+  """The Kelvin-Voigt (parallel dashpot) Kirchhoff stress of a solid,
+  ``J eta (C + C^T - 2/3 tr(C) I)`` with ``J = det F``: ``J`` times the
+  Cauchy stress of a shear viscosity ``eta`` [Pa s] at the velocity
+  gradient ``C`` (MLS-MPM's affine matrix). A rigid motion (``C``
+  skew-symmetric) and a uniform velocity give none, so it damps the
+  deformation, not the motion (``SimConfig.grid_v_damping_scale`` slows
+  both). Nested tuples in and out."""
+  trC = la.trace(C)
+  visc = la.add_diag(la.add(C, la.transpose(C)), -2.0 / 3.0 * trC)
+  return la.scale(visc, la.det(F) * eta)
+
+
 def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
-                        zero_stress=None):
+                        zero_stress=None, solid_viscosity=False):
   """Return mapping and Kirchhoff stress for all models present.
 
   Args:
@@ -372,6 +392,8 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
     mat: ``Materials`` (leaves (N,)).
     dt: substep [s] (python float).
     zero_stress: optional (N,) bool, particles without stress (rigid).
+    solid_viscosity: add :func:`kelvin_voigt` with ``mat.viscosity`` to the
+      stress of the ``KELVIN_VOIGT_MODELS`` (``SimConfig.solid_viscosity``).
 
   Returns:
     ``(F_e, Jp, ep, tau)``; F_e and tau nested tuples.
@@ -438,6 +460,13 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
       raise ValueError(f'unknown model {m!r}')
   results.sort(key=lambda r: r[0])
   Fe, Jp, ep, tau = pick(results)
+  kv = [k for k, m in enumerate(models) if m in KELVIN_VOIGT_MODELS]
+  if solid_viscosity and kv:
+    eta = mat.viscosity
+    if len(kv) < len(models):
+      on = functools.reduce(jnp.logical_or, [model_id == k for k in kv])
+      eta = jnp.where(on, eta, 0.0)
+    tau = la.add(tau, kelvin_voigt(F, C, eta))
   if zero_stress is not None:
     tau = tuple(tuple(jnp.where(zero_stress, 0.0, t) for t in row)
                 for row in tau)
@@ -493,7 +522,7 @@ def constitutive_slices(config, merge: bool):
   return tuple(out)
 
 
-def constitute_slices(slices, dt, F, C, Jpep, mat):
+def constitute_slices(slices, dt, F, C, Jpep, mat, solid_viscosity=False):
   """``constitutive.constitutive_update`` on each slice of
   ``constitutive_slices`` (nested-tuple ``F``, ``C``; the particles sorted
   by model): ``(F_e, Jpep, tau)``, ``F_e`` and ``tau`` concatenated.
@@ -511,7 +540,7 @@ def constitute_slices(slices, dt, F, C, Jpep, mat):
     ids = None if len(models) == 1 else mat.model_id[a:b] - k0
     Fe, Jp, ep, tau = constitutive_update(
       models, ids, rows(F), rows(C), Jpep[0, a:b], Jpep[1, a:b], rows(mat),
-      dt)
+      dt, solid_viscosity=solid_viscosity)
     parts.append((Fe, tau))
     if not all(m in NO_PLASTIC_STATE for m in models):
       out = jax.lax.dynamic_update_slice(out, jnp.stack([Jp, ep]), (0, a))
@@ -519,14 +548,16 @@ def constitute_slices(slices, dt, F, C, Jpep, mat):
   return Fe, out, tau
 
 
-def constitute_all(models, dt, F, C, Jpep, mat, zero_stress=None):
+def constitute_all(models, dt, F, C, Jpep, mat, zero_stress=None,
+                   solid_viscosity=False):
   """:func:`constitutive_update` of every model in ``models`` on every
   particle (``mat.model_id`` picks), with the plastic state as the (2, N)
   ``Jpep`` (passed through where no model changes it): ``(F_e, Jpep,
   tau)``. The form of a scene without ``model_counts``."""
   Fe, Jp, ep, tau = constitutive_update(models, mat.model_id, F, C, Jpep[0],
                                         Jpep[1], mat, dt,
-                                        zero_stress=zero_stress)
+                                        zero_stress=zero_stress,
+                                        solid_viscosity=solid_viscosity)
   if not all(m in NO_PLASTIC_STATE for m in models):
     Jpep = jnp.stack([Jp, ep])
   return Fe, Jpep, tau
@@ -567,6 +598,7 @@ def make_update(config):
   from physsplat_jax.mpm import pallas_constitutive  # noqa: PLC0415
 
   dt, models = config.dt, config.models
+  visc = config.solid_viscosity
   has_bodies = config.num_bodies > 0
   groups = model_groups(config)
   single = constitutive_slices(config, merge=False)
@@ -578,22 +610,26 @@ def make_update(config):
     if groups:
       args = (F, C, Jpep, mat)
       if merged == single:
-        return constitute_slices(single, dt, *args)
+        return constitute_slices(single, dt, *args, solid_viscosity=visc)
       # A slice per model on the CPU (an elastic model's closed form is
       # cheaper than an SVD); elsewhere one blended slice, whose program
       # compiles faster (constitutive_slices).
       return platforms.platform_dependent(
-        *args, cpu=functools.partial(constitute_slices, single, dt),
-        default=functools.partial(constitute_slices, merged, dt))
+        *args, cpu=functools.partial(constitute_slices, single, dt,
+                                     solid_viscosity=visc),
+        default=functools.partial(constitute_slices, merged, dt,
+                                  solid_viscosity=visc))
     return constitute_all(models, dt, F, C, Jpep, mat,
-                          body_id >= 0 if has_bodies else None)
+                          body_id >= 0 if has_bodies else None,
+                          solid_viscosity=visc)
 
   def with_kernel(FC, Jpep, body_id, mat, interpret):
     n = FC.shape[-1]
     slices = merged if groups else ((models, 0, 0, n),)
     body = body_id if (has_bodies and not groups) else None
     Fe, Jpep, tau = pallas_constitutive.constitute(
-      slices, dt, (FC, 0), (FC, 9), Jpep, mat, body, interpret=interpret)
+      slices, dt, (FC, 0), (FC, 9), Jpep, mat, body, interpret=interpret,
+      solid_viscosity=visc)
     return la.to_mat(Fe), Jpep, la.to_mat(tau)
 
   kernel = config.constitutive_kernel

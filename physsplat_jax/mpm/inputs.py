@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.mpm.errors import MPMInputError
+from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
 from physsplat_jax.types import rows_text
 
 
@@ -68,8 +69,10 @@ def check_run_inputs(state, materials, forces, config,
 
   Checked: at least one particle; finite material fields, density > 0,
   and for particles with a stress (every model but 'rigid') E > 0 and
-  -1 < nu < 0.5; finite positions, velocities, F, C, masses and volumes,
-  masses and volumes >= 0 and not all 0 (a massless particle follows the
+  -1 < nu < 0.5; viscosity >= 0, and 0 on solids unless
+  ``config.solid_viscosity`` (else it would be ignored); finite
+  positions, velocities, F, C, masses and volumes, masses and volumes
+  >= 0 and not all 0 (a massless particle follows the
   grid); finite force values.
   """
   n = int(np.shape(state.x)[0])
@@ -96,6 +99,7 @@ def check_run_inputs(state, materials, forces, config,
     raise MPMInputError(
       f'{caller}: {label} for {int(bad.sum())} of {n} particles '
       f'({_rows(bad)}); give each {fix}.')
+  _check_viscosity(materials, models, config, n, caller)
   for name in ('x', 'v', 'F', 'C', 'mass', 'vol0'):
     a = getattr(state, name, None)
     if a is None:
@@ -127,3 +131,22 @@ def check_run_inputs(state, materials, forces, config,
       raise MPMInputError(
         f'{caller}: the value of {type(bc).__name__} is not finite: '
         f'{np.asarray(value).tolist()}')
+
+
+def _check_viscosity(materials, models, config, n: int, caller: str) -> None:
+  """A negative viscosity, or a solid's viscosity that the config would
+  ignore (``SimConfig.solid_viscosity`` off), named with the fix."""
+  eta = np.broadcast_to(np.asarray(materials.viscosity, np.float64), (n,))
+  bad = eta < 0
+  if bad.any():
+    raise MPMInputError(
+      f'{caller}: viscosity < 0 for {int(bad.sum())} of {n} particles '
+      f'({_rows(bad)}); give a viscosity >= 0 [Pa s].')
+  solid = np.isin(models, KELVIN_VOIGT_MODELS) & (eta > 0)
+  if solid.any() and not config.solid_viscosity:
+    kinds = sorted(set(np.asarray(models)[solid].tolist()))
+    raise MPMInputError(
+      f'{caller}: {int(solid.sum())} of {n} particles of solid models '
+      f'{kinds} have a viscosity (up to {float(eta[solid].max()):.3g} Pa s), '
+      'which a solid reads as Kelvin-Voigt damping only with '
+      'SimConfig(solid_viscosity=True); set it, or give them viscosity 0.')

@@ -23,17 +23,28 @@ MATERIAL_ALIASES = {
 }
 # The parameters beyond (E, nu, rho) each model's update reads
 # (mpm.constitutive), in mpm.Materials' units.
+# (The solids' 'viscosity', last, is their Kelvin-Voigt damping: read with
+# SimConfig.solid_viscosity, KELVIN_VOIGT_MODELS.)
 MODEL_PARAMS = {
-  'fixed_corotated': (), 'neo_hookean': (), 'stvk': (), 'rigid': (),
-  'von_mises': ('yield_stress', 'hardening', 'xi'),
-  'plasticine': ('yield_stress', 'hardening', 'xi', 'softening'),
+  'fixed_corotated': ('viscosity',), 'neo_hookean': ('viscosity',),
+  'stvk': ('viscosity',), 'rigid': (),
+  'von_mises': ('yield_stress', 'hardening', 'xi', 'viscosity'),
+  'plasticine': ('yield_stress', 'hardening', 'xi', 'softening',
+                 'viscosity'),
   'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3',
-                     'dp_cohesion', 'dp_volume_correction'),
-  'snow': ('xi', 'theta_c', 'theta_s'),
-  'foam': ('yield_stress', 'plastic_viscosity'),
+                     'dp_cohesion', 'dp_volume_correction', 'viscosity'),
+  'snow': ('xi', 'theta_c', 'theta_s', 'viscosity'),
+  'foam': ('yield_stress', 'plastic_viscosity', 'viscosity'),
   'newtonian': ('viscosity',),
   'bingham': ('yield_stress', 'viscosity'),
 }
+# Solids whose ``viscosity`` adds a Kelvin-Voigt (parallel dashpot) stress
+# ``J eta (C + C^T - 2/3 tr(C) I)`` when ``SimConfig.solid_viscosity`` is
+# on (mpm.constitutive). The fluids read ``viscosity`` themselves.
+KELVIN_VOIGT_MODELS = (
+  'fixed_corotated', 'neo_hookean', 'stvk', 'von_mises', 'plasticine',
+  'drucker_prager', 'snow', 'foam',
+)
 
 # The physical ranges of those parameters: (test, what to use). A value
 # outside was accepted and blew up a frame later, blamed on the time step;

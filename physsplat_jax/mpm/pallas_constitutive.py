@@ -52,7 +52,8 @@ def _index(lead, start, block):
   return tuple(jnp.int32(i) for i in lead) + (pl.ds(start, block),)
 
 
-def _kernel(slices, dt, n, block, treedef, names, has_body, rows, *refs):
+def _kernel(slices, dt, visc, n, block, treedef, names, has_body, rows,
+            *refs):
   F_ref, C_ref, J_ref = refs[:3]
   k = 3 + len(names)
   mat_refs = refs[3:k]
@@ -88,7 +89,8 @@ def _kernel(slices, dt, n, block, treedef, names, has_body, rows, *refs):
       ids = None if len(models) == 1 else mat.model_id - k0
       with la.kernel_mode():
         Fe, Jp_new, ep_new, tau = constitutive.constitutive_update(
-          models, ids, F, C, Jp, ep, mat, dt, zero_stress=rigid)
+          models, ids, F, C, Jp, ep, mat, dt, zero_stress=rigid,
+          solid_viscosity=visc)
       mask = inside & (idx >= a) & (idx < b)
       for i in range(3):
         for j in range(3):
@@ -114,22 +116,22 @@ def _struct(shape, dtype, like):
   return jax.ShapeDtypeStruct(shape, dtype)
 
 
-def _reference(slices, dt, has_body, F, C, Jpep, mat, body_id):
+def _reference(slices, dt, has_body, F, C, Jpep, mat, body_id, visc=False):
   """The pure-JAX update on the same (3, 3, N) arrays."""
   Fm, Cm = la.to_mat(F), la.to_mat(C)
   if has_body:  # one slice, no model_counts (see ``constitute``)
     (models, _, _, _), = slices
-    Fe, Jpep, tau = constitutive.constitute_all(models, dt, Fm, Cm, Jpep,
-                                                mat, body_id >= 0)
+    Fe, Jpep, tau = constitutive.constitute_all(
+      models, dt, Fm, Cm, Jpep, mat, body_id >= 0, solid_viscosity=visc)
   else:
-    Fe, Jpep, tau = constitutive.constitute_slices(slices, dt, Fm, Cm, Jpep,
-                                                   mat)
+    Fe, Jpep, tau = constitutive.constitute_slices(
+      slices, dt, Fm, Cm, Jpep, mat, solid_viscosity=visc)
   return la.from_mat(Fe), Jpep, la.from_mat(tau)
 
 
 def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
                interpret: bool = False, block: int = BLOCK,
-               num_warps: int = NUM_WARPS):
+               num_warps: int = NUM_WARPS, solid_viscosity: bool = False):
   """The constitutive update of every particle in one Pallas kernel.
 
   Args:
@@ -148,6 +150,8 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
       stress (rigid bodies, for a scene without ``model_counts``).
     interpret: run the kernel in Pallas interpret mode (any backend).
     block, num_warps: particles per program and warps per program.
+    solid_viscosity: the solids' Kelvin-Voigt stress
+      (``SimConfig.solid_viscosity``).
 
   Returns:
     ``(F_e, Jpep, tau)``: (3, 3, N), (2, N), (3, 3, N).
@@ -169,8 +173,8 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
   bodies = (body_id,) if has_body else ()
 
   def kernel_call(F, C, Jpep, leaves, bodies):
-    kernel = functools.partial(_kernel, slices, dt, n, block, treedef, names,
-                               has_body, rows)
+    kernel = functools.partial(_kernel, slices, dt, solid_viscosity, n,
+                               block, treedef, names, has_body, rows)
     dtype = F.dtype
     params = {} if interpret else {
       'compiler_params': plgpu.CompilerParams(num_warps=num_warps,
@@ -196,7 +200,7 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
             for a, r in zip((F, C), rows))
     return _reference(slices, dt, has_body, F, C, Jpep,
                       jax.tree.unflatten(treedef, leaves),
-                      bodies[0] if has_body else None)
+                      bodies[0] if has_body else None, solid_viscosity)
 
   @update.defjvp
   def jvp(primals, tangents):

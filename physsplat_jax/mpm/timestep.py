@@ -14,7 +14,8 @@ measured on a 1000-particle block hitting a floor at 2 m/s (24^3 grid, 1000
 substeps), fixed corotated, neo-Hookean and StVK all ran at Courant numbers
 0.3-1.0 and all produced NaN in the first frame at 1.2 (docs/mpm.md).
 Further bounds: a particle speed ``v_max`` must not cross more than ``cfl``
-cells per substep, and explicit Newtonian viscosity needs
+cells per substep, and an explicit viscous stress (the Newtonian fluid's,
+a solid's Kelvin-Voigt damping: ``models.KELVIN_VOIGT_MODELS``) needs
 ``dt <= rho dx^2 / (6 eta)``.
 
 Rigid particles (``body_id >= 0`` or model 'rigid') are ignored: their
@@ -30,6 +31,7 @@ import numpy as np
 from physsplat_jax.mpm import base
 from physsplat_jax.mpm import inputs
 from physsplat_jax.mpm.base import MPMInputError
+from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
 
 DEFAULT_CFL = 0.35
 UNSTABLE_CFL = 1.0
@@ -68,7 +70,9 @@ def cfl_dt(E, nu, rho, dx, cfl: float = DEFAULT_CFL, fluid=False) -> float:
 
 
 def _active(materials: base.Materials, models, body_id):
-  """Host arrays of the non-rigid particles: (E, nu, rho, eta, fluid)."""
+  """Host arrays of the non-rigid particles: (E, nu, rho, eta, fluid,
+  viscous), ``viscous`` where ``eta`` is an explicit viscous stress (the
+  fluid's, a solid's Kelvin-Voigt damping)."""
   E = np.asarray(materials.E, np.float64)
   nu = np.asarray(materials.nu, np.float64)
   rho = np.asarray(materials.rho, np.float64)
@@ -81,9 +85,22 @@ def _active(materials: base.Materials, models, body_id):
   if body_id is not None:
     keep &= np.asarray(body_id) < 0
   fluid = np.zeros(E.shape, bool)
+  viscous = np.isin(names[mid], KELVIN_VOIGT_MODELS)
   if models:
     fluid = np.isin(names[mid], base.FLUID_MODELS)
-  return E[keep], nu[keep], rho[keep], eta[keep], fluid[keep]
+  viscous = (viscous | fluid) & (eta > 0)
+  return (E[keep], nu[keep], rho[keep], eta[keep], fluid[keep],
+          viscous[keep])
+
+
+def viscous_dt(rho, eta, dx: float) -> float:
+  """The explicit viscous stress's bound ``min rho dx^2 / (6 eta)`` [s]
+  over the points with ``eta > 0`` [kg/m^3, Pa s] (inf without)."""
+  rho, eta = (np.asarray(a, np.float64) for a in (rho, eta))
+  on = eta > 0
+  if not np.any(on):
+    return math.inf
+  return float(np.min(rho[on] * dx * dx / (6.0 * eta[on])))
 
 
 def stable_dt(materials: base.Materials, dx: float, models=None,
@@ -102,7 +119,7 @@ def stable_dt(materials: base.Materials, dx: float, models=None,
   Returns:
     ``(dt, reason)`` with reason 'elastic', 'speed', 'viscosity' or 'none'.
   """
-  E, nu, rho, eta, fluid = _active(materials, models, body_id)
+  E, nu, rho, eta, fluid, visc = _active(materials, models, body_id)
   fault = inputs.material_fault(E, nu, rho)
   if fault:   # (NaN included) no wave speed, no time step
     label, bad, fix = fault
@@ -113,10 +130,8 @@ def stable_dt(materials: base.Materials, dx: float, models=None,
   if E.size:
     c = wave_speed(E, nu, rho, fluid)
     cands.append((cfl * dx / float(np.max(c)), 'elastic'))
-    visc = fluid & (eta > 0)
     if np.any(visc):
-      cands.append((float(np.min(rho[visc] * dx * dx / (6.0 * eta[visc]))),
-                    'viscosity'))
+      cands.append((viscous_dt(rho[visc], eta[visc], dx), 'viscosity'))
   if max_speed > 0:
     cands.append((cfl * dx / max_speed, 'speed'))
   return min(cands)
@@ -175,14 +190,14 @@ def check_dt(config: base.SimConfig, materials: base.Materials,
   if courant > limit:
     ok = limit * dt1
     n = max(1, math.ceil(config.frame_dt / (DEFAULT_CFL * dt1)))
-    E, nu, rho, eta, _ = _active(materials, config.models, body_id)
+    E, nu, rho, eta, _, visc = _active(materials, config.models, body_id)
     detail = ''
     if why == 'elastic':
       i = int(np.argmax(wave_speed(E, nu, rho)))
       detail = (f' (stiffest particle: E={E[i]:.3g} Pa, nu={nu[i]:.3g}, '
                 f'rho={rho[i]:.3g} kg/m^3, dx={dx:.3g} m)')
     elif why == 'viscosity':
-      detail = f' (viscosity up to {float(np.max(eta)):.3g} Pa s)'
+      detail = f' (viscosity up to {float(np.max(eta[visc])):.3g} Pa s)'
     raise base.SimulationError(
       f'dt = {config.dt:.3g} s is unstable: the {why} bound allows at most '
       f'{ok:.3g} s{detail}, Courant number {courant:.2f} > {limit}. Use '

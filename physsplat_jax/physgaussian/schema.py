@@ -483,8 +483,15 @@ def parse_config(
   if unknown:
     near = {k: difflib.get_close_matches(k, sorted(_KNOWN_TOP), n=1)
             for k in unknown}
+    maxwell = {'mu_N', 'lam_N'} & set(unknown)
     hints = ''.join(f'; did you mean {v[0]!r} for {k!r}?'
-                    for k, v in near.items() if v)
+                    for k, v in near.items() if v and not (
+                      maxwell and k == 'viscosity'))
+    if maxwell:
+      hints += ('; mu_N, lam_N and viscosity are Physics3D\'s viscoelastic '
+                '(Maxwell) branch, which is not simulated: the material '
+                'follows its model alone (a solid can be damped instead: '
+                'docs/mpm.md, Kelvin-Voigt viscosity)')
     logging.warning(
       '%s: ignoring unknown fields %s (not in the PhysGaussian schema%s).',
       source, unknown, hints,

@@ -206,7 +206,7 @@ class PrepareConfig:
     fps: frames per second of the output [1/s] (the frame step).
     substeps_per_frame: MPM substeps per frame; None picks them from the
       CFL bound of the stiffest deformable material and the initial and
-      impulse speeds (:func:`~physsplat_jax.pipeline.prepare.given_speed`),
+      impulse speeds (:func:`~physsplat_jax.pipeline.substeps.given_speed`),
       rounded up to 16 steps per octave
       (:func:`~physsplat_jax.mpm.timestep.bucket_substeps`) so that a
       new seed or budget seldom recompiles the simulation (it can at a

@@ -34,8 +34,7 @@ from physsplat_jax import mpdp
 from physsplat_jax import program_store
 from physsplat_jax import sampling
 from physsplat_jax import struct
-from physsplat_jax.mpm import timestep
-from physsplat_jax.mpm.timestep import bucket_substeps
+from physsplat_jax.mpm.timestep import bucket_substeps as bucket_substeps
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline import frames as frames_lib
 from physsplat_jax.pipeline.colliders import Colliders
@@ -48,6 +47,8 @@ from physsplat_jax.pipeline.config import PrepareConfig
 from physsplat_jax.pipeline.config import Sampling
 from physsplat_jax.pipeline.config import as_prepare_config
 from physsplat_jax.pipeline.frames import SimFrame
+from physsplat_jax.pipeline.substeps import given_speed as given_speed
+from physsplat_jax.pipeline.substeps import time_step_stage
 from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import DataError
@@ -533,74 +534,6 @@ def mpdp_stage(x0, dobj, counts, mats, use_mpdp: bool, mpdp_params,
 
 
 _predict_jit = jax.jit(mpdp.predict)
-
-
-def given_speed(cfg) -> float:
-  """The fastest a particle can move by what the config gives it [m/s]:
-  the largest initial speed plus every impulse's velocity change (impulses
-  on one object add up). ``cfg``: a PrepareConfig or PipelineConfig."""
-  v0 = max([float(np.linalg.norm(v)) for _, v in cfg.initial_velocity]
-           + [0.0])
-  return v0 + sum(float(np.linalg.norm(f.vector)) for f in cfg.forces
-                  if f.kind is ForceKind.IMPULSE)
-
-
-def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
-                    gravity: float) -> tuple[int, float]:
-  """(substeps per frame, largest wave speed): the CFL bound of the stiffest
-  deformable point (MPDP field included) and of the speeds given: the
-  largest initial speed plus every impulse's velocity change (an impulse
-  of 2000 m/s took 1 substep per frame and blew up). A point force's
-  speed depends on what resists it and is not bounded here, nor is free
-  fall's; the CFL number's margin covers moderate ones."""
-  deform = ~np.asarray(rigid)[dobj]
-  c_max = 0.0
-  if deform.any():
-    E = np.array([m.E for m in mats])[dobj] * field[:, 0]
-    nu = np.clip(np.array([m.nu for m in mats])[dobj] * field[:, 1], 0, 0.49)
-    rho = np.array([m.rho for m in mats])[dobj] * field[:, 2]
-    c_max = float(np.max(timestep.wave_speed(E[deform], nu[deform],
-                                             rho[deform])))
-  frame_dt = cfg.frame_dt
-  v_max = given_speed(cfg)
-  # Elastic waves and particle motion both limited to cfl cells per step;
-  # with neither, one frame of free fall sets the scale.
-  speed = c_max + v_max
-  if speed == 0:
-    speed = max(1.0, abs(gravity) * frame_dt)
-  if cfg.substeps_per_frame is not None:
-    substeps = int(cfg.substeps_per_frame)
-    if speed > 0 and frame_dt / substeps > 2 * cfg.cfl * dx / speed:
-      raise PipelineError(
-        f'substeps_per_frame={substeps} gives dt={frame_dt / substeps:.3g} s, '
-        f'above the stability bound {cfg.cfl * dx / speed:.3g} s (wave speed '
-        f'{c_max:.3g} m/s + initial and impulse speeds {v_max:.3g} m/s, '
-        f'dx={dx:.3g} m); use '
-        f'substeps_per_frame >= {math.ceil(frame_dt * speed / (cfg.cfl * dx))}'
-        ' or None (automatic), or lower E, the initial velocity or the '
-        'impulses.')
-    return substeps, c_max
-  dt_cfl = cfg.cfl * dx / speed
-  substeps = max(1, int(math.ceil(frame_dt / dt_cfl)))
-  if substeps <= cfg.max_substeps_per_frame:
-    substeps = min(bucket_substeps(substeps), cfg.max_substeps_per_frame)
-  if substeps > cfg.max_substeps_per_frame:
-    # The usual causes, when the numbers say so: frames far apart, or a
-    # scene whose units are not metres.
-    hints = ''
-    if frame_dt > 0.2:
-      hints += f'; a frame lasts {frame_dt:.3g} s (fps={cfg.fps:g}): raise fps'
-    if dx < 1e-4:
-      hints += (f'; a grid cell is {dx:.3g} m: if the scene is not in '
-                'metres, give its scale (--meters_per_unit)')
-    raise PipelineError(
-      f'the stiffest material (wave speed {c_max:.3g} m/s) and initial and '
-      f'impulse speeds ({v_max:.3g} m/s) need {substeps} substeps per frame at '
-      f'dx={dx:.3g} m, over max_substeps_per_frame='
-      f'{cfg.max_substeps_per_frame}: lower E (or mark the object rigid), '
-      'lower grid_res or the velocities, or raise max_substeps_per_frame'
-      f'{hints}.')
-  return substeps, c_max
 
 
 def forces_stage(cfg: PrepareConfig, frame: SimFrame, x0, dobj, movable_names):

@@ -32,6 +32,7 @@ from physsplat_jax import mpdp
 from physsplat_jax import mpm
 from physsplat_jax import struct
 from physsplat_jax.mpm import inputs as mpm_inputs
+from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import ForceKind
 from physsplat_jax.pipeline.config import Ground
@@ -141,6 +142,10 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
   counts = [0] * len(models)
   for m, (_, c) in zip(spec.models, spec.object_ranges):
     counts[models.index(m)] += c
+  # A solid object given a viscosity is damped by it (Kelvin-Voigt).
+  damped = any(dict(ps).get('viscosity', 0.0) > 0
+               for ps, m in zip(spec.object_params, spec.models)
+               if m in KELVIN_VOIGT_MODELS)
   return mpm.SimConfig(
     grid=mpm.GridSpec(res=spec.grid_res, lower=spec.grid_lower,
                       size=spec.grid_size),
@@ -151,7 +156,7 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
     remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)),
     model_counts=tuple(counts),
     constitutive_kernel=config.constitutive_kernel,
-    gpu_graphs=config.gpu_graphs)
+    gpu_graphs=config.gpu_graphs, solid_viscosity=damped)
 
 
 def driver_materials(params: Params, prepared: PreparedScene,
