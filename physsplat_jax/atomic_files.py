@@ -76,7 +76,7 @@ def atomic_output(path, error: type[Exception], *, what: str = 'output'):
     try:
       yield p
     except OSError as e:
-      _raise_named(e, p, error, what)
+      _raise_named(e, p, error, what, (p, real))
     return
   tmp = partial_path(real)
   try:
@@ -89,7 +89,7 @@ def atomic_output(path, error: type[Exception], *, what: str = 'output'):
     with contextlib.suppress(OSError):
       os.remove(tmp)
     if isinstance(e, OSError) and not isinstance(e, PhysSplatError):
-      _raise_named(e, p, error, what)
+      _raise_named(e, p, error, what, (p, real, tmp))
     if isinstance(e, PhysSplatError) and tmp in str(e):
       try:  # the message names the file the user asked for
         renamed = type(e)(str(e).replace(tmp, p))
@@ -99,9 +99,18 @@ def atomic_output(path, error: type[Exception], *, what: str = 'output'):
     raise
 
 
-def _raise_named(e: OSError, p: str, error: type[Exception], what: str):
-  """``e`` again, or an OS error as ``error`` naming ``p`` and the fix."""
+def _raise_named(e: OSError, p: str, error: type[Exception], what: str,
+                 ours=()):
+  """``e`` again, or an OS error as ``error`` naming ``p`` and the fix.
+
+  An error that names another file than ``ours`` (the output, its target,
+  its temporary file: e.g. an input the block reads) is not this write's
+  and passes as it is."""
   if isinstance(e, PhysSplatError):
+    raise e
+  other = getattr(e, 'filename', None)
+  if isinstance(other, (str, bytes, os.PathLike)) and os.fsdecode(
+      other) not in ours:
     raise e
   raise error(f'{p}: cannot write the {what} file ({os_error_reason(e)})'
               ) from None

@@ -57,6 +57,25 @@ class AtomicWriteTest(absltest.TestCase):
     self.assertEqual(json.load(open(path)), {'run': 1})
     self.assertEqual(_hidden(d), [])  # no temporary file left
 
+  def test_an_input_error_inside_the_write_is_not_called_a_write_error(self):
+    # Any OSError in the block was 'cannot write the ... file', even a
+    # missing input the writer reads.
+    d = _tmpdir(self)
+    path = os.path.join(d, 'out.json')
+    missing = os.path.join(d, 'input.npz')
+
+    def reads_an_input(tmp):
+      with open(tmp, 'w') as f:
+        f.write('{')
+      open(missing, 'rb')
+
+    with self.assertRaises(FileNotFoundError) as cm:
+      paths.write_atomically(path, reads_an_input, outputs.OutputError)
+    self.assertNotIsInstance(cm.exception, outputs.OutputError)
+    self.assertEqual(cm.exception.filename, missing)
+    self.assertFalse(os.path.exists(path))
+    self.assertEqual(_hidden(d), [])  # the temporary file removed
+
   def test_library_ply_writers_are_whole_or_not_at_all(self):
     # io.save_ply / save_scene / save_splat wrote into the file itself: a
     # full disk left half a PLY and a bare '[Errno 28]'.

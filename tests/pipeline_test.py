@@ -731,8 +731,15 @@ class DampingTest(absltest.TestCase):
     prep, rep = pl.prepare_scene(jax.random.PRNGKey(0), scene, [mat, _WOOD],
                                  cfg)
     dx = rep.grid['dx_m']
-    self.assertLessEqual(rep.time_step['dt_s'],
-                         1000.0 * dx * dx / (6 * 300.0))
+    bound = 1000.0 * dx * dx / (6 * 300.0)
+    self.assertAlmostEqual(rep.time_step['viscous_dt_s'], bound)
+    self.assertLessEqual(rep.time_step['dt_s'], bound)
+    # Substeps given by hand above the bound: named, with the count.
+    with self.assertRaisesRegex(
+        pl.PipelineError, r"above the explicit viscous stress's bound .* "
+        r'use substeps_per_frame >= \d+'):
+      pl.prepare_scene(jax.random.PRNGKey(0), scene, [mat, _WOOD],
+                       _config(num_frames=6, substeps_per_frame=64))
 
 
 class DomainTest(absltest.TestCase):

@@ -49,6 +49,7 @@ from physsplat_jax.pipeline.config import as_prepare_config
 from physsplat_jax.pipeline.frames import SimFrame
 from physsplat_jax.pipeline.substeps import given_speed as given_speed
 from physsplat_jax.pipeline.substeps import time_step_stage
+from physsplat_jax.pipeline.substeps import viscous_dt
 from physsplat_jax.types import Array
 from physsplat_jax.types import Camera
 from physsplat_jax.types import DataError
@@ -689,6 +690,9 @@ def prepare_scene(
   report = _report(scene, materials, movable, counts, fr, cand, x0, spec,
                    c_max, cfg, timings)
   report.capture = capture
+  dt_visc = viscous_dt(mats, rigid, field, dobj, fr.dx)
+  if math.isfinite(dt_visc):  # (a viscous stress's bound, when one binds)
+    report.time_step['viscous_dt_s'] = dt_visc
   logging.info('prepared %r: %d particles for %d Gaussians of %d objects, '
                'grid %d^3 (dx %.4f m), %d substeps/frame (dt %.3g s)',
                scene.name, len(x0), len(fr.rows), len(movable), cfg.grid_res,
