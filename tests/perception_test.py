@@ -604,6 +604,12 @@ class OfflineTest(parameterized.TestCase):
         overrides={'cube': {'material': 'jelly', 'viscosity': 20.0}}))
     self.assertEqual(m.model, 'fixed_corotated')
     self.assertEqual(m.params_dict['viscosity'], 20.0)
+    # On a foam, likely meant as its flow's plastic_viscosity: said so.
+    with self.assertLogs(level='WARNING') as logs:
+      perception.perceive_scene(scene, perception.PerceptionOptions(
+        overrides={'cube': {'material': 'foam', 'viscosity': 5.0}}))
+    self.assertIn('its flow\'s viscosity is "plastic_viscosity"',
+                  ' '.join(logs.output))
 
   def test_parse_overrides(self):
     self.assertEqual(

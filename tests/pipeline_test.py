@@ -740,6 +740,13 @@ class DampingTest(absltest.TestCase):
         r'use substeps_per_frame >= \d+'):
       pl.prepare_scene(jax.random.PRNGKey(0), scene, [mat, _WOOD],
                        _config(num_frames=6, substeps_per_frame=64))
+    # Automatic substeps over the maximum because of the viscosity: said so
+    # (it blamed the wave speed and said to lower E).
+    mat = dataclasses.replace(_RUBBER, params=(('viscosity', 3e4),))
+    with self.assertRaisesRegex(
+        pl.PipelineError, r'the most viscous material needs \d+ substeps '
+        r'.*lower the viscosity'):
+      pl.prepare_scene(jax.random.PRNGKey(0), scene, [mat, _WOOD], cfg)
 
 
 class DomainTest(absltest.TestCase):

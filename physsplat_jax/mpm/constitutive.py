@@ -366,17 +366,17 @@ def spectral_params(svd_models, models, model_id, mat, mu, lam, Jp, ep, dt):
   return p
 
 
-def kelvin_voigt(F, C, eta):
+def kelvin_voigt(J, C, eta):
   """The Kelvin-Voigt (parallel dashpot) Kirchhoff stress of a solid,
-  ``J eta (C + C^T - 2/3 tr(C) I)`` with ``J = det F``: ``J`` times the
-  Cauchy stress of a shear viscosity ``eta`` [Pa s] at the velocity
-  gradient ``C`` (MLS-MPM's affine matrix). A rigid motion (``C``
-  skew-symmetric) and a uniform velocity give none, so it damps the
+  ``J eta (C + C^T - 2/3 tr(C) I)``: ``J`` (the particle's volume ratio,
+  (N,)) times the Cauchy stress of a shear viscosity ``eta`` [Pa s] at
+  the velocity gradient ``C`` (MLS-MPM's affine matrix). A rigid motion
+  (``C`` skew-symmetric) and a uniform velocity give none, so it damps the
   deformation, not the motion (``SimConfig.grid_v_damping_scale`` slows
   both). Nested tuples in and out."""
   trC = la.trace(C)
   visc = la.add_diag(la.add(C, la.transpose(C)), -2.0 / 3.0 * trC)
-  return la.scale(visc, la.det(F) * eta)
+  return la.scale(visc, J * eta)
 
 
 def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
@@ -400,6 +400,7 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
   """
   mu, lam = mat.lame()
   single = len(models) == 1
+  Jp_in = Jp
 
   def pick(results):
     """Blend per-model results by model id (static list)."""
@@ -466,7 +467,13 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
     if len(kv) < len(models):
       on = functools.reduce(jnp.logical_or, [model_id == k for k in kv])
       eta = jnp.where(on, eta, 0.0)
-    tau = la.add(tau, kelvin_voigt(F, C, eta))
+    # The volume ratio of the whole deformation: the trial F's, whose
+    # plastic flow keeps the volume except snow's, which Jp records.
+    J = safe_J(la.det(F))
+    if 'snow' in models:
+      J = J * (Jp_in if single else jnp.where(
+        model_id == models.index('snow'), Jp_in, 1.0))
+    tau = la.add(tau, kelvin_voigt(J, C, eta))
   if zero_stress is not None:
     tau = tuple(tuple(jnp.where(zero_stress, 0.0, t) for t in row)
                 for row in tau)

@@ -15,6 +15,7 @@ import numpy as np
 
 from physsplat_jax.mpm.errors import MPMInputError
 from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
+from physsplat_jax.mpm.models import MODEL_PARAMS
 from physsplat_jax.types import rows_text
 
 
@@ -69,8 +70,8 @@ def check_run_inputs(state, materials, forces, config,
 
   Checked: at least one particle; finite material fields, density > 0,
   and for particles with a stress (every model but 'rigid') E > 0 and
-  -1 < nu < 0.5; viscosity >= 0, and 0 on solids unless
-  ``config.solid_viscosity`` (else it would be ignored); finite
+  -1 < nu < 0.5; viscosity >= 0, 0 on sand, and 0 on the other solids
+  unless ``config.solid_viscosity`` (else it would be ignored); finite
   positions, velocities, F, C, masses and volumes, masses and volumes
   >= 0 and not all 0 (a massless particle follows the
   grid); finite force values.
@@ -142,6 +143,15 @@ def _check_viscosity(materials, models, config, n: int, caller: str) -> None:
     raise MPMInputError(
       f'{caller}: viscosity < 0 for {int(bad.sum())} of {n} particles '
       f'({_rows(bad)}); give a viscosity >= 0 [Pa s].')
+  deaf = [m for m, ps in MODEL_PARAMS.items()
+          if 'viscosity' not in ps and m != 'rigid']
+  bad = np.isin(models, deaf) & (eta > 0)
+  if bad.any():
+    raise MPMInputError(
+      f'{caller}: {int(bad.sum())} of {n} particles of '
+      f'{sorted(set(np.asarray(models)[bad].tolist()))} have a viscosity, '
+      'which that model does not read (a dashpot on sand would carry shear '
+      'and tension outside its cone); give them viscosity 0.')
   solid = np.isin(models, KELVIN_VOIGT_MODELS) & (eta > 0)
   if solid.any() and not config.solid_viscosity:
     kinds = sorted(set(np.asarray(models)[solid].tolist()))

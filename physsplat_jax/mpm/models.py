@@ -32,7 +32,7 @@ MODEL_PARAMS = {
   'plasticine': ('yield_stress', 'hardening', 'xi', 'softening',
                  'viscosity'),
   'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3',
-                     'dp_cohesion', 'dp_volume_correction', 'viscosity'),
+                     'dp_cohesion', 'dp_volume_correction'),
   'snow': ('xi', 'theta_c', 'theta_s', 'viscosity'),
   'foam': ('yield_stress', 'plastic_viscosity', 'viscosity'),
   'newtonian': ('viscosity',),
@@ -40,10 +40,11 @@ MODEL_PARAMS = {
 }
 # Solids whose ``viscosity`` adds a Kelvin-Voigt (parallel dashpot) stress
 # ``J eta (C + C^T - 2/3 tr(C) I)`` when ``SimConfig.solid_viscosity`` is
-# on (mpm.constitutive). The fluids read ``viscosity`` themselves.
+# on (mpm.constitutive). The fluids read ``viscosity`` themselves; sand
+# takes none (a dashpot would carry shear and tension outside its cone).
 KELVIN_VOIGT_MODELS = (
   'fixed_corotated', 'neo_hookean', 'stvk', 'von_mises', 'plasticine',
-  'drucker_prager', 'snow', 'foam',
+  'snow', 'foam',
 )
 
 # The physical ranges of those parameters: (test, what to use). A value

@@ -85,10 +85,11 @@ def _active(materials: base.Materials, models, body_id):
   if body_id is not None:
     keep &= np.asarray(body_id) < 0
   fluid = np.zeros(E.shape, bool)
-  viscous = np.isin(names[mid], KELVIN_VOIGT_MODELS)
+  viscous = np.zeros(E.shape, bool)  # (without models: none known)
   if models:
     fluid = np.isin(names[mid], base.FLUID_MODELS)
-  viscous = (viscous | fluid) & (eta > 0)
+    viscous = np.isin(names[mid], KELVIN_VOIGT_MODELS) | fluid
+  viscous &= eta > 0
   return (E[keep], nu[keep], rho[keep], eta[keep], fluid[keep],
           viscous[keep])
 

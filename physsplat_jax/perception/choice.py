@@ -26,6 +26,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from absl import logging
+
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
 from physsplat_jax.mpm.models import PARAM_RANGES
@@ -330,6 +332,11 @@ def apply_spec(
       except (TypeError, ValueError):
         raise MaterialChoiceError(f'{where}: {p}={spec[p]!r} is not a number'
                                   ) from None
+  if model == 'foam' and 'viscosity' in spec and (
+      'plastic_viscosity' not in spec):
+    logging.warning(
+      '%s: "viscosity" on a foam is a Kelvin-Voigt dashpot beside its flow; '
+      'its flow\'s viscosity is "plastic_viscosity" (docs/mpm.md)', where)
   missing = [p for p in MODEL_PARAMS[model] if p not in params]
   if missing:
     raise MaterialChoiceError(f'{where}: model {model!r} needs parameter(s) '

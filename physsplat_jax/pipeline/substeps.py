@@ -89,8 +89,8 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
         'viscosity.')
     return substeps, c_max
   dt_cfl = cfg.cfl * dx / speed
-  substeps = max(1, int(math.ceil(frame_dt / dt_cfl)),
-                 int(math.ceil(frame_dt / dt_visc * (1.0 - 1e-9))))
+  n_visc = int(math.ceil(frame_dt / dt_visc * (1.0 - 1e-9)))
+  substeps = max(1, int(math.ceil(frame_dt / dt_cfl)), n_visc)
   if substeps <= cfg.max_substeps_per_frame:
     substeps = min(bucket_substeps(substeps), cfg.max_substeps_per_frame)
   if substeps > cfg.max_substeps_per_frame:
@@ -102,6 +102,13 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
     if dx < 1e-4:
       hints += (f'; a grid cell is {dx:.3g} m: if the scene is not in '
                 'metres, give its scale (--meters_per_unit)')
+    if n_visc >= substeps:
+      raise PipelineError(
+        f'the most viscous material needs {n_visc} substeps per frame at '
+        f'dx={dx:.3g} m (its explicit viscous stress: dt <= rho dx^2 / (6 '
+        f'viscosity) = {dt_visc:.3g} s), over max_substeps_per_frame='
+        f'{cfg.max_substeps_per_frame}: lower the viscosity, lower grid_res, '
+        f'or raise max_substeps_per_frame{hints}.')
     raise PipelineError(
       f'the stiffest material (wave speed {c_max:.3g} m/s) and initial and '
       f'impulse speeds ({v_max:.3g} m/s) need {substeps} substeps per frame at '
