@@ -11,10 +11,11 @@ naive reference (array-of-structures, ``jnp.linalg.svd`` polar, ``einsum``
 ratio survives a shared machine. Optionally the cost of a gradient
 (d centre-of-mass / dE, N = 10k, 100 substeps) relative to the forward,
 and (``--damped``) of a Kelvin-Voigt viscosity (``solid_viscosity``, 1 Pa
-s) against the same block without, alternating.
+s) or (``--maxwell``) of a Maxwell branch (``SimConfig.maxwell``, E_N = E,
+1 Pa s) against the same block without, alternating.
 
 python -m experiments.benchmark_mpm [--sizes=10000,50000,200000] [--grad]
-  [--naive] [--damped] [--out=bench.json]
+  [--naive] [--damped] [--maxwell] [--out=bench.json]
 """
 
 import itertools
@@ -40,6 +41,9 @@ _NAIVE = flags.DEFINE_bool('naive', True, 'also time the naive reference')
 _DAMPED = flags.DEFINE_bool(
   'damped', False, 'also time the block with a Kelvin-Voigt viscosity '
   '(SimConfig.solid_viscosity), alternating with the plain block')
+_MAXWELL = flags.DEFINE_bool(
+  'maxwell', False, 'also time the block with a Maxwell branch '
+  '(SimConfig.maxwell), alternating with the plain block')
 _GRAD = flags.DEFINE_bool('grad', True, 'time a gradient at the first size')
 _OUT = cli.define_out(None, 'optional JSON output')
 
@@ -96,18 +100,22 @@ def _memory(compiled):
     return -1
 
 
-def bench_package(n, steps, repeats, viscosity=0.0):
-  cfg = make_config(steps).replace(solid_viscosity=viscosity > 0)
+def bench_package(n, steps, repeats, viscosity=0.0, maxwell=False):
+  cfg = make_config(steps).replace(solid_viscosity=viscosity > 0,
+                                   maxwell=maxwell)
   x = make_block(n)
+  extra = dict(maxwell_E=E, maxwell_nu=NU, maxwell_viscosity=1.0) if (
+    maxwell) else {}
   mat = mpm.make_materials('fixed_corotated', E, NU, RHO, num=n,
-                           viscosity=viscosity)
+                           viscosity=viscosity, **extra)
   s = mpm.init_state(x, (0.0, 0.0, -2.0), (GRID.dx / 2) ** 3, mat, cfg)
   t0 = time.perf_counter()
   c = jax.jit(mpm.make_frame(cfg)).lower(s, mat, None).compile()
   compile_s = time.perf_counter() - t0
   sec, cpu = _median_time(lambda s_: c(s_, mat, None), (s,), repeats)
   out = c(s, mat, None)
-  return dict(variant='physsplat_jax' + ('+kv' if viscosity else ''),
+  return dict(variant='physsplat_jax' + ('+kv' if viscosity else '')
+              + ('+maxwell' if maxwell else ''),
               n=n, compile_s=compile_s,
               substep_ms=1e3 * sec / steps, mpss=n * steps / sec / 1e6,
               cpu_mpss=n * steps / cpu / 1e6, memory_mb=_memory(c) / 2 ** 20,
@@ -218,13 +226,16 @@ def main(argv):
     r = bench_package(n, _STEPS.value, _REPEATS.value)
     print(json.dumps(r), flush=True)
     rows.append(r)
-    if _DAMPED.value:
-      plain, damped = [r], []
+    for on, kw in ((_DAMPED.value, dict(viscosity=1.0)),
+                   (_MAXWELL.value, dict(maxwell=True))):
+      if not on:
+        continue
+      plain, other = [r], []
       for _ in range(2):  # alternating: a shared machine's drift cancels
-        damped.append(bench_package(n, _STEPS.value, _REPEATS.value, 1.0))
+        other.append(bench_package(n, _STEPS.value, _REPEATS.value, **kw))
         plain.append(bench_package(n, _STEPS.value, _REPEATS.value))
-      q = dict(damped[-1], mpss=float(np.median([d['mpss'] for d in damped])),
-               cpu_mpss=float(np.median([d['cpu_mpss'] for d in damped])))
+      q = dict(other[-1], mpss=float(np.median([d['mpss'] for d in other])),
+               cpu_mpss=float(np.median([d['cpu_mpss'] for d in other])))
       q['ratio_vs_plain'] = q['mpss'] / float(np.median(
         [p['mpss'] for p in plain]))
       print(json.dumps(q), flush=True)

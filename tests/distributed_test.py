@@ -272,6 +272,28 @@ class PaddingTest(absltest.TestCase):
                                  atol=1e-7)
 
 
+  def test_one_device_mesh_with_a_maxwell_branch(self):
+    # The branch's F_N is padded, sharded and carried like F.
+    state, mat, config = _tiny_state(10)
+    config = config.replace(num_frames=1, substeps_per_frame=2, maxwell=True)
+    full = lambda v: jnp.full_like(mat.E, v)  # noqa: E731
+    mat = mat.replace(maxwell_E=full(5e3), maxwell_nu=full(0.3),
+                      maxwell_viscosity=full(1.0))
+    state = state.replace(F_N=jnp.broadcast_to(
+      jnp.eye(3, dtype=state.F.dtype), state.F.shape))
+    sp, mp = dist.pad_particles(state, mat, 4)
+    self.assertEqual(sp.F_N.shape, (12, 3, 3))
+    self.assertEqual(mp.maxwell_E.shape, (12,))
+    mesh = dist.make_mesh(1, dist.PARTICLE_AXIS)
+    ref = jax.jit(lambda s, m: mpm.rollout(s, m, None, config))(state, mat)
+    out = jax.jit(lambda s, m: dist.rollout_sharded(s, m, None, config,
+                                                    mesh))(state, mat)
+    self.assertIsNotNone(ref[0].F_N)
+    for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(out)):
+      np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6,
+                                 atol=1e-7)
+
+
 class BatchHelpersTest(absltest.TestCase):
 
   def test_sharded_vmap_pads_and_cuts(self):

@@ -126,6 +126,26 @@ class SimulateTest(absltest.TestCase):
     self.assertTrue(np.all(np.isfinite(x)))
     self.assertLen(t, 2)
 
+  def test_physics3d_viscoelastic_branch(self):
+    # Physics3D's mu_N, lam_N, viscosity: the Maxwell branch, as (E_N, nu_N)
+    # of those Lame parameters; in Pa (Physics3D scales E by 1e7, not
+    # these).
+    g = ply.load_ply(_PLY)
+    cfg = pg.parse_config(dict(_TINY, mu_N=2e5, lam_N=3e5, viscosity=50.0,
+                               frame_num=1), warn=False)
+    prep = mpm_pg.prepare_config(g, cfg)
+    self.assertTrue(prep.sim_config.maxwell)
+    mat = prep.materials
+    mu, lam = 2e5, 3e5
+    np.testing.assert_allclose(mat.maxwell_E[0], mu * (3 * lam + 2 * mu)
+                               / (lam + mu), rtol=1e-6)
+    np.testing.assert_allclose(mat.maxwell_nu[0], 0.3, rtol=1e-6)
+    np.testing.assert_allclose(mat.maxwell_viscosity[0], 50.0)
+    x, _, _ = mpm_pg.simulate_config(g, cfg, auto_substeps=True)
+    self.assertTrue(np.all(np.isfinite(x)))
+    with self.assertRaisesRegex(pg.ConfigError, r'lam_N.*mu_N > 0'):
+      pg.parse_config(dict(_TINY, lam_N=1.0), warn=False)
+
   def test_particle_filling_adds_simulated_interior(self):
     # A closed spherical shell of Gaussians (radius 1, input units).
     rng = np.random.default_rng(0)

@@ -584,7 +584,7 @@ class OfflineTest(parameterized.TestCase):
      r"both 'rho' \(1000\) and 'density' \(5\) are given"),
     ('param_not_taken', {'material': 'jelly', 'yield_stress': 5},
      r"model 'fixed_corotated' \(jelly\) takes no parameter\(s\) "
-     r"\['yield_stress'\]; its parameters: \['viscosity'\]"),
+     r"\['yield_stress'\]; its parameters: \['viscosity', 'maxwell_E'"),
     ('negative_viscosity', {'material': 'jelly', 'viscosity': -1.0},
      r'viscosity=-1\.0 \(use a viscosity >= 0'),
   )
@@ -604,6 +604,14 @@ class OfflineTest(parameterized.TestCase):
         overrides={'cube': {'material': 'jelly', 'viscosity': 20.0}}))
     self.assertEqual(m.model, 'fixed_corotated')
     self.assertEqual(m.params_dict['viscosity'], 20.0)
+    # A Maxwell branch (docs/mpm.md), checked against its ranges.
+    (m,) = perception.perceive_scene(
+      scene, perception.PerceptionOptions(overrides={'cube': {
+        'material': 'jelly', 'maxwell_E': 2e4, 'maxwell_viscosity': 50.0}}))
+    self.assertEqual(m.params_dict['maxwell_E'], 2e4)
+    with self.assertRaisesRegex(ValueError, r'maxwell_nu=0\.7 \(use a '):
+      perception.perceive_scene(scene, perception.PerceptionOptions(
+        overrides={'cube': {'material': 'jelly', 'maxwell_nu': 0.7}}))
     # On a foam, likely meant as its flow's plastic_viscosity: said so.
     with self.assertLogs(level='WARNING') as logs:
       perception.perceive_scene(scene, perception.PerceptionOptions(

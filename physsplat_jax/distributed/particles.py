@@ -95,7 +95,8 @@ def pad_particles(state: mpm.MPMState, materials: mpm.Materials,
     Jp=rep(state.Jp), ep=rep(state.ep),
     vol0=rep(state.vol0, GHOST_FRACTION), mass=rep(state.mass, GHOST_FRACTION),
     body_id=const(state.body_id, -1),
-    bc_data=tuple(const(b, 0) for b in state.bc_data))
+    bc_data=tuple(const(b, 0) for b in state.bc_data),
+    F_N=None if state.F_N is None else rep(state.F_N))
   materials = jax.tree.map(rep, materials)
   return state, materials
 
@@ -104,7 +105,8 @@ def _state_specs(state: mpm.MPMState, axis: str) -> mpm.MPMState:
   p = P(axis)
   return state.replace(
     x=p, v=p, F=p, C=p, Jp=p, ep=p, vol0=p, mass=p, body_id=p,
-    bc_data=tuple(p for _ in state.bc_data), t=P(), step=P())
+    bc_data=tuple(p for _ in state.bc_data), t=P(), step=P(),
+    F_N=None if state.F_N is None else p)
 
 
 def rollout_sharded(state: mpm.MPMState, materials: mpm.Materials,

@@ -26,7 +26,11 @@ import numpy as np
 from physsplat_jax import struct
 from physsplat_jax.mpm.errors import MPMInputError as MPMInputError
 from physsplat_jax.mpm.errors import SimulationError as SimulationError
+from physsplat_jax.mpm.models import _GENERIC as _GENERIC
 from physsplat_jax.mpm.models import CANONICAL_MODELS
+from physsplat_jax.mpm.models import MAXWELL_FIELDS
+from physsplat_jax.mpm.models import MODEL_DEFAULTS as MODEL_DEFAULTS
+from physsplat_jax.mpm.models import model_default as model_default
 from physsplat_jax.types import Array
 
 INF = float('inf')
@@ -396,6 +400,9 @@ class SimConfig:
     solid_viscosity: the solids' ``Materials.viscosity`` [Pa s] adds a
       Kelvin-Voigt stress ``J eta (C + C^T - 2/3 tr(C) I)`` (damping of
       deformation only; ``models.KELVIN_VOIGT_MODELS``). Off: not computed.
+    maxwell: the solids carry a Maxwell branch (``MPMState.F_N``, the
+      ``Materials.maxwell_*`` fields): a viscoelastic stress that relaxes
+      (Physics3D's, after Fang et al. 2019). Off: not computed.
   """
 
   grid: GridSpec = GridSpec()
@@ -417,6 +424,7 @@ class SimConfig:
   constitutive_kernel: str = 'auto'
   gpu_graphs: str = 'substep'
   solid_viscosity: bool = False
+  maxwell: bool = False
 
   def __post_init__(self):
     if not isinstance(self.grid, GridSpec):
@@ -466,6 +474,7 @@ class SimConfig:
         f'{self.num_bodies}; give one flag per body.')
     object.__setattr__(self, 'body_fixed', fixed)
     object.__setattr__(self, 'solid_viscosity', bool(self.solid_viscosity))
+    object.__setattr__(self, 'maxwell', bool(self.maxwell))
     if self.model_counts is not None:
       mc = tuple(int(c) for c in self.model_counts)
       if len(mc) != len(models) or min(mc) < 0 or (
@@ -543,6 +552,10 @@ class Materials(struct.PyTreeNode):
       again, so dilated sand does not push itself apart), 0 is Klar et al.
       (2016) as in PhysGaussian.
     model_id: (N,) int32 index into ``SimConfig.models``.
+    maxwell_E, maxwell_nu, maxwell_viscosity: a solid's Maxwell branch
+      (``SimConfig.maxwell``; None otherwise): the Young's modulus [Pa] and
+      Poisson ratio of its Hencky spring and its dashpot's viscosity [Pa s]
+      (``constitutive.maxwell_update``).
   """
 
   E: Array
@@ -563,6 +576,9 @@ class Materials(struct.PyTreeNode):
   dp_cohesion: Array
   dp_volume_correction: Array
   model_id: Array
+  maxwell_E: Array | None = None
+  maxwell_nu: Array | None = None
+  maxwell_viscosity: Array | None = None
 
   @property
   def num(self) -> int:
@@ -578,44 +594,6 @@ FLOAT_FIELDS = (
   'friction_angle', 'dp_h1', 'dp_h2', 'dp_h3', 'plastic_viscosity',
   'viscosity', 'theta_c', 'theta_s', 'dp_cohesion', 'dp_volume_correction',
 )
-
-# Defaults per model for the fields beyond (E, nu, rho). Sources: PhysGaussian
-# (mpm_solver_warp defaults: softening 0.1, friction angle 25 deg, plastic
-# viscosity 0); Stomakhin et al. 2013 (snow: xi 10, theta_c 2.5e-2,
-# theta_s 7.5e-3); Klar et al. 2016 (h2 = 0.2); water (1e-3 Pa s); bingham:
-# PhysFlow's jam (J2 50 Pa, 200 Pa s) in shear terms, 50/sqrt(3) and 200/2.
-_GENERIC = dict(
-  yield_stress=1e4, hardening=0.0, xi=0.0, softening=0.0,
-  friction_angle=25.0, dp_h1=0.0, dp_h2=0.2, dp_h3=0.0,
-  plastic_viscosity=0.0, viscosity=0.0, theta_c=2.5e-2, theta_s=7.5e-3,
-  dp_cohesion=0.0, dp_volume_correction=1.0,
-)
-MODEL_DEFAULTS = {
-  'fixed_corotated': {},
-  'neo_hookean': {},
-  'stvk': {},
-  'von_mises': dict(yield_stress=1e4),
-  'drucker_prager': dict(friction_angle=25.0),
-  'snow': dict(xi=10.0),
-  'foam': dict(yield_stress=1e2, plastic_viscosity=0.0),
-  'plasticine': dict(yield_stress=1e3, softening=0.1),
-  'newtonian': dict(viscosity=1e-3),
-  'bingham': dict(yield_stress=28.9, viscosity=100.0),
-  'rigid': {},
-}
-
-
-def model_default(model: str, field: str) -> float:
-  """Default value of a ``Materials`` field (one of ``FLOAT_FIELDS[3:]``;
-  E, nu, rho have none) for a canonical model (``MODEL_DEFAULTS``); raises
-  ``MPMInputError`` (a ValueError) for an unknown model or field."""
-  if model not in MODEL_DEFAULTS:
-    raise MPMInputError(f'model_default: unknown model {model!r}.')
-  if field not in _GENERIC:
-    raise MPMInputError(f'model_default: {field!r} has no default; fields with '
-                        f'defaults are {list(_GENERIC)}.')
-  return MODEL_DEFAULTS[model].get(field, _GENERIC[field])
-
 
 def lame(E, nu):
   """Lame parameters ``(mu, lam)`` from Young's modulus and Poisson ratio."""
@@ -645,7 +623,7 @@ def make_materials(
     num: particle count N when every argument is a scalar.
     dtype: float dtype (default: float32, or the dtype of E if an array).
     **overrides: any other ``Materials`` float field (scalar or (N,)),
-      replacing the model defaults.
+      replacing the model defaults (a ``maxwell_*`` field gives all three).
 
   Returns:
     ``Materials`` with (N,) leaves.
@@ -654,9 +632,9 @@ def make_materials(
     ValueError: unknown model or field name, inconsistent lengths.
   """
   for k in overrides:
-    if k not in FLOAT_FIELDS:
+    if k not in FLOAT_FIELDS + MAXWELL_FIELDS:
       raise MPMInputError(f'make_materials: unknown field {k!r}; fields are '
-                          f'{list(FLOAT_FIELDS)}.')
+                          f'{list(FLOAT_FIELDS + MAXWELL_FIELDS)}.')
   if isinstance(models, str):
     names = None
     single = models
@@ -713,7 +691,9 @@ def make_materials(
                           f'[0, {len(config_models)}).')
     per_particle = [config_models[i] for i in model_id]
   fields = {}
-  for f in FLOAT_FIELDS[3:]:
+  # (The Maxwell branch's fields only when one of them is given.)
+  maxwell = MAXWELL_FIELDS if set(MAXWELL_FIELDS) & set(overrides) else ()
+  for f in FLOAT_FIELDS[3:] + maxwell:
     if f in overrides:
       fields[f] = jnp.broadcast_to(jnp.asarray(overrides[f], dtype), (n,))
     else:
@@ -775,6 +755,8 @@ class MPMState(struct.PyTreeNode):
       [s] for ``SequentialRelease``.
     t: () time [s].
     step: () int32 substeps taken.
+    F_N: (N, 3, 3) the Maxwell branch's elastic deformation gradient
+      (``SimConfig.maxwell``; None otherwise).
   """
 
   x: Array
@@ -789,6 +771,7 @@ class MPMState(struct.PyTreeNode):
   bc_data: tuple[Array, ...]
   t: Array
   step: Array
+  F_N: Array | None = None
 
   @property
   def num(self) -> int:

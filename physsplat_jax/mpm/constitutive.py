@@ -321,9 +321,10 @@ _SPECTRAL = {
   'drucker_prager': _drucker_prager, 'snow': _snow, 'foam': _foam,
   'bingham': _bingham,
 }
-# (A solid's 'viscosity' is its Kelvin-Voigt stress, added outside the map.)
-_PARAMS = {m: tuple(f for f in MODEL_PARAMS[m]
-                    if f != 'viscosity' or m not in KELVIN_VOIGT_MODELS)
+# (A solid's 'viscosity' is its Kelvin-Voigt stress and its maxwell_*
+# fields its Maxwell branch, both added outside the map.)
+_PARAMS = {m: tuple(f for f in MODEL_PARAMS[m] if m not in KELVIN_VOIGT_MODELS
+                    or not (f == 'viscosity' or f.startswith('maxwell_')))
            for m in _SPECTRAL}
 
 
@@ -377,6 +378,63 @@ def kelvin_voigt(J, C, eta):
   trC = la.trace(C)
   visc = la.add_diag(la.add(C, la.transpose(C)), -2.0 / 3.0 * trC)
   return la.scale(visc, J * eta)
+
+
+def _safe_ratio(a, b):
+  """``a / b`` where ``b > 0``, else 0 (finite derivatives either way)."""
+  ok = b > 0
+  return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
+
+
+def _maxwell(s, p):
+  """The Maxwell branch's viscous return map on the singular values of its
+  trial ``F_N``: the Hencky strain's deviatoric part relaxes by
+  ``eta / (eta + 2 mu dt)``, its trace by ``eta / (eta + 2 K dt)`` (backward
+  Euler of ``d(eps)/dt = -(dev tau / eta + tr(tau) / (9 eta))``, Physics3D's
+  update); Kirchhoff stress ``2 mu eps + lam tr(eps)`` of the relaxed
+  strain."""
+  mu, lam, eta, dt = p['mu'], p['lam'], p['eta'], p['dt']
+  e = _log_sig(s)
+  tr = e[0] + e[1] + e[2]
+  a_d = _safe_ratio(eta, eta + 2.0 * mu * dt)
+  a_v = _safe_ratio(eta, eta + 2.0 * (lam + 2.0 * mu / 3.0) * dt)
+  e_new = tuple(a_d * (x - tr / 3.0) + a_v * tr / 3.0 for x in e)
+  tr_new = a_v * tr
+  return (tuple(jnp.exp(x) for x in e_new),
+          tuple(2.0 * mu * x + lam * tr_new for x in e_new), {})
+
+
+_MAXWELL_MAP = la.make_spectral_map(_maxwell)
+
+
+def maxwell_update(models, model_id, F_N, mat, dt, zero_stress=None):
+  """A solid's Maxwell branch (``SimConfig.maxwell``; Fang et al. 2019,
+  Physics3D): a Hencky spring (``mat.maxwell_E``, ``maxwell_nu``) in series
+  with a dashpot (``maxwell_viscosity`` ``eta``), beside the model's own
+  stress. ``F_N`` (nested tuples) is the branch's trial deformation
+  gradient; returns ``(F_N, tau_N)`` after the return map (:func:`_maxwell`),
+  ``tau_N`` 0 for particles whose model is not a solid
+  (``KELVIN_VOIGT_MODELS``: the fluids, sand, rigid) or where
+  ``zero_stress`` (rigid bodies). The deviatoric
+  stress relaxes with time ``eta / (2 mu_N)``, the pressure with
+  ``eta / (2 K_N)``; ``eta = 0`` is no branch, ``eta -> inf`` a spring.
+  """
+  E, nu = mat.maxwell_E, mat.maxwell_nu
+  mu = E / (2.0 * (1.0 + nu))
+  lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+  p = {'mu': mu, 'lam': lam, 'eta': mat.maxwell_viscosity,
+       'dt': jnp.full_like(mu, dt)}
+  F_N, tau, _ = _MAXWELL_MAP(F_N, p)
+  kv = [k for k, m in enumerate(models) if m in KELVIN_VOIGT_MODELS]
+  on = None
+  if len(kv) < len(models):
+    on = functools.reduce(jnp.logical_or, [model_id == k for k in kv] or [
+      jnp.zeros(model_id.shape, bool)])
+  if zero_stress is not None:
+    on = ~zero_stress if on is None else on & ~zero_stress
+  if on is not None:
+    tau = tuple(tuple(jnp.where(on, t, 0.0) for t in row) for row in tau)
+  return F_N, tau
 
 
 def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,

@@ -101,7 +101,8 @@ def check_run_inputs(state, materials, forces, config,
       f'{caller}: {label} for {int(bad.sum())} of {n} particles '
       f'({_rows(bad)}); give each {fix}.')
   _check_viscosity(materials, models, config, n, caller)
-  for name in ('x', 'v', 'F', 'C', 'mass', 'vol0'):
+  _check_maxwell(materials, models, config, n, caller)
+  for name in ('x', 'v', 'F', 'C', 'mass', 'vol0', 'F_N'):
     a = getattr(state, name, None)
     if a is None:
       continue
@@ -160,3 +161,37 @@ def _check_viscosity(materials, models, config, n: int, caller: str) -> None:
       f'{kinds} have a viscosity (up to {float(eta[solid].max()):.3g} Pa s), '
       'which a solid reads as Kelvin-Voigt damping only with '
       'SimConfig(solid_viscosity=True); set it, or give them viscosity 0.')
+
+
+def _check_maxwell(materials, models, config, n: int, caller: str) -> None:
+  """The Maxwell branch's fields: with ``SimConfig.maxwell`` and only then,
+  physical, and on solids only."""
+  E_N = materials.maxwell_E
+  if E_N is None:
+    if config.maxwell:
+      raise MPMInputError(
+        f'{caller}: SimConfig.maxwell is on but the materials have no '
+        'Maxwell branch; build them with mpm.make_materials(..., '
+        'maxwell_E=..., maxwell_nu=..., maxwell_viscosity=...).')
+    return
+  E_N, nu_N, eta_N = (np.broadcast_to(np.asarray(a, np.float64), (n,)) for a
+                      in (E_N, materials.maxwell_nu,
+                          materials.maxwell_viscosity))
+  on = E_N != 0
+  if on.any() and not config.maxwell:
+    raise MPMInputError(
+      f'{caller}: {int(on.sum())} of {n} particles have a Maxwell branch '
+      '(maxwell_E), computed only with SimConfig(maxwell=True); set it, or '
+      'give them maxwell_E 0.')
+  for label, bad, fix in (
+      ('maxwell_E < 0', E_N < 0, "a Young's modulus >= 0 [Pa]"),
+      ('maxwell_nu outside [0, 0.5)', on & ~((nu_N >= 0) & (nu_N < 0.5)),
+       "a Poisson's ratio in [0, 0.5)"),
+      ('maxwell_viscosity < 0', eta_N < 0, 'a viscosity >= 0 [Pa s]'),
+      ('a Maxwell branch on a model that is not a solid',
+       on & ~np.isin(models, KELVIN_VOIGT_MODELS + ('rigid',)),
+       f'maxwell_E 0 (solids: {list(KELVIN_VOIGT_MODELS)})')):
+    if bad.any():
+      raise MPMInputError(
+        f'{caller}: {label} for {int(bad.sum())} of {n} particles '
+        f'({_rows(bad)}); give each {fix}.')

@@ -6,6 +6,8 @@ and MLLM-P3 answers all map onto ``CANONICAL_MODELS``.
 
 from __future__ import annotations
 
+from physsplat_jax.mpm.errors import MPMInputError
+
 CANONICAL_MODELS = (
   'fixed_corotated', 'neo_hookean', 'stvk', 'von_mises', 'drucker_prager',
   'snow', 'foam', 'plasticine', 'newtonian', 'bingham', 'rigid',
@@ -23,18 +25,19 @@ MATERIAL_ALIASES = {
 }
 # The parameters beyond (E, nu, rho) each model's update reads
 # (mpm.constitutive), in mpm.Materials' units.
-# (The solids' 'viscosity', last, is their Kelvin-Voigt damping: read with
-# SimConfig.solid_viscosity, KELVIN_VOIGT_MODELS.)
+# (The solids' 'viscosity' is their Kelvin-Voigt damping, read with
+# SimConfig.solid_viscosity, and the maxwell_* fields their Maxwell branch,
+# read with SimConfig.maxwell: KELVIN_VOIGT_MODELS.)
+_SOLID = ('viscosity', 'maxwell_E', 'maxwell_nu', 'maxwell_viscosity')
 MODEL_PARAMS = {
-  'fixed_corotated': ('viscosity',), 'neo_hookean': ('viscosity',),
-  'stvk': ('viscosity',), 'rigid': (),
-  'von_mises': ('yield_stress', 'hardening', 'xi', 'viscosity'),
-  'plasticine': ('yield_stress', 'hardening', 'xi', 'softening',
-                 'viscosity'),
+  'fixed_corotated': _SOLID, 'neo_hookean': _SOLID, 'stvk': _SOLID,
+  'rigid': (),
+  'von_mises': ('yield_stress', 'hardening', 'xi') + _SOLID,
+  'plasticine': ('yield_stress', 'hardening', 'xi', 'softening') + _SOLID,
   'drucker_prager': ('friction_angle', 'dp_h1', 'dp_h2', 'dp_h3',
                      'dp_cohesion', 'dp_volume_correction'),
-  'snow': ('xi', 'theta_c', 'theta_s', 'viscosity'),
-  'foam': ('yield_stress', 'plastic_viscosity', 'viscosity'),
+  'snow': ('xi', 'theta_c', 'theta_s') + _SOLID,
+  'foam': ('yield_stress', 'plastic_viscosity') + _SOLID,
   'newtonian': ('viscosity',),
   'bingham': ('yield_stress', 'viscosity'),
 }
@@ -63,6 +66,9 @@ PARAM_RANGES = {
   'theta_s': (lambda v: 0.0 < v < 1.0, 'a critical stretch in (0, 1)'),
   'dp_cohesion': (lambda v: v >= 0.0, 'a cohesion strain >= 0'),
   'dp_volume_correction': (lambda v: v in (0.0, 1.0), '0 or 1'),
+  'maxwell_E': (lambda v: v >= 0.0, "a Young's modulus >= 0 [Pa]"),
+  'maxwell_nu': (lambda v: 0.0 <= v < 0.5, "a Poisson's ratio in [0, 0.5)"),
+  'maxwell_viscosity': (lambda v: v >= 0.0, 'a viscosity >= 0 [Pa s]'),
 }
 
 MATERIAL_IDS = {
@@ -87,3 +93,47 @@ def canonical_model(value) -> str | None:
   if key in CANONICAL_MODELS:
     return key
   return MATERIAL_ALIASES.get(key)
+
+
+# The Maxwell (viscoelastic) branch's fields of mpm.Materials, None unless
+# given (SimConfig.maxwell): its Young's modulus and Poisson ratio (Hencky
+# spring) and the viscosity of its dashpot.
+MAXWELL_FIELDS = ('maxwell_E', 'maxwell_nu', 'maxwell_viscosity')
+
+# Defaults per model for the fields beyond (E, nu, rho). Sources: PhysGaussian
+# (mpm_solver_warp defaults: softening 0.1, friction angle 25 deg, plastic
+# viscosity 0); Stomakhin et al. 2013 (snow: xi 10, theta_c 2.5e-2,
+# theta_s 7.5e-3); Klar et al. 2016 (h2 = 0.2); water (1e-3 Pa s); bingham:
+# PhysFlow's jam (J2 50 Pa, 200 Pa s) in shear terms, 50/sqrt(3) and 200/2.
+_GENERIC = dict(
+  yield_stress=1e4, hardening=0.0, xi=0.0, softening=0.0,
+  friction_angle=25.0, dp_h1=0.0, dp_h2=0.2, dp_h3=0.0,
+  plastic_viscosity=0.0, viscosity=0.0, theta_c=2.5e-2, theta_s=7.5e-3,
+  dp_cohesion=0.0, dp_volume_correction=1.0,
+  maxwell_E=0.0, maxwell_nu=0.3, maxwell_viscosity=0.0,
+)
+MODEL_DEFAULTS = {
+  'fixed_corotated': {},
+  'neo_hookean': {},
+  'stvk': {},
+  'von_mises': dict(yield_stress=1e4),
+  'drucker_prager': dict(friction_angle=25.0),
+  'snow': dict(xi=10.0),
+  'foam': dict(yield_stress=1e2, plastic_viscosity=0.0),
+  'plasticine': dict(yield_stress=1e3, softening=0.1),
+  'newtonian': dict(viscosity=1e-3),
+  'bingham': dict(yield_stress=28.9, viscosity=100.0),
+  'rigid': {},
+}
+
+
+def model_default(model: str, field: str) -> float:
+  """Default value of a ``Materials`` field (one of ``FLOAT_FIELDS[3:]``;
+  E, nu, rho have none) for a canonical model (``MODEL_DEFAULTS``); raises
+  ``MPMInputError`` (a ValueError) for an unknown model or field."""
+  if model not in MODEL_DEFAULTS:
+    raise MPMInputError(f'model_default: unknown model {model!r}.')
+  if field not in _GENERIC:
+    raise MPMInputError(f'model_default: {field!r} has no default; fields with '
+                        f'defaults are {list(_GENERIC)}.')
+  return MODEL_DEFAULTS[model].get(field, _GENERIC[field])

@@ -50,6 +50,12 @@ from physsplat_jax.mpm import inputs
 from physsplat_jax.mpm import rigid as rigid_lib
 from physsplat_jax.mpm import transfer
 from physsplat_jax.mpm.base import MPMInputError
+from physsplat_jax.mpm.health import FIX_START as FIX_START
+from physsplat_jax.mpm.health import J_RANGE as J_RANGE
+from physsplat_jax.mpm.health import MAX_F as MAX_F
+from physsplat_jax.mpm.health import _stats
+from physsplat_jax.mpm.health import check_state as check_state
+from physsplat_jax.mpm.health import split_fix as split_fix
 from physsplat_jax.types import Array
 
 
@@ -191,6 +197,8 @@ def init_state(x, v, volume, materials: base.Materials,
     vol0=volume, mass=materials.rho.astype(dtype) * volume,
     body_id=body_id, bc_data=boundary.particle_bc_data(config, x),
     t=jnp.zeros((), dtype), step=jnp.zeros((), jnp.int32),
+    F_N=(jnp.broadcast_to(jnp.eye(3, dtype=dtype), (n, 3, 3))
+         if config.maxwell else None),
   )
 
 
@@ -206,6 +214,8 @@ def _to_soa(state: base.MPMState):
     Jpep=jnp.stack([state.Jp, state.ep]),
     t=state.t, step=state.step,
   )
+  if state.F_N is not None:  # (SimConfig.maxwell)
+    carry['FN'] = jnp.transpose(state.F_N, (1, 2, 0)).reshape(9, n)
   aux = dict(mass=state.mass, vol0=state.vol0, body_id=state.body_id,
              bc_data=state.bc_data)
   return carry, aux
@@ -220,6 +230,8 @@ def _from_soa(carry, aux) -> base.MPMState:
     ep=carry['Jpep'][1],
     vol0=aux['vol0'], mass=aux['mass'], body_id=aux['body_id'],
     bc_data=aux['bc_data'], t=carry['t'], step=carry['step'],
+    F_N=(jnp.transpose(carry['FN'].reshape(3, 3, -1), (2, 0, 1))
+         if 'FN' in carry else None),
   )
 
 
@@ -276,6 +288,11 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     mass, vol0 = aux['mass'], aux['vol0']
     with jax.named_scope('constitutive'):
       Fe, Jpep, tau = constitute(FC, c['Jpep'], aux['body_id'], mat)
+      if config.maxwell:  # the solids' Maxwell branch, beside the update
+        FN, tau_N = constitutive.maxwell_update(
+          config.models, mat.model_id, la.rows_mat(c['FN'], 0), mat, dt,
+          aux['body_id'] >= 0 if has_bodies else None)
+        FN, tau = transfer.materialize((FN, la.add(tau, tau_N)))
 
     with jax.named_scope('particle_bcs'):
       v, C = boundary.apply_particle_bcs(config, forces, aux['bc_data'], t, x,
@@ -344,6 +361,9 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
       FC=jnp.stack(la.mat_rows(F_new) + la.mat_rows(C_new)), Jpep=Jpep,
       t=_step_time(step, dt, t.dtype), step=step,
     )
+    if config.maxwell:  # F_N moves with the material as F does
+      out['FN'] = jnp.stack(la.mat_rows(
+        la.add(FN, la.scale(la.matmul(C_new, FN), dt))))
     return out
 
   return substep
@@ -540,80 +560,6 @@ class RunResult:
   compile_s: float
   run_s: float
   substeps_per_s: float
-
-
-def _stats(config: base.SimConfig, state: base.MPMState):
-  grid = config.grid
-  lo, hi = grid.particle_bounds
-  rel = state.x - jnp.asarray(grid.lower, state.x.dtype)
-  finite = (jnp.all(jnp.isfinite(state.x), 1) & jnp.all(jnp.isfinite(state.v),
-                                                         1)
-            & jnp.all(jnp.isfinite(state.F), (1, 2)))
-  speed = jnp.sqrt(jnp.sum(state.v * state.v, 1))
-  eps = 1e-3 * grid.dx
-  at_wall = jnp.any((rel <= lo + eps) | (rel >= hi - eps), axis=1)
-  fast = speed > 0.1 * grid.dx / config.dt
-  Fn = jnp.sqrt(jnp.sum(state.F * state.F, (1, 2)))
-  J = jnp.linalg.det(state.F)
-  big = jnp.where(finite, Fn, 0.0)
-  return dict(
-    nonfinite=jnp.sum(~finite), wall=jnp.sum(at_wall & fast & finite),
-    too_fast=jnp.sum((speed > grid.dx / config.dt) & finite),
-    max_F=jnp.max(big, initial=0.0),
-    min_J=jnp.min(jnp.where(finite, J, 1.0), initial=1.0),
-    max_J=jnp.max(jnp.where(finite, J, 1.0), initial=1.0),
-    max_speed=jnp.max(jnp.where(finite, speed, 0.0), initial=0.0),
-  )
-
-
-MAX_F = 100.0
-J_RANGE = (1e-2, 1e2)
-
-
-# How check_state's messages start their fix: the pipeline and the
-# PhysGaussian driver replace the fix from here on with one in their own
-# terms (split_fix).
-FIX_START = 'Use a smaller dt'
-
-
-def split_fix(error: base.SimulationError) -> str | None:
-  """What a :func:`check_state` error says before its fix (which callers
-  reword in their users' terms), or None for another message."""
-  head, sep, _ = str(error).partition(FIX_START)
-  return head if sep else None
-
-
-def check_state(config: base.SimConfig, stats: dict, frame: int,
-                t: float) -> None:
-  """Raises ``SimulationError`` for a blown-up frame (see ``run``)."""
-  fix = (f'{FIX_START} (now {config.dt:.3g} s; mpm.choose_substeps picks '
-         'a stable one), lower E, add damping, or enlarge the domain.')
-  where = f'frame {frame} (t = {t:.4g} s)'
-  if stats['nonfinite'] > 0:
-    raise base.SimulationError(
-      f'{where}: {int(stats["nonfinite"])} particles have NaN/inf positions, '
-      'velocities or F: the simulation blew up, most likely because the time '
-      f'step is too large for the stiffest material. {fix}', frame, 'nan')
-  if stats['wall'] > 0:
-    raise base.SimulationError(
-      f'{where}: {int(stats["wall"])} particles are pinned at the domain wall '
-      f'at speed (max speed {float(stats["max_speed"]):.3g} m/s): the '
-      'simulation is unstable or the object is thrown out of the grid. '
-      f'{fix}', frame, 'wall')
-  if stats['too_fast'] > 0:
-    raise base.SimulationError(
-      f'{where}: {int(stats["too_fast"])} particles move more than a cell per '
-      f'substep (max speed {float(stats["max_speed"]):.3g} m/s > dx/dt = '
-      f'{config.grid.dx / config.dt:.3g} m/s). {fix}', frame, 'speed')
-  if stats['max_F'] > MAX_F:
-    raise base.SimulationError(
-      f'{where}: |F| reached {float(stats["max_F"]):.3g} (> {MAX_F}): the '
-      f'deformation is exploding. {fix}', frame, 'F')
-  if not (J_RANGE[0] <= stats['min_J'] and stats['max_J'] <= J_RANGE[1]):
-    raise base.SimulationError(
-      f'{where}: det F left [{J_RANGE[0]}, {J_RANGE[1]}] (min '
-      f'{float(stats["min_J"]):.3g}, max {float(stats["max_J"]):.3g}): '
-      f'particles are crushed or torn apart. {fix}', frame, 'J')
 
 
 @functools.lru_cache(maxsize=32)

@@ -75,6 +75,13 @@ def _active(materials: base.Materials, models, body_id):
   fluid's, a solid's Kelvin-Voigt damping)."""
   E = np.asarray(materials.E, np.float64)
   nu = np.asarray(materials.nu, np.float64)
+  if materials.maxwell_E is not None:
+    # A Maxwell branch stiffens the instantaneous response: the P-wave
+    # moduli add, given here as the E of the model's nu.
+    E_N, nu_N = (np.broadcast_to(np.asarray(a, np.float64), E.shape) for a
+                 in (materials.maxwell_E, materials.maxwell_nu))
+    E = E + E_N * (1 - nu_N) / ((1 + nu_N) * (1 - 2 * nu_N)) * (
+      (1 + nu) * (1 - 2 * nu) / (1 - nu))
   rho = np.asarray(materials.rho, np.float64)
   eta = np.asarray(materials.viscosity, np.float64)
   mid = np.asarray(materials.model_id)

@@ -30,6 +30,7 @@ from absl import logging
 
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.mpm.models import CANONICAL_MODELS
+from physsplat_jax.mpm.models import MAXWELL_FIELDS
 from physsplat_jax.mpm.models import PARAM_RANGES
 from physsplat_jax.mpm.models import canonical_model
 from physsplat_jax.mpm.models import MODEL_PARAMS as SOLVER_PARAMS
@@ -42,7 +43,9 @@ from physsplat_jax.perception.library import MaterialLibrary
 SOURCES = ('mllm', 'library', 'config', 'override')
 _SPEC_FIELDS = {'material', 'key', 'model', 'E', 'nu', 'rho', 'density',
                 'rigid'}
-_ALL_PARAMS = sorted({p for ps in MODEL_PARAMS.values() for p in ps})
+# (The library's parameters, and a solid's Maxwell branch.)
+_ALL_PARAMS = sorted({p for ps in MODEL_PARAMS.values() for p in ps}
+                     | set(MAXWELL_FIELDS))
 # Names of the same spec field: give one.
 _SPEC_ALIASES = (('material', 'key'), ('rho', 'density'))
 

@@ -186,7 +186,7 @@ def make_sim_config(config: pg.PhysGaussianConfig, **overrides
     boundary_conditions=convert_boundary_conditions(config),
     rpic_damping=config.rpic_damping,
     grid_v_damping_scale=config.grid_v_damping_scale,
-    remat_frames=False,
+    remat_frames=False, maxwell=config.mu_N > 0,
   )
   kw.update(overrides)
   return base.SimConfig(**kw)
@@ -334,6 +334,11 @@ def prepare_config(gaussians, config: pg.PhysGaussianConfig,
     xi=config.xi, friction_angle=config.friction_angle,
     plastic_viscosity=config.plastic_viscosity, softening=config.softening,
   )
+  if config.mu_N > 0:  # Physics3D's branch: (mu_N, lam_N) as (E_N, nu_N)
+    mu, lam = config.mu_N, config.lam_N
+    extra_fields.update(
+      maxwell_E=mu * (3 * lam + 2 * mu) / (lam + mu),
+      maxwell_nu=lam / (2 * (lam + mu)), maxwell_viscosity=config.viscosity)
   if model == 'snow' and config.xi == 0.0:
     # PhysGaussian's snow does nothing; ours needs Stomakhin's hardening
     # coefficient, so an unset xi takes its default 10.

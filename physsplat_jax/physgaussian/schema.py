@@ -123,7 +123,8 @@ SURFACE_TYPES = ('sticky', 'slip', 'cut')
 _KNOWN_TOP = {
   'material', 'E', 'nu', 'density', 'g', 'grid_lim', 'n_grid',
   'yield_stress', 'hardening', 'xi', 'friction_angle', 'plastic_viscosity',
-  'softening', 'rpic_damping', 'grid_v_damping_scale',
+  'softening', 'rpic_damping', 'grid_v_damping_scale', 'mu_N', 'lam_N',
+  'viscosity',
   'additional_material_params', 'substep_dt', 'frame_dt', 'frame_num',
   'opacity_threshold', 'rotation_degree', 'rotation_axis', 'sim_area',
   'scale', 'particle_filling', 'mpm_space_vertical_upward_axis',
@@ -233,6 +234,9 @@ class PhysGaussianConfig:
       disables).
     yield_stress, hardening, xi, friction_angle, plastic_viscosity,
       softening: plasticity parameters (friction_angle in degrees).
+    mu_N, lam_N, viscosity: Physics3D's viscoelastic (Maxwell) branch, its
+      Lame parameters [Pa] and its dashpot's viscosity [Pa s]; a branch
+      when mu_N or lam_N > 0 (``mpm.SimConfig.maxwell``).
     additional_material_params: boxes overriding E/nu/density.
     boundary_conditions: tuple of ``BoundaryCondition``.
     opacity_threshold: Gaussians with sigmoid(opacity) below it are dropped.
@@ -263,6 +267,9 @@ class PhysGaussianConfig:
   friction_angle: float = 25.0
   plastic_viscosity: float = 0.0
   softening: float = 0.1
+  mu_N: float = 0.0
+  lam_N: float = 0.0
+  viscosity: float = 0.0
   additional_material_params: tuple[MaterialBox, ...] = ()
   boundary_conditions: tuple[BoundaryCondition, ...] = ()
   opacity_threshold: float = 0.02
@@ -483,15 +490,8 @@ def parse_config(
   if unknown:
     near = {k: difflib.get_close_matches(k, sorted(_KNOWN_TOP), n=1)
             for k in unknown}
-    maxwell = {'mu_N', 'lam_N'} & set(unknown)
     hints = ''.join(f'; did you mean {v[0]!r} for {k!r}?'
-                    for k, v in near.items() if v and not (
-                      maxwell and k == 'viscosity'))
-    if maxwell:
-      hints += ('; mu_N, lam_N and viscosity are Physics3D\'s viscoelastic '
-                '(Maxwell) branch, which is not simulated: the material '
-                'follows its model alone (a solid can be damped instead: '
-                'docs/mpm.md, Kelvin-Voigt viscosity)')
+                    for k, v in near.items() if v)
     logging.warning(
       '%s: ignoring unknown fields %s (not in the PhysGaussian schema%s).',
       source, unknown, hints,
@@ -502,7 +502,8 @@ def parse_config(
   for name in ('E', 'nu', 'density', 'grid_lim', 'substep_dt', 'frame_dt',
                'rpic_damping', 'grid_v_damping_scale', 'yield_stress',
                'hardening', 'xi', 'friction_angle', 'plastic_viscosity',
-               'softening', 'opacity_threshold', 'scale'):
+               'softening', 'opacity_threshold', 'scale', 'mu_N', 'lam_N',
+               'viscosity'):
     if name in raw:
       kw[name] = _float(source, name, raw[name])
   for name in ('n_grid', 'frame_num'):
@@ -620,6 +621,15 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
     )
   for name in _PLASTICITY_FIELDS:
     check_range(s, name, getattr(c, name))
+  for name in ('mu_N', 'viscosity'):
+    if not getattr(c, name) >= 0:
+      raise ConfigError(f'{_where(s, name)} = {getattr(c, name):g}: use a '
+                        f'{"modulus [Pa]" if name == "mu_N" else "viscosity"}'
+                        ' >= 0 (Physics3D\'s viscoelastic branch).')
+  if c.lam_N and not (c.mu_N > 0 and c.lam_N > 0):
+    raise ConfigError(
+      f'{_where(s, "lam_N")} = {c.lam_N:g} with mu_N = {c.mu_N:g}: the '
+      'viscoelastic branch needs mu_N > 0 and lam_N >= 0 [Pa].')
   if len(c.rotation_degree) != len(c.rotation_axis):
     raise ConfigError(
       f'{s}: rotation_degree has {len(c.rotation_degree)} entries but '

@@ -33,6 +33,7 @@ from physsplat_jax import mpm
 from physsplat_jax import struct
 from physsplat_jax.mpm import inputs as mpm_inputs
 from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
+from physsplat_jax.mpm.models import MAXWELL_FIELDS
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import ForceKind
 from physsplat_jax.pipeline.config import Ground
@@ -142,10 +143,12 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
   counts = [0] * len(models)
   for m, (_, c) in zip(spec.models, spec.object_ranges):
     counts[models.index(m)] += c
-  # A solid object given a viscosity is damped by it (Kelvin-Voigt).
-  damped = any(dict(ps).get('viscosity', 0.0) > 0
-               for ps, m in zip(spec.object_params, spec.models)
-               if m in KELVIN_VOIGT_MODELS)
+  # A solid object given a viscosity is damped by it (Kelvin-Voigt), one
+  # given a Maxwell branch's modulus is viscoelastic.
+  solid = [dict(ps) for ps, m in zip(spec.object_params, spec.models)
+           if m in KELVIN_VOIGT_MODELS]
+  damped = any(ps.get('viscosity', 0.0) > 0 for ps in solid)
+  maxwell = any(ps.get('maxwell_E', 0.0) > 0 for ps in solid)
   return mpm.SimConfig(
     grid=mpm.GridSpec(res=spec.grid_res, lower=spec.grid_lower,
                       size=spec.grid_size),
@@ -156,7 +159,7 @@ def make_sim_config(spec: SimSpec, config: SimulateConfig | PipelineConfig,
     remat_frames=config.remat_frames, dtype=str(np.dtype(dtype)),
     model_counts=tuple(counts),
     constitutive_kernel=config.constitutive_kernel,
-    gpu_graphs=config.gpu_graphs, solid_viscosity=damped)
+    gpu_graphs=config.gpu_graphs, solid_viscosity=damped, maxwell=maxwell)
 
 
 def driver_materials(params: Params, prepared: PreparedScene,
@@ -207,7 +210,8 @@ def _mpm_materials(E, nu, rho, prepared: PreparedScene,
   obj = prepared.driver_object
   model_of_obj = [sim_config.models.index(m) for m in spec.models]
   fields = {}
-  for k in mpm.base.FLOAT_FIELDS[3:]:
+  extra = MAXWELL_FIELDS if sim_config.maxwell else ()
+  for k in mpm.base.FLOAT_FIELDS[3:] + extra:
     table = [dict(ps).get(k, mpm.MODEL_DEFAULTS[m].get(
       k, mpm.base._GENERIC[k]))  # noqa: SLF001
       for ps, m in zip(spec.object_params, spec.models)]

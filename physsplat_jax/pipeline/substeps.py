@@ -59,8 +59,16 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
     E = np.array([m.E for m in mats])[dobj] * field[:, 0]
     nu = np.clip(np.array([m.nu for m in mats])[dobj] * field[:, 1], 0, 0.49)
     rho = np.array([m.rho for m in mats])[dobj] * field[:, 2]
-    c_max = float(np.max(timestep.wave_speed(E[deform], nu[deform],
-                                             rho[deform])))
+    c = timestep.wave_speed(E, nu, rho)
+    # A Maxwell branch stiffens the instantaneous response (P-wave moduli
+    # add; its own E_N, nu_N, not the MPDP field's).
+    E_N, nu_N = (np.array([
+      m.params_dict.get(k, model_default(m.model, k))
+      if not r and m.model in KELVIN_VOIGT_MODELS else 0.0
+      for m, r in zip(mats, rigid)])[dobj] for k in ('maxwell_E',
+                                                      'maxwell_nu'))
+    c = np.sqrt(c * c + timestep.wave_speed(E_N, nu_N, rho) ** 2)
+    c_max = float(np.max(c[deform]))
   frame_dt = cfg.frame_dt
   v_max = given_speed(cfg)
   dt_visc = viscous_dt(mats, rigid, field, dobj, dx)
