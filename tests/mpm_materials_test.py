@@ -617,6 +617,45 @@ class MaxwellTest(absltest.TestCase):
               + np.exp(-2 * K * t / eta) * tr / 3)
       np.testing.assert_allclose(e, cont, atol=2e-3 * np.abs(e0).max())
 
+  def test_the_branch_turns_with_the_body_and_relaxes(self):
+    """A prestrained branch (F_N = diag stretch, F = I) on a block spinning
+    at 2 rad/s, all stiffnesses tiny: F_N is advected on the left (its
+    principal directions turn with the body by the angle spun) while its
+    Hencky strain relaxes by the return map's factors alone (a rotation
+    does not strain it)."""
+    with jax.enable_x64(True):
+      w = 2.0
+      spin = np.array([[0.0, -w, 0.0], [w, 0.0, 0.0], [0.0, 0.0, 0.0]])
+      s, mat, cfg, dx = _spread_block(0.0, spin, flag=False)
+      E_N, nu_N, eta = 1e-3, 0.25, 2e-5
+      full = lambda v: jnp.full_like(mat.E, v)  # noqa: E731
+      mat = mat.replace(E=full(1e-3), maxwell_E=full(E_N),
+                        maxwell_nu=full(nu_N), maxwell_viscosity=full(eta))
+      e0 = np.array([0.05, -0.03, 0.0])
+      s = s.replace(F_N=jnp.broadcast_to(jnp.diag(jnp.exp(e0)), s.F.shape))
+      cfg = cfg.replace(maxwell=True)
+      steps = 10
+      FN = np.asarray(mpm.run(s, mat, None, cfg, steps,
+                              keep_positions=False).state.F_N)
+      mu = E_N / (2 * (1 + nu_N))
+      K = E_N * nu_N / ((1 + nu_N) * (1 - 2 * nu_N)) + 2 * mu / 3
+      tr = e0.sum()
+      dt = cfg.dt
+      e = ((eta / (eta + 2 * mu * dt)) ** steps * (e0 - tr / 3)
+           + (eta / (eta + 2 * K * dt)) ** steps * tr / 3)
+      U, sv, _ = np.linalg.svd(FN)
+      # (The spin itself stretches the block, which no stiffness holds:
+      # (w t)^2 / 2 = 2e-4 of strain; the relaxation moves it by 0.017.)
+      np.testing.assert_allclose(np.log(sv), np.broadcast_to(
+        np.sort(e)[::-1], sv.shape), atol=5e-4)
+      # The most stretched direction, turned by w t about z (to first
+      # order in dt: (I + dt C)^n against exp(n dt C), 2e-4 here).
+      th = w * steps * dt
+      want = np.array([np.cos(th), np.sin(th), 0.0])
+      got = np.abs(U[:, :, 0] @ want)
+      np.testing.assert_allclose(got, 1.0, atol=1e-6)
+      self.assertGreater(th, 0.01)  # (a turn a right product would miss)
+
   def test_limits_no_dashpot_and_a_stiff_one(self):
     """``maxwell_viscosity = 0`` relaxes at once: the run equals the run
     without the branch. A dashpot that never relaxes leaves a spring: at
@@ -684,6 +723,18 @@ class MaxwellTest(absltest.TestCase):
       with self.assertRaisesRegex(mpm.MPMInputError,
                                   r'maxwell_nu outside \[0, 0\.5\)'):
         mpm.run(s, mat.replace(maxwell_nu=full(0.5)), None, cfg, 1)
+      # (also where the branch's E is 0: its lam was 0/0 there, a NaN)
+      with self.assertRaisesRegex(mpm.MPMInputError, 'maxwell_nu outside'):
+        mpm.run(s, mat.replace(maxwell_E=full(0.0), maxwell_nu=full(0.5)),
+                None, cfg, 1)
+      # A state built for another config: named (were a KeyError and a
+      # scan's pytree mismatch).
+      with self.assertRaisesRegex(mpm.MPMInputError,
+                                  r'state has no Maxwell branch'):
+        mpm.rollout(s.replace(F_N=None), mat, None, cfg, 1)
+      with self.assertRaisesRegex(mpm.MPMInputError,
+                                  r'state carries a Maxwell branch'):
+        mpm.rollout(s, plain, None, cfg.replace(maxwell=False), 1)
       # The instantaneous stiffness bounds dt: the P-wave moduli add.
       dt0 = mpm.stable_dt(plain, dx, cfg.models)[0]
       dt1 = mpm.stable_dt(mat.replace(maxwell_E=full(300.0)), dx,

@@ -145,6 +145,21 @@ class SimulateTest(absltest.TestCase):
     self.assertTrue(np.all(np.isfinite(x)))
     with self.assertRaisesRegex(pg.ConfigError, r'lam_N.*mu_N > 0'):
       pg.parse_config(dict(_TINY, lam_N=1.0), warn=False)
+    # Not on sand or a fluid (Physics3D gives it to jelly): named in the
+    # config's terms, not as the solver's maxwell_E.
+    with self.assertRaisesRegex(pg.ConfigError,
+                                r"'mu_N' = 5 on material 'drucker_prager'"):
+      pg.parse_config(dict(_TINY, material='sand', mu_N=5.0), warn=False)
+    # A viscosity without the branch was an unknown key (warned); it is
+    # still said to do nothing.
+    with self.assertLogs(level='WARNING') as logs:
+      pg.parse_config(dict(_TINY, viscosity=0.5), warn=False)
+    self.assertIn('needs "mu_N" > 0', ' '.join(logs.output))
+    # Through perception's config materials too.
+    from physsplat_jax.perception import choice
+    spec = choice.spec_from_physgaussian(cfg)
+    np.testing.assert_allclose(spec['maxwell_nu'], 0.3)
+    self.assertEqual(spec['maxwell_viscosity'], 50.0)
 
   def test_particle_filling_adds_simulated_interior(self):
     # A closed spherical shell of Gaussians (radius 1, input units).

@@ -390,7 +390,7 @@ def _maxwell(s, p):
   """The Maxwell branch's viscous return map on the singular values of its
   trial ``F_N``: the Hencky strain's deviatoric part relaxes by
   ``eta / (eta + 2 mu dt)``, its trace by ``eta / (eta + 2 K dt)`` (backward
-  Euler of ``d(eps)/dt = -(dev tau / eta + tr(tau) / (9 eta))``, Physics3D's
+  Euler of ``d(eps)/dt = -(dev tau + 2/9 tr(tau) I) / eta``, Physics3D's
   update); Kirchhoff stress ``2 mu eps + lam tr(eps)`` of the relaxed
   strain."""
   mu, lam, eta, dt = p['mu'], p['lam'], p['eta'], p['dt']
@@ -690,6 +690,8 @@ def make_update(config):
 
   def with_kernel(FC, Jpep, body_id, mat, interpret):
     n = FC.shape[-1]
+    # (The Maxwell branch is computed beside the kernel: not loaded there.)
+    mat = mat.replace(maxwell_E=None, maxwell_nu=None, maxwell_viscosity=None)
     slices = merged if groups else ((models, 0, 0, n),)
     body = body_id if (has_bodies and not groups) else None
     Fe, Jpep, tau = pallas_constitutive.constitute(

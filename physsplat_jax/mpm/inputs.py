@@ -185,7 +185,7 @@ def _check_maxwell(materials, models, config, n: int, caller: str) -> None:
       'give them maxwell_E 0.')
   for label, bad, fix in (
       ('maxwell_E < 0', E_N < 0, "a Young's modulus >= 0 [Pa]"),
-      ('maxwell_nu outside [0, 0.5)', on & ~((nu_N >= 0) & (nu_N < 0.5)),
+      ('maxwell_nu outside [0, 0.5)', ~((nu_N >= 0) & (nu_N < 0.5)),
        "a Poisson's ratio in [0, 0.5)"),
       ('maxwell_viscosity < 0', eta_N < 0, 'a viscosity >= 0 [Pa s]'),
       ('a Maxwell branch on a model that is not a solid',

@@ -381,6 +381,12 @@ def _check_inputs(state, materials, forces, config, values: bool = True):
   if not isinstance(materials, base.Materials):
     raise TypeError('expected Materials (mpm.make_materials).')
   inputs.check_dtypes(state, materials, config.dtype)
+  if (state.F_N is None) == config.maxwell:  # (static: safe under jit)
+    raise MPMInputError(
+      'the state ' + ('has no' if config.maxwell else 'carries a')
+      + ' Maxwell branch (MPMState.F_N) but SimConfig.maxwell is '
+      f'{config.maxwell}; build the state with mpm.init_state(..., config) '
+      'of the config you run.')
   if forces is None:
     forces = base.make_forces(config, state.x.dtype)
   if len(forces.values) != len(config.boundary_conditions):

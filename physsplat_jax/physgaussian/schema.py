@@ -54,6 +54,7 @@ from absl import logging
 
 from physsplat_jax import struct
 from physsplat_jax.mpm.models import CANONICAL_MODELS
+from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
 from physsplat_jax.mpm.models import MATERIAL_ALIASES
 from physsplat_jax.mpm.models import MATERIAL_IDS
 from physsplat_jax.mpm.models import canonical_model
@@ -236,7 +237,7 @@ class PhysGaussianConfig:
       softening: plasticity parameters (friction_angle in degrees).
     mu_N, lam_N, viscosity: Physics3D's viscoelastic (Maxwell) branch, its
       Lame parameters [Pa] and its dashpot's viscosity [Pa s]; a branch
-      when mu_N or lam_N > 0 (``mpm.SimConfig.maxwell``).
+      when mu_N > 0, on a solid (``mpm.SimConfig.maxwell``).
     additional_material_params: boxes overriding E/nu/density.
     boundary_conditions: tuple of ``BoundaryCondition``.
     opacity_threshold: Gaussians with sigmoid(opacity) below it are dropped.
@@ -506,6 +507,11 @@ def parse_config(
                'viscosity'):
     if name in raw:
       kw[name] = _float(source, name, raw[name])
+  if kw.get('viscosity') and not kw.get('mu_N'):
+    logging.warning(
+      '%s: "viscosity" is the viscosity of Physics3D\'s viscoelastic branch, '
+      'which needs "mu_N" > 0; without it it is ignored (a fluid\'s '
+      'viscosity is "plastic_viscosity").', source)
   for name in ('n_grid', 'frame_num'):
     if name in raw:
       kw[name] = _int(source, name, raw[name])
@@ -630,6 +636,11 @@ def _validate(c: PhysGaussianConfig) -> PhysGaussianConfig:
     raise ConfigError(
       f'{_where(s, "lam_N")} = {c.lam_N:g} with mu_N = {c.mu_N:g}: the '
       'viscoelastic branch needs mu_N > 0 and lam_N >= 0 [Pa].')
+  if c.mu_N > 0 and c.material not in KELVIN_VOIGT_MODELS:
+    raise ConfigError(
+      f'{_where(s, "mu_N")} = {c.mu_N:g} on material {c.material!r}: the '
+      'viscoelastic branch is for solids (Physics3D gives it to jelly); '
+      f'use one of {list(KELVIN_VOIGT_MODELS)} or remove mu_N.')
   if len(c.rotation_degree) != len(c.rotation_axis):
     raise ConfigError(
       f'{s}: rotation_degree has {len(c.rotation_degree)} entries but '
