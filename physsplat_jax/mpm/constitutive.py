@@ -94,6 +94,7 @@ import jax.numpy as jnp
 from physsplat_jax import platforms
 from physsplat_jax.mpm import linalg as la
 from physsplat_jax.mpm import transfer
+from physsplat_jax.mpm.base import lame
 from physsplat_jax.mpm.models import KELVIN_VOIGT_MODELS
 from physsplat_jax.mpm.models import MODEL_PARAMS
 
@@ -380,6 +381,16 @@ def kelvin_voigt(J, C, eta):
   return la.scale(visc, J * eta)
 
 
+def _solids(models, model_id):
+  """(N,) bool, the particles of ``KELVIN_VOIGT_MODELS`` among ``models``
+  (``model_id`` indexes it); None when every model is one."""
+  kv = [k for k, m in enumerate(models) if m in KELVIN_VOIGT_MODELS]
+  if len(kv) == len(models):
+    return None
+  return functools.reduce(jnp.logical_or, [model_id == k for k in kv],
+                          jnp.zeros(model_id.shape, bool))
+
+
 def _safe_ratio(a, b):
   """``a / b`` where ``b > 0``, else 0 (finite derivatives either way)."""
   ok = b > 0
@@ -419,17 +430,11 @@ def maxwell_update(models, model_id, F_N, mat, dt, zero_stress=None):
   stress relaxes with time ``eta / (2 mu_N)``, the pressure with
   ``eta / (2 K_N)``; ``eta = 0`` is no branch, ``eta -> inf`` a spring.
   """
-  E, nu = mat.maxwell_E, mat.maxwell_nu
-  mu = E / (2.0 * (1.0 + nu))
-  lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+  mu, lam = lame(mat.maxwell_E, mat.maxwell_nu)
   p = {'mu': mu, 'lam': lam, 'eta': mat.maxwell_viscosity,
        'dt': jnp.full_like(mu, dt)}
   F_N, tau, _ = _MAXWELL_MAP(F_N, p)
-  kv = [k for k, m in enumerate(models) if m in KELVIN_VOIGT_MODELS]
-  on = None
-  if len(kv) < len(models):
-    on = functools.reduce(jnp.logical_or, [model_id == k for k in kv] or [
-      jnp.zeros(model_id.shape, bool)])
+  on = _solids(models, model_id)
   if zero_stress is not None:
     on = ~zero_stress if on is None else on & ~zero_stress
   if on is not None:
@@ -519,11 +524,10 @@ def constitutive_update(models, model_id, F, C, Jp, ep, mat, dt,
       raise ValueError(f'unknown model {m!r}')
   results.sort(key=lambda r: r[0])
   Fe, Jp, ep, tau = pick(results)
-  kv = [k for k, m in enumerate(models) if m in KELVIN_VOIGT_MODELS]
-  if solid_viscosity and kv:
+  if solid_viscosity and any(m in KELVIN_VOIGT_MODELS for m in models):
     eta = mat.viscosity
-    if len(kv) < len(models):
-      on = functools.reduce(jnp.logical_or, [model_id == k for k in kv])
+    on = _solids(models, model_id)
+    if on is not None:
       eta = jnp.where(on, eta, 0.0)
     # The volume ratio of the whole deformation: the trial F's, whose
     # plastic flow keeps the volume except snow's, which Jp records.

@@ -37,13 +37,17 @@ DEFAULT_CFL = 0.35
 UNSTABLE_CFL = 1.0
 
 
-def wave_speed(E, nu, rho, fluid=False):
-  """Elastic wave speed [m/s] (P-wave, or bulk sound speed for fluids)."""
-  E, nu, rho = (np.asarray(a, np.float64) for a in (E, nu, rho))
+def wave_speed(E, nu, rho, fluid=False, E_N=0.0, nu_N=0.0):
+  """Elastic wave speed [m/s] (P-wave, or bulk sound speed for fluids);
+  a Maxwell branch (``E_N``, ``nu_N``) stiffens the instantaneous response:
+  its P-wave modulus adds."""
+  E, nu, rho, E_N, nu_N = (np.asarray(a, np.float64)
+                           for a in (E, nu, rho, E_N, nu_N))
   nu = np.minimum(nu, 0.499)
   bulk = E / (3.0 * (1.0 - 2.0 * nu))
   p_wave = E * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
-  return np.sqrt(np.where(fluid, bulk, p_wave) / rho)
+  branch = E_N * (1.0 - nu_N) / ((1.0 + nu_N) * (1.0 - 2.0 * nu_N))
+  return np.sqrt((np.where(fluid, bulk, p_wave) + branch) / rho)
 
 
 def cfl_dt(E, nu, rho, dx, cfl: float = DEFAULT_CFL, fluid=False) -> float:
@@ -71,17 +75,14 @@ def cfl_dt(E, nu, rho, dx, cfl: float = DEFAULT_CFL, fluid=False) -> float:
 
 def _active(materials: base.Materials, models, body_id):
   """Host arrays of the non-rigid particles: (E, nu, rho, eta, fluid,
-  viscous), ``viscous`` where ``eta`` is an explicit viscous stress (the
-  fluid's, a solid's Kelvin-Voigt damping)."""
+  viscous, E_N, nu_N), ``viscous`` where ``eta`` is an explicit viscous
+  stress (the fluid's, a solid's Kelvin-Voigt damping), ``E_N, nu_N`` the
+  Maxwell branch's (0 without)."""
   E = np.asarray(materials.E, np.float64)
   nu = np.asarray(materials.nu, np.float64)
-  if materials.maxwell_E is not None:
-    # A Maxwell branch stiffens the instantaneous response: the P-wave
-    # moduli add, given here as the E of the model's nu.
-    E_N, nu_N = (np.broadcast_to(np.asarray(a, np.float64), E.shape) for a
-                 in (materials.maxwell_E, materials.maxwell_nu))
-    E = E + E_N * (1 - nu_N) / ((1 + nu_N) * (1 - 2 * nu_N)) * (
-      (1 + nu) * (1 - 2 * nu) / (1 - nu))
+  E_N, nu_N = (np.broadcast_to(np.asarray(
+    0.0 if a is None else a, np.float64), E.shape)
+    for a in (materials.maxwell_E, materials.maxwell_nu))
   rho = np.asarray(materials.rho, np.float64)
   eta = np.asarray(materials.viscosity, np.float64)
   mid = np.asarray(materials.model_id)
@@ -98,7 +99,7 @@ def _active(materials: base.Materials, models, body_id):
     viscous = np.isin(names[mid], KELVIN_VOIGT_MODELS) | fluid
   viscous &= eta > 0
   return (E[keep], nu[keep], rho[keep], eta[keep], fluid[keep],
-          viscous[keep])
+          viscous[keep], E_N[keep], nu_N[keep])
 
 
 def viscous_dt(rho, eta, dx: float) -> float:
@@ -127,7 +128,8 @@ def stable_dt(materials: base.Materials, dx: float, models=None,
   Returns:
     ``(dt, reason)`` with reason 'elastic', 'speed', 'viscosity' or 'none'.
   """
-  E, nu, rho, eta, fluid, visc = _active(materials, models, body_id)
+  E, nu, rho, eta, fluid, visc, E_N, nu_N = _active(materials, models,
+                                                   body_id)
   fault = inputs.material_fault(E, nu, rho)
   if fault:   # (NaN included) no wave speed, no time step
     label, bad, fix = fault
@@ -136,7 +138,7 @@ def stable_dt(materials: base.Materials, dx: float, models=None,
       f'{bad.size} stressed particles; give each {fix}.')
   cands = [(math.inf, 'none')]
   if E.size:
-    c = wave_speed(E, nu, rho, fluid)
+    c = wave_speed(E, nu, rho, fluid, E_N, nu_N)
     cands.append((cfl * dx / float(np.max(c)), 'elastic'))
     if np.any(visc):
       cands.append((viscous_dt(rho[visc], eta[visc], dx), 'viscosity'))
@@ -198,10 +200,11 @@ def check_dt(config: base.SimConfig, materials: base.Materials,
   if courant > limit:
     ok = limit * dt1
     n = max(1, math.ceil(config.frame_dt / (DEFAULT_CFL * dt1)))
-    E, nu, rho, eta, _, visc = _active(materials, config.models, body_id)
+    E, nu, rho, eta, _, visc, E_N, nu_N = _active(materials, config.models,
+                                                  body_id)
     detail = ''
     if why == 'elastic':
-      i = int(np.argmax(wave_speed(E, nu, rho)))
+      i = int(np.argmax(wave_speed(E, nu, rho, E_N=E_N, nu_N=nu_N)))
       detail = (f' (stiffest particle: E={E[i]:.3g} Pa, nu={nu[i]:.3g}, '
                 f'rho={rho[i]:.3g} kg/m^3, dx={dx:.3g} m)')
     elif why == 'viscosity':

@@ -394,9 +394,5 @@ def spec_from_physgaussian(config) -> dict[str, Any]:
     value = getattr(config, src, None)
     if value is not None and (value or p != 'viscosity'):
       spec[p] = float(value)
-  if config.mu_N > 0:  # Physics3D's viscoelastic branch, as the driver's
-    mu, lam = float(config.mu_N), float(config.lam_N)
-    spec.update(maxwell_E=mu * (3 * lam + 2 * mu) / (lam + mu),
-                maxwell_nu=lam / (2 * (lam + mu)),
-                maxwell_viscosity=float(config.viscosity))
+  spec.update(config.maxwell_params)  # Physics3D's viscoelastic branch
   return spec

@@ -334,11 +334,7 @@ def prepare_config(gaussians, config: pg.PhysGaussianConfig,
     xi=config.xi, friction_angle=config.friction_angle,
     plastic_viscosity=config.plastic_viscosity, softening=config.softening,
   )
-  if config.mu_N > 0:  # Physics3D's branch: (mu_N, lam_N) as (E_N, nu_N)
-    mu, lam = config.mu_N, config.lam_N
-    extra_fields.update(
-      maxwell_E=mu * (3 * lam + 2 * mu) / (lam + mu),
-      maxwell_nu=lam / (2 * (lam + mu)), maxwell_viscosity=config.viscosity)
+  extra_fields.update(config.maxwell_params)  # (Physics3D's branch)
   if model == 'snow' and config.xi == 0.0:
     # PhysGaussian's snow does nothing; ours needs Stomakhin's hardening
     # coefficient, so an unset xi takes its default 10.

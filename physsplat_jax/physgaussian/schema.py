@@ -288,6 +288,18 @@ class PhysGaussianConfig:
     return self.grid_lim / self.n_grid
 
   @property
+  def maxwell_params(self) -> dict[str, float]:
+    """Physics3D's viscoelastic branch as ``mpm.Materials`` fields:
+    ``maxwell_E``, ``maxwell_nu`` of the Lame pair ``(mu_N, lam_N)`` and
+    ``maxwell_viscosity``; empty without a branch (``mu_N = 0``)."""
+    if not self.mu_N > 0:
+      return {}
+    mu, lam = float(self.mu_N), float(self.lam_N)
+    return dict(maxwell_E=mu * (3 * lam + 2 * mu) / (lam + mu),
+                maxwell_nu=lam / (2 * (lam + mu)),
+                maxwell_viscosity=float(self.viscosity))
+
+  @property
   def substeps_per_frame(self) -> int:
     """``round(frame_dt / substep_dt)``, as PhysGaussian's step count."""
     return max(1, int(round(self.frame_dt / self.substep_dt)))

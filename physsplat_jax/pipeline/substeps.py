@@ -30,16 +30,23 @@ def given_speed(cfg) -> float:
                   if f.kind is ForceKind.IMPULSE)
 
 
+def _object_param(mats, rigid, dobj, name: str, kinds) -> np.ndarray:
+  """Per driver, its object's parameter ``name`` (its model's default
+  where not given) when the object is deformable and its model one of
+  ``kinds``; 0 otherwise."""
+  return np.array([
+    m.params_dict.get(name, model_default(m.model, name))
+    if not r and m.model in kinds else 0.0
+    for m, r in zip(mats, rigid)])[dobj]
+
+
 def viscous_dt(mats, rigid, field, dobj, dx: float) -> float:
   """The explicit viscous stress's time-step bound (``mpm.timestep``) of
   the deformable points whose viscosity is a stress (a fluid's, a solid's
   Kelvin-Voigt damping; the MPDP field's density included); inf
   without."""
-  kinds = KELVIN_VOIGT_MODELS + FLUID_MODELS
-  eta = np.array([
-    0.0 if r or m.model not in kinds else
-    m.params_dict.get('viscosity', model_default(m.model, 'viscosity'))
-    for m, r in zip(mats, rigid)])[dobj]
+  eta = _object_param(mats, rigid, dobj, 'viscosity',
+                      KELVIN_VOIGT_MODELS + FLUID_MODELS)
   rho = np.array([m.rho for m in mats])[dobj] * field[:, 2]
   return timestep.viscous_dt(rho, eta, dx)
 
@@ -59,15 +66,11 @@ def time_step_stage(mats, rigid, field, dobj, dx: float, cfg: PrepareConfig,
     E = np.array([m.E for m in mats])[dobj] * field[:, 0]
     nu = np.clip(np.array([m.nu for m in mats])[dobj] * field[:, 1], 0, 0.49)
     rho = np.array([m.rho for m in mats])[dobj] * field[:, 2]
-    c = timestep.wave_speed(E, nu, rho)
-    # A Maxwell branch stiffens the instantaneous response (P-wave moduli
-    # add; its own E_N, nu_N, not the MPDP field's).
-    E_N, nu_N = (np.array([
-      m.params_dict.get(k, model_default(m.model, k))
-      if not r and m.model in KELVIN_VOIGT_MODELS else 0.0
-      for m, r in zip(mats, rigid)])[dobj] for k in ('maxwell_E',
-                                                      'maxwell_nu'))
-    c = np.sqrt(c * c + timestep.wave_speed(E_N, nu_N, rho) ** 2)
+    # A Maxwell branch stiffens the instantaneous response (its own E_N,
+    # nu_N, not the MPDP field's).
+    E_N, nu_N = (_object_param(mats, rigid, dobj, k, KELVIN_VOIGT_MODELS)
+                 for k in ('maxwell_E', 'maxwell_nu'))
+    c = timestep.wave_speed(E, nu, rho, E_N=E_N, nu_N=nu_N)
     c_max = float(np.max(c[deform]))
   frame_dt = cfg.frame_dt
   v_max = given_speed(cfg)
