@@ -14,6 +14,7 @@ import fcntl
 import os
 import re
 import secrets
+import shutil
 import socket
 import stat
 import threading
@@ -37,6 +38,18 @@ def os_error_reason(e: OSError) -> str:
 
 PARTIAL = re.compile(
   r'\.(?P<stem>.+)\.\d+(-[0-9a-f]+)?\.partial(?P<ext>\.[^.]*)?')
+
+
+def free_bytes(path: str) -> int | None:
+  """Free bytes on the disk of ``path`` (a folder that exists), or None
+  where the system cannot say (the write that follows then decides):
+  the one probe behind the output folder's warning
+  (``io.outputs.check_free_space``) and the training's refusal
+  (``mpdp.train.check_room``)."""
+  try:
+    return shutil.disk_usage(path).free
+  except OSError:
+    return None
 
 
 def partial_path(path: str) -> str:

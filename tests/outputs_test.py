@@ -225,7 +225,7 @@ class FreeSpaceTest(absltest.TestCase):
     d = _tmpdir(self)
     Usage = collections.namedtuple('Usage', 'total used free')
     need = {'trajectory': 3e6, 'frames': 5e8, 'video': 0.0}
-    with mock.patch.object(outputs.shutil, 'disk_usage',
+    with mock.patch.object(atomic_files.shutil, 'disk_usage',
                            return_value=Usage(1e9, 9.9e8, 1e7)):
       with self.assertLogs(level='WARNING') as logs:
         self.assertFalse(outputs.check_free_space(d, need))
@@ -393,7 +393,7 @@ class TrainingOutputsTest(absltest.TestCase):
   def test_no_room_stops_before_the_save_and_keeps_the_last_checkpoint(self):
     w = _tmpdir(self)
     ckpt = os.path.join(w, 'checkpoints')
-    real = self.train.shutil.disk_usage
+    real = atomic_files.shutil.disk_usage
 
     def full_after_step_2(path):  # room for checkpoint 2, not for 4
       usage = real(path)
@@ -401,7 +401,7 @@ class TrainingOutputsTest(absltest.TestCase):
         return usage._replace(free=1000)
       return usage
 
-    with mock.patch.object(self.train.shutil, 'disk_usage',
+    with mock.patch.object(atomic_files.shutil, 'disk_usage',
                            full_after_step_2):
       with self.assertRaisesRegex(
           self.train.MPDPError,
@@ -417,7 +417,7 @@ class TrainingOutputsTest(absltest.TestCase):
   def test_a_full_disk_before_any_step_is_refused_up_front(self):
     w = _tmpdir(self)
     usage = collections.namedtuple('usage', 'total used free')
-    with mock.patch.object(self.train.shutil, 'disk_usage',
+    with mock.patch.object(atomic_files.shutil, 'disk_usage',
                            return_value=usage(10**9, 10**9, 0)):
       with self.assertRaisesRegex(
           self.train.MPDPError, r'no room for the next checkpoint: .*no '

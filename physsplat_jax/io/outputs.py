@@ -28,7 +28,6 @@ import json
 import math
 import os
 import re
-import shutil
 import tempfile
 from typing import Any, Protocol, Sequence
 
@@ -462,9 +461,8 @@ def check_free_space(out_dir: str, need: dict[str, float]) -> bool:
   estimate); returns False then. A run that fills the disk stops there
   with an error naming the file (the frames so far kept), so the warning
   gives the chance to free space first."""
-  try:
-    free = shutil.disk_usage(out_dir).free
-  except OSError:
+  free = atomic_files.free_bytes(out_dir)
+  if free is None:
     return True
   total = sum(need.values())
   if total <= free:

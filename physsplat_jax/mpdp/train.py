@@ -27,7 +27,6 @@ import contextlib
 import functools
 import json
 import os
-import shutil
 import time
 
 import jax
@@ -446,11 +445,8 @@ def check_room(mngr: ocp.CheckpointManager, state,
   """
   directory = os.fspath(mngr.directory)
   need = checkpoint_bytes(state)
-  try:
-    free = shutil.disk_usage(directory).free
-  except OSError:
-    return  # the save decides
-  if free < need:
+  free = atomic_files.free_bytes(directory)
+  if free is not None and free < need:  # (None: the save decides)
     which = 'the next checkpoint' if step is None else f'checkpoint {step}'
     raise error(
       f'{directory}: no room for {which}: {free / 1e6:.2f} MB free on that '
