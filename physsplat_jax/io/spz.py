@@ -67,9 +67,10 @@ quaternion's x, y, z and the reference's sign per SH coefficient; RUB <->
 RDF is a 180-degree turn about x. Niantic's ``ply_to_spz`` tool (and the
 Python ``load_splat_from_ply`` + ``save_spz`` with default options) leaves
 the system UNSPECIFIED and stores the PLY's RDF data unconverted: load those
-with ``stored_frame='RDF'`` (docs/scenes.md, "Formats"). Only the 8 systems
-without an axis swap (LDB ... RUF) are supported; the reference's rotated
-family (a y/z swap, which rotates SH between bands) is an SpzError.
+with ``stored_frame='RDF'`` (docs/scenes.md, "Scene file formats"). Only
+the 8 systems without an axis swap (LDB ... RUF) are supported; the
+reference's rotated family (a y/z swap, which rotates SH within bands) is
+an SpzError.
 """
 
 from __future__ import annotations
@@ -328,6 +329,12 @@ def _unzip(data: bytes, path) -> tuple[SpzHeader, bytes, bytes]:
 
 def read_spz_header(path) -> SpzHeader:
   """The header of a ``.spz`` file (version, count, flags), nothing else.
+
+  Args:
+    path: file path.
+
+  Returns:
+    :class:`SpzHeader` (``antialiased`` is the flag Gaussians cannot hold).
 
   Raises:
     SpzError: not a .spz file, or a header this reader refuses.
