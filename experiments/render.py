@@ -4,10 +4,10 @@
   python -m experiments.render --scene=path/to/point_cloud.ply \\
       --camera_file=path/to/cameras.json --camera_index=3 --out=view.png
 
---scene is a built-in name (tabletop, ficus, donut) or a 3DGS .ply/.splat
-file or output folder (physsplat_jax.load_scene). The camera is one
-of the scene's (--camera_index; -1 fits one to the scene) or one from
---camera_file (INRIA cameras.json or transforms.json).
+--scene is a built-in name (tabletop, ficus, donut) or a 3DGS
+.ply/.splat/.spz file or output folder (physsplat_jax.load_scene). The
+camera is one of the scene's (--camera_index; -1 fits one to the scene) or
+one from --camera_file (INRIA cameras.json or transforms.json).
 --rasterize_mode=antialiased renders as gsplat's antialiased mode, for
 scenes trained with it (Mip-Splatting's 2D filter).
 """

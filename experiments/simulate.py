@@ -34,7 +34,7 @@ _CONFIG = cli.define_config_file(
   'config', lib.DEFAULT_CONFIG, 'pipeline config (get_config() of a .py)')
 _SCENE = flags.DEFINE_string(
   'scene', 'tabletop', 'built-in scene (tabletop, ficus, donut) or a 3DGS '
-  '.ply/.splat file or output folder')
+  '.ply/.splat/.spz file or output folder')
 _OUT = flags.DEFINE_string('out', None, 'output folder')
 _OBJECTS = flags.DEFINE_list('objects', None,
                              'only these objects move (the others are fixed)')

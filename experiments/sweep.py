@@ -257,7 +257,7 @@ def define_flags():
   """The sweep's flags and the multi-host flags (script use only)."""
   runtime.define_flags()
   flags.DEFINE_string('scene', 'tabletop', 'built-in scene name or a 3DGS '
-                      '.ply/.splat path')
+                      '.ply/.splat/.spz path')
   flags.DEFINE_string('config', None, 'pipeline config .py (default '
                       'experiments/configs/simulate.py)')
   flags.DEFINE_string('out', None, 'output directory (process 0 writes)')

@@ -81,6 +81,8 @@ from physsplat_jax.io.scene import SceneFileError as SceneFileError
 from physsplat_jax.io.scene import save_scene as save_scene
 from physsplat_jax.io.splat import load_splat as load_splat
 from physsplat_jax.io.splat import save_splat as save_splat
+from physsplat_jax.io.spz import load_spz as load_spz
+from physsplat_jax.io.spz import save_spz as save_spz
 from physsplat_jax.io.video import VideoWriter as VideoWriter
 from physsplat_jax.io.video import write_png_frames as write_png_frames
 from physsplat_jax.io.video import write_video as write_video

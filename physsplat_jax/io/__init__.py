@@ -1,4 +1,4 @@
-"""File I/O: 3DGS scenes (PLY, compressed PLY, .splat) and camera files.
+"""File I/O: 3DGS scenes (PLY, compressed PLY, .splat, .spz) and cameras.
 
 The filesystem is touched only here (and in ``experiments/``). Outputs live
 in ``io.video`` (MP4/GIF/PNG, space-time slices), ``io.export`` (deformed
@@ -28,6 +28,10 @@ from physsplat_jax.io.ply import write_ply as write_ply
 from physsplat_jax.io.splat import SplatError as SplatError
 from physsplat_jax.io.splat import load_splat as load_splat
 from physsplat_jax.io.splat import save_splat as save_splat
+from physsplat_jax.io.spz import SpzError as SpzError
+from physsplat_jax.io.spz import load_spz as load_spz
+from physsplat_jax.io.spz import read_spz_header as read_spz_header
+from physsplat_jax.io.spz import save_spz as save_spz
 from physsplat_jax.io.scene import SceneFileError as SceneFileError
 from physsplat_jax.io.scene import load_scene as load_scene
 from physsplat_jax.io.scene import save_scene as save_scene

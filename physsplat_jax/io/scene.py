@@ -5,7 +5,7 @@
 * a built-in scene name (:func:`physsplat_jax.scenes.list_scenes`), built
   with :func:`physsplat_jax.scenes.make_scene` and its options;
 * a 3DGS file: an INRIA PLY (binary LE/BE or ASCII), a PlayCanvas
-  ``compressed.ply`` or an antimatter15 ``.splat``;
+  ``compressed.ply``, an antimatter15 ``.splat`` or a Niantic ``.spz``;
 * a 3DGS output folder (``point_cloud/iteration_<N>/point_cloud.ply``, the
   highest ``N``, or the folder's only ``.ply``).
 
@@ -60,6 +60,7 @@ from physsplat_jax.io.ply import PlyError, load_ply, save_ply
 from physsplat_jax.io.ply import check_writable_file, float_dtype
 from physsplat_jax.io.ply_format import open_output, read_ply_header
 from physsplat_jax.io.splat import load_splat
+from physsplat_jax.io.spz import load_spz
 from physsplat_jax.io import up_axis as up_lib
 from physsplat_jax.types import Camera, DataError, Gaussians, ObjectInfo
 from physsplat_jax.types import Scene
@@ -281,13 +282,13 @@ def check_gaussians(g: Gaussians, path: str) -> None:
 
 
 def load_scene(path: str | PathLike, **options) -> Scene:
-  """Loads a 3DGS scene file (``.ply`` / ``.splat``) or output folder.
+  """Loads a 3DGS scene file (``.ply`` / ``.splat`` / ``.spz``) or folder.
 
   Built-in scene names are :func:`physsplat_jax.load_scene`'s (it is
   :func:`physsplat_jax.scenes.load_scene`); this is the file loader only.
 
   Args:
-    path: a ``.ply`` / ``.splat`` path, or a 3DGS output folder.
+    path: a ``.ply`` / ``.splat`` / ``.spz`` path, or a 3DGS output folder.
     **options: ``up_axis`` ('x', 'y', 'z', '-x', '-y', '-z', a direction
       'x,y,z', or 'auto' / None to guess it),
       ``meters_per_unit`` (> 0, default 1 or the sidecar's),
@@ -319,8 +320,8 @@ def load_scene(path: str | PathLike, **options) -> Scene:
   path = os.fspath(name_or_path)
   if not os.path.exists(path):
     raise SceneFileError(
-      f'load_scene: {path!r} does not exist; give an existing .ply/.splat '
-      'file or 3DGS output folder'
+      f'load_scene: {path!r} does not exist; give an existing '
+      '.ply/.splat/.spz file or 3DGS output folder'
     )
   bad = sorted(set(options) - set(_FILE_OPTIONS))
   if bad:
@@ -382,7 +383,7 @@ def load_scene_file(
   dtype=jnp.float32,
   details: dict | None = None,
 ) -> Scene:
-  """Loads a ``.ply`` / ``.splat`` file as a scene; see :func:`load_scene`."""
+  """Loads a ``.ply`` / ``.splat`` / ``.spz`` file as a scene (load_scene)."""
   path = os.fspath(path)
   o = _Fields(f'load_scene({path!r})', sidecar=False)
   # Every option checked before the (slow) file is read.
@@ -419,10 +420,12 @@ def load_scene_file(
     g = load_ply(path, dtype=dtype)
   elif ext == '.splat':
     g = load_splat(path, dtype=dtype)
+  elif ext == '.spz':
+    g = load_spz(path, dtype=dtype)
   else:
     raise SceneFileError(
       f'{path}: unsupported scene file type {ext or "(none)"!r}; expected '
-      '.ply (INRIA or compressed) or .splat'
+      '.ply (INRIA or compressed), .splat or .spz'
     )
   check_gaussians(g, path)
   side = _read_sidecar(path)

@@ -194,8 +194,8 @@ def load_scene(name_or_path, **options) -> Scene:
 
   Args:
     name_or_path: a built-in name (:func:`list_scenes`: ``'tabletop'``,
-      ``'ficus'``, ``'donut'``), a ``.ply`` / ``.splat`` path, or a 3DGS
-      output folder.
+      ``'ficus'``, ``'donut'``), a ``.ply`` / ``.splat`` / ``.spz`` path, or
+      a 3DGS output folder.
     **options: for a built-in scene, the options of :func:`make_scene`; for
       a file, those of :func:`physsplat_jax.io.scene.load_scene`.
 
@@ -215,6 +215,6 @@ def load_scene(name_or_path, **options) -> Scene:
     hint = f' (did you mean {close[0]!r}?)' if close else ''
     raise scene_io.SceneFileError(
       f'scene {os.fspath(name_or_path)!r} is neither a built-in scene '
-      f'({", ".join(list_scenes())}){hint} nor an existing .ply/.splat file '
-      'or 3DGS output folder.')
+      f'({", ".join(list_scenes())}){hint} nor an existing .ply/.splat/.spz '
+      'file or 3DGS output folder.')
   return scene_io.load_scene(name_or_path, **options)
