@@ -689,6 +689,47 @@ class MaxwellTest(absltest.TestCase):
       # ... and not the block without the branch.
       self.assertGreater(np.abs(stiff - plain).max(), 0.1 * dist)
 
+  def test_sorted_by_model_the_branch_runs_on_the_solids_only(self):
+    """With ``model_counts`` (the pipeline's sort by model) the branch's
+    return map runs on the solids' slices only: sand, then two solids,
+    then a fluid, each block moving, give the run without the sort
+    (every particle through the map, the others' stress masked), F_N
+    too (the others have no branch: advected only, either way)."""
+    with jax.enable_x64(True):
+      grid = mpm.GridSpec(res=16, size=1.0)
+      sp = grid.dx / 2
+      i = np.stack(np.meshgrid(*[np.arange(3)] * 3, indexing='ij'),
+                   -1).reshape(-1, 3)
+      models = ('drucker_prager', 'fixed_corotated', 'snow', 'newtonian')
+      x = np.concatenate([0.25 + 0.15 * k + (i + 0.5) * sp
+                          for k in range(4)])
+      names = [m for m in models for _ in i]
+      n = len(x)
+      solid = slice(27, 81)
+      E_N = np.zeros(n)
+      E_N[solid] = 1e3  # (the others must have none: mpm.run checks)
+      mat = mpm.make_materials(names, 2e3, 0.3, 1000.0,
+                               config_models=models, dtype=jnp.float64,
+                               maxwell_E=E_N,
+                               maxwell_nu=np.full(n, 0.3),
+                               maxwell_viscosity=np.full(n, 0.5))
+      v0 = np.random.default_rng(2).normal(size=(n, 3))
+      runs = {}
+      for counts in ((27, 27, 27, 27), None):
+        cfg = mpm.SimConfig(grid=grid, dt=2e-4, substeps_per_frame=5,
+                            models=models, dtype='float64', maxwell=True,
+                            model_counts=counts)
+        s = mpm.init_state(x, v0, sp ** 3, mat, cfg)
+        runs[counts] = mpm.run(s, mat, None, cfg, 2,
+                               keep_positions=False).state
+      a, b = runs[(27, 27, 27, 27)], runs[None]
+      np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-12)
+      np.testing.assert_allclose(a.F, b.F, rtol=0, atol=1e-12)
+      np.testing.assert_allclose(a.F_N, b.F_N, rtol=0, atol=1e-12)
+      # The branch acted on the solids (their F_N left I).
+      self.assertGreater(float(np.abs(a.F_N[solid] - np.eye(3)).max()),
+                         1e-4)
+
 
   def test_gradient_inputs_and_time_step(self):
     with jax.enable_x64(True):

@@ -418,7 +418,8 @@ def _maxwell(s, p):
 _MAXWELL_MAP = la.make_spectral_map(_maxwell)
 
 
-def maxwell_update(models, model_id, F_N, mat, dt, zero_stress=None):
+def maxwell_update(models, model_id, F_N, mat, dt, zero_stress=None,
+                   groups=()):
   """A solid's Maxwell branch (``SimConfig.maxwell``; Fang et al. 2019,
   Physics3D): a Hencky spring (``mat.maxwell_E``, ``maxwell_nu``) in series
   with a dashpot (``maxwell_viscosity`` ``eta``), beside the model's own
@@ -429,12 +430,52 @@ def maxwell_update(models, model_id, F_N, mat, dt, zero_stress=None):
   ``zero_stress`` (rigid bodies). The deviatoric
   stress relaxes with time ``eta / (2 mu_N)``, the pressure with
   ``eta / (2 K_N)``; ``eta = 0`` is no branch, ``eta -> inf`` a spring.
+
+  With ``groups`` (:func:`model_groups`: the particles sorted by model) the
+  return map runs on the solids' slices only, and the other particles keep
+  their ``F_N``: one SVD per solid particle instead of one per particle.
   """
+  n = F_N[0][0].shape[0]
+  runs = _solid_runs(groups)
+  if not groups or runs == [(0, n)]:
+    return _maxwell_rows(models, model_id, F_N, mat, dt, zero_stress)
+  parts, o = [], 0
+  zero = lambda m: la.zeros(m[0][0])  # noqa: E731
+  for a, b in runs + [(n, n)]:
+    rows = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
+    if a > o:  # not a solid: F_N kept, no stress
+      keep = jax.tree.map(lambda q, o=o, a=a: q[o:a], F_N)
+      parts.append((keep, zero(keep)))
+    if b > a:
+      parts.append(_maxwell_rows(
+        (), None, rows(F_N), rows(mat), dt,
+        None if zero_stress is None else zero_stress[a:b]))
+    o = b
+  return jax.tree.map(lambda *q: jnp.concatenate(q), *parts)
+
+
+def _solid_runs(groups):
+  """Contiguous ``[a, b)`` ranges of the ``KELVIN_VOIGT_MODELS`` slices of
+  ``groups`` (``(model, start, end)``)."""
+  runs = []
+  for m, a, b in groups:
+    if m not in KELVIN_VOIGT_MODELS:
+      continue
+    if runs and runs[-1][1] == a:
+      runs[-1] = (runs[-1][0], b)
+    else:
+      runs.append((a, b))
+  return runs
+
+
+def _maxwell_rows(models, model_id, F_N, mat, dt, zero_stress):
+  """:func:`maxwell_update` on the given rows (``models`` empty: all of
+  them solids)."""
   mu, lam = lame(mat.maxwell_E, mat.maxwell_nu)
   p = {'mu': mu, 'lam': lam, 'eta': mat.maxwell_viscosity,
        'dt': jnp.full_like(mu, dt)}
   F_N, tau, _ = _MAXWELL_MAP(F_N, p)
-  on = _solids(models, model_id)
+  on = _solids(models, model_id) if models else None
   if zero_stress is not None:
     on = ~zero_stress if on is None else on & ~zero_stress
   if on is not None:

@@ -291,7 +291,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
       if config.maxwell:  # the solids' Maxwell branch, beside the update
         FN, tau_N = constitutive.maxwell_update(
           config.models, mat.model_id, la.rows_mat(c['FN'], 0), mat, dt,
-          aux['body_id'] >= 0 if has_bodies else None)
+          aux['body_id'] >= 0 if has_bodies else None, groups)
         FN, tau = transfer.materialize((FN, la.add(tau, tau_N)))
 
     with jax.named_scope('particle_bcs'):
