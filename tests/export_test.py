@@ -1,4 +1,4 @@
-"""Tests for physsplat_jax.io.export: deformed Gaussians -> PLY/.splat.
+"""Tests for physsplat_jax.io.export: deformed Gaussians -> PLY/.splat/.spz.
 
 The central check: rendering the exported-and-reloaded file equals rendering
 the deformed Gaussians directly (covariances F Sigma F^T plus view rotations)
@@ -21,12 +21,18 @@ from physsplat_jax import test_util
 from physsplat_jax.io import export
 from physsplat_jax.io import ply
 from physsplat_jax.io import splat
+from physsplat_jax.io import spz
 from physsplat_jax.render import images
 from physsplat_jax.types import make_camera
 
 # float32 PLY + least-squares SH rotation vs the direct render.
 _IMAGE_TOL = 3e-4
 _COV_RTOL = 1e-5
+# .spz quantisation (tests/spz_test.py): half a position step (12 fraction
+# bits), degree 2-3 SH in buckets of 16/128 (+ rounding), rotations 0.25 deg.
+_SPZ_POS_HALF_STEP = 0.5 / 4096 + 1e-6
+_SPZ_SH23_MAX_ERR = (0.5 + 8) / 128 + 1e-6
+_SPZ_ROT_DEG = 0.25
 
 
 def _scene(num=120, degree=3, seed=0):
@@ -126,6 +132,85 @@ class ExportRenderTest(absltest.TestCase):
     empty = export.deformed_gaussians(g.subset(np.zeros(g.num, bool)),
                                       means[:0], covs[:0], R[:0])
     self.assertEqual((empty.num, empty.sh.shape), (0, (0,) + g.sh.shape[1:]))
+
+
+class SpzExportTest(absltest.TestCase):
+  """save_deformed_spz writes the Gaussians of save_deformed_ply (SH
+  rotated), quantised as .spz."""
+
+  def setUp(self):
+    super().setUp()
+    self.dir = tempfile.mkdtemp()
+    self.addCleanup(shutil.rmtree, self.dir, ignore_errors=True)
+
+  def test_spz_holds_the_deformed_gaussians_with_rotated_sh(self):
+    g = _scene(num=60, degree=3, seed=5)
+    # (a rotation mixes a band's coefficients: up to sqrt(7) times the
+    # largest, still inside the .spz range of +-127/128)
+    g = g.replace(sh=jnp.clip(g.sh, -0.35, 0.35))
+    K = g.num
+    rng = np.random.default_rng(2)
+    F = _random_rotations(rng, K) @ (np.eye(3) + 0.2 * rng.normal(
+      size=(K, 3, 3)))
+    F[np.linalg.det(F) < 0] *= -1.0
+    F = jnp.asarray(F, jnp.float32)
+    covs = F @ g.covariances @ jnp.swapaxes(F, 1, 2)
+    R = deform.polar_rotation(F)
+    means = g.means + 0.1
+    path = os.path.join(self.dir, 'f.spz')
+    written = export.save_deformed_spz(path, g, means, covs, R)
+    want = export.deformed_gaussians(g, means, covs, R)  # the PLY's
+    np.testing.assert_array_equal(written.sh, want.sh)
+    back = spz.load_spz(path)
+    # Exactly the encoding of those Gaussians, within the steps.
+    again = spz.decode_spz(spz.encode_spz(want))
+    for name in ('means', 'log_scales', 'quats', 'opacity_logits', 'sh'):
+      np.testing.assert_array_equal(getattr(back, name),
+                                    getattr(again, name), err_msg=name)
+    self.assertLessEqual(np.abs(back.means - want.means).max(),
+                         _SPZ_POS_HALF_STEP)
+    sh_err = np.abs(np.asarray(back.sh) - want.sh)
+    self.assertLessEqual(sh_err.max(), _SPZ_SH23_MAX_ERR)
+    # The rotated SH, not the rest ones: those differ by more.
+    self.assertGreater(np.abs(np.asarray(back.sh) - g.sh).max(),
+                       3 * _SPZ_SH23_MAX_ERR)
+    ra = gs.quat_to_rotmat_np(np.asarray(back.quats))
+    rb = gs.quat_to_rotmat_np(want.quats)
+    cos = (np.trace(np.swapaxes(ra, 1, 2) @ rb, axis1=1, axis2=2) - 1) / 2
+    self.assertLessEqual(np.degrees(np.arccos(np.clip(cos, -1, 1))).max(),
+                         _SPZ_ROT_DEG)
+    # sh_degree truncates: the degree-1 file holds the same first band.
+    one = os.path.join(self.dir, 'one.spz')
+    export.save_deformed_spz(one, g, means, covs, R, sh_degree=1)
+    self.assertEqual(spz.read_spz_header(one).sh_degree, 1)
+    np.testing.assert_array_equal(spz.load_spz(one).sh, back.sh[:, :4])
+
+  def test_centres_beyond_the_default_range_get_fewer_fraction_bits(self):
+    g = _scene(num=8, degree=0, seed=3)
+    means = g.means + 5000.0  # beyond +-2048 of 12 fraction bits
+    path = os.path.join(self.dir, 'far.spz')
+    export.save_deformed_spz(path, g, means, g.covariances)
+    bits = spz.read_spz_header(path).fractional_bits
+    self.assertEqual(bits, 10)  # range +-8192
+    np.testing.assert_allclose(spz.load_spz(path).means, means,
+                               atol=0.5 * 2.0 ** -bits + 1e-3)
+    with self.assertRaisesRegex(export.ExportError, 'fractional_bits=12'):
+      export.save_deformed_spz(path, g, means, g.covariances,
+                               fractional_bits=12)
+
+  def test_bad_options_are_export_errors_before_any_file(self):
+    g = _scene(num=4, degree=1, seed=2)
+    d = os.path.join(self.dir, 'spz')
+    for kwargs, msg in ((dict(level=9), 'unknown .spz option.* level'),
+                        (dict(version=4), 'version 4'),
+                        (dict(sh1_bits=0), 'sh1_bits=0'),
+                        (dict(sh_degree=4), 'sh_degree must be 0..3')):
+      with self.assertRaisesRegex(export.ExportError, msg):
+        export.DeformedFrameWriter(d, g, format='spz', **kwargs)
+      with self.assertRaisesRegex(export.ExportError, msg):
+        export.save_deformed_spz(os.path.join(d, 'a.spz'), g, g.means,
+                                 g.covariances, **kwargs)
+    self.assertFalse(os.path.exists(d))
 
 
 class DecompositionTest(absltest.TestCase):
@@ -268,6 +353,11 @@ class FilesTest(absltest.TestCase):
     s = splat.load_splat(spaths[1])
     np.testing.assert_allclose(s.means, means[1], atol=1e-6)
     np.testing.assert_allclose(s.log_scales, g.log_scales, atol=1e-5)
+    zpaths = export.save_deformed_sequence(os.path.join(d, 'spz'), g, means,
+                                           covs, format='spz')
+    self.assertTrue(zpaths[2].endswith('frame_0002.spz'))
+    np.testing.assert_allclose(spz.load_spz(zpaths[2]).means, means[2],
+                               atol=_SPZ_POS_HALF_STEP)
     with self.assertRaisesRegex(export.ExportError, 'format'):
       export.DeformedFrameWriter(d, g, format='glb')
 

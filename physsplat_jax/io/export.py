@@ -1,4 +1,4 @@
-"""Export of deformed Gaussians: per-frame INRIA PLY and antimatter15 .splat.
+"""Export of deformed Gaussians: per-frame INRIA PLY, .splat and .spz.
 
 A simulation moves each Gaussian's centre and changes its covariance to
 ``Sigma' = F Sigma F^T`` (:func:`physsplat_jax.deform.deform`), with a local
@@ -28,11 +28,15 @@ mkkellogg, Spark) only read scale + quaternion + SH files, so export:
    ``SH(R^T d)``, which is what the renderer computes with
    ``view_rotations=R``;
 4. writes the INRIA layout (``x y z nx ny nz f_dc_* f_rest_* opacity
-   scale_* rot_*``, 62 float32 properties with SH degree 3, normals zero) or
-   the 32-byte ``.splat`` rows.
+   scale_* rot_*``, 62 float32 properties with SH degree 3, normals zero),
+   the 32-byte antimatter15 ``.splat`` rows (SH dropped) or a Niantic
+   ``.spz`` (:mod:`physsplat_jax.io.spz`: quantised and gzipped: 20 bytes
+   per Gaussian plus 3 per SH coefficient of degree >= 1 before gzip, SH
+   rotated as in the PLY).
 
 For sequences, :class:`DeformedFrameWriter` writes ``frame_0000.ply``,
-``frame_0001.ply``, ... (what PhysGaussian ships with ``--output_ply``).
+``frame_0001.ply``, ... (what PhysGaussian ships with ``--output_ply``),
+or ``.splat`` / ``.spz`` frames.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ from physsplat_jax.gaussians import quat_to_rotmat_np as quat_to_rotmat_np
 from physsplat_jax.io import paths
 from physsplat_jax.io.ply import PlyError
 from physsplat_jax.io.ply import save_ply
+from physsplat_jax.io import spz as spz_lib
 from physsplat_jax.io.splat import save_splat
 from physsplat_jax.sh_rotation import rotate_sh
 from physsplat_jax.types import Gaussians
@@ -70,6 +75,8 @@ RIGID_RTOL = 4e-6
 _SH_BATCH = 32768
 PLY_PATTERN = 'frame_%04d.ply'
 SPLAT_PATTERN = 'frame_%04d.splat'
+SPZ_PATTERN = 'frame_%04d.spz'
+_PATTERNS = {'ply': PLY_PATTERN, 'splat': SPLAT_PATTERN, 'spz': SPZ_PATTERN}
 _PERMS = np.array(list(itertools.permutations(range(3))))  # (6, 3)
 
 
@@ -432,6 +439,117 @@ def save_deformed_splat(
   return g
 
 
+# What save_deformed_spz passes on to spz.encode_spz.
+SPZ_OPTIONS = ('version', 'antialiased', 'fractional_bits', 'sh1_bits',
+               'sh_rest_bits', 'stored_frame')
+
+
+def spz_fractional_bits(means) -> int:
+  """Position fraction bits for a ``.spz`` of centres ``means``.
+
+  The reference's 12 (step 1/4096, range +-2048 scene units) unless a
+  centre lies outside that range; then the most bits whose range holds
+  every centre (each bit fewer doubles both the range and the step).
+  """
+  m = float(np.max(np.abs(np.asarray(means, np.float32)), initial=0.0))
+  f = spz_lib.FRACTIONAL_BITS
+  while f > 0 and m * 2.0 ** f >= 2 ** 23 - 0.5:
+    f -= 1
+  return f
+
+
+def _check_spz_options(options: dict) -> dict:
+  """``options`` for :func:`spz.encode_spz`, checked on one Gaussian
+  (before any frame); ``fractional_bits=None`` is dropped (automatic)."""
+  unknown = sorted(set(options) - set(SPZ_OPTIONS))
+  if unknown:
+    raise ExportError(
+      f'export: unknown .spz option(s) {", ".join(unknown)}; the options '
+      f'are {", ".join(SPZ_OPTIONS)} (physsplat_jax.io.spz.encode_spz)'
+    )
+  options = {k: v for k, v in options.items()
+             if not (k == 'fractional_bits' and v is None)}
+  one = Gaussians(
+    means=np.zeros((1, 3), np.float32), log_scales=np.zeros((1, 3),
+                                                            np.float32),
+    quats=np.array([[1, 0, 0, 0]], np.float32),
+    opacity_logits=np.zeros((1,), np.float32),
+    sh=np.zeros((1, 1, 3), np.float32))
+  try:
+    spz_lib.encode_spz(one, path='export', **options)
+  except spz_lib.SpzError as e:
+    raise ExportError(f'export: {e}') from None
+  return options
+
+
+def save_deformed_spz(
+  path: PathLike,
+  gaussians: Gaussians,
+  means,
+  covariances,
+  rotations=None,
+  *,
+  deformation=None,
+  sh_degree: int | None = None,
+  rotate_colors: bool = True,
+  **spz_options,
+) -> Gaussians:
+  """Writes deformed Gaussians as a Niantic ``.spz`` (lossy, ~10x smaller
+  than the PLY; :mod:`physsplat_jax.io.spz`).
+
+  Args:
+    path: output ``.spz`` (parent folders are created).
+    gaussians, means, covariances, rotations, deformation, rotate_colors:
+      as :func:`deformed_gaussians` (the SH rotated as in the PLY).
+    sh_degree: SH degree written (truncated or zero-padded); None keeps the
+      scene's. Degree 3 costs 45 of the 65 bytes a Gaussian takes before
+      gzip.
+    **spz_options: as :func:`physsplat_jax.io.spz.encode_spz`
+      (``version``, ``antialiased``, ``fractional_bits``, ``sh1_bits``,
+      ``sh_rest_bits``, ``stored_frame``); ``fractional_bits`` None or
+      absent: :func:`spz_fractional_bits` of the deformed centres.
+
+  Returns:
+    The Gaussians written (before quantisation).
+
+  Raises:
+    ExportError: bad inputs (see :func:`deformed_gaussians`), ``sh_degree``
+      outside 0..3, an unknown or bad option, a path that cannot be
+      written (these checked first), or centres beyond the format's range.
+  """
+  _check_sh_degree(sh_degree)
+  spz_options = _check_spz_options(spz_options)
+  _check_output(path)
+  g = deformed_gaussians(gaussians, means, covariances, rotations,
+                         deformation=deformation,
+                         rotate_colors=rotate_colors)
+  if sh_degree is not None:
+    g = g.with_sh_degree(int(sh_degree))
+  g = g.replace(extras={})
+  spz_options.setdefault('fractional_bits', spz_fractional_bits(g.means))
+  try:
+    data = spz_lib.encode_spz(g, path=_final_name(path), **spz_options)
+  except spz_lib.SpzError as e:
+    raise ExportError(f'export: {e}') from None
+  with paths.open_output(path, ExportError, what='export') as f:
+    f.write(data)
+  return g
+
+
+def _final_name(path) -> str:
+  """``path``, or the file that a temporary name of
+  :func:`physsplat_jax.io.paths.partial_path` becomes (named in messages:
+  the per-frame writers write to such names)."""
+  head, tail = os.path.split(os.fspath(path))
+  m = paths.PARTIAL.fullmatch(tail)
+  return os.path.join(head, m['stem'] + (m['ext'] or '')) if m else (
+    os.fspath(path))
+
+
+_SAVE = {'ply': save_deformed_ply, 'splat': save_deformed_splat,
+         'spz': save_deformed_spz}
+
+
 class DeformedFrameWriter:
   """Writes one file per simulated frame: ``frame_0000.ply``, ...
 
@@ -444,7 +562,7 @@ class DeformedFrameWriter:
 
   Attributes:
     directory: output folder.
-    format: ``'ply'`` or ``'splat'``.
+    format: ``'ply'``, ``'splat'`` or ``'spz'``.
     paths: files written so far.
   """
 
@@ -461,25 +579,31 @@ class DeformedFrameWriter:
     """Args:
       directory: output folder (created).
       gaussians: the rest Gaussians.
-      format: ``'ply'`` (INRIA, SH rotated) or ``'splat'``.
+      format: ``'ply'`` (INRIA, SH rotated), ``'splat'`` or ``'spz'``
+        (Niantic, SH rotated).
       pattern: file name with one integer field (default
-        ``frame_%04d.ply`` / ``.splat``).
+        ``frame_%04d.ply`` / ``.splat`` / ``.spz``).
       start: index of the first frame.
       **kwargs: passed to :func:`save_deformed_ply` (``sh_degree``,
-        ``keep_extras``, ``rotate_colors``) or :func:`save_deformed_splat`
-        (``sort``).
+        ``keep_extras``, ``rotate_colors``), :func:`save_deformed_splat`
+        (``sort``) or :func:`save_deformed_spz` (``sh_degree``,
+        ``rotate_colors`` and the ``.spz`` options, checked here).
     """
-    if format not in ('ply', 'splat'):
-      raise ExportError(f"format must be 'ply' or 'splat', got {format!r}")
-    pattern = pattern or (PLY_PATTERN if format == 'ply' else SPLAT_PATTERN)
+    if format not in _SAVE:
+      raise ExportError(
+        f"format must be 'ply', 'splat' or 'spz', got {format!r}")
+    pattern = pattern or _PATTERNS[format]
     try:
       pattern % 0
     except (TypeError, ValueError) as e:
       raise ExportError(
         f'pattern {pattern!r} needs one integer field such as %04d'
       ) from e
-    if format == 'ply':
+    if format in ('ply', 'spz'):
       _check_sh_degree(kwargs.get('sh_degree'))
+    if format == 'spz':
+      _check_spz_options({k: v for k, v in kwargs.items()
+                          if k not in ('sh_degree', 'rotate_colors')})
     self.directory = os.fspath(directory)
     _check_output(os.path.join(self.directory, pattern % int(start)))
     self.format = format
@@ -500,9 +624,8 @@ class DeformedFrameWriter:
     """Writes the next frame; returns its path (``deformation``: optional
     (K, 3, 3) ``F``, see :func:`deformed_gaussians`)."""
     path = os.path.join(self.directory, self.pattern % self._next)
-    save = save_deformed_ply if self.format == 'ply' else save_deformed_splat
-    save(path, self._gaussians, means, covariances, rotations,
-         deformation=deformation, **self._kwargs)
+    _SAVE[self.format](path, self._gaussians, means, covariances, rotations,
+                       deformation=deformation, **self._kwargs)
     self._next += 1
     self.paths.append(path)
     return path
