@@ -436,7 +436,7 @@ class ErrorPathTest(absltest.TestCase):
     from physsplat_jax.pipeline import job
     with tempfile.TemporaryDirectory() as d:
       for name in ('video.mp4', 'trajectory.npz', 'ply/frame_0000.ply',
-                   'frames/frame_0000.png'):
+                   'spz/frame_0000.spz', 'frames/frame_0000.png'):
         os.makedirs(os.path.dirname(os.path.join(d, name)), exist_ok=True)
         with open(os.path.join(d, name), 'w') as fh:
           fh.write('x')
@@ -447,8 +447,8 @@ class ErrorPathTest(absltest.TestCase):
       report = {}
       with self.assertLogs(level='WARNING') as logs:
         job._note_earlier_outputs(d, 2e9, report)
-      self.assertEqual(report['earlier_files'], ['video.mp4', 'ply'])
-      self.assertIn('video.mp4, ply from an earlier run',
+      self.assertEqual(report['earlier_files'], ['video.mp4', 'ply', 'spz'])
+      self.assertIn('video.mp4, ply, spz from an earlier run',
                     ' '.join(logs.output))
       self.assertTrue(os.path.exists(os.path.join(d, 'video.mp4')))
       fresh = {}
@@ -460,7 +460,8 @@ class ErrorPathTest(absltest.TestCase):
         job._note_earlier_outputs(d, 5e8, done, written={
           'video': os.path.join(d, 'video.mp4'),
           'frames': os.path.join(d, 'frames')})
-      self.assertEqual(done['earlier_files'], ['trajectory.npz', 'ply'])
+      self.assertEqual(done['earlier_files'],
+                       ['trajectory.npz', 'ply', 'spz'])
 
   def test_help_lists_the_config_flag_and_exits_0(self):
     # --help showed only the module's own DEFINEs (--config was cli's) and

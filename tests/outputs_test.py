@@ -206,17 +206,22 @@ class RerunTest(absltest.TestCase):
   def test_a_run_that_writes_no_frame_keeps_the_earlier_frames(self):
     d = _tmpdir(self)
     frames, ply = os.path.join(d, 'frames'), os.path.join(d, 'ply')
-    for folder, name in ((frames, 'frame_0000.png'), (ply, 'frame_0000.ply')):
+    spz = os.path.join(d, 'spz')
+    for folder, name in ((frames, 'frame_0000.png'), (ply, 'frame_0000.ply'),
+                         (spz, 'frame_0000.spz')):
       os.makedirs(folder)
       with open(os.path.join(folder, name), 'w') as f:
         f.write('earlier run')
-    # Creating the writers cleared both folders; a run failing after that
+    # Creating the writers cleared the folders; a run failing after that
     # (a later output's check, the compile) lost the earlier run's frames.
     png_out = outputs.PngOutput(frames)
     ply_out = outputs.PlyOutput(ply, None)
-    self.assertEqual((png_out.close(), ply_out.close()), ({}, {}))
+    spz_out = outputs.SpzOutput(spz, None)
+    self.assertEqual((png_out.close(), ply_out.close(), spz_out.close()),
+                     ({}, {}, {}))
     self.assertEqual(os.listdir(frames), ['frame_0000.png'])
     self.assertEqual(os.listdir(ply), ['frame_0000.ply'])
+    self.assertEqual(os.listdir(spz), ['frame_0000.spz'])
 
 
 class FreeSpaceTest(absltest.TestCase):

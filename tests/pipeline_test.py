@@ -22,6 +22,9 @@ from absl.testing import absltest
 from physsplat_jax import mpm
 from physsplat_jax import io as ps_io
 from physsplat_jax import pipeline as pl
+from physsplat_jax.io import ply as ply_io
+from physsplat_jax.io import spz as spz_io
+from physsplat_jax.pipeline import host
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
 from physsplat_jax.types import Scene
@@ -520,9 +523,41 @@ class RunTest(absltest.TestCase):
     prep, _ = pl.prepare_scene(jax.random.PRNGKey(0), scene, [_RUBBER, _WOOD], cfg)
     params = pl.init_params(prep, cfg)
     with tempfile.TemporaryDirectory() as d:
-      out = pl.run(params, prep, cfg, out_dir=d)
+      # An earlier, longer run's .spz frame (and a partial one) in the way.
+      os.makedirs(os.path.join(d, 'spz'))
+      for name in ('frame_0009.spz', '.frame_0001.1-ab12cd.partial.spz'):
+        with open(os.path.join(d, 'spz', name), 'w') as f:
+          f.write('earlier run')
+      out = pl.run(params, prep, cfg, out_dir=d, ply=True, spz=True)
       frames = sorted(os.listdir(os.path.join(d, 'frames')))
       self.assertLen(frames, cfg.num_frames + 1)
+      names = [f'frame_{i:04d}' for i in range(cfg.num_frames + 1)]
+      self.assertEqual(sorted(os.listdir(out.files['spz'])),
+                       [n + '.spz' for n in names])
+      for i, n in enumerate(names):
+        back = spz_io.load_spz(os.path.join(d, 'spz', n + '.spz'))
+        # The .spz frame is the PLY frame of the same run, quantised: the
+        # same bytes as encoding the PLY's Gaussians (at the scene's SH
+        # degree), centres within half a step (tests/spz_test.py).
+        want = ply_io.load_ply(os.path.join(d, 'ply', n + '.ply'))
+        want = want.replace(normals=None).with_sh_degree(0)
+        again = spz_io.decode_spz(spz_io.encode_spz(want))
+        for name in ('means', 'log_scales', 'quats', 'opacity_logits',
+                     'sh'):
+          np.testing.assert_array_equal(getattr(back, name),
+                                        getattr(again, name), err_msg=name)
+        np.testing.assert_allclose(back.means, want.means,
+                                   atol=0.5 / 4096 + 1e-6)
+        np.testing.assert_allclose(back.means[:300],
+                                   out.gaussian_positions[i],
+                                   atol=0.5 / 4096 + 1e-6)
+      # The free-space estimate of the .spz frames holds them (these
+      # uniform Gaussians gzip far better than a trained scene's).
+      got = sum(os.path.getsize(os.path.join(d, 'spz', n + '.spz'))
+                for n in names)
+      need = host.output_sizes(prep, cfg.num_frames, spz=True)['spz']
+      self.assertGreaterEqual(need, got)
+      self.assertEqual(host.output_sizes(prep, cfg.num_frames)['spz'], 0.0)
       self.assertTrue(os.path.getsize(out.files['video']) > 0)
       traj = np.load(out.files['trajectory'])
       np.testing.assert_array_equal(traj['x'], out.gaussian_positions)

@@ -9,7 +9,8 @@ frames so far) and never a half-written one.
 
 Writers: :class:`VideoOutput` (MP4, GIF fallback), :class:`PngOutput`
 (``frames/frame_%04d.png``), :class:`PlyOutput` (``ply/frame_%04d.ply``,
-deformed INRIA PLY), :class:`TrajectoryOutput` (``trajectory.npz``).
+deformed INRIA PLY), :class:`SpzOutput` (``spz/frame_%04d.spz``, deformed
+Niantic .spz), :class:`TrajectoryOutput` (``trajectory.npz``).
 :func:`write_json` writes a report atomically. :class:`BackgroundWriters`
 runs a list of writers off the host loop's thread. :func:`check_output_dir`
 and :func:`check_output_file` check an output path before the work (the
@@ -58,7 +59,7 @@ class Frame:
     particles: (N, 3) driving-particle positions (scene coordinates).
     gaussians: every Gaussian of the scene at this frame (means deformed),
       or None; with ``covariances`` (K, 3, 3) and ``rotations`` (K, 3, 3)
-      the deformed shapes and SH view rotations (for PLY frames).
+      the deformed shapes and SH view rotations (for PLY and .spz frames).
   """
 
   index: int
@@ -168,7 +169,7 @@ def _remove_partials(out_dir: str) -> None:
   """Removes the temporary files (``paths.partial_path``) of runs that
   were killed before renaming them (the folder is locked: no other run
   writes them now)."""
-  for sub in ('', 'frames', 'ply'):
+  for sub in ('', 'frames', 'ply', 'spz'):
     folder = os.path.join(out_dir, sub)
     if not os.path.isdir(folder):
       continue
@@ -309,13 +310,19 @@ class PngOutput:
     return {'frames': self.directory} if self._written else {}
 
 
-class PlyOutput:
-  """``ply/frame_%04d.ply``: every Gaussian of the scene, deformed (an
-  earlier run's frames in the folder are removed first)."""
+class DeformedOutput:
+  """``<format>/frame_%04d.<format>``: every Gaussian of the scene,
+  deformed, one file a frame (each complete when written; an earlier
+  run's other frames in the folder are removed at the end). Use
+  :class:`PlyOutput` or :class:`SpzOutput`."""
+
+  format = ''  # 'ply' or 'spz': the subclass's
 
   def __init__(self, directory: str, base: Gaussians):
     self.directory = os.fspath(directory)
-    check_output_file(os.path.join(self.directory, 'frame_0000.ply'))
+    self._pattern = f'frame_%04d.{self.format}'
+    check_output_file(os.path.join(self.directory, self._pattern % 0))
+    self._save = _DEFORMED_SAVE[self.format]
     self._base = base
     self._written: set[str] = set()
 
@@ -323,17 +330,36 @@ class PlyOutput:
     if frame.gaussians is None:
       return
     os.makedirs(self.directory, exist_ok=True)
-    name = f'frame_{frame.index:04d}.ply'
+    name = self._pattern % frame.index
     paths.write_atomically(
       os.path.join(self.directory, name),
-      lambda tmp: export_lib.save_deformed_ply(
+      lambda tmp: self._save(
         tmp, self._base, frame.gaussians.means, frame.covariances,
-        frame.rotations), OutputError, what='PLY')
+        frame.rotations), OutputError, what=self.format.upper())
     self._written.add(name)
 
   def close(self) -> dict[str, str]:
-    _clear_frames(self.directory, 'ply', self._written)
-    return {'ply': self.directory} if self._written else {}
+    _clear_frames(self.directory, self.format, self._written)
+    return {self.format: self.directory} if self._written else {}
+
+
+_DEFORMED_SAVE = {'ply': export_lib.save_deformed_ply,
+                  'spz': export_lib.save_deformed_spz}
+
+
+class PlyOutput(DeformedOutput):
+  """``ply/frame_%04d.ply``: deformed INRIA PLY frames, SH degree 3
+  (:func:`~physsplat_jax.io.export.save_deformed_ply`)."""
+
+  format = 'ply'
+
+
+class SpzOutput(DeformedOutput):
+  """``spz/frame_%04d.spz``: deformed Niantic ``.spz`` frames, the
+  scene's SH degree, a tenth of a PLY frame or less
+  (:func:`~physsplat_jax.io.export.save_deformed_spz`)."""
+
+  format = 'spz'
 
 
 class TrajectoryOutput:

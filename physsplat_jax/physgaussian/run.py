@@ -6,7 +6,7 @@ to the :mod:`physsplat_jax.io.outputs` writers (video and PNG frames with
 every Gaussian rendered, the simulated ones with ``Sigma' = F Sigma F^T``
 and their SH view direction rotated by ``polar(F)``, from the config's
 camera (:mod:`.camera`: a dataset camera, or PhysGaussian's orbit, moving
-with ``move_camera``); per-frame PLY; ``trajectory.npz``) and
+with ``move_camera``); per-frame PLY or .spz; ``trajectory.npz``) and
 ``report.json`` is written, also when the run fails.
 """
 
@@ -114,6 +114,7 @@ def _camera(cfg, scene, gaussians, rows, width, height, camera_index,
 def run_config(scene_path: str, config_path: str, out_dir: str, *,
                num_frames: int | None = None, auto_substeps: bool = False,
                fill: bool = True, video: bool = False, ply: bool = False,
+               spz: bool = False,
                width: int = 512, height: int = 384,
                camera_index: int | None = None) -> dict:
   """Simulates ``config_path`` on ``scene_path`` as PhysGaussian does.
@@ -121,7 +122,8 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
   Writes ``out_dir/trajectory.npz`` (``x`` (T+1, K, 3) float32 positions of
   the selected Gaussians in the scene's coordinates, ``ids`` their rows,
   ``t`` seconds) and ``report.json``; with ``video`` also ``video.mp4`` and
-  ``frames/``, with ``ply`` ``ply/frame_%04d.ply``. The camera is the
+  ``frames/``, with ``ply`` ``ply/frame_%04d.ply``, with ``spz``
+  ``spz/frame_%04d.spz``. The camera is the
   config's (``default_camera_index``, or its orbit for -1; see
   :mod:`.camera`) unless ``camera_index`` names a scene camera.
 
@@ -147,12 +149,12 @@ def run_config(scene_path: str, config_path: str, out_dir: str, *,
         out_lib.VideoOutput(os.path.join(out_dir, 'video.mp4'),
                             1.0 / cfg.frame_dt),
         out_lib.PngOutput(os.path.join(out_dir, 'frames'))]
-    if ply:
-      writers.append(out_lib.PlyOutput(os.path.join(out_dir, 'ply'),
-                                       gaussians))
+    for kind, on in ((out_lib.PlyOutput, ply), (out_lib.SpzOutput, spz)):
+      if on:
+        writers.append(kind(os.path.join(out_dir, kind.format), gaussians))
     writers.append(out_lib.TrajectoryOutput(
       os.path.join(out_dir, 'trajectory.npz'), rows))
-    make = _Frames(cfg, gaussians, rows, camera, video, ply)
+    make = _Frames(cfg, gaussians, rows, camera, video, ply or spz)
     sink = out_lib.BackgroundWriters(writers)  # encoded on writer threads
 
     def on_frame(f, x, F):

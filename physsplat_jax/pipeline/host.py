@@ -48,7 +48,8 @@ class RunOutput:
     sim_rows: (Ks,) their row numbers in ``scene.gaussians``.
     particle_positions: (T+1, N, 3) float32 driving particles.
     times: (T+1,) [s].
-    files: what was written ('video', 'frames', 'ply', ...) -> path.
+    files: what was written ('video', 'frames', 'ply', 'spz', ...) ->
+      path.
     timings: seconds per stage ('compile', 'simulate', 'deform', 'render',
       'write', 'total'; with rendering also 'render.dispatch' (the
       camera and the render dispatched, with frame 0's count of
@@ -74,8 +75,8 @@ class RunOutput:
 
 def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
                     video: bool = True, png: bool = True, ply: bool = False,
-                    render: bool = True, num_frames: int | None = None
-                    ) -> list[out_lib.FrameWriter]:
+                    render: bool = True, num_frames: int | None = None,
+                    spz: bool = False) -> list[out_lib.FrameWriter]:
   """The standard outputs of a run in ``out_dir``.
 
   With ``num_frames``, a warning is logged when the folder's disk has less
@@ -97,28 +98,38 @@ def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
   if num_frames is not None:
     out_lib.check_free_space(out_dir, output_sizes(
       prepared, num_frames, video=video and render, png=png and render,
-      ply=ply))
+      ply=ply, spz=spz))
   if video and render:
     writers.append(out_lib.VideoOutput(os.path.join(out_dir, 'video.mp4'),
                                        fps))
   if png and render:
     writers.append(out_lib.PngOutput(os.path.join(out_dir, 'frames')))
-  if ply:
-    writers.append(out_lib.PlyOutput(os.path.join(out_dir, 'ply'),
-                                     prepared.gaussians))
+  for kind, on in ((out_lib.PlyOutput, ply), (out_lib.SpzOutput, spz)):
+    if on:
+      writers.append(kind(os.path.join(out_dir, kind.format),
+                          prepared.gaussians))
   writers.append(out_lib.TrajectoryOutput(
     os.path.join(out_dir, 'trajectory.npz'), np.asarray(prepared.sim_rows)))
   return writers
 
 
+# A .spz frame's size after gzip over its size before: measured 0.71 on
+# the donut (50245 Gaussians, SH 0), 0.45 on the tabletop (SH 0) and on
+# tests/data/udon_crop.ply at SH 3; rounded up, as an estimate of free
+# space should be.
+SPZ_GZIP_RATIO = 0.75
+
+
 def output_sizes(prepared: PreparedScene, num_frames: int, *,
                  video: bool = True, png: bool = True,
-                 ply: bool = False) -> dict[str, float]:
+                 ply: bool = False, spz: bool = False) -> dict[str, float]:
   """Bytes the default outputs of ``num_frames`` frames take, estimated:
   the trajectory exactly (float32 centres of the simulated Gaussians and
   the driving particles, their rows), a PNG frame at 0.6 byte per pixel
   and an H.264 frame at 0.02 (the tabletop's demo: 0.61 and 0.011), a PLY
-  frame at 4 bytes per Gaussian property."""
+  frame at 4 bytes per Gaussian property and a .spz frame at
+  ``SPZ_GZIP_RATIO`` of its bytes before gzip (20 a Gaussian, 3 per SH
+  coefficient of degree >= 1)."""
   T = int(num_frames) + 1
   px = prepared.camera.width * prepared.camera.height
   g = prepared.gaussians
@@ -128,7 +139,9 @@ def output_sizes(prepared: PreparedScene, num_frames: int, *,
     'trajectory': T * 12.0 * (ks + prepared.num_particles) + 8.0 * ks,
     'frames': T * 0.6 * px if png else 0.0,
     'video': T * 0.02 * px if video else 0.0,
-    'ply': T * 4.0 * props * g.num if ply else 0.0}
+    'ply': T * 4.0 * props * g.num if ply else 0.0,
+    'spz': (T * SPZ_GZIP_RATIO * (9 + 1 + 3 + 3 + 4 + 3 * (g.sh.shape[1] - 1))
+            * g.num if spz else 0.0)}
 
 
 # The per-frame host programs, compiled once per process and shape (not per
@@ -363,6 +376,7 @@ def run(
   video: bool = True,
   png: bool = True,
   ply: bool = False,
+  spz: bool = False,
   writers: Sequence[out_lib.FrameWriter] | None = None,
   field: Array | None = None,
   on_frame: Callable | None = None,
@@ -384,8 +398,11 @@ def run(
     prepared: from :func:`prepare_scene`.
     config: the :class:`SimulateConfig` (or :class:`PipelineConfig`).
     out_dir: folder for the default writers (``video.mp4``, ``frames/``,
-      ``trajectory.npz``, optional ``ply/``); None writes nothing.
-    video, png, ply: which default outputs to write.
+      ``trajectory.npz``, optional ``ply/`` and ``spz/``); None writes
+      nothing.
+    video, png, ply, spz: which default outputs to write (``ply``:
+      ``ply/frame_%04d.ply``, ``spz``: ``spz/frame_%04d.spz``, every
+      Gaussian deformed).
     writers: writers to use instead of (``out_dir`` None) or beside the
       defaults (:mod:`physsplat_jax.io.outputs`).
     field: optional (N, 3) material field (e.g. ``prepared.field``, the
@@ -429,7 +446,7 @@ def run(
   writers = list(writers or ())
   if out_dir is not None:
     writers = default_writers(
-      prepared, out_dir, fps, video=video, png=png, ply=ply,
+      prepared, out_dir, fps, video=video, png=png, ply=ply, spz=spz,
       render=config.render is not RenderMode.NONE,
       num_frames=config.num_frames) + writers
   t0 = time.perf_counter()
@@ -441,7 +458,7 @@ def run(
     params, prepared.replace(camera=None),
     dataclasses.replace(config, num_frames=1), field)
   timings['compile'] += time.perf_counter() - t0
-  maker = _FrameMaker(prepared, config, ply, timings,
+  maker = _FrameMaker(prepared, config, ply or spz, timings,
                       _frame_device(render_device, state, pipelined))
   positions, particles = [], []
   num = config.num_frames

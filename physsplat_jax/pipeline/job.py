@@ -113,6 +113,7 @@ def simulate_scene(
   perception_options: Any = None,
   segment: str | None = None,
   ply: bool = False,
+  spz: bool = False,
   extra_report: dict | None = None,
   mpdp_params: Any = None,
   pipelined: bool = True,
@@ -124,14 +125,16 @@ def simulate_scene(
     scene: the scene (``physsplat_jax.load_scene``).
     config: pipeline settings (``config.seed`` makes the PRNG key).
     out_dir: where ``video.mp4``, ``frames/``, ``trajectory.npz``,
-      ``report.json`` (and ``ply/``) go; None writes nothing.
+      ``report.json`` (and ``ply/``, ``spz/``) go; None writes nothing.
     materials: one material per object; None runs perception
       (``physsplat_jax.perception.perceive_scene`` with
       ``perception_options``; offline library by default).
     perception_options: ``perception.PerceptionOptions``.
     segment: segmentation method for an unsegmented scene (None keeps the
       scene's objects).
-    ply: also write per-frame PLY files.
+    ply: also write per-frame PLY files (``ply/frame_%04d.ply``).
+    spz: also write per-frame Niantic .spz files (``spz/frame_%04d.spz``,
+      a tenth of a PLY frame or less).
     extra_report: merged into ``report.json`` (e.g. the command line).
     mpdp_params: MPDP weights (e.g. a user's checkpoint from
       ``physsplat_jax.mpdp.load_params``); default the shipped ones.
@@ -163,8 +166,8 @@ def simulate_scene(
   started = time.time()
   try:
     out = _run_stages(scene, config, out_dir, materials, perception_options,
-                      segment, ply, stages, report, mpdp_params, pipelined,
-                      on_frame)
+                      segment, (ply, spz), stages, report, mpdp_params,
+                      pipelined, on_frame)
   except (Exception, KeyboardInterrupt) as e:
     # (Ctrl-C too: the frames so far stay, and without this a report.json
     # of an earlier run in out_dir went on describing them.)
@@ -189,7 +192,7 @@ def simulate_scene(
 
 
 def _run_stages(scene, config, out_dir, materials, perception_options,
-                segment, ply, stages, report, mpdp_params,
+                segment, frames, stages, report, mpdp_params,
                 pipelined, on_frame=None) -> RunOutput:
   t = time.perf_counter()
   scene = segment_stage(scene, segment)
@@ -214,8 +217,9 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
     grid=prep.grid, time_step=prep.time_step, capture=prep.capture)
   field = prepared.field if config.use_mpdp else None
   report['pipelined'] = pipelined
-  out = run(params, prepared, config, out_dir=out_dir, ply=ply, field=field,
-            pipelined=pipelined, on_frame=on_frame)
+  ply, spz = frames
+  out = run(params, prepared, config, out_dir=out_dir, ply=ply, spz=spz,
+            field=field, pipelined=pipelined, on_frame=on_frame)
   stages.update(out.timings)
   stages.pop('total', None)
   report['particle_substeps_per_s'] = out.particle_substeps_per_s
@@ -225,7 +229,8 @@ def _run_stages(scene, config, out_dir, materials, perception_options,
 
 
 # What a run writes into its folder (report.json is always rewritten).
-_OUTPUTS = ('video.mp4', 'video.gif', 'trajectory.npz', 'frames', 'ply')
+_OUTPUTS = ('video.mp4', 'video.gif', 'trajectory.npz', 'frames', 'ply',
+            'spz')
 
 
 def _note_earlier_outputs(out_dir, started: float, report: dict,
