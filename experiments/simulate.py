@@ -7,10 +7,12 @@
       --velocity=donut:0,0,-1 --material_override=donut=jelly --out=out/d
 
 writes ``video.mp4``, ``frames/frame_%04d.png``, ``trajectory.npz``,
-``report.json`` and, with ``--ply``, ``ply/frame_%04d.ply``. Settings are
-the fields of ``physsplat_jax.PipelineConfig`` in
-``--config=experiments/configs/simulate.py`` (the default), overridden as
-``--config.grid_res=64 --config.render=none``. With
+``report.json`` and, with ``--ply``, ``ply/frame_%04d.ply`` (with
+``--spz``, ``spz/frame_%04d.spz``: Niantic's compressed format, a tenth
+of the PLY or less). Settings are the fields of
+``physsplat_jax.PipelineConfig`` in ``--config=experiments/configs/simulate.py``
+(the default), overridden as ``--config.grid_res=64 --config.render=none``.
+With
 ``--physgaussian=cfg.json`` it runs a PhysGaussian JSON config as
 PhysGaussian does. Any error ends in one line ``error: ...`` (exit 1;
 ``--debug`` shows the traceback).
@@ -72,6 +74,8 @@ _MPDP = flags.DEFINE_string('mpdp_checkpoint', None, 'folder of MPDP '
                             'weights (train_mpdp --export) instead of the '
                             'shipped ones')
 _PLY = flags.DEFINE_bool('ply', False, 'write per-frame PLY files')
+_SPZ = flags.DEFINE_bool('spz', False, 'write per-frame Niantic .spz files '
+                         '(spz/frame_%04d.spz, 8-27x smaller than PLY)')
 _PHYSGAUSSIAN = flags.DEFINE_string(
   'physgaussian', None, 'a PhysGaussian config/*.json to run as is')
 _AUTO = flags.DEFINE_bool('auto_substeps', False, 'PhysGaussian configs: '
@@ -113,14 +117,16 @@ def main(argv):
         f'--scene={_SCENE.value} is {what}: give --scene=FILE.ply, the '
         'Gaussians the JSON was written for')
     lib.run_physgaussian(_SCENE.value, _PHYSGAUSSIAN.value, _OUT.value,
-                         config, ply=_PLY.value, auto_substeps=_AUTO.value)
+                         config, ply=_PLY.value, spz=_SPZ.value,
+                         auto_substeps=_AUTO.value)
     print(f'wrote {_OUT.value}')
     return
   window = _profile_window(config)
   try:
     report = lib.run_scene(
       _SCENE.value, config, _OUT.value, objects=_OBJECTS.value or (),
-      ply=_PLY.value, segment=_segment_method(), boxes=_BOXES.value,
+      ply=_PLY.value, spz=_SPZ.value, segment=_segment_method(),
+      boxes=_BOXES.value,
       masks=_MASKS.value, mask_names=_MASK_NAMES.value,
       perception_options=lib.perception_options_from_flags(),
       scene_options=dict(up_axis=_UP.value, meters_per_unit=_UNITS.value),
@@ -168,7 +174,7 @@ def _segment_method() -> str | None:
 # What a PhysGaussian JSON run takes from the command line besides the
 # scene and --out: the rest of the run is the JSON's.
 _PHYSGAUSSIAN_FLAGS = ('scene', 'out', 'physgaussian', 'auto_substeps',
-                       'ply', 'config')
+                       'ply', 'spz', 'config')
 _PHYSGAUSSIAN_CONFIG = ('fill', 'render', 'width', 'height')
 
 
@@ -188,7 +194,7 @@ def _check_physgaussian_flags() -> None:
       f'--physgaussian runs its JSON as PhysGaussian does, so '
       f'{", ".join(ignored)} would be ignored: set these in the JSON '
       '(frame_num, materials, boundary conditions), or drop --physgaussian. '
-      'It takes --scene, --out, --ply, --auto_substeps and '
+      'It takes --scene, --out, --ply, --spz, --auto_substeps and '
       f'{", ".join("--config." + k for k in _PHYSGAUSSIAN_CONFIG)}.')
 
 

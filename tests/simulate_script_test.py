@@ -96,6 +96,7 @@ class PhysGaussianModeTest(absltest.TestCase):
     import numpy as np
 
     from physsplat_jax.io import ply as ply_io
+    from physsplat_jax.io import spz as spz_io
 
     scene = os.path.join(os.path.dirname(__file__), 'data', 'udon_crop.ply')
     cfg = dict(material='jelly', E=2e4, nu=0.3, density=200, n_grid=16,
@@ -108,7 +109,7 @@ class PhysGaussianModeTest(absltest.TestCase):
         json.dump(cfg, f)
       out = os.path.join(d, 'out')
       sim.run_physgaussian(scene, path, out, pl.PipelineConfig(
-        width=48, height=32), ply=True)
+        width=48, height=32), ply=True, spz=True)
       frames = sorted(os.listdir(os.path.join(out, 'frames')))
       self.assertEqual(frames, [f'frame_{i:04d}.png' for i in range(3)])
       self.assertGreater(os.path.getsize(os.path.join(out, 'video.mp4')), 0)
@@ -119,6 +120,10 @@ class PhysGaussianModeTest(absltest.TestCase):
       last = ply_io.load_ply(os.path.join(out, 'ply', 'frame_0002.ply'))
       np.testing.assert_allclose(np.asarray(last.means)[traj['ids']],
                                  traj['x'][-1], atol=1e-5)
+      # ... and so does the last .spz frame, to half its position step.
+      last = spz_io.load_spz(os.path.join(out, 'spz', 'frame_0002.spz'))
+      np.testing.assert_allclose(np.asarray(last.means)[traj['ids']],
+                                 traj['x'][-1], atol=0.5 / 4096 + 1e-5)
 
 
 class ScriptProcessTest(absltest.TestCase):
@@ -146,7 +151,7 @@ class ScriptProcessTest(absltest.TestCase):
          f'--out={out}', f'--compile_cache={d}/cache',
          '--config.num_frames=2', '--config.grid_res=16',
          '--config.width=32', '--config.height=24',
-         '--config.max_particles=600'],
+         '--config.max_particles=600', '--spz'],
         capture_output=True, text=True, check=False, timeout=300, cwd=repo)
       self.assertEqual(proc.returncode, 0, proc.stderr[-2000:])
       self.assertIn('before it: ', proc.stdout)
@@ -160,6 +165,9 @@ class ScriptProcessTest(absltest.TestCase):
         self.assertIn(b'moov', f.read())  # the MP4's index: a closed file
       traj = np.load(os.path.join(out, 'trajectory.npz'))
       self.assertEqual(traj['x'].shape[0], 3)
+      # --spz: one .spz frame per frame, named in the report.
+      self.assertEqual(sorted(os.listdir(report['files']['spz'])),
+                       [f'frame_{i:04d}.spz' for i in range(3)])
     proc = subprocess.run(
       [sys.executable, '-c', 'import sys, physsplat_jax as ps; '
        'import experiments.simulate; '

@@ -190,6 +190,7 @@ def load_mpdp(path: str | None):
 
 def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
               objects: Sequence[str] = (), ply: bool = False,
+              spz: bool = False,
               segment: str | None = None, boxes: str | None = None,
               masks: str | None = None,
               mask_names: Sequence[str] | None = None,
@@ -265,6 +266,7 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
       extra_report['process_seconds']['segment'] = round(t_seg, 3)
   _, report = pl.simulate_scene(
     scene, config, out, perception_options=perception_options, ply=ply,
+    spz=spz,
     extra_report=extra_report, mpdp_params=mpdp_params, pipelined=pipelined,
     on_frame=on_frame)
   return report
@@ -272,6 +274,7 @@ def run_scene(scene_name: str, config: pl.PipelineConfig, out: str, *,
 
 def run_physgaussian(scene_path: str, json_path: str, out: str,
                      config: pl.PipelineConfig, *, ply: bool = False,
+                     spz: bool = False,
                      auto_substeps: bool = False,
                      num_frames: int | None = None) -> dict:
   """A PhysGaussian JSON config as PhysGaussian runs it; the report.
@@ -283,7 +286,7 @@ def run_physgaussian(scene_path: str, json_path: str, out: str,
   return physgaussian.run_config(
     scene_path, json_path, out, num_frames=num_frames,
     auto_substeps=auto_substeps, fill=config.fill,
-    video=config.render != 'none', ply=ply, width=config.width,
+    video=config.render != 'none', ply=ply, spz=spz, width=config.width,
     height=config.height)
 
 
