@@ -23,6 +23,7 @@ from physsplat_jax import pipeline as pl
 from physsplat_jax.io import outputs
 from physsplat_jax.io import paths
 from physsplat_jax.io import video
+from physsplat_jax.types import Gaussians
 
 _FULL = OSError(errno.ENOSPC, 'No space left on device')
 
@@ -222,6 +223,25 @@ class RerunTest(absltest.TestCase):
     self.assertEqual(os.listdir(frames), ['frame_0000.png'])
     self.assertEqual(os.listdir(ply), ['frame_0000.ply'])
     self.assertEqual(os.listdir(spz), ['frame_0000.spz'])
+
+  def test_spz_frames_warn_of_clamped_values_once(self):
+    """A colour beyond the .spz range clamps in every frame: one warning
+    for the run, not one a frame."""
+    d = os.path.join(_tmpdir(self), 'spz')
+    k = 4
+    g = Gaussians(means=np.zeros((k, 3), np.float32),
+                  log_scales=np.full((k, 3), -3.0, np.float32),
+                  quats=np.tile(np.float32([1, 0, 0, 0]), (k, 1)),
+                  opacity_logits=np.zeros(k, np.float32),
+                  sh=np.full((k, 1, 3), 5.0, np.float32))  # > 3.33
+    out = outputs.SpzOutput(d, g)
+    cov = np.tile(np.eye(3, dtype=np.float32) * np.exp(-6.0), (k, 1, 1))
+    with self.assertLogs(level='WARNING') as logs:
+      for i in range(3):
+        out.write(outputs.Frame(index=i, time=0.0, gaussians=g.replace(
+          means=g.means + 0.01 * i), covariances=cov))
+    self.assertEqual(sum('clamped' in m for m in logs.output), 1)
+    self.assertLen(os.listdir(d), 3)
 
 
 class FreeSpaceTest(absltest.TestCase):

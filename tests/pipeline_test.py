@@ -558,6 +558,13 @@ class RunTest(absltest.TestCase):
       need = host.output_sizes(prep, cfg.num_frames, spz=True)['spz']
       self.assertGreaterEqual(need, got)
       self.assertEqual(host.output_sizes(prep, cfg.num_frames)['spz'], 0.0)
+      # ... and the PLY frames' estimate is their size (62 float32
+      # properties and the header).
+      got = sum(os.path.getsize(os.path.join(d, 'ply', n + '.ply'))
+                for n in names)
+      need = host.output_sizes(prep, cfg.num_frames, ply=True)['ply']
+      self.assertGreaterEqual(need, 0.98 * got)
+      self.assertLessEqual(need, got)
       self.assertTrue(os.path.getsize(out.files['video']) > 0)
       traj = np.load(out.files['trajectory'])
       np.testing.assert_array_equal(traj['x'], out.gaussian_positions)

@@ -335,8 +335,13 @@ class DeformedOutput:
       os.path.join(self.directory, name),
       lambda tmp: self._save(
         tmp, self._base, frame.gaussians.means, frame.covariances,
-        frame.rotations), OutputError, what=self.format.upper())
+        frame.rotations, **self._options()), OutputError,
+      what=self.format.upper())
     self._written.add(name)
+
+  def _options(self) -> dict:
+    """Keyword options of this frame's save (the subclass's)."""
+    return {}
 
   def close(self) -> dict[str, str]:
     _clear_frames(self.directory, self.format, self._written)
@@ -360,6 +365,13 @@ class SpzOutput(DeformedOutput):
   (:func:`~physsplat_jax.io.export.save_deformed_spz`)."""
 
   format = 'spz'
+
+  def _options(self) -> dict:
+    # Values clamped to the format's ranges (a trained scene's brightest
+    # colours, its smallest scales) are the same Gaussians every frame:
+    # warned for the first frame only.
+    first = not self._written
+    return {'warn_clamped': first}
 
 
 class TrajectoryOutput:

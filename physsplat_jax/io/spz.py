@@ -509,7 +509,7 @@ def encode_spz(
   gaussians: Gaussians, *, version: int = DEFAULT_VERSION,
   antialiased: bool = False, fractional_bits: int = FRACTIONAL_BITS,
   sh1_bits: int = SH1_BITS, sh_rest_bits: int = SH_REST_BITS,
-  stored_frame: str = 'RUB', path='<gaussians>',
+  stored_frame: str = 'RUB', path='<gaussians>', warn_clamped: bool = True,
 ) -> bytes:
   """Gaussians (RDF frame) -> ``.spz`` bytes (gzip, version 2 or 3).
 
@@ -524,6 +524,8 @@ def encode_spz(
     stored_frame: the coordinate system to store: ``'RUB'`` as the format
       says; ``'RDF'`` stores the data unconverted, as ``ply_to_spz`` does.
     path: used in error messages only.
+    warn_clamped: log a warning when values are clamped to the format's
+      ranges (a writer of many frames warns for the first only).
 
   Returns:
     The file content.
@@ -590,7 +592,7 @@ def encode_spz(
   rest = np.asarray(gaussians.sh)[:, 1:].astype(np.float32)  # (K, B-1, 3)
   rest = rest * fsh[:rest.shape[1], None]
   _clamped('sh (degree >= 1)', rest, -1.0, 127 / 128, clamped)
-  if clamped:
+  if clamped and warn_clamped:
     logging.warning('%s: values clamped to the .spz ranges (Gaussians: %s)',
                     path, ', '.join(clamped))
   sh = np.concatenate([_sh_bytes(rest[:, :3], sh1_bits),

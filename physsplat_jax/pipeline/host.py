@@ -118,6 +118,11 @@ def default_writers(prepared: PreparedScene, out_dir: str, fps: float, *,
 # tests/data/udon_crop.ply at SH 3; rounded up, as an estimate of free
 # space should be.
 SPZ_GZIP_RATIO = 0.75
+# Float32 properties a Gaussian of a PLY frame has: x y z, nx ny nz, 3 DC
+# and 45 higher SH coefficients, opacity, 3 scales, 4 quaternion entries.
+# (The estimate used to count the scene's own SH degree and no normals:
+# 56 bytes a Gaussian for the donut, whose frames take 248.)
+PLY_FRAME_PROPERTIES = 62
 
 
 def output_sizes(prepared: PreparedScene, num_frames: int, *,
@@ -127,19 +132,20 @@ def output_sizes(prepared: PreparedScene, num_frames: int, *,
   the trajectory exactly (float32 centres of the simulated Gaussians and
   the driving particles, their rows), a PNG frame at 0.6 byte per pixel
   and an H.264 frame at 0.02 (the tabletop's demo: 0.61 and 0.011), a PLY
-  frame at 4 bytes per Gaussian property and a .spz frame at
+  frame at the INRIA layout's 62 float32 properties a Gaussian (SH degree
+  3 and normals, as :class:`~physsplat_jax.io.outputs.PlyOutput` writes
+  it, whatever the scene's degree) and a .spz frame at
   ``SPZ_GZIP_RATIO`` of its bytes before gzip (20 a Gaussian, 3 per SH
   coefficient of degree >= 1)."""
   T = int(num_frames) + 1
   px = prepared.camera.width * prepared.camera.height
   g = prepared.gaussians
-  props = 3 + 3 + 4 + 1 + g.sh.shape[1] * 3 + len(g.extras)
   ks = int(np.shape(prepared.sim_rows)[0])
   return {
     'trajectory': T * 12.0 * (ks + prepared.num_particles) + 8.0 * ks,
     'frames': T * 0.6 * px if png else 0.0,
     'video': T * 0.02 * px if video else 0.0,
-    'ply': T * 4.0 * props * g.num if ply else 0.0,
+    'ply': T * 4.0 * PLY_FRAME_PROPERTIES * g.num if ply else 0.0,
     'spz': (T * SPZ_GZIP_RATIO * (9 + 1 + 3 + 3 + 4 + 3 * (g.sh.shape[1] - 1))
             * g.num if spz else 0.0)}
 
