@@ -300,6 +300,13 @@ class SpzTest(parameterized.TestCase):
       spz.encode_spz(g, sh1_bits=9)
     with self.assertRaisesRegex(spz.SpzError, r"stored_frame='XYZ'"):
       spz.encode_spz(g, stored_frame='XYZ')
+    with self.assertRaisesRegex(spz.SpzError, r'compress_level=0; give a '
+                                r'whole number in 1\.\.9'):
+      spz.encode_spz(g, compress_level=0)
+    # The level changes the gzip stream only, not what it holds.
+    fast, small = (spz.encode_spz(g, compress_level=k) for k in (1, 9))
+    self.assertNotEqual(fast, small)
+    self.assertEqual(gzip.decompress(fast), gzip.decompress(small))
 
 
 if __name__ == '__main__':
