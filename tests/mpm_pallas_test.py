@@ -244,11 +244,12 @@ class PallasConstitutiveTest(absltest.TestCase):
     """On a GPU whose JAX cannot build the kernel, 'auto' warns once and
     keeps the pure-JAX update; the check runs eagerly even while a frame
     is traced. (The GPU and the failure are simulated.)"""
-    calls = []
+    calls, visc = [], []
     real = pc.constitute
 
     def interpreted(*args, **kw):
       calls.append(threading.current_thread() is threading.main_thread())
+      visc.append(kw.get('solid_viscosity', False))
       return real(*args, **dict(kw, interpret=True))
 
     def broken(*args, **kw):
@@ -276,6 +277,10 @@ class PallasConstitutiveTest(absltest.TestCase):
       # one slice with body_id), once (and traced once more for the
       # frame's CUDA branch, on this one).
       self.assertEqual(calls.count(False), 2)
+      # ... one of them with the solids' dashpot (SimConfig.
+      # solid_viscosity), whose terms the kernel then has.
+      self.assertIn(True, visc[:2])
+      self.assertIn(False, visc[:2])
     finally:
       pc._available.cache_clear()
 

@@ -217,7 +217,7 @@ def available(dtype: str = 'float32') -> bool:
   """Whether the kernel builds on this process's GPU, in ``dtype``
   (checked once per dtype, even while a program is traced: every model,
   F and C packed in one array as the solver carries them, with slices and
-  with ``body_id``). True without a GPU (off a GPU 'auto' never runs it; a
+  the solids' Kelvin-Voigt dashpot, and with ``body_id``). True without a GPU (off a GPU 'auto' never runs it; a
   program lowered for a GPU it cannot see is compiled there first). False,
   with a warning, when this JAX's Pallas cannot build it:
   ``SimConfig.constitutive_kernel = 'auto'`` then keeps the pure-JAX update
@@ -299,9 +299,12 @@ def _available(dtype: str) -> bool:
     sliced = ((deformable, 0, 0, m), (('rigid',), models.index('rigid'), m,
                                      n))
     one = ((models, 0, 0, n),)
-    for slices, body_id in ((sliced, None), (one, body)):
-      out = jax.jit(lambda FC, J, mt, b, s=slices: constitute(
-        s, 1e-4, (FC, 0), (FC, 9), J, mt, b))(FC, Jpep, mat, body_id)
+    # The sliced form with the solids' dashpot on (SimConfig.
+    # solid_viscosity: its terms in the kernel), the other without.
+    for slices, body_id, visc in ((sliced, None, True), (one, body, False)):
+      out = jax.jit(lambda FC, J, mt, b, s=slices, v=visc: constitute(
+        s, 1e-4, (FC, 0), (FC, 9), J, mt, b, solid_viscosity=v))(
+          FC, Jpep, mat, body_id)
       jax.block_until_ready(out)
 
   def in_thread():
