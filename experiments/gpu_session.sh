@@ -32,6 +32,8 @@
 #             per substep and none, the same bits; and the 50k-particle
 #             gradient of issue 17 (grad_finite_test's slow ScaleTest)
 #   mpm       benchmark_mpm block at 10k / 100k / 1M (no naive reference)
+#   mpm_visco  the same at 10k / 100k with the solids' Kelvin-Voigt
+#             dashpot and with a Maxwell branch, against the plain block
 #   mpdp      benchmark_mpdp: MPDP's field (grid neighbour search and the
 #             shipped network) on 200k and 1M points, a torus and the
 #             repeated donut: time, compile and the device's peak memory
@@ -84,7 +86,7 @@ NO_GSPLAT=${NO_GSPLAT:-}
 GS=${NO_GSPLAT:+--nogsplat}
 SWEEPS="sweep_default sweep_pallas_block16 sweep_pallas_block64 \
 sweep_num_warps1 sweep_num_warps4"
-ORDER="env mpm_kernel mpm mpdp render donut video video_scene substep \
+ORDER="env mpm_kernel mpm mpm_visco mpdp render donut video video_scene substep \
 substep_paper substep_graphs sorts pipeline pipeline_scenes pipeline_noautotune \
 $SWEEPS tests"
 STEPS=
@@ -173,6 +175,15 @@ $PY -m pip list 2>/dev/null | grep -i -E 'jax|flax|torch|gsplat|triton'"
 run_mpm() {
   step mpm 90 $PY -m experiments.benchmark_mpm \
     --sizes=10000,100000,1000000 --naive=false --grad=false
+}
+# The solids' Kelvin-Voigt dashpot (its terms in the Pallas stress kernel)
+# and the Maxwell branch (XLA's fusion beside it), each alternating with
+# the plain block: never timed on a GPU (docs/benchmarks.md, round of
+# 2026-11-29, third).
+run_mpm_visco() {
+  step mpm_visco 120 $PY -m experiments.benchmark_mpm \
+    --sizes=10000,100000 --naive=false --grad=false --damped --maxwell \
+    --out="$WORK/mpm_visco.json"
 }
 run_mpdp() {
   step mpdp 150 $PY -m experiments.benchmark_mpdp --sizes=200000,1000000 \
