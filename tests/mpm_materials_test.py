@@ -694,7 +694,7 @@ class MaxwellTest(absltest.TestCase):
     return map runs on the solids' slices only: sand, then two solids,
     then a fluid, each block moving, give the run without the sort
     (every particle through the map, the others' stress masked), F_N
-    too (the others have no branch: advected only, either way)."""
+    too: the others' is I (they have no branch)."""
     with jax.enable_x64(True):
       grid = mpm.GridSpec(res=16, size=1.0)
       sp = grid.dx / 2
@@ -706,13 +706,12 @@ class MaxwellTest(absltest.TestCase):
       names = [m for m in models for _ in i]
       n = len(x)
       solid = slice(27, 81)
-      E_N = np.zeros(n)
-      E_N[solid] = 1e3  # (the others must have none: mpm.run checks)
+      E_N, eta = np.zeros(n), np.zeros(n)
+      E_N[solid], eta[solid] = 1e3, 0.5  # (the others have none)
       mat = mpm.make_materials(names, 2e3, 0.3, 1000.0,
                                config_models=models, dtype=jnp.float64,
-                               maxwell_E=E_N,
-                               maxwell_nu=np.full(n, 0.3),
-                               maxwell_viscosity=np.full(n, 0.5))
+                               maxwell_E=E_N, maxwell_nu=np.full(n, 0.3),
+                               maxwell_viscosity=eta)
       v0 = np.random.default_rng(2).normal(size=(n, 3))
       runs = {}
       for counts in ((27, 27, 27, 27), None):
@@ -726,9 +725,14 @@ class MaxwellTest(absltest.TestCase):
       np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-12)
       np.testing.assert_allclose(a.F, b.F, rtol=0, atol=1e-12)
       np.testing.assert_allclose(a.F_N, b.F_N, rtol=0, atol=1e-12)
-      # The branch acted on the solids (their F_N left I).
+      # The branch acted on the solids (their F_N left I); the others' is
+      # reset each substep (advected alone it drifted: 1.3e-2 from the
+      # unsorted run's after 20 substeps, singular values 0.67-1.56
+      # after 600), so one substep's advection from I at most.
       self.assertGreater(float(np.abs(a.F_N[solid] - np.eye(3)).max()),
                          1e-4)
+      for part in (slice(0, 27), slice(81, 108)):
+        self.assertLess(float(np.abs(a.F_N[part] - np.eye(3)).max()), 0.01)
 
 
   def test_gradient_inputs_and_time_step(self):

@@ -426,26 +426,26 @@ def maxwell_update(models, model_id, F_N, mat, dt, zero_stress=None,
   stress. ``F_N`` (nested tuples) is the branch's trial deformation
   gradient; returns ``(F_N, tau_N)`` after the return map (:func:`_maxwell`),
   ``tau_N`` 0 for particles whose model is not a solid
-  (``KELVIN_VOIGT_MODELS``: the fluids, sand, rigid) or where
+  (``KELVIN_VOIGT_MODELS``: the fluids, sand, rigid), whose ``F_N`` is
+  reset to I (advected alone it would drift without bound), or where
   ``zero_stress`` (rigid bodies). The deviatoric
   stress relaxes with time ``eta / (2 mu_N)``, the pressure with
   ``eta / (2 K_N)``; ``eta = 0`` is no branch, ``eta -> inf`` a spring.
 
   With ``groups`` (:func:`model_groups`: the particles sorted by model) the
-  return map runs on the solids' slices only, and the other particles keep
-  their ``F_N``: one SVD per solid particle instead of one per particle.
+  return map runs on the solids' slices only: one SVD per solid particle
+  instead of one per particle, the same results.
   """
   n = F_N[0][0].shape[0]
   runs = _solid_runs(groups)
   if not groups or runs == [(0, n)]:
     return _maxwell_rows(models, model_id, F_N, mat, dt, zero_stress)
   parts, o = [], 0
-  zero = lambda m: la.zeros(m[0][0])  # noqa: E731
   for a, b in runs + [(n, n)]:
     rows = lambda t, a=a, b=b: jax.tree.map(lambda q: q[a:b], t)  # noqa
-    if a > o:  # not a solid: F_N kept, no stress
-      keep = jax.tree.map(lambda q, o=o, a=a: q[o:a], F_N)
-      parts.append((keep, zero(keep)))
+    if a > o:  # not a solid: F_N = I, no stress
+      like = F_N[0][0][o:a]
+      parts.append((la.eye(like), la.zeros(like)))
     if b > a:
       parts.append(_maxwell_rows(
         (), None, rows(F_N), rows(mat), dt,
@@ -476,6 +476,9 @@ def _maxwell_rows(models, model_id, F_N, mat, dt, zero_stress):
        'dt': jnp.full_like(mu, dt)}
   F_N, tau, _ = _MAXWELL_MAP(F_N, p)
   on = _solids(models, model_id) if models else None
+  if on is not None:  # not a solid: F_N = I
+    F_N = jax.tree.map(lambda f, i: jnp.where(on, f, i), F_N,
+                       la.eye(on.astype(F_N[0][0].dtype)))
   if zero_stress is not None:
     on = ~zero_stress if on is None else on & ~zero_stress
   if on is not None:
