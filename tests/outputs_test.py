@@ -226,7 +226,8 @@ class RerunTest(absltest.TestCase):
 
   def test_spz_frames_warn_of_clamped_values_once(self):
     """A colour beyond the .spz range clamps in every frame: one warning
-    for the run, not one a frame."""
+    for the run, not one a frame; scales squashed below its range in a
+    later frame warn then, once."""
     d = os.path.join(_tmpdir(self), 'spz')
     k = 4
     g = Gaussians(means=np.zeros((k, 3), np.float32),
@@ -236,12 +237,19 @@ class RerunTest(absltest.TestCase):
                   sh=np.full((k, 1, 3), 5.0, np.float32))  # > 3.33
     out = outputs.SpzOutput(d, g)
     cov = np.tile(np.eye(3, dtype=np.float32) * np.exp(-6.0), (k, 1, 1))
+    tiny = cov * np.exp(-16.0)  # log-scales -11 < -10
     with self.assertLogs(level='WARNING') as logs:
-      for i in range(3):
+      for i, c in enumerate((cov, cov, tiny, tiny)):
         out.write(outputs.Frame(index=i, time=0.0, gaussians=g.replace(
-          means=g.means + 0.01 * i), covariances=cov))
-    self.assertEqual(sum('clamped' in m for m in logs.output), 1)
-    self.assertLen(os.listdir(d), 3)
+          means=g.means + 0.01 * i), covariances=c))
+    warned = [m for m in logs.output if 'clamped' in m]
+    self.assertLen(warned, 2)
+    self.assertIn('frame_0000.spz', warned[0])
+    self.assertIn('f_dc: 4', warned[0])
+    self.assertIn('frame_0002.spz', warned[1])
+    self.assertIn('log_scales: 4', warned[1])
+    self.assertNotIn('f_dc', warned[1])
+    self.assertLen(os.listdir(d), 4)
 
 
 class FreeSpaceTest(absltest.TestCase):

@@ -441,7 +441,7 @@ def save_deformed_splat(
 
 # What save_deformed_spz passes on to spz.encode_spz.
 SPZ_OPTIONS = ('version', 'antialiased', 'fractional_bits', 'sh1_bits',
-               'sh_rest_bits', 'stored_frame', 'warn_clamped',
+               'sh_rest_bits', 'stored_frame', 'warned',
                'compress_level')
 
 

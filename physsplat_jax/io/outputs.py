@@ -366,14 +366,17 @@ class SpzOutput(DeformedOutput):
 
   format = 'spz'
 
+  def __init__(self, directory: str, base: Gaussians):
+    super().__init__(directory, base)
+    self._warned: set[str] = set()
+
   def _options(self) -> dict:
     # Values clamped to the format's ranges (a trained scene's brightest
-    # colours, its smallest scales) are the same Gaussians every frame:
-    # warned for the first frame only.
-    # gzip's fastest level: 5-6x faster than its default for 3-10 %
-    # more bytes (io.spz.encode_spz), a frame's write off the loop's path.
-    first = not self._written
-    return {'warn_clamped': first, 'compress_level': 1}
+    # colours, its smallest scales) are mostly the same Gaussians every
+    # frame: each field warns once a run (io.spz.encode_spz's ``warned``).
+    # gzip's fastest level: 5-6x faster than its default for 3-10 % more
+    # bytes (io.spz.encode_spz), a frame's write off the loop's path.
+    return {'warned': self._warned, 'compress_level': 1}
 
 
 class TrajectoryOutput:

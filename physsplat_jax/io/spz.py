@@ -475,7 +475,9 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
 
 def _sh_bytes(x: np.ndarray, bits: int) -> np.ndarray:
   bucket = 1 << (8 - bits)
-  q = _round(x * np.float32(128)).astype(np.int64) + 128
+  # (Clipped before the integer cast: a huge value cast first wrapped to
+  # the wrong sign.)
+  q = _round(np.clip(x * np.float32(128), -256, 256)).astype(np.int64) + 128
   q = (q + bucket // 2) // bucket * bucket
   return np.clip(q, 0, 255).astype(np.uint8)
 
@@ -500,17 +502,19 @@ def _quat_bytes(q: np.ndarray, version: int) -> np.ndarray:
 
 
 def _clamped(name, x, lo, hi, counts):
-  n = int(np.count_nonzero((x < lo) | (x > hi)))
+  """Counts the Gaussians (rows of ``x``) with a value outside [lo, hi]."""
+  out = (x < lo) | (x > hi)
+  n = int(np.count_nonzero(out.reshape(len(x), -1).any(1)))
   if n:
-    counts.append(f'{name}: {n}')
+    counts[name] = n
 
 
 def encode_spz(
   gaussians: Gaussians, *, version: int = DEFAULT_VERSION,
   antialiased: bool = False, fractional_bits: int = FRACTIONAL_BITS,
   sh1_bits: int = SH1_BITS, sh_rest_bits: int = SH_REST_BITS,
-  stored_frame: str = 'RUB', path='<gaussians>', warn_clamped: bool = True,
-  compress_level: int = 6,
+  stored_frame: str = 'RUB', path='<gaussians>',
+  warned: set[str] | None = None, compress_level: int = 6,
 ) -> bytes:
   """Gaussians (RDF frame) -> ``.spz`` bytes (gzip, version 2 or 3).
 
@@ -525,8 +529,11 @@ def encode_spz(
     stored_frame: the coordinate system to store: ``'RUB'`` as the format
       says; ``'RDF'`` stores the data unconverted, as ``ply_to_spz`` does.
     path: used in error messages only.
-    warn_clamped: log a warning when values are clamped to the format's
-      ranges (a writer of many frames warns for the first only).
+    warned: values clamped to the format's ranges are logged, per field
+      (``f_dc``, ``log_scales``, ``sh (degree >= 1)``); a field named in
+      this set is not, and a field logged now is added to it (a writer of
+      many frames passes one set: each field warns once). None: every
+      field that clamps is logged.
     compress_level: gzip level, 1 (fastest) to 9. 6, zlib's default,
       for a file to keep; the pipeline's per-frame files take 1: 5-6x
       faster, 3-10 % larger (300k Gaussians of SH degree 3: 0.44 s against
@@ -587,7 +594,7 @@ def encode_spz(
     alpha = np.float32(1) / (np.float32(1) + np.exp(-logit))
   dc = col(['f_dc_0', 'f_dc_1', 'f_dc_2'])
   log_s = col(['scale_0', 'scale_1', 'scale_2'])
-  clamped = []
+  clamped = {}
   _clamped('f_dc', dc, -0.5 / COLOR_SCALE, 0.5 / COLOR_SCALE, clamped)
   _clamped('log_scales', log_s, -10.0, 5.9375, clamped)
   q = col(['rot_1', 'rot_2', 'rot_3', 'rot_0'])  # xyzw
@@ -598,9 +605,12 @@ def encode_spz(
   rest = np.asarray(gaussians.sh)[:, 1:].astype(np.float32)  # (K, B-1, 3)
   rest = rest * fsh[:rest.shape[1], None]
   _clamped('sh (degree >= 1)', rest, -1.0, 127 / 128, clamped)
-  if clamped and warn_clamped:
+  new = [k for k in clamped if warned is None or k not in warned]
+  if new:
     logging.warning('%s: values clamped to the .spz ranges (Gaussians: %s)',
-                    path, ', '.join(clamped))
+                    path, ', '.join(f'{k}: {clamped[k]}' for k in new))
+    if warned is not None:
+      warned.update(new)
   sh = np.concatenate([_sh_bytes(rest[:, :3], sh1_bits),
                        _sh_bytes(rest[:, 3:], sh_rest_bits)], 1)
   flags = FLAG_ANTIALIASED if antialiased else 0
