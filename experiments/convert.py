@@ -20,9 +20,10 @@ chunk of 256 Gaussians, 8-bit colour and SH, ~16 bytes a Gaussian; .spz
 the SH up to degree 3, quantised (positions to 1/4096 of a unit, SH to 4-5
 bits) and gzipped, about a tenth of the PLY; .splat the DC colour only,
 8-bit, 32 bytes a Gaussian, its rows sorted biggest first as
-antimatter15's converter sorts them. ``--sh_degree`` truncates (or
-zero-pads) the SH first. A PLY is written with zero normals, the INRIA
-layout that viewers expect.
+antimatter15's converter sorts them. A .spz of centres beyond 2048 units
+gets fewer fraction bits (a coarser step), and .spz to .spz keeps the
+antialiasing flag. ``--sh_degree`` truncates (or zero-pads) the SH first.
+A PLY is written with zero normals, the INRIA layout that viewers expect.
 """
 
 import os
@@ -33,6 +34,7 @@ from absl import flags
 from absl import logging
 
 from experiments.lib import cli
+from physsplat_jax.io import export
 from physsplat_jax.io import ply
 from physsplat_jax.io import spz
 from physsplat_jax.io.splat import load_splat
@@ -84,7 +86,7 @@ def _load(path: str, fmt: str):
   return spz.load_spz(path, stored_frame=_SPZ_FRAME.value)
 
 
-def _save(path: str, fmt: str, g) -> None:
+def _save(path: str, fmt: str, g, antialiased: bool = False) -> None:
   if _SH_DEGREE.value is not None:
     g = g.with_sh_degree(_SH_DEGREE.value)
   if fmt == 'ply':
@@ -94,8 +96,12 @@ def _save(path: str, fmt: str, g) -> None:
   elif fmt == 'splat':
     save_splat(path, g.replace(extras={}))
   else:
+    # Positions beyond +-2048 units get fewer fraction bits (a coarser
+    # step), as the pipeline's frames do, instead of an error naming an
+    # option this script has not.
     spz.save_spz(path, g.replace(extras={}), stored_frame=_SPZ_FRAME.value,
-                 version=int(_SPZ_VERSION.value))
+                 version=int(_SPZ_VERSION.value), antialiased=antialiased,
+                 fractional_bits=export.spz_fractional_bits(g.means))
 
 
 def _pairs() -> list[tuple[str, str, str, str]]:
@@ -114,15 +120,30 @@ def _pairs() -> list[tuple[str, str, str, str]]:
                           f'folder --input={src}')
   fin, fout = _INPUT_FORMAT.value, _OUT_FORMAT.value
   names = sorted(n for n in os.listdir(src)
-                 if n.lower().endswith(_ENDINGS[fin])
-                 and os.path.isfile(os.path.join(src, n)))
+                 if _ends(n, fin) and os.path.isfile(os.path.join(src, n)))
   if not names:
     raise cli.usage_error(f'--input={src} has no {_ENDINGS[fin]} files; '
                           'give --input_format for another kind')
   stem = lambda n: n[:len(n) - len(_ENDINGS[fin])]  # noqa: E731
-  return [(os.path.join(src, n), fin,
-           os.path.join(out, stem(n) + _ENDINGS[fout]), fout)
-          for n in names]
+  pairs = [(os.path.join(src, n), fin,
+            os.path.join(out, stem(n) + _ENDINGS[fout]), fout)
+           for n in names]
+  inputs = {os.path.realpath(p[0]) for p in pairs}
+  clash = [p[2] for p in pairs if os.path.realpath(p[2]) in inputs]
+  if clash:
+    raise cli.usage_error(
+      f'--out={out}: converting would overwrite the input {clash[0]} '
+      f'({len(clash)} in all); give another folder')
+  return pairs
+
+
+def _ends(name: str, fmt: str) -> bool:
+  """Whether file ``name`` is of ``fmt`` (a plain PLY is not a
+  ``.compressed.ply``)."""
+  low = name.lower()
+  if fmt == 'ply' and low.endswith(_ENDINGS['compressed']):
+    return False
+  return low.endswith(_ENDINGS[fmt])
 
 
 def main(argv):
@@ -139,7 +160,9 @@ def main(argv):
       raise cli.usage_error(f'--out={out} is the input itself; give '
                             'another path')
     g = _load(src, fin)
-    _save(out, fout, g)
+    # (.spz to .spz keeps the antialiasing flag: Gaussians do not hold it.)
+    aa = fin == 'spz' and spz.read_spz_header(src).antialiased
+    _save(out, fout, g, antialiased=aa)
     read += os.path.getsize(src)
     written += os.path.getsize(out)
     logging.info('%d/%d %s (%d Gaussians, SH %d) -> %s', i + 1, len(pairs),

@@ -87,6 +87,8 @@ class ConvertTest(absltest.TestCase):
          'is a file; give a folder'),
         ((f'--input={_DONUT}', f'--out={self.tmp}/d.obj'),
          "unknown scene file type '.obj'"),
+        ((f'--input={src}', f'--out={src}', '--out_format=ply'),
+         'would overwrite the input'),
         ((f'--input={src}', f'--out={out}', '--input_format=splat'),
          'has no .splat files'),
         ((f'--input={src}', f'--out={out}', '--input_format=compressed'),
@@ -97,6 +99,29 @@ class ConvertTest(absltest.TestCase):
       self.assertEqual(code, 2, msg=err)
       self.assertIn(message, err)
     self.assertFalse(os.path.exists(f'{self.tmp}/e.spz'))
+
+  def test_far_centres_and_the_antialiasing_flag(self):
+    """Centres 3000 units out take fewer fraction bits (the reference's
+    12 reach 2048); .spz to .spz keeps the antialiasing flag, which
+    Gaussians do not hold."""
+    g = test_util.random_gaussians(jax.random.PRNGKey(3), 40, 1)
+    g = g.replace(means=g.means + np.float32([3000.0, -5.0, 0.0]))
+    far, aa = os.path.join(self.tmp, 'far.ply'), os.path.join(self.tmp,
+                                                             'aa.spz')
+    ply.save_ply(far, g)
+    spz.save_spz(aa, g.replace(means=g.means - np.float32([3000, 0, 0])),
+                 antialiased=True)
+    for src, out, extra in ((far, 'far.spz', ()),
+                            (aa, 'aa2.spz', ('--spz_version=2',))):
+      code, _, err = _convert(f'--input={src}',
+                              f'--out={self.tmp}/{out}', *extra)
+      self.assertEqual(code, 0, msg=err)
+    back = spz.load_spz(os.path.join(self.tmp, 'far.spz'))
+    self.assertEqual(spz.read_spz_header(
+      os.path.join(self.tmp, 'far.spz')).fractional_bits, 11)
+    np.testing.assert_allclose(back.means, g.means, atol=0.5 / 2048 + 4e-4)
+    h = spz.read_spz_header(os.path.join(self.tmp, 'aa2.spz'))
+    self.assertEqual((h.version, h.antialiased), (2, True))
 
 
 if __name__ == '__main__':
