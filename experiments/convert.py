@@ -161,7 +161,8 @@ def main(argv):
                             'another path')
     g = _load(src, fin)
     # (.spz to .spz keeps the antialiasing flag: Gaussians do not hold it.)
-    aa = fin == 'spz' and spz.read_spz_header(src).antialiased
+    aa = (fin == fout == 'spz'
+          and spz.read_spz_header(src).antialiased)
     _save(out, fout, g, antialiased=aa)
     read += os.path.getsize(src)
     written += os.path.getsize(out)

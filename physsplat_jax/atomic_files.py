@@ -64,6 +64,14 @@ def partial_path(path: str) -> str:
   return os.path.join(head, f'.{stem}.{os.getpid()}-{token}.partial{ext}')
 
 
+def final_path(path) -> str | None:
+  """The path a temporary name of :func:`partial_path` is renamed to, or
+  None when ``path`` is not such a name."""
+  head, tail = os.path.split(os.fspath(path))
+  m = PARTIAL.fullmatch(tail)
+  return os.path.join(head, m['stem'] + (m['ext'] or '')) if m else None
+
+
 @contextlib.contextmanager
 def atomic_output(path, error: type[Exception], *, what: str = 'output'):
   """The temporary path (:func:`partial_path`) to fill in the ``with``

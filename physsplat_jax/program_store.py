@@ -343,8 +343,8 @@ def prune(where: str, name: str, suffix: str = '.jaxexport') -> None:
   files.sort(key=os.path.getmtime)
   stale = []
   for f in names:
-    m = atomic_files.PARTIAL.fullmatch(f)
-    if m and family.match(m['stem'] + (m['ext'] or '')):
+    final = atomic_files.final_path(f)
+    if final is not None and family.match(final):
       stale.append(os.path.join(where, f))
   now = time.time()
   for old in files[:-KEEP] + stale:

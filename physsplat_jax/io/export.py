@@ -529,7 +529,10 @@ def save_deformed_spz(
   g = g.replace(extras={})
   spz_options.setdefault('fractional_bits', spz_fractional_bits(g.means))
   try:
-    data = spz_lib.encode_spz(g, path=_final_name(path), **spz_options)
+    # (Named as the file it becomes: the per-frame writers fill a
+    # temporary name, paths.partial_path.)
+    data = spz_lib.encode_spz(
+      g, path=paths.final_path(path) or os.fspath(path), **spz_options)
   except spz_lib.SpzError as e:
     raise ExportError(f'export: {e}') from None
   with paths.open_output(path, ExportError, what='export') as f:
@@ -537,18 +540,9 @@ def save_deformed_spz(
   return g
 
 
-def _final_name(path) -> str:
-  """``path``, or the file that a temporary name of
-  :func:`physsplat_jax.io.paths.partial_path` becomes (named in messages:
-  the per-frame writers write to such names)."""
-  head, tail = os.path.split(os.fspath(path))
-  m = paths.PARTIAL.fullmatch(tail)
-  return os.path.join(head, m['stem'] + (m['ext'] or '')) if m else (
-    os.fspath(path))
-
-
-_SAVE = {'ply': save_deformed_ply, 'splat': save_deformed_splat,
-         'spz': save_deformed_spz}
+# The writer of each per-frame format (DeformedFrameWriter, io.outputs).
+SAVE_DEFORMED = {'ply': save_deformed_ply, 'splat': save_deformed_splat,
+                 'spz': save_deformed_spz}
 
 
 class DeformedFrameWriter:
@@ -590,7 +584,7 @@ class DeformedFrameWriter:
         (``sort``) or :func:`save_deformed_spz` (``sh_degree``,
         ``rotate_colors`` and the ``.spz`` options, checked here).
     """
-    if format not in _SAVE:
+    if format not in SAVE_DEFORMED:
       raise ExportError(
         f"format must be 'ply', 'splat' or 'spz', got {format!r}")
     pattern = pattern or _PATTERNS[format]
@@ -625,8 +619,9 @@ class DeformedFrameWriter:
     """Writes the next frame; returns its path (``deformation``: optional
     (K, 3, 3) ``F``, see :func:`deformed_gaussians`)."""
     path = os.path.join(self.directory, self.pattern % self._next)
-    _SAVE[self.format](path, self._gaussians, means, covariances, rotations,
-                       deformation=deformation, **self._kwargs)
+    SAVE_DEFORMED[self.format](path, self._gaussians, means, covariances,
+                               rotations, deformation=deformation,
+                               **self._kwargs)
     self._next += 1
     self.paths.append(path)
     return path

@@ -322,7 +322,7 @@ class DeformedOutput:
     self.directory = os.fspath(directory)
     self._pattern = f'frame_%04d.{self.format}'
     check_output_file(os.path.join(self.directory, self._pattern % 0))
-    self._save = _DEFORMED_SAVE[self.format]
+    self._save = export_lib.SAVE_DEFORMED[self.format]
     self._base = base
     self._written: set[str] = set()
 
@@ -346,10 +346,6 @@ class DeformedOutput:
   def close(self) -> dict[str, str]:
     _clear_frames(self.directory, self.format, self._written)
     return {self.format: self.directory} if self._written else {}
-
-
-_DEFORMED_SAVE = {'ply': export_lib.save_deformed_ply,
-                  'spz': export_lib.save_deformed_spz}
 
 
 class PlyOutput(DeformedOutput):

@@ -15,6 +15,7 @@ from physsplat_jax.atomic_files import PARTIAL as PARTIAL
 from physsplat_jax.atomic_files import atomic_output as atomic_output
 from physsplat_jax.atomic_files import os_error_reason as os_error_reason
 from physsplat_jax.atomic_files import partial_path as partial_path
+from physsplat_jax.atomic_files import final_path as final_path
 from physsplat_jax.atomic_files import write_atomically as write_atomically
 from physsplat_jax.atomic_files import write_data as write_data
 from physsplat_jax.atomic_files import write_npz as write_npz

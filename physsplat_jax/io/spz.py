@@ -200,9 +200,34 @@ def _legacy_header(raw: bytes, path) -> SpzHeader:
     )
   magic, version, n, deg, fb, flags, _ = _LEGACY_HEADER.unpack_from(raw)
   _check_magic(magic, path)
+  return _header(version, n, deg, fb, flags, path)
+
+
+def _header(version, n, deg, fb, flags, path) -> SpzHeader:
+  """The checked :class:`SpzHeader` of either container's fields."""
   return _check_header(
     SpzHeader(version, n, deg, fb, bool(flags & FLAG_ANTIALIASED),
               bool(flags & FLAG_EXTENSIONS)), path)
+
+
+def _ngsp_header(data: bytes, path) -> tuple[SpzHeader, int, int]:
+  """``(header, number of streams, table-of-contents offset)`` of a
+  version 4 file (``data`` not gzip)."""
+  if data[:4] != struct.pack('<I', MAGIC):
+    hint = ('a PLY file: rename it to .ply' if data.startswith(b'ply')
+            else 'neither gzip (versions 1-3) nor "NGSP" (version 4)')
+    raise SpzError(f'{path}: not a .spz file: {hint} (first bytes '
+                   f'{data[:4].hex()})')
+  if len(data) < _NGSP_HEADER.size:
+    raise SpzError(f'{path}: truncated .spz: {len(data)} bytes, shorter '
+                   f'than the {_NGSP_HEADER.size}-byte version 4 header')
+  _, version, n, deg, fb, flags, streams, toc = (
+    _NGSP_HEADER.unpack_from(data))
+  h = _header(version, n, deg, fb, flags, path)
+  if version < 4:
+    raise SpzError(f'{path}: version {version} in a version 4 container '
+                   '(versions 1-3 are gzip files); the file is damaged')
+  return h, streams, toc
 
 
 def _check_magic(magic, path):
@@ -236,6 +261,14 @@ def _sizes(h: SpzHeader) -> list[int]:
   n, dim = h.num_points, (h.sh_degree + 1) ** 2 - 1
   return [n * (6 if h.version == 1 else 9), n, 3 * n, 3 * n,
           n * (3 if h.version < 3 else 4), 3 * dim * n]
+
+
+def payload_bytes(num_points: int, sh_degree: int,
+                  version: int = DEFAULT_VERSION) -> int:
+  """Bytes of ``num_points`` Gaussians' attributes before compression
+  (version 3: 20 a Gaussian, 3 more per SH coefficient above degree 0)."""
+  return sum(_sizes(SpzHeader(version, num_points, sh_degree,
+                              FRACTIONAL_BITS, False, False)))
 
 
 def _read_extensions(buf: bytes, path) -> str:
@@ -279,21 +312,7 @@ def _unzip(data: bytes, path) -> tuple[SpzHeader, bytes, bytes]:
       ) from None
     h = _legacy_header(raw, path)
     return h, raw[_LEGACY_HEADER.size:], None
-  if data[:4] != struct.pack('<I', MAGIC):
-    hint = ('a PLY file: rename it to .ply' if data.startswith(b'ply')
-            else 'neither gzip (versions 1-3) nor "NGSP" (version 4)')
-    raise SpzError(f'{path}: not a .spz file: {hint} (first bytes '
-                   f'{data[:4].hex()})')
-  if len(data) < _NGSP_HEADER.size:
-    raise SpzError(f'{path}: truncated .spz: {len(data)} bytes, shorter '
-                   f'than the {_NGSP_HEADER.size}-byte version 4 header')
-  magic, version, n, deg, fb, flags, streams, toc = (
-    _NGSP_HEADER.unpack_from(data))
-  h = _check_header(SpzHeader(version, n, deg, fb, bool(flags & 1),
-                              bool(flags & 2)), path)
-  if version < 4:
-    raise SpzError(f'{path}: version {version} in a version 4 container '
-                   '(versions 1-3 are gzip files); the file is damaged')
+  h, streams, toc = _ngsp_header(data, path)
   decompress = _zstd_decompress()
   if decompress is None:
     raise SpzError(
@@ -349,11 +368,7 @@ def read_spz_header(path) -> SpzHeader:
       raise SpzError(f'{path}: corrupt .spz: the gzip stream does not '
                      f'decompress ({e})') from None
     return _legacy_header(raw, path)
-  if data[:4] != struct.pack('<I', MAGIC) or len(data) < _NGSP_HEADER.size:
-    return _unzip(data, path)[0]  # (raises the reader's error)
-  _, version, n, deg, fb, flags, _, _ = _NGSP_HEADER.unpack_from(data)
-  return _check_header(SpzHeader(version, n, deg, fb, bool(flags & 1),
-                                 bool(flags & 2)), path)
+  return _ngsp_header(data, path)[0]
 
 
 def _unpack(h: SpzHeader, body: bytes, path):

@@ -23,6 +23,7 @@ from absl import logging
 from physsplat_jax import mpm
 from physsplat_jax import program_store
 from physsplat_jax.io import outputs as out_lib
+from physsplat_jax.io import spz as spz_io
 from physsplat_jax.pipeline import capture as capture_lib
 from physsplat_jax.pipeline.config import PipelineConfig
 from physsplat_jax.pipeline.config import RenderMode
@@ -146,8 +147,8 @@ def output_sizes(prepared: PreparedScene, num_frames: int, *,
     'frames': T * 0.6 * px if png else 0.0,
     'video': T * 0.02 * px if video else 0.0,
     'ply': T * 4.0 * PLY_FRAME_PROPERTIES * g.num if ply else 0.0,
-    'spz': (T * SPZ_GZIP_RATIO * (9 + 1 + 3 + 3 + 4 + 3 * (g.sh.shape[1] - 1))
-            * g.num if spz else 0.0)}
+    'spz': (T * SPZ_GZIP_RATIO * spz_io.payload_bytes(g.num, g.sh_degree)
+            if spz else 0.0)}
 
 
 # The per-frame host programs, compiled once per process and shape (not per
