@@ -2,6 +2,7 @@
 O(N^2) brute force, and the MPDP field under both searches."""
 
 import functools
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
@@ -152,6 +153,28 @@ class KnnTest(parameterized.TestCase):
     got = np.asarray(_brute(jnp.asarray(x), jnp.asarray(few), 4))
     np.testing.assert_array_equal(got[3], [3, 900, 3, 3])
 
+  @parameterized.parameters('lattice', 'duplicates', 'two_densities')
+  def test_lattice_coordinates_give_exact_distances(self, kind):
+    """Integer points: both searches rank numpy's exact int64 squared
+    distances (as float32, ties by lower index), and the lattice spans
+    [0, LATTICE_STEPS] on the largest extent of the valid points."""
+    x, mask = _cloud(kind), _mask()
+    x[~mask] += 1e3  # junk outside: not part of the lattice's bounds
+    q = np.asarray(jax.jit(knn.lattice_coordinates)(x, mask))
+    self.assertEqual(q.dtype, np.int32)
+    np.testing.assert_array_equal(q[~mask], 0)
+    np.testing.assert_array_equal(q[mask].min(0), 0)
+    self.assertEqual(int((q[mask].max(0) - q[mask].min(0)).max()),
+                     knn.LATTICE_STEPS)
+    qi = q.astype(np.int64)
+    d2 = np.sum((qi[:, None, :] - qi[None, :, :]) ** 2, -1).astype(np.float32)
+    d2[:, ~mask] = np.inf
+    want = np.argsort(d2, axis=1, kind='stable')[:, :8]
+    got = np.asarray(_brute(q, mask, 8))
+    np.testing.assert_array_equal(got[mask], want[mask])
+    res = _grid(q, mask, 8)
+    np.testing.assert_array_equal(np.asarray(res.index)[mask], want[mask])
+
   def test_auto_uses_grid_above_threshold(self):
     n = knn.BRUTE_MAX_POINTS + 500
     rng = np.random.default_rng(4)
@@ -210,6 +233,38 @@ class PretrainedFieldTest(absltest.TestCase):
     np.testing.assert_array_equal(
       np.asarray(knn.knn_grid(p, mask[0], 8).index)[mask[0]],
       np.asarray(knn.knn_brute(p, mask[0], 8))[mask[0]])
+
+  def test_neighbours_do_not_depend_on_the_normalisation_rounding(self):
+    """A lattice block has exact ties at every neighbour shell. Another
+    backend or JAX version rounds the normalised points differently (a
+    reduction in another order: an ulp or two); searched on those floats,
+    equidistant neighbours swap and a whole object's field moved by 10 %
+    between JAX 0.10 and 0.12. Searched on the raw points' integer
+    lattice, the field moves by float noise only."""
+    a = np.arange(9, dtype=np.float32)
+    g = np.stack(np.meshgrid(a, a, a, indexing='ij'), -1).reshape(-1, 3)
+    pts = (g * np.float32(0.0371) + np.float32(0.3)).astype(np.float32)
+    mask = np.ones(len(pts), bool)
+    rng = np.random.default_rng(3)
+    ulps = rng.integers(-2, 3, pts.shape).astype(np.float32)
+    normalize = model_lib.normalize_points
+
+    def rounded_otherwise(points, m):
+      p = normalize(points, m)
+      return p + ulps * jnp.abs(p) * np.float32(2.0**-24)
+
+    p0 = normalize(jnp.asarray(pts), jnp.asarray(mask))
+    p1 = rounded_otherwise(jnp.asarray(pts), jnp.asarray(mask))
+    swapped = (np.sort(np.asarray(_brute(p0, mask, 8)), 1)
+               != np.sort(np.asarray(_brute(p1, mask, 8)), 1)).any(1)
+    self.assertGreater(swapped.sum(), 10)  # the hazard is real here
+    params = pretrained.load_pretrained()
+    means = model_lib.encode_means(2e5, 0.3, 800.0, 'fixed_corotated')
+    f0 = np.asarray(jax.jit(model_lib.make_predict())(params, pts, means))
+    with mock.patch.object(model_lib, 'normalize_points', rounded_otherwise):
+      f1 = np.asarray(jax.jit(model_lib.make_predict())(params, pts, means))
+    self.assertGreater(f0[:, 0].std(), 0.01)  # not trivially 1
+    np.testing.assert_allclose(f1, f0, rtol=1e-5)
 
   def test_gradient_matches_brute_force(self):
     params = pretrained.load_pretrained()

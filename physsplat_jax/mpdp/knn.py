@@ -55,6 +55,17 @@ lattices with exact ties included) as long as XLA rounds the distances the
 same in both programs; otherwise only points at equal distance (to the
 last bit) can swap.
 
+**Integer coordinates.** Float distances are rounded differently by
+different programs (a reduction in another order in another JAX version,
+fused or reordered arithmetic on another backend), and point sets with
+exact ties (PGAS samples of a lattice, mirror-symmetric ones) then swap
+neighbours at the ``k``-th distance. Given int32 points (:func:`lattice_coordinates`: the
+points snapped to a lattice of ``2^14`` steps across their largest extent)
+both paths compute squared distances in integer arithmetic, exactly, and
+rank them as float32 (a deterministic conversion): the same indices on
+every backend and in every JAX version. The MPDP network searches its
+neighbours this way.
+
 **Cell size.** The base side ``h`` is found in-graph by a bisection on
 ``log2 h`` (20 steps of O(N): hash, scatter-add, gather) for the smallest
 ``h`` at which a valid point shares its cell with on average
@@ -122,6 +133,30 @@ class KnnResult(struct.PyTreeNode):
   overflow: Array
 
 
+# Steps of :func:`lattice_coordinates` across the largest extent: squared
+# distances of points this far apart stay below 2^31 (3 * 2^28) in int32.
+LATTICE_STEPS = 2**14
+
+
+def lattice_coordinates(points: Array, mask: Array) -> Array:
+  """(N, 3) int32: the valid points snapped to a lattice of
+  :data:`LATTICE_STEPS` steps across their largest extent, from their
+  lowest corner (invalid rows 0).
+
+  Every step is one correctly rounded operation on the given floats, so the
+  same points give the same integers on every backend; the kNN functions
+  compute these points' distances exactly (module docstring, "Integer
+  coordinates"). A step is ``1 / 16384`` of the extent, so neighbours whose
+  distances differ by less than about two steps may be ranked either way.
+  """
+  points = jax.lax.stop_gradient(jnp.asarray(points))
+  mask = jnp.asarray(mask, bool)
+  lo, ext = _bounds(points, mask)
+  scale = jnp.asarray(LATTICE_STEPS, points.dtype) / ext
+  q = jnp.clip(jnp.round((points - lo) * scale), 0, LATTICE_STEPS)
+  return jnp.where(mask[:, None], q, 0).astype(jnp.int32)
+
+
 # Rows of the distance matrix :func:`knn_brute` holds at a time.
 BRUTE_BLOCK = 512
 
@@ -131,7 +166,8 @@ def knn_brute(points: Array, mask: Array, k: int) -> Array:
   rows at a time (O(N^2) time, O(BRUTE_BLOCK N) memory).
 
   Args:
-    points: (N, 3) positions.
+    points: (N, 3) positions, or int32 :func:`lattice_coordinates`
+      (distances then exact).
     mask: (N,) bool validity; invalid points are never neighbours.
     k: number of neighbours (static); clipped to N.
 
@@ -139,22 +175,46 @@ def knn_brute(points: Array, mask: Array, k: int) -> Array:
     (N, min(k, N)) int32 indices by increasing distance (ties: lower index
     first); slots with no valid neighbour point to the row itself.
   """
-  points = jax.lax.stop_gradient(points)
+  points, exact = _as_positions(jax.lax.stop_gradient(points))
   n = points.shape[0]
   k = min(k, n)
   if n <= BRUTE_BLOCK:
-    return _brute_rows(points, mask, jnp.arange(n, dtype=jnp.int32), k)
+    return _brute_rows(points, mask, jnp.arange(n, dtype=jnp.int32), k,
+                       exact)
   blocks = -(-n // BRUTE_BLOCK)
   # The last block repeats the last row where it runs past N.
   rows = jnp.minimum(jnp.arange(blocks * BRUTE_BLOCK, dtype=jnp.int32),
                      n - 1).reshape(blocks, BRUTE_BLOCK)
-  out = jax.lax.map(lambda r: _brute_rows(points, mask, r, k), rows)
+  out = jax.lax.map(lambda r: _brute_rows(points, mask, r, k, exact), rows)
   return out.reshape(blocks * BRUTE_BLOCK, k)[:n]
 
 
-def _brute_rows(points: Array, mask: Array, rows: Array, k: int) -> Array:
+def _sq_dist(a: Array, b: Array, exact: bool) -> Array:
+  """Squared distances over the last axis: float32 of the exact integer
+  ones for integer-valued coordinates (``exact``, at most
+  :data:`LATTICE_STEPS` apart), else ``sum((a - b)^2)``."""
+  d = a - b
+  if exact:
+    d = d.astype(jnp.int32)
+    return jnp.sum(d * d, axis=-1).astype(jnp.float32)
+  return jnp.sum(d ** 2, axis=-1)
+
+
+def _as_positions(points: Array) -> tuple[Array, bool]:
+  """``(float positions, exact)``: integer points (coordinates in [0,
+  :data:`LATTICE_STEPS`], as :func:`lattice_coordinates` gives; wider ones
+  would overflow int32 squared distances) as float32, which holds them
+  exactly, and ``exact=True``."""
+  points = jnp.asarray(points)
+  if jnp.issubdtype(points.dtype, jnp.integer):
+    return points.astype(jnp.float32), True
+  return points, False
+
+
+def _brute_rows(points: Array, mask: Array, rows: Array, k: int,
+                exact: bool = False) -> Array:
   """Rows ``rows`` of :func:`knn_brute` (same expression), (B, k)."""
-  d2 = jnp.sum((points[rows][:, None, :] - points[None, :, :]) ** 2, axis=-1)
+  d2 = _sq_dist(points[rows][:, None, :], points[None, :, :], exact)
   d2 = jnp.where(mask[None, :], d2, jnp.inf)
   neg, idx = jax.lax.top_k(-d2, k)
   return jnp.where(jnp.isfinite(neg), idx, rows[:, None]).astype(jnp.int32)
@@ -279,7 +339,7 @@ def _block_counts(cells: _Cells, x, lo):
 
 
 def _query(cells: _Cells, lvl, x, i, ok, lo, eps, k: int, kx: int,
-           budget: int):
+           budget: int, exact: bool = False):
   """kNN row of point ``i`` (at ``x``) from the 3^3 cells of level ``lvl``.
 
   The 27 cells are visited near side first (own cell, then faces, edges
@@ -312,7 +372,7 @@ def _query(cells: _Cells, lvl, x, i, ok, lo, eps, k: int, kx: int,
   t = jnp.arange(budget, dtype=jnp.int32)
   cid = jnp.minimum(jnp.sum(end[None, :] <= t[:, None], axis=1), 26)
   slot = jnp.minimum(st[cid] + t - (end - ct)[cid], n - 1)
-  d2 = jnp.sum((x - cells.x[lvl, slot]) ** 2, axis=-1)
+  d2 = _sq_dist(x, cells.x[lvl, slot], exact)
   d2 = jnp.where(t < end[-1], d2, jnp.inf)
   neg, pos = jax.lax.top_k(-d2, kx)
   d2s = -neg
@@ -356,7 +416,8 @@ def knn_grid(
   except that invalid rows point to themselves.
 
   Args:
-    points: (N, 3) positions (no gradient flows through the indices).
+    points: (N, 3) positions (no gradient flows through the indices), or
+      int32 :func:`lattice_coordinates` (distances then exact).
     mask: (N,) bool validity; invalid points are never neighbours.
     k: number of neighbours (static); clipped to N.
     budget: candidates scanned per row (static; default ``32 k``).
@@ -379,7 +440,7 @@ def knn_grid(
   Returns:
     A :class:`KnnResult`.
   """
-  points = jax.lax.stop_gradient(jnp.asarray(points))
+  points, exact = _as_positions(jax.lax.stop_gradient(points))
   mask = jnp.asarray(mask, bool)
   n = points.shape[0]
   k = min(k, n)
@@ -423,7 +484,8 @@ def knn_grid(
     cnt = _block_counts(cells, x, lo)
     lvl = jnp.minimum(jnp.sum(cnt < target), num_levels - 1).astype(
       jnp.int32)
-    return (lvl,) + _query(cells, lvl, x, i, ok, lo, eps, k, kx, budget)
+    return (lvl,) + _query(cells, lvl, x, i, ok, lo, eps, k, kx, budget,
+                           exact)
 
   # First pass: every point, in the sorted order of the base level, in
   # blocks of `batch` (padded: one compiled body, no remainder).
@@ -455,7 +517,7 @@ def knn_grid(
     rc = jnp.minimum(rows, n - 1)
     new, ok, kth_r, trunc_r = jax.vmap(
       lambda x, i, l: _query(cells, l, x, i, mask[i], lo, eps, k, kx,
-                             rbudget))(points[rc], rc, lvl[rc])
+                             rbudget, exact))(points[rc], rc, lvl[rc])
     kth_r = jnp.minimum(kth_r, kth[rc])
     dst = jnp.where(live, rows, n)
     upd = jnp.where(live & ok, rows, n)
@@ -476,7 +538,7 @@ def knn_grid(
   def brute_block(carry):
     idx, cert = carry
     rows = jnp.nonzero(~cert, size=rb, fill_value=n)[0].astype(jnp.int32)
-    new = _brute_rows(points, mask, jnp.minimum(rows, n - 1), k)
+    new = _brute_rows(points, mask, jnp.minimum(rows, n - 1), k, exact)
     return (idx.at[rows].set(new, mode='drop'),
             cert.at[rows].set(True, mode='drop'))
 
@@ -500,7 +562,8 @@ def knn_indices(points: Array, mask: Array, k: int,
   """(N, min(k, N)) int32 k nearest valid neighbours (self included).
 
   Args:
-    points: (N, 3) positions.
+    points: (N, 3) positions, or int32 :func:`lattice_coordinates`
+      (distances then exact).
     mask: (N,) bool validity; invalid points are never neighbours.
     k: number of neighbours (static).
     method: 'brute' (:func:`knn_brute`, O(N^2) time), 'grid'

@@ -334,7 +334,12 @@ def make_predict(config: ModelConfig = ModelConfig(),
 
     net = network.PointNet(config, knn_method=knn_method)
     p = normalize_points(points, mask)
-    logits = net.apply({'params': params}, p, means.astype(p.dtype), mask)
+    # Neighbours from the given points on an integer lattice: exact
+    # distances, so float rounding (of the normalisation, of a backend's
+    # arithmetic) cannot swap two equidistant neighbours, and one field
+    # comes out on every backend and JAX version (docs/mpdp.md).
+    logits = net.apply({'params': params}, p, means.astype(p.dtype), mask,
+                       knn_lib.lattice_coordinates(points, mask))
     return normalize_field(logits, mask, weights)
 
   def predict_fn(params, points, means, mask=None, weights=None):

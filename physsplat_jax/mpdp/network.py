@@ -78,13 +78,17 @@ class PointNet(nn.Module):
   knn_method: str = 'auto'
 
   @nn.compact
-  def __call__(self, points, means, mask):
+  def __call__(self, points, means, mask, knn_points=None):
     """Per-point bounded logits.
 
     Args:
       points: (N, 3) normalised points.
       means: (MEANS_DIM,) encoded mean properties.
       mask: (N,) bool validity.
+      knn_points: (N, 3) where the EdgeConv's neighbours are searched
+        (default ``points``); :func:`~physsplat_jax.mpdp.model.make_predict`
+        passes the raw points' int32 ``knn.lattice_coordinates``, whose
+        exact distances give the same neighbours on every backend.
 
     Returns:
       (N, 3) logits in [-r, r] per channel (E, nu, rho).
@@ -94,8 +98,9 @@ class PointNet(nn.Module):
     h = _mlp(points, cfg.features)
     feats = [h]
     if cfg.edge_features > 0 and cfg.k_neighbors > 0:
-      idx = knn_lib.knn_indices(points, mask, cfg.k_neighbors,
-                                 self.knn_method)
+      idx = knn_lib.knn_indices(
+        points if knn_points is None else knn_points, mask, cfg.k_neighbors,
+        self.knn_method)
       dense_a = nn.Dense(cfg.edge_features)
       dense_b = nn.Dense(cfg.edge_features)
       if n <= EDGE_CHUNK:
