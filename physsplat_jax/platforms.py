@@ -62,19 +62,44 @@ def platform_dependent(*args, default=None, **per_platform):
   return jax.lax.platform_dependent(*args, default=default, **per_platform)
 
 
+# The GPU a program lowered for CUDA on a host without one is lowered for
+# (Pallas's Triton lowering reads its compute capability).
+ABSTRACT_GPU = 'NVIDIA H100 80GB HBM3'
+
+
+def _abstract_gpu():
+  """A context giving JAX an abstract GPU device where this process has
+  none (JAX 0.12's Pallas lowering for CUDA refuses to run without a GPU
+  to target, 'No supported GPU devices found'; earlier versions assumed
+  one); a null context where it has one, or where JAX cannot take one."""
+  try:
+    from jax.sharding import (  # noqa: PLC0415
+      AbstractDevice, AbstractMesh, use_abstract_mesh)
+    if any(d.platform == 'gpu' for d in jax.devices()) or (
+        jax.sharding.get_abstract_mesh().abstract_device is not None):
+      return contextlib.nullcontext()
+    device = AbstractDevice(device_kind=ABSTRACT_GPU, num_cores=None,
+                            platform='gpu')
+    return use_abstract_mesh(AbstractMesh((), (), abstract_device=device))
+  except (ImportError, AttributeError, TypeError, RuntimeError):
+    return contextlib.nullcontext()
+
+
 @contextlib.contextmanager
 def every_platform():
   """While open (in any thread), traces keep every platform's form, for a
   program lowered for a platform this process has no device of. JAX's
   trace caches are cleared on entry: a trace made before would hold the
   CPU's forms only. (Traces made inside stay valid after: they hold every
-  form.)"""
+  form.) In a process without a GPU, lowerings for CUDA in this thread
+  target :data:`ABSTRACT_GPU` (an abstract device, empty mesh)."""
   global _EVERY
   with _LOCK:
     _EVERY += 1
   jax.clear_caches()
   try:
-    yield
+    with _abstract_gpu():
+      yield
   finally:
     with _LOCK:
       _EVERY -= 1

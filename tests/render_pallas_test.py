@@ -20,6 +20,7 @@ from absl.testing import absltest
 
 from physsplat_jax import cameras
 from physsplat_jax import gaussians as gs
+from physsplat_jax import platforms
 from physsplat_jax import test_util
 from physsplat_jax.io.scene import load_scene
 from physsplat_jax.render import pallas_raster
@@ -256,7 +257,9 @@ class PallasConfigTest(absltest.TestCase):
     # power-of-two and indexing rules) on any host; only compiling needs a
     # GPU. On a GPU the kernels are lowered for it as they are (jax 0.11.2
     # there refuses lowering_platforms without an abstract device) and also
-    # compiled and run: finite outputs and gradients.
+    # compiled and run: finite outputs and gradients. (JAX 0.12 lowers them
+    # for CUDA on a host without a GPU only for an abstract GPU device:
+    # platforms.every_platform gives one.)
     on_gpu = jax.default_backend() == 'gpu'
     cfg = dataclasses.replace(_PALLAS, interpret=False)
     tx, ty, K, cap = 3, 2, 50, 1024
@@ -269,9 +272,12 @@ class PallasConfigTest(absltest.TestCase):
 
     feat = jnp.zeros((K, 10), jnp.float32)
     for fn in (f, jax.grad(f)):
-      traced = jax.jit(fn).trace(feat)
-      lowered = (traced.lower() if on_gpu else
-                 traced.lower(lowering_platforms=('cuda',)))
+      if on_gpu:
+        lowered = jax.jit(fn).trace(feat).lower()
+      else:  # for the abstract GPU JAX 0.12's lowering asks for
+        with platforms.every_platform():
+          lowered = jax.jit(fn).trace(feat).lower(
+            lowering_platforms=('cuda',))
       self.assertIn('triton', lowered.as_text())
       if on_gpu:
         out = lowered.compile()(feat)

@@ -43,12 +43,25 @@ def _loop(line: str) -> tuple[str, int | None]:
   return body, int(trip.group(1)) if trip else None
 
 
+def _callee(op: str, line: str) -> str | None:
+  """The computation a ``call`` runs inline (XLA:CPU wraps loops in them,
+  ``xla_cpu_small_call``, in JAX 0.12), else None."""
+  if op != 'call':
+    return None
+  return re.search(r'to_apply=%?([\w.\-]+)', line).group(1)
+
+
 def kernels(comps, name: str) -> collections.Counter:
   """Kernel launches of computation ``name`` by kind, nested loops
-  counted as body kernels times their known trip count (key 'loop')."""
+  counted as body kernels times their known trip count (key 'loop'),
+  calls as what they run."""
   out: collections.Counter = collections.Counter()
   for op, line in comps[name]:
     if op in _FREE:
+      continue
+    callee = _callee(op, line)
+    if callee is not None:
+      out.update(kernels(comps, callee))
       continue
     if op == 'while':
       body, trip = _loop(line)
@@ -73,6 +86,9 @@ def substep_kernels(text: str, substeps: int) -> dict:
       continue
     seen.add(name)
     for op, line in comps[name]:
+      callee = _callee(op, line)
+      if callee is not None:
+        stack.append(callee)
       if op != 'while':
         continue
       body, trip = _loop(line)
