@@ -74,9 +74,9 @@ def _abstract_gpu():
   one); a null context where it has one, or where JAX cannot take one."""
   try:
     from jax.sharding import (  # noqa: PLC0415
-      AbstractDevice, AbstractMesh, use_abstract_mesh)
+      AbstractDevice, AbstractMesh, get_abstract_mesh, use_abstract_mesh)
     if any(d.platform == 'gpu' for d in jax.devices()) or (
-        jax.sharding.get_abstract_mesh().abstract_device is not None):
+        get_abstract_mesh().abstract_device is not None):
       return contextlib.nullcontext()
     device = AbstractDevice(device_kind=ABSTRACT_GPU, num_cores=None,
                             platform='gpu')

@@ -59,12 +59,12 @@ last bit) can swap.
 different programs (a reduction in another order in another JAX version,
 fused or reordered arithmetic on another backend), and point sets with
 exact ties (PGAS samples of a lattice, mirror-symmetric ones) then swap
-neighbours at the ``k``-th distance. Given int32 points (:func:`lattice_coordinates`: the
-points snapped to a lattice of ``2^14`` steps across their largest extent)
-both paths compute squared distances in integer arithmetic, exactly, and
-rank them as float32 (a deterministic conversion): the same indices on
-every backend and in every JAX version. The MPDP network searches its
-neighbours this way.
+neighbours at the ``k``-th distance. Given int32 points
+(:func:`lattice_coordinates`: the points snapped to a lattice of ``2^14``
+steps across their largest extent) both paths compute squared distances
+in integer arithmetic, exactly, and rank them as float32 (a deterministic
+conversion): the same indices on every backend and in every JAX version.
+The MPDP network searches its neighbours this way.
 
 **Cell size.** The base side ``h`` is found in-graph by a bisection on
 ``log2 h`` (20 steps of O(N): hash, scatter-add, gather) for the smallest
