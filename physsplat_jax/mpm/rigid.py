@@ -70,7 +70,10 @@ def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto',
   segment), whose sums are then zeros without being computed; with one
   segment left, 'reduction' is a plain column sum (on a GPU half the
   elements of the one-hot product's kernel, and no one-hot matrix) and
-  'product' the product with a column of ones.
+  'product' the product with a column of ones; 'auto' is then the column
+  sum everywhere: from JAX 0.12 on, XLA:CPU rounds that matrix-vector
+  product as one running sum (relative error 1.6e-6 on 1,570 rows against
+  6e-8 for the column sum).
   """
   if last_empty:
     inner = _segment_sums(seg, num_segments - 1, dtype, None, form) if (
@@ -85,7 +88,7 @@ def _segment_sums(seg, num_segments, dtype, reduce_fn=None, form='auto',
     def one(q):
       if form in ('product', 'reduction'):
         return product(q) if form == 'product' else column(q)
-      return platforms.platform_dependent(q, cpu=product, default=column)
+      return column(q)
 
     def ssum_used(cols):
       out = (one(jnp.stack(cols, axis=1)) if inner is None
@@ -195,9 +198,46 @@ def _apply(Ainv, b):
   return tuple(la.sum_products(zip(Ainv[i], b)) for i in range(3))
 
 
+def anchor_indices(body_id, num_bodies):
+  """Per segment (the B bodies, then the non-rigid particles), the index of
+  one of its particles: a body's first (0 for a body with none), and 0 for
+  the last. ``project`` takes each body's sums about its particle
+  (``anchor_index``). Computed once per frame (the particles are reordered
+  between frames), not per substep."""
+  n = body_id.shape[0]
+  seg = jnp.where(body_id >= 0, body_id, num_bodies)
+  if num_bodies < _DENSE_SEGMENTS:
+    first = jnp.argmax(seg[:, None] == jnp.arange(num_bodies + 1), axis=0)
+    has = jnp.any(seg[:, None] == jnp.arange(num_bodies + 1), axis=0)
+  else:
+    first = jax.ops.segment_min(jnp.arange(n, dtype=jnp.int32), seg,
+                                num_segments=num_bodies + 1)
+    has = first < n
+  keep = has & (jnp.arange(num_bodies + 1) < num_bodies)
+  return jnp.where(keep, first, 0).astype(jnp.int32)
+
+
+def _anchor_points(anchor_index, body_id, x, reduce_fn):
+  """Per segment (B+1,), the position (3-tuple) of its anchor particle;
+  with ``reduce_fn`` (particles split over devices) the mean of every
+  device's anchor (each device that holds particles of a body has one: a
+  point inside the body, the same on all devices). Not differentiated: the
+  projection does not depend on them (parallel axes)."""
+  idx = anchor_index.astype(jnp.uint32)
+  pts = [x[d][idx] for d in range(3)]
+  if reduce_fn is not None:
+    seg_ids = jnp.arange(idx.shape[0])
+    has = ((body_id[idx] == seg_ids) & (seg_ids < idx.shape[0] - 1)).astype(
+      pts[0].dtype)
+    tot = reduce_fn(jnp.stack([has] + [has * p for p in pts]))
+    count = jnp.where(tot[0] > 0, tot[0], 1.0)
+    pts = [t / count for t in tot[1:]]
+  return [jax.lax.stop_gradient(p) for p in pts]
+
+
 def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
             reduce_fn=None, planes=(), contact_form='auto', C=None,
-            origin=None, all_rigid=False):
+            origin=None, all_rigid=False, anchor_index=None):
   """Rigid-body projection of the G2P result.
 
   Args:
@@ -220,12 +260,16 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
       their skew part) enters ``L`` with each particle's own inertia, as it
       enters ``I``; None: no spin (particles given as points).
     origin: static 3-tuple [m] about which the per-body sums are taken in
-      one pass and then moved to each body's centre (parallel axes); a
-      point near the bodies (the grid's centre) keeps the float32
-      cancellation small. None: the coordinate origin.
+      one pass and then moved to each body's centre (parallel axes) where
+      no ``anchor_index`` is given; a point near the bodies keeps the
+      float32 cancellation small. None: the coordinate origin.
     all_rigid: static: every particle given is rigid (``body_id >= 0``;
       the solver's slice of the rigid particles), so that no mask is
       computed.
+    anchor_index: (B+1,) int, per body the index of one of its particles
+      (``anchor_indices``), about which that body's sums are taken: the
+      parallel-axis moves then cancel few digits in float32, wherever the
+      body is. None: about ``origin``.
 
   Returns:
     ``(rigid, x_new, v_new, C_new, F_new)``: (N,) bool mask and the rigid
@@ -252,13 +296,25 @@ def project(num_bodies, body_fixed, dx, dt, body_id, mass, x, v, F,
   # body's spin (by ~8 % per substep for a body a few cells wide).
   spin = ([(dx * dx / 48.0) * mass * t for t in la.axial(C)]
           if C is not None else None)
-  # All sums in one pass over the particles, about the fixed point
-  # ``origin`` (the grid's centre), moved to the mass centre by the
-  # parallel-axis theorem: L_c = L_o - c' x P, S_c = S_o - M c' c'^T (c'
-  # the centre about ``origin``). The sums about c itself need c first: a
+  # All sums in one pass over the particles, about a point o of each body
+  # (one of its particles, ``anchor_index``), moved to the mass centre by
+  # the parallel-axis theorem: L_c = L_o - c' x P, S_c = S_o - M c' c'^T
+  # (c' the centre about o). The sums about c itself need c first: a
   # second pass, on a GPU two more kernels per substep of a few us each.
-  o = (0.0, 0.0, 0.0) if origin is None else origin
-  q = [x[d] - o[d] for d in range(3)]
+  # About one fixed point for all (the grid's centre, before), far from a
+  # small body, these moves cancelled most of the sums' digits: the
+  # tabletop demo's can, 3 cm wide and 0.36 m from the grid's centre, came
+  # out of one float32 projection 9.6e-5 m/s off float64 under JAX 0.12,
+  # whose XLA:CPU rounds a matrix-vector product as one running sum (8e-7
+  # under JAX 0.10); 1e-7 under both now. (Relative velocities, about an
+  # anchor particle's, would cancel the momentum's few digits too, 5e-8,
+  # but cost a GPU substep two kernels: the fusions around P2G changed.)
+  if anchor_index is not None:
+    o = _anchor_points(anchor_index, body_id, x, reduce_fn)
+    q = [x[d] - od for d, od in enumerate(at_all(o))]
+  else:
+    o = (0.0, 0.0, 0.0) if origin is None else origin
+    q = [x[d] - o[d] for d in range(3)]
   mq = [mass * q[d] for d in range(3)]
   mv = [mass * v[d] for d in range(3)]
   orbital = [mq[1] * v[2] - mq[2] * v[1], mq[2] * v[0] - mq[0] * v[2],

@@ -240,6 +240,25 @@ def _step_time(step, dt: float, dtype):
   return (step.astype(dtype) * dt).astype(dtype)
 
 
+def _rigid_group(groups):
+  """``(a, b)``: the rigid particles' slice of the grouped order, or None."""
+  return ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
+
+
+def _with_anchors(config: base.SimConfig, aux):
+  """``aux`` with each body's anchor particle (``rigid.anchor_indices``,
+  indexed in the particles the projection gets: the rigid slice where the
+  particles are grouped), once per call instead of once per substep."""
+  if config.num_bodies == 0:
+    return aux
+  group = _rigid_group(constitutive.model_groups(config))
+  body_id = aux['body_id']
+  if group is not None:
+    body_id = body_id[group[0]:group[1]]
+  return dict(aux, body_anchor=rigid_lib.anchor_indices(body_id,
+                                                        config.num_bodies))
+
+
 def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
   """``substep(carry, aux, materials, forces) -> carry`` on SoA fields.
 
@@ -275,7 +294,7 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
     walls.append((hi_p, tuple(-a for a in e), 0.0, 'separate', True, 0.0))
 
   groups = constitutive.model_groups(config)
-  rigid_group = ([(a, b) for m, a, b in groups if m == 'rigid'] or [None])[0]
+  rigid_group = _rigid_group(groups)
 
   constitute = constitutive.make_update(config)
 
@@ -346,8 +365,8 @@ def _make_soa_substep(config: base.SimConfig, reduce_fn=None):
           jax.tree.map(take, v_grid), jax.tree.map(take, Fe), reduce_fn,
           planes=[q + (rad,) for q in boundary.contact_planes(config, t)]
           + walls, C=jax.tree.map(take, C_new),
-          origin=tuple(lo_d + 0.5 * grid.size for lo_d in grid.lower),
-          all_rigid=rigid_group is not None)
+          all_rigid=rigid_group is not None,
+          anchor_index=aux['body_anchor'])
         x_new = tuple(merge(p, q) for p, q in zip(x_new, xr))
         v_new = tuple(merge(p, q) for p, q in zip(v_new, vr))
         C_new = jax.tree.map(merge, C_new, Cr)
@@ -415,7 +434,8 @@ def make_substep(config: base.SimConfig) -> Callable:
     else:
       inv = None
     carry, aux = _to_soa(state)
-    return _unorder(_from_soa(soa(carry, aux, materials, forces), aux), inv)
+    out = soa(carry, _with_anchors(config, aux), materials, forces)
+    return _unorder(_from_soa(out, aux), inv)
 
   return substep_fn
 
@@ -489,11 +509,12 @@ def make_frame(config: base.SimConfig, reduce_fn=None) -> Callable:
     # the substep itself does for its output), so that no kernel of its own
     # updates it on a GPU; the first substep keeps the state's time.
     t0, step0 = carry.pop('t'), carry['step']
+    aux_sub = _with_anchors(config, aux)
 
     def body(c, _):
       step = c['step']
       t = jnp.where(step == step0, t0, _step_time(step, config.dt, t0.dtype))
-      out = soa(dict(c, t=t), aux, materials, forces)
+      out = soa(dict(c, t=t), aux_sub, materials, forces)
       del out['t']
       return out, None
 
