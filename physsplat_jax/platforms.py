@@ -112,7 +112,8 @@ def every_platform():
 # 5.65-5.72 s, MPDP's field on 50k points 0.43 against 0.55 s; the forward
 # substep and the renderer unchanged (docs/benchmarks.md). Dots stay with
 # YNNPACK. The flag exists in the jaxlib versions listed (an unknown flag
-# in XLA_FLAGS aborts the process, so others are left alone).
+# in XLA_FLAGS aborts the process, so others are left alone); jaxlib
+# 0.12.0.1 accepts it too, but gained nothing from it (docs/benchmarks.md).
 _CPU_FLAG_NAME = 'xla_cpu_experimental_ynn_fusion_type'
 _CPU_FLAG = f'--{_CPU_FLAG_NAME}=dot,individual_dot'
 _CPU_FLAG_JAXLIB = ('0.10.2',)
