@@ -206,15 +206,13 @@ def anchor_indices(body_id, num_bodies):
   between frames), not per substep."""
   n = body_id.shape[0]
   seg = jnp.where(body_id >= 0, body_id, num_bodies)
-  if num_bodies < _DENSE_SEGMENTS:
+  if num_bodies < _DENSE_SEGMENTS:  # argmax of no match is 0
     first = jnp.argmax(seg[:, None] == jnp.arange(num_bodies + 1), axis=0)
-    has = jnp.any(seg[:, None] == jnp.arange(num_bodies + 1), axis=0)
-  else:
+  else:  # segment_min of no particle is the int maximum
     first = jax.ops.segment_min(jnp.arange(n, dtype=jnp.int32), seg,
                                 num_segments=num_bodies + 1)
-    has = first < n
-  keep = has & (jnp.arange(num_bodies + 1) < num_bodies)
-  return jnp.where(keep, first, 0).astype(jnp.int32)
+    first = jnp.where(first < n, first, 0)
+  return first.astype(jnp.int32).at[num_bodies].set(0)
 
 
 def _anchor_points(anchor_index, body_id, x, reduce_fn):
