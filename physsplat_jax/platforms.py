@@ -62,6 +62,30 @@ def platform_dependent(*args, default=None, **per_platform):
   return jax.lax.platform_dependent(*args, default=default, **per_platform)
 
 
+@functools.lru_cache(maxsize=None)
+def pallas_triton():
+  """JAX's Pallas Triton module (``jax.experimental.pallas.triton``), or
+  None where this JAX has none.
+
+  The GPU compositor and the MPM stress kernel are written for Pallas's
+  Triton backend, which JAX 0.12 deprecates in favour of Mosaic GPU. Where
+  a JAX has removed it the package still imports and runs: 'auto' picks
+  the pure-JAX forms (same values), and asking for the kernels by name
+  raises an error that says so.
+  """
+  try:
+    from jax.experimental.pallas import triton  # noqa: PLC0415
+  except ImportError:
+    return None
+  return triton
+
+
+TRITON_MISSING = (
+  "this JAX ({version}) has no Pallas Triton backend "
+  "(jax.experimental.pallas.triton), which the package's GPU kernels are "
+  "written for: use {fix}, or a JAX that still has it (0.10 to 0.12)")
+
+
 # The GPU a program lowered for CUDA on a host without one is lowered for
 # (Pallas's Triton lowering reads its compute capability).
 ABSTRACT_GPU = 'NVIDIA H100 80GB HBM3'

@@ -423,6 +423,69 @@ class XlaCpuTuningTest(absltest.TestCase):
     self.assertEqual(env, {})
 
 
+_NO_TRITON = r"""
+import sys
+sys.modules['jax.experimental.pallas.triton'] = None  # as if removed
+sys.path.insert(0, 'tests')
+import jax, numpy as np
+import mpm_blocks
+from physsplat_jax import cameras, mpm, platforms, test_util
+from physsplat_jax.mpm import pallas_constitutive
+from physsplat_jax.render import raster
+from physsplat_jax.types import make_camera
+assert platforms.pallas_triton() is None
+assert not pallas_constitutive.available('float32')
+s, mat, forces, cfg = mpm_blocks.four_blocks(np.array([0.3, -0.2, -1.0]))
+try:
+  cfg.replace(constitutive_kernel='pallas')
+except mpm.MPMInputError as e:
+  print('SIM-ERROR', e)
+final, _, _ = jax.jit(lambda s: mpm.rollout(s, mat, forces, cfg, 2))(s)
+np.save(sys.argv[1], np.asarray(final.x))
+g = test_util.random_gaussians(jax.random.PRNGKey(3), 200)
+cam = make_camera(cameras.look_at(np.array([0.0, -3.5, 1.0]), np.zeros(3)),
+                  60.0, 60.0, 48, 32)
+print('AUTO', raster.RenderConfig().resolved_backend())
+a = raster.render(g, cam, config=raster.RenderConfig(backend='jax')).image
+b = raster.render(g, cam, config=raster.RenderConfig(
+  backend='pallas', interpret=True)).image
+print('INTERPRET', float(np.abs(np.asarray(a) - np.asarray(b)).max()))
+try:
+  raster.render(g, cam, config=raster.RenderConfig(backend='pallas'))
+except raster.RenderConfigError as e:
+  print('RENDER-ERROR', e)
+"""
+
+
+class NoTritonTest(absltest.TestCase):
+  """A JAX without Pallas's Triton backend (deprecated in JAX 0.12):
+  the package imports, 'auto' runs the pure-JAX forms with the same
+  values, and asking for the kernels by name says what to change."""
+
+  def test_the_package_runs_without_pallas_triton(self):
+    with tempfile.TemporaryDirectory() as tmp:
+      path = os.path.join(tmp, 'x.npy')
+      root = pathlib.Path(__file__).parent.parent
+      out = subprocess.run(
+        [sys.executable, '-c', _NO_TRITON, path], capture_output=True,
+        text=True, timeout=300, cwd=root,
+        env=dict(os.environ, JAX_PLATFORMS='cpu'))
+      self.assertEqual(out.returncode, 0, out.stderr[-3000:])
+      x = np.load(path)
+    lines = dict(line.split(' ', 1) for line in out.stdout.splitlines())
+    for key in ('SIM-ERROR', 'RENDER-ERROR'):
+      self.assertIn('no Pallas Triton backend', lines[key])
+    self.assertIn("constitutive_kernel='auto' or 'jax'", lines['SIM-ERROR'])
+    self.assertIn("backend='auto' or 'jax'", lines['RENDER-ERROR'])
+    self.assertEqual(lines['AUTO'], 'jax')
+    self.assertLess(float(lines['INTERPRET']), 1e-4)
+    # This process has the backend: the same frames, to the bit.
+    s, mat, forces, cfg = mpm_blocks.four_blocks(np.array([0.3, -0.2, -1.0]))
+    final, _, _ = jax.jit(lambda s: mpm.rollout(s, mat, forces, cfg, 2))(s)
+    np.testing.assert_array_equal(x, np.asarray(final.x))
+    self.assertFalse(np.allclose(x, np.asarray(s.x)))  # it moved
+
+
 class TraceTimeChoiceTest(absltest.TestCase):
   """``platforms.platform_dependent`` traces the CPU's form alone where only
   the CPU can run the program, every form inside ``every_platform``."""

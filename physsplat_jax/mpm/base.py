@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from physsplat_jax import platforms
 from physsplat_jax import struct
 from physsplat_jax.mpm.errors import MPMInputError as MPMInputError
 from physsplat_jax.mpm.errors import SimulationError as SimulationError
@@ -490,6 +491,12 @@ class SimConfig:
         raise MPMInputError(
           f'SimConfig.{field} = {getattr(self, field)!r}; use '
           f"{', '.join(repr(k) for k in choices)}.")
+    if (self.constitutive_kernel == 'pallas'
+        and platforms.pallas_triton() is None):
+      raise MPMInputError('SimConfig.constitutive_kernel = \'pallas\': ' +
+                          platforms.TRITON_MISSING.format(
+                            version=jax.__version__,
+                            fix="constitutive_kernel='auto' or 'jax'"))
 
   @property
   def frame_dt(self) -> float:

@@ -32,11 +32,14 @@ from absl import logging
 import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as plgpu
 
+from physsplat_jax import platforms
 from physsplat_jax import program_store
 from physsplat_jax.mpm import constitutive
 from physsplat_jax.mpm import linalg as la
+
+# None where this JAX has no Triton backend (available() is then False).
+plgpu = platforms.pallas_triton()
 
 BLOCK = 128  # particles per program (one per thread with 4 warps)
 NUM_WARPS = 4
@@ -156,6 +159,11 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
   Returns:
     ``(F_e, Jpep, tau)``: (3, 3, N), (2, N), (3, 3, N).
   """
+  if plgpu is None:
+    raise RuntimeError('pallas_constitutive.constitute: ' +
+                       platforms.TRITON_MISSING.format(
+                         version=jax.__version__,
+                         fix="SimConfig.constitutive_kernel='jax'"))
   rows = tuple(a[1] if isinstance(a, tuple) else None for a in (F, C))
   F, C = (a[0] if isinstance(a, tuple) else a for a in (F, C))
   n = F.shape[-1]
@@ -217,11 +225,12 @@ def available(dtype: str = 'float32') -> bool:
   """Whether the kernel builds on this process's GPU, in ``dtype``
   (checked once per dtype, even while a program is traced: every model,
   F and C packed in one array as the solver carries them, with slices and
-  the solids' Kelvin-Voigt dashpot, and with ``body_id``). True without a GPU (off a GPU 'auto' never runs it; a
-  program lowered for a GPU it cannot see is compiled there first). False,
-  with a warning, when this JAX's Pallas cannot build it:
-  ``SimConfig.constitutive_kernel = 'auto'`` then keeps the pure-JAX update
-  instead of failing the run."""
+  the solids' Kelvin-Voigt dashpot, and with ``body_id``). True without a
+  GPU (off a GPU 'auto' never runs it; a program lowered for a GPU it
+  cannot see is compiled there first). False, with a warning, when this
+  JAX's Pallas cannot build it, and on any platform where this JAX has no
+  Pallas Triton backend: ``SimConfig.constitutive_kernel = 'auto'`` then
+  keeps the pure-JAX update instead of failing the run."""
   key = str(jnp.dtype(dtype))
   with _PROBES_LOCK:
     started = _PROBES.get(key)
@@ -274,6 +283,15 @@ def probe_record(dtype: str, folder: str | None = None) -> str | None:
 
 @functools.lru_cache(maxsize=None)
 def _available(dtype: str) -> bool:
+  if plgpu is None:
+    if jax.default_backend() == 'gpu':
+      logging.warning('The MPM stress kernel does not run here: %s; the '
+                      'pure-JAX update runs instead.',
+                      platforms.TRITON_MISSING.format(
+                        version=jax.__version__,
+                        fix="SimConfig.constitutive_kernel='jax' to "
+                        'silence this'))
+    return False
   if jax.default_backend() != 'gpu':
     return True
   try:

@@ -7,6 +7,7 @@ import math
 
 import jax
 
+from physsplat_jax import platforms
 from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
 from physsplat_jax.types import Array
@@ -118,11 +119,12 @@ class RenderConfig:
     """'pallas' or 'jax'.
 
     ``backend='auto'`` gives Pallas on a GPU when the sub-tile edge and
-    ``pallas_block`` are powers of two (Triton block shapes), else JAX.
+    ``pallas_block`` are powers of two (Triton block shapes) and this JAX
+    has Pallas's Triton backend, else JAX.
     """
     if self.backend != 'auto':
       return self.backend
-    ok = self.pallas_shapes_ok
+    ok = self.pallas_shapes_ok and platforms.pallas_triton() is not None
     return 'pallas' if ok and jax.default_backend() == 'gpu' else 'jax'
 
   @property

@@ -65,9 +65,12 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as plgpu
 
+from physsplat_jax import platforms
 from physsplat_jax.types import Array
+
+# None where this JAX has no Triton backend (RenderConfig then picks JAX).
+plgpu = platforms.pallas_triton()
 
 _NUM_FEATURES = 10  # mean x, y; conic a, b, c; opacity; r, g, b; depth
 _FORWARD_UNROLL = 4  # slots per iteration of the forward's inner loop
@@ -224,9 +227,12 @@ def _backward_kernel(ranges_ref, feat_ref, logt_ref, stop_ref, dacc_ref,
   lax.fori_loop(0, last - start, slot, init)
 
 
-def _params(num_warps: int):
+def _params(num_warps: int, interpret: bool):
   # Triton compiler params select the Triton lowering on NVIDIA (newer jax
-  # defaults to Mosaic GPU, which these kernels are not written for).
+  # defaults to Mosaic GPU, which these kernels are not written for). The
+  # interpreter takes none (and runs where this JAX has no Triton).
+  if interpret:
+    return {}
   return {'compiler_params': plgpu.CompilerParams(num_warps=num_warps)}
 
 
@@ -258,7 +264,7 @@ def _forward(feat, gid, ranges, s: _Static):
     ],
     interpret=s.interpret,
     name='splat_forward',
-    **_params(s.forward_warps),
+    **_params(s.forward_warps, s.interpret),
   )(ranges, fs)
   return acc, log_t, stop, fs
 
@@ -279,7 +285,7 @@ def _backward(fs, ranges, log_t, stop, dacc, dlog_t, s: _Static):
     input_output_aliases={6: 0},
     interpret=s.interpret,
     name='splat_backward',
-    **_params(s.backward_warps),
+    **_params(s.backward_warps, s.interpret),
   )(ranges, fs, log_t, stop, dacc, dlog_t, zeros)
 
 
