@@ -80,10 +80,13 @@ def pallas_triton():
   return triton
 
 
-TRITON_MISSING = (
-  "this JAX ({version}) has no Pallas Triton backend "
-  "(jax.experimental.pallas.triton), which the package's GPU kernels are "
-  "written for: use {fix}, or a JAX that still has it (0.10 to 0.12)")
+def triton_missing(fix: str) -> str:
+  """The message for a JAX without Pallas's Triton backend, ``fix`` what
+  to set instead."""
+  return (f'this JAX ({jax.__version__}) has no Pallas Triton backend '
+          "(jax.experimental.pallas.triton), which the package's GPU "
+          f'kernels are written for: use {fix}, or a JAX that still has it '
+          '(0.10 to 0.12)')
 
 
 # The GPU a program lowered for CUDA on a host without one is lowered for

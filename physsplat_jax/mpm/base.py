@@ -493,10 +493,9 @@ class SimConfig:
           f"{', '.join(repr(k) for k in choices)}.")
     if (self.constitutive_kernel == 'pallas'
         and platforms.pallas_triton() is None):
-      raise MPMInputError('SimConfig.constitutive_kernel = \'pallas\': ' +
-                          platforms.TRITON_MISSING.format(
-                            version=jax.__version__,
-                            fix="constitutive_kernel='auto' or 'jax'"))
+      raise MPMInputError(
+        "SimConfig.constitutive_kernel = 'pallas': " +
+        platforms.triton_missing("constitutive_kernel='auto' or 'jax'"))
 
   @property
   def frame_dt(self) -> float:

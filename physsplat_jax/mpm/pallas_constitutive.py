@@ -161,9 +161,8 @@ def constitute(slices, dt, F, C, Jpep, mat, body_id=None, *,
   """
   if plgpu is None:
     raise RuntimeError('pallas_constitutive.constitute: ' +
-                       platforms.TRITON_MISSING.format(
-                         version=jax.__version__,
-                         fix="SimConfig.constitutive_kernel='jax'"))
+                       platforms.triton_missing(
+                         "SimConfig.constitutive_kernel='jax'"))
   rows = tuple(a[1] if isinstance(a, tuple) else None for a in (F, C))
   F, C = (a[0] if isinstance(a, tuple) else a for a in (F, C))
   n = F.shape[-1]
@@ -287,10 +286,9 @@ def _available(dtype: str) -> bool:
     if jax.default_backend() == 'gpu':
       logging.warning('The MPM stress kernel does not run here: %s; the '
                       'pure-JAX update runs instead.',
-                      platforms.TRITON_MISSING.format(
-                        version=jax.__version__,
-                        fix="SimConfig.constitutive_kernel='jax' to "
-                        'silence this'))
+                      platforms.triton_missing(
+                        "SimConfig.constitutive_kernel='jax' to silence "
+                        'this'))
     return False
   if jax.default_backend() != 'gpu':
     return True

@@ -195,9 +195,8 @@ def _check_pallas(config):
   st = config.resolved_subtile
   if platforms.pallas_triton() is None and not config.interpret:
     raise RenderConfigError(
-      "RenderConfig: backend='pallas': " + platforms.TRITON_MISSING.format(
-        version=jax.__version__,
-        fix="backend='auto' or 'jax' (scripts: "
+      "RenderConfig: backend='pallas': " + platforms.triton_missing(
+        "backend='auto' or 'jax' (scripts: "
         '--config.render_config.backend=auto)'))
   if not config.pallas_shapes_ok:
     raise RenderConfigError(
