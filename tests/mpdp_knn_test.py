@@ -10,6 +10,7 @@ import numpy as np
 from absl.testing import absltest
 from absl.testing import parameterized
 
+import codegen
 from physsplat_jax.mpdp import knn
 from physsplat_jax.mpdp import model as model_lib
 from physsplat_jax.mpdp import pretrained
@@ -280,7 +281,8 @@ class PretrainedFieldTest(absltest.TestCase):
     g_new = jax.jit(jax.grad(functools.partial(loss, method='grid')))(params)
     for a, b in zip(jax.tree.leaves(g_new), jax.tree.leaves(g_old)):
       self.assertTrue(np.all(np.isfinite(np.asarray(a))))
-      np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+      codegen.allclose_across_programs(a, b, 1e-5, 1e-7, legacy_rtol=1e-5,
+                                       legacy_scale=1e-6)
 
 
 if __name__ == '__main__':
