@@ -30,7 +30,6 @@ os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 # checks across programs go through tests/codegen.py. jaxlib 0.12 has
 # removed the flag (an unknown flag in XLA_FLAGS aborts the process), so it
 # is added only for the jaxlib versions listed.
-_LEGACY_EMITTERS = '--xla_cpu_use_fusion_emitters=false'
 _LEGACY_EMITTERS_JAXLIB = ('0.10.2',)
 
 
@@ -40,10 +39,12 @@ def _test_xla_cpu_flags():
     return
   os.environ.setdefault('JAX_DISABLE_MOST_OPTIMIZATIONS', '1')
   import jaxlib  # noqa: PLC0415 - its version only; no backend starts
+  import codegen  # noqa: PLC0415 - the flag; reads XLA_FLAGS as it stands
   flags = os.environ.get('XLA_FLAGS', '')
+  name = codegen.FLAG.split('=')[0]
   if (str(getattr(jaxlib, '__version__', '')) in _LEGACY_EMITTERS_JAXLIB
-      and 'xla_cpu_use_fusion_emitters' not in flags):
-    os.environ['XLA_FLAGS'] = f'{flags} {_LEGACY_EMITTERS}'.strip()
+      and name not in flags):
+    os.environ['XLA_FLAGS'] = f'{flags} {codegen.FLAG}'.strip()
 
 
 _test_xla_cpu_flags()

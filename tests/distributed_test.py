@@ -269,7 +269,7 @@ class PaddingTest(absltest.TestCase):
     out = jax.jit(lambda s, m: dist.rollout_sharded(s, m, None, config,
                                                     mesh))(state, mat)
     for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(out)):
-      codegen.allclose_across_programs(b, a, 1e-6, 1e-7, legacy_rtol=1e-6,
+      codegen.allclose_across_programs(b, a, 1e-6, 1e-7,
                                        legacy_scale=1e-4)
 
 
@@ -291,7 +291,7 @@ class PaddingTest(absltest.TestCase):
                                                     mesh))(state, mat)
     self.assertIsNotNone(ref[0].F_N)
     for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(out)):
-      codegen.allclose_across_programs(b, a, 1e-6, 1e-7, legacy_rtol=1e-6,
+      codegen.allclose_across_programs(b, a, 1e-6, 1e-7,
                                        legacy_scale=1e-4)
 
 

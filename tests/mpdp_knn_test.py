@@ -281,7 +281,7 @@ class PretrainedFieldTest(absltest.TestCase):
     g_new = jax.jit(jax.grad(functools.partial(loss, method='grid')))(params)
     for a, b in zip(jax.tree.leaves(g_new), jax.tree.leaves(g_old)):
       self.assertTrue(np.all(np.isfinite(np.asarray(a))))
-      codegen.allclose_across_programs(a, b, 1e-5, 1e-7, legacy_rtol=1e-5,
+      codegen.allclose_across_programs(a, b, 1e-5, 1e-7,
                                        legacy_scale=1e-6)
 
 
