@@ -732,7 +732,10 @@ def fit_material(task: Task, observe: str = 'trajectory',
   else:
     tx = optax.adam(optax.cosine_decay_schedule(learning_rate, num_steps,
                                                 alpha=0.05))
-  opt = tx.init(theta)
+  # optax.lbfgs's initial state holds weakly typed scalars that its update
+  # returns strongly typed: without this the second step traced and
+  # compiled the whole rollout-and-gradient again (23 s on a 2-core CPU).
+  opt = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), tx.init(theta))
 
   @jax.jit
   def step(th, o):
