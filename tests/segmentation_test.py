@@ -5,6 +5,7 @@ import tempfile
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from absl.testing import absltest
 from absl.testing import parameterized
 
@@ -438,6 +439,7 @@ class MaskOcclusionTest(absltest.TestCase):
     hidden = (self.gt == 2) & (np.asarray(self.g.means)[:, 2] < 0.3)
     self.assertLess(np.median(W[hidden] / A[hidden]), 0.05)
 
+  @pytest.mark.optimized  # its rendering loops: 15 s -> 11.5 s
   def test_what_only_an_occluder_shows_is_not_given_its_label(self):
     blob = self.gt == 2
     old = seg.lift_masks(self.g, self.cams, self.masks, min_visibility=0.0)
