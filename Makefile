@@ -28,14 +28,8 @@ demo: $(STAMP)
 	$(PY) -m experiments.demo --scene=$(SCENE) --out=$(OUT)
 
 # pytest exits 5 when it collects nothing: treat that as a failure too.
-# Three workers on the CI's two cores: while one waits on a script's
-# subprocess or on the disk the others use the cores, and whole files
-# balance better over three (the suite 19:18 against 20:12 min on the
-# 2-core VM, same tests; docs/benchmarks.md). TEST_WORKERS=N to change.
-TEST_WORKERS ?= 3
 test: $(STAMP)
-	JAX_PLATFORMS=cpu $(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile -q \
-	  tests
+	JAX_PLATFORMS=cpu $(PY) -m pytest -n 2 --dist loadfile -q tests
 
 test-slow: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -m slow tests
