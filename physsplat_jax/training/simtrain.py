@@ -56,6 +56,7 @@ from physsplat_jax.mpdp import train as train_lib
 from physsplat_jax.render import images as render_images
 from physsplat_jax.render import raster
 from physsplat_jax.training import checks
+from physsplat_jax.training import optim
 from physsplat_jax.training.checks import DivergedError as DivergedError
 from physsplat_jax.training.checks import TrainingError as TrainingError
 from physsplat_jax.types import Array
@@ -662,7 +663,8 @@ def fit_material(task: Task, observe: str = 'trajectory',
   nu and rho stay at their true per-driver values (only E is unknown). A
   free per-driver field is ill-posed at this resolution (it fits the
   observations with unobservable drivers anywhere), hence the smooth
-  field. L-BFGS with a zoom line search (default), or Adam with cosine
+  field. L-BFGS (SciPy's L-BFGS-B on the host around one compiled value
+  and gradient; the default), or Adam with cosine
   decay: Adam's steps in log E are about ``learning_rate`` whatever the
   gradient, so it overshoots the minimum and stops where the decayed
   rate leaves it (from 0.3x, E ended 9.8% high after 30 steps and 3.9%
@@ -674,13 +676,15 @@ def fit_material(task: Task, observe: str = 'trajectory',
     observe: 'trajectory' (loss on the Gaussian centres [dx^2]) or 'video'
       (mean squared RGB error of the rendered frames, through
       ``physsplat_jax.render.render_differentiable``).
-    num_steps: optimiser steps; None: 20 (L-BFGS) or 60 (Adam).
+    num_steps: optimiser steps; None: 20 (L-BFGS, which stops sooner
+      where its line search lowers the loss no further) or 60 (Adam).
     learning_rate: peak Adam step size (on ``log_E`` and ``c``); unused
       by L-BFGS, whose line search sets the step.
     E_init: initial guess as a fraction of the true mean E, > 0.
     field_degree: 0 (mean only), 1 or 2.
     log_fn: optional ``log_fn(step, loss, E_mean)``.
-    optimizer: 'lbfgs' (``optax.lbfgs``) or 'adam'.
+    optimizer: 'lbfgs' (``scipy.optimize.minimize``'s L-BFGS-B) or 'adam'
+      (``optax.adam``).
 
   The arguments are checked first (:func:`~.checks.check_fit`: a bad one
   raises TrainingError naming it).
@@ -727,45 +731,46 @@ def fit_material(task: Task, observe: str = 'trajectory',
       return image_error(traj.images, task.images)
     return trajectory_error(traj.means, task.target, prepared)
 
+  def diverged(i):
+    fix = (f'lower learning_rate (now {learning_rate}; fit_material\'s '
+           '--learning_rate)' if optimizer == 'adam' else
+           f'start closer (E_init, now {E_init}; --E_init)')
+    return DivergedError(
+      f'fit_material step {i}: non-finite loss or gradient; {fix} '
+      'or raise the task\'s substeps_per_frame (now '
+      f'{task.config.substeps_per_frame}; --config.sim.task.'
+      'substeps_per_frame).')
+
+  history = []  # the loss before each step
+
+  def record(i, loss, th):
+    history.append(loss)
+    if log_fn is not None:
+      log_fn(i, loss, float(jnp.exp(th['log_E'])) * float(
+        prepared.means[0, 0]))
+
+  t0 = time.perf_counter()
   if optimizer == 'lbfgs':
-    tx = optax.lbfgs()
+    theta, final = optim.lbfgs(jax.jit(jax.value_and_grad(loss_fn)),
+                               theta, num_steps, record, diverged)
   else:
     tx = optax.adam(optax.cosine_decay_schedule(learning_rate, num_steps,
                                                 alpha=0.05))
-  # optax.lbfgs's initial state holds weakly typed scalars that its update
-  # returns strongly typed: without this the second step traced and
-  # compiled the whole rollout-and-gradient again (23 s on a 2-core CPU).
-  opt = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), tx.init(theta))
+    opt = tx.init(theta)
 
-  @jax.jit
-  def step(th, o):
-    if optimizer == 'lbfgs':  # (the value and gradient the search found)
-      loss, g = optax.value_and_grad_from_state(loss_fn)(th, state=o)
-      u, o = tx.update(g, o, th, value=loss, grad=g, value_fn=loss_fn)
-    else:
+    @jax.jit
+    def step(th, o):
       loss, g = jax.value_and_grad(loss_fn)(th)
       u, o = tx.update(g, o, th)
-    return optax.apply_updates(th, u), o, loss, g
+      return optax.apply_updates(th, u), o, loss, g
 
-  t0 = time.perf_counter()
-  history = []
-  for i in range(num_steps):
-    new, new_opt, loss, g = step(theta, opt)
-    if not (np.isfinite(float(loss)) and _finite(g)):
-      fix = (f'lower learning_rate (now {learning_rate}; fit_material\'s '
-             '--learning_rate)' if optimizer == 'adam' else
-             f'start closer (E_init, now {E_init}; --E_init)')
-      raise DivergedError(
-        f'fit_material step {i}: non-finite loss or gradient; {fix} '
-        'or raise the task\'s substeps_per_frame (now '
-        f'{task.config.substeps_per_frame}; --config.sim.task.'
-        'substeps_per_frame).')
-    theta, opt = new, new_opt
-    history.append(float(loss))
-    if log_fn is not None:
-      log_fn(i, float(loss), float(jnp.exp(theta['log_E'])) * float(
-        prepared.means[0, 0]))
-  final = float(jax.jit(loss_fn)(theta))
+    for i in range(num_steps):
+      new, new_opt, loss, g = step(theta, opt)
+      if not (np.isfinite(float(loss)) and _finite(g)):
+        raise diverged(i)
+      theta, opt = new, new_opt
+      record(i, float(loss), theta)
+    final = float(jax.jit(loss_fn)(theta))
   E_mean = float(prepared.means[0, 0])
   E_fit = E_mean * float(jnp.exp(theta['log_E']))
   fE = np.asarray(field_of(theta)[:, 0], np.float64)
