@@ -49,6 +49,7 @@ def _grad_and_central_difference(loss, x, h):
   plus, minus = value_and_grad(x + h)[0], value_and_grad(x - h)[0]
   return g, float(plus - minus) / (2 * h)
 
+
 class ElasticTest(parameterized.TestCase):
 
   @parameterized.parameters(*[m for m in _ALL if m != 'rigid'])
