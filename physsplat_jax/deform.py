@@ -67,7 +67,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from scipy import spatial
+import scipy
 
 from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
@@ -166,7 +166,7 @@ def make_binding(
     raise DeformError('make_binding: pass both gauss_object_ids and '
                       'driver_object_ids, or neither')
   if gauss_object_ids is None:
-    dist, idx = spatial.cKDTree(dx64).query(gm64, k=k, workers=-1)
+    dist, idx = scipy.spatial.cKDTree(dx64).query(gm64, k=k, workers=-1)
   else:
     go = np.asarray(gauss_object_ids)
     do = np.asarray(driver_object_ids)
@@ -182,8 +182,8 @@ def make_binding(
         raise DeformError(
           f'make_binding: object {o} has {len(dsel)} driving particles, '
           f'fewer than k={k}; sample more drivers for it or lower k')
-      d_o, i_o = spatial.cKDTree(dx64[dsel]).query(gm64[gsel], k=k,
-                                                   workers=-1)
+      d_o, i_o = scipy.spatial.cKDTree(dx64[dsel]).query(
+        gm64[gsel], k=k, workers=-1)
       dist[gsel] = d_o.reshape(len(gsel), k)
       idx[gsel] = dsel[i_o.reshape(len(gsel), k)]
   h = np.maximum(dist[:, -1:], 1e-12)

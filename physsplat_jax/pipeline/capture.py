@@ -28,7 +28,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 from absl import logging
-from scipy import spatial
+import scipy
 
 from physsplat_jax import cameras as cam_lib
 from physsplat_jax import struct
@@ -51,7 +51,7 @@ def floater_mask(points, factor: float, k: int = FLOATER_K) -> np.ndarray:
   x = np.asarray(points, np.float64)
   if factor <= 0 or len(x) < 2 * k:
     return np.zeros(len(x), bool)
-  d, _ = spatial.cKDTree(x).query(x, k=k + 1, workers=-1)
+  d, _ = scipy.spatial.cKDTree(x).query(x, k=k + 1, workers=-1)
   dk = d[:, k]
   med = float(np.median(dk))
   if not med > 0:  # over half the points coincide: no scale to compare

@@ -73,8 +73,7 @@ import dataclasses
 
 import jax
 import numpy as np
-from scipy import ndimage
-from scipy import spatial
+import scipy
 
 from physsplat_jax.sampling import pgas
 from physsplat_jax.sampling import poisson
@@ -227,7 +226,8 @@ def _window_mean(x, object_ids, values, voxel: float, window: int):
     else:
       grid = np.zeros(shape)
       np.add.at(grid, (v[:, 0], v[:, 1], v[:, 2]), values[m])
-    frac = ndimage.uniform_filter(grid, size=2 * window + 1, mode='constant')
+    frac = scipy.ndimage.uniform_filter(grid, size=2 * window + 1,
+                                        mode='constant')
     out[m] = frac[v[:, 0], v[:, 1], v[:, 2]]
   return out
 
@@ -354,7 +354,7 @@ def weighted_lloyd(points, weights, init, iters: int = 30,
   k = len(c)
   energies = []
   for it in range(iters + 1):
-    d, a = spatial.cKDTree(c).query(x, workers=-1)
+    d, a = scipy.spatial.cKDTree(c).query(x, workers=-1)
     energies.append(float(np.sum(w * d * d)))
     if it == iters or (it > 0 and energies[-2] - energies[-1]
                        <= tol * energies[-2]):
@@ -471,7 +471,7 @@ def select_cvt(key, cand, E, config: pgas.PGASConfig, budget: int,
       energy[int(o)] = e
     obs.append(np.full(n, o, np.int32))
   xd = np.concatenate(xs)
-  _, near = spatial.cKDTree(x).query(xd, workers=-1)
+  _, near = scipy.spatial.cKDTree(x).query(xd, workers=-1)
   spacing = r * dens[near] ** (-1.0 / 3.0)
   return xd, np.concatenate(obs), np.concatenate(idxs), spacing, dict(
     counts={int(o): int(c) for o, c in zip(objs, counts)}, density=dens,

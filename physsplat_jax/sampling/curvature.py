@@ -19,7 +19,7 @@ the gradient path.
 from __future__ import annotations
 
 import numpy as np
-from scipy import spatial
+import scipy
 
 from physsplat_jax.sampling.poisson import SamplingError
 
@@ -65,7 +65,7 @@ def local_curvature(points, k: int = 16, query=None) -> np.ndarray:
     raise SamplingError(f'points have shape {pts.shape}; expected (N, 3)')
   q = pts if query is None else np.asarray(query, np.float64)
   k = int(min(max(k, 4), len(pts)))
-  _, idx = spatial.cKDTree(pts).query(q, k=k, workers=-1)
+  _, idx = scipy.spatial.cKDTree(pts).query(q, k=k, workers=-1)
   nb = pts[idx.reshape(len(q), k)]
   d = nb - nb.mean(1, keepdims=True)
   # The 6 distinct entries of the neighbourhood covariance (faster than a

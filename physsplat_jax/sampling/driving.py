@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from absl import logging
-from scipy import spatial
+import scipy
 
 from physsplat_jax import struct
 from physsplat_jax.sampling import centroidal
@@ -95,8 +95,8 @@ def _hull_volume(points) -> float:
   if len(points) < 4:
     return 0.0
   try:
-    return float(spatial.ConvexHull(points).volume)
-  except spatial.QhullError:
+    return float(scipy.spatial.ConvexHull(points).volume)
+  except scipy.spatial.QhullError:
     return 0.0
 
 
@@ -192,7 +192,7 @@ def _voronoi_volume(cand: Candidates, drivers_x, driver_obj,
     if len(dm) == 0:
       raise SamplingError(f'object {o} got no driving particle; raise the '
                           'budget or lower the radius')
-    _, nn = spatial.cKDTree(drivers_x[dm]).query(cand.x[cm], workers=-1)
+    _, nn = scipy.spatial.cKDTree(drivers_x[dm]).query(cand.x[cm], workers=-1)
     w = cand.volume[cm]
     vol[dm] = np.bincount(nn, w, minlength=len(dm))
     if return_centroid:
@@ -226,7 +226,7 @@ def _first_multiplier(x, radius, budget: int, num: int = 2000):
   n = len(x)
   rng = np.random.default_rng(0)
   sub = rng.choice(n, size=min(num, n), replace=False)
-  tree = spatial.cKDTree(x, balanced_tree=False)
+  tree = scipy.spatial.cKDTree(x, balanced_tree=False)
   n1 = tree.query_ball_point(x[sub], radius[sub], return_length=True)
   n2 = tree.query_ball_point(x[sub], 0.5 * radius[sub], return_length=True)
   d = float(np.clip(np.log2(n1.mean() / max(n2.mean(), 1.0)), 1.5, 3.0))

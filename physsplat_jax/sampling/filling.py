@@ -36,8 +36,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import ndimage
-from scipy import spatial
+import scipy
 
 from physsplat_jax import gaussians as _g
 from physsplat_jax import struct
@@ -478,7 +477,10 @@ def interior_cells_host(occupied, min_ray_hits: int = 6):
   return (~occ) & (hits >= min_ray_hits)
 
 
-_CROSS = ndimage.generate_binary_structure(3, 1)
+# 6-connectivity in 3D (scipy.ndimage.generate_binary_structure(3, 1)),
+# written out so that importing this module does not import SciPy's ndimage.
+_CROSS = np.zeros((3, 3, 3), bool)
+_CROSS[1, 1, :] = _CROSS[1, :, 1] = _CROSS[:, 1, 1] = True
 
 
 def enclosed_cells_host(occupied, closing_cells: int = 1):
@@ -491,13 +493,14 @@ def enclosed_cells_host(occupied, closing_cells: int = 1):
   occ = np.asarray(occupied, bool)
   blocked = occ
   if closing_cells:
-    blocked = ndimage.binary_dilation(occ, _CROSS, iterations=closing_cells)
-  lab, _ = ndimage.label(~blocked, _CROSS)
+    blocked = scipy.ndimage.binary_dilation(occ, _CROSS,
+                                            iterations=closing_cells)
+  lab, _ = scipy.ndimage.label(~blocked, _CROSS)
   outer = np.unique(lab[_border(occ.shape)])
   ext = np.isin(lab, outer[outer > 0])
   if closing_cells:
-    ext = ndimage.binary_dilation(ext, _CROSS, iterations=2 * closing_cells,
-                                  mask=~occ)
+    ext = scipy.ndimage.binary_dilation(
+      ext, _CROSS, iterations=2 * closing_cells, mask=~occ)
   return ~ext & ~occ
 
 
@@ -527,11 +530,11 @@ def enclosed_volume_host(means, occupied, inside, origin, dx,
   # Signed distance [cells] of each cell centre to the solid's boundary
   # (cell faces): > 0 in the solid, < 0 outside, so the interpolation across
   # the boundary is linear.
-  dist = (ndimage.distance_transform_edt(solid)
-          - ndimage.distance_transform_edt(~solid))
+  dist = (scipy.ndimage.distance_transform_edt(solid)
+          - scipy.ndimage.distance_transform_edt(~solid))
   dist = dist - 0.5 * np.sign(dist)
   u = (np.asarray(means, np.float64) - np.asarray(origin)) / float(dx) - 0.5
-  d = ndimage.map_coordinates(dist, u.T, order=1, mode='nearest')
+  d = scipy.ndimage.map_coordinates(dist, u.T, order=1, mode='nearest')
   near = d[d <= config.footprint + config.closing_cells + 1]
   d_s = float(np.median(near)) if len(near) else 0.0
   return float(np.sum(dist > d_s)) * float(dx) ** 3
@@ -543,7 +546,7 @@ def _knn_dist(means, k: int) -> np.ndarray:
   k = min(k, len(x) - 1)
   if k < 1:
     return np.zeros((len(x), 1))
-  r, _ = spatial.cKDTree(x).query(x, k + 1, workers=-1)
+  r, _ = scipy.spatial.cKDTree(x).query(x, k + 1, workers=-1)
   return r[:, 1:]
 
 

@@ -54,7 +54,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import spatial
+import scipy
 
 from physsplat_jax import struct
 from physsplat_jax.errors import PhysSplatError
@@ -562,14 +562,15 @@ def _greedy_host(x, r, first_block: int) -> np.ndarray:
   keep = np.zeros(n, bool)
   if n == 0:
     return keep
-  tree = spatial.cKDTree(x.astype(np.float64), balanced_tree=False)
+  tree = scipy.spatial.cKDTree(x.astype(np.float64), balanced_tree=False)
   dead = np.zeros(n, bool)
   start, size = 0, int(np.clip(first_block, 256, n))
   while start < n:
     end = min(n, start + size)
     surv = start + np.nonzero(~dead[start:end])[0]
     if len(surv):
-      st = spatial.cKDTree(x[surv].astype(np.float64), balanced_tree=False)
+      st = scipy.spatial.cKDTree(x[surv].astype(np.float64),
+                                 balanced_tree=False)
       src, dst = _pairs(x, r, surv, st, surv)
       loc = np.zeros(n, np.int64)
       loc[surv] = np.arange(len(surv))

@@ -50,8 +50,7 @@ from typing import Callable
 
 import jax
 import numpy as np
-import scipy.spatial
-import scipy.spatial.transform
+import scipy
 import trimesh
 
 from physsplat_jax import gaussians as _g

@@ -24,8 +24,7 @@ clusters of the rest become ``'object_<i>'`` (largest first).
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.csgraph
+import scipy
 
 from physsplat_jax.segmentation.base import BACKGROUND
 from physsplat_jax.segmentation.base import Segmentation

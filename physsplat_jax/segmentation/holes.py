@@ -29,8 +29,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-import scipy.ndimage
-import scipy.spatial
+import scipy
 
 from physsplat_jax.segmentation.base import SegmentationError
 from physsplat_jax.types import Scene

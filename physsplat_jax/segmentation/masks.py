@@ -49,7 +49,7 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.spatial
+import scipy
 from absl import logging
 
 from physsplat_jax.render import RenderCapacityError

@@ -12,7 +12,7 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 from jax import flatten_util
-from scipy import optimize
+import scipy
 
 
 def lbfgs(value_and_grad: Callable, theta, num_steps: int,
@@ -45,7 +45,7 @@ def lbfgs(value_and_grad: Callable, theta, num_steps: int,
     now['step'] += 1
     now['loss'] = float(intermediate_result.fun)
 
-  res = optimize.minimize(
+  res = scipy.optimize.minimize(
     fun, np.asarray(x0, np.float64), jac=True, method='L-BFGS-B',
     callback=callback,
     options={'maxiter': num_steps, 'ftol': 0.0, 'gtol': 0.0})
