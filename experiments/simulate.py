@@ -100,8 +100,11 @@ def main(argv):
   motion = lib.motion_from_flags(_VELOCITY.value, _IMPULSE.value, _POKE.value)
   config = lib.build_config(_SCENE.value, _CONFIG.value, motion=motion,
                             motions=lib.flag_motions())
-  logging.info('git %s, config %s', sha, config)
   if _PHYSGAUSSIAN.value:
+    # Its physics, frames and camera come from the JSON (run_physgaussian).
+    logging.info('git %s, PhysGaussian config %s; from --config: fill=%s, '
+                 'render=%s, %dx%d', sha, _PHYSGAUSSIAN.value, config.fill,
+                 config.render, config.width, config.height)
     _check_physgaussian_flags()
     if not os.path.isfile(_PHYSGAUSSIAN.value):
       raise cli.usage_error(
@@ -121,6 +124,7 @@ def main(argv):
                          auto_substeps=_AUTO.value)
     print(f'wrote {_OUT.value}')
     return
+  logging.info('git %s, config %s', sha, config)
   window = _profile_window(config)
   try:
     report = lib.run_scene(

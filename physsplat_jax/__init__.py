@@ -113,6 +113,8 @@ from physsplat_jax.render import space_time_slice as space_time_slice
 
 # Simulation.
 from physsplat_jax.mpm import SimulationError as SimulationError
+from physsplat_jax.pipeline import CameraPath as CameraPath
+from physsplat_jax.pipeline import ForceKind as ForceKind
 from physsplat_jax.pipeline import ForceSpec as ForceSpec
 from physsplat_jax.pipeline import Ground as Ground
 from physsplat_jax.pipeline import Params as Params

@@ -557,6 +557,14 @@ class OfflineTest(parameterized.TestCase):
                      ('config', 'von_mises', 1e5, 0.3, 1000.0))
     self.assertEqual(c.params_dict['yield_stress'], 1e2)
 
+  def test_override_names_read_as_keys_aliases_and_phrases(self):
+    scene = _scene(('cube',))
+    for spec in ('rubber', 'Rubber', 'rubber ball', 'natural rubber'):
+      with self.subTest(spec):
+        (m,) = perception.perceive_scene(
+          scene, perception.PerceptionOptions(overrides={'cube': spec}))
+        self.assertEqual((m.source, m.material_key), ('override', 'rubber'))
+
   def test_override_beats_mllm(self):
     scene = _scene(('metal can',))
     with ScriptedChatServer(_script(_answers())) as s:
@@ -567,7 +575,16 @@ class OfflineTest(parameterized.TestCase):
     self.assertEqual((c.source, c.material_key), ('override', 'wood'))
 
   @parameterized.named_parameters(
-    ('unknown_key', 'unobtainium', 'not in the library'),
+    ('unknown_key', 'unobtainium', 'not in the library; give a library '
+     "key or alias, such as 'titanium'"),
+    ('unknown_key_nothing_close', 'xyzzy', 'give a library key or alias, '
+     r"such as 'aluminum', .* \(all 54 keys: "),
+    # A close spelling was taken for the key without a word ('rubbr' ran
+    # as rubber); a typo's nearest key may be another material.
+    ('typo', 'rubbr', r"not in the library; did you mean 'rubber'\? Write "
+     'the key exactly'),
+    ('typo_in_mapping', {'material': 'steal', 'E': 1e9},
+     r"did you mean 'steel'\?"),
     ('bad_nu', {'material': 'jelly', 'nu': 0.6}, 'nu=0.6'),
     ('bad_field', {'material': 'jelly', 'colour': 'red'},
      r"unknown field\(s\) \['colour'\]"),

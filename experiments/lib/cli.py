@@ -341,9 +341,11 @@ def _setup(cpu_devices: int | None = None,
   (before JAX starts; not when ``XLA_FLAGS`` or an earlier setting chose)."""
   compile_cache.enable_compilation_cache(
     _CACHE.value if _CACHE.value is not None else cache_default)
-  absl_logger = logging.get_absl_logger()
-  if not any(isinstance(f, _QuietOrbax) for f in absl_logger.filters):
-    absl_logger.addFilter(_QuietOrbax())
+  for logger, quiet in ((logging.get_absl_logger(), _QuietOrbax),
+                        (std_logging.getLogger('jax._src.xla_bridge'),
+                         _QuietBackendProbe)):
+    if not any(isinstance(f, quiet) for f in logger.filters):
+      logger.addFilter(quiet())
   if (cpu_devices and (os.cpu_count() or 1) >= cpu_devices
       and 'device_count' not in os.environ.get('XLA_FLAGS', '')
       and jax.config.jax_num_cpu_devices < cpu_devices):
@@ -366,6 +368,19 @@ class _QuietOrbax(std_logging.Filter):
       return False
     record.exc_info = record.exc_text = None
     return True
+
+
+class _QuietBackendProbe(std_logging.Filter):
+  """JAX's INFO line for each platform it probed and did not find
+  ("Unable to initialize backend 'tpu': ... libtpu.so"): on every machine
+  without that platform, and printed by the backend's thread
+  (:func:`start_backend`) after a script's one-line error. Kept with
+  ``--debug`` or ``-v 1``."""
+
+  def filter(self, record):
+    return (record.levelno >= std_logging.WARNING or _verbose()
+            or not record.getMessage().startswith(
+              'Unable to initialize backend'))
 
 
 def guard(main, cpu_devices: int | None = None,

@@ -284,10 +284,21 @@ def apply_spec(
   name = spec.get('material', spec.get('key'))
   if name is not None:
     m = library.match(str(name))
-    if m is None:
+    if m is None or m.how == 'fuzzy':
+      # A material the user names is taken as written: a close spelling is
+      # offered, never substituted (a typo's nearest key may be another
+      # material).
+      if m is not None:
+        fix = (f'did you mean {m.key!r}? Write the key exactly (a close '
+               'spelling is not taken for it)')
+      else:
+        keys = library.suggest(str(name)) or list(library.keys[::11])
+        fix = ('give a library key or alias, such as '
+               + ', '.join(map(repr, keys)))
       raise MaterialChoiceError(
-        f'{where}: material {name!r} is not in the library; '
-        f'close keys: {library.suggest(str(name))}')
+        f'{where}: material {name!r} is not in the library; {fix} (all '
+        f'{len(library)} keys: physsplat_jax.perception.default_library()'
+        '.keys, docs/materials.md)')
     entry = library[m.key]
     how = f'{name!r}' if m.key == name else f'{name!r} -> {m.key}'
   elif base is not None:

@@ -20,6 +20,7 @@ loop with pluggable writers from :mod:`physsplat_jax.io.outputs`) and ``job``
 
 from physsplat_jax.pipeline.colliders import Colliders as Colliders
 from physsplat_jax.pipeline.colliders import find_colliders as find_colliders
+from physsplat_jax.pipeline.config import CameraPath as CameraPath
 from physsplat_jax.pipeline.config import ForceKind as ForceKind
 from physsplat_jax.pipeline.config import ForceSpec as ForceSpec
 from physsplat_jax.pipeline.config import Ground as Ground
