@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,12 +47,20 @@ def random_gaussians(key, num: int, sh_degree: int = 0, dtype=jnp.float32,
   """A random, well-conditioned :class:`~physsplat_jax.types.Gaussians`."""
   from physsplat_jax.types import Gaussians
 
+  names = ('means', 'log_scales', 'quats', 'opacity_logits', 'sh')
+  arrays = _random_gaussian_arrays(key, num, sh_degree, jnp.dtype(dtype),
+                                   float(extent))
+  return Gaussians(**dict(zip(names, arrays)))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4))
+def _random_gaussian_arrays(key, num, sh_degree, dtype, extent):
+  """One program per size: eagerly, each of the five draws compiled its
+  own (about 0.2 s each at a new size on the 2-core VM)."""
   k = jax.random.split(key, 5)
   nb = (sh_degree + 1) ** 2
-  return Gaussians(
-    means=jax.random.uniform(k[0], (num, 3), dtype, -extent, extent),
-    log_scales=jax.random.uniform(k[1], (num, 3), dtype, -4.0, -2.0),
-    quats=jax.random.normal(k[2], (num, 4), dtype),
-    opacity_logits=jax.random.normal(k[3], (num,), dtype),
-    sh=0.5 * jax.random.normal(k[4], (num, nb, 3), dtype),
-  )
+  return (jax.random.uniform(k[0], (num, 3), dtype, -extent, extent),
+          jax.random.uniform(k[1], (num, 3), dtype, -4.0, -2.0),
+          jax.random.normal(k[2], (num, 4), dtype),
+          jax.random.normal(k[3], (num,), dtype),
+          0.5 * jax.random.normal(k[4], (num, nb, 3), dtype))

@@ -597,8 +597,7 @@ def _jitted(config: base.SimConfig):
   caching by config lets repeated runs (and same-shape scenes) reuse the
   compiled executables.
   """
-  return (jax.jit(make_frame(config)),
-          jax.jit(functools.partial(_stats, config)))
+  return jax.jit(make_frame(config)), functools.partial(_stats, config)
 
 
 class FrameLoop:
