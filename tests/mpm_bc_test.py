@@ -857,11 +857,15 @@ class ModelGroupsTest(absltest.TestCase):
         return (jnp.sum(w[0] * la.from_mat(Fe))
                 + jnp.sum(w[1] * la.from_mat(tau)) / 2e4)
 
-      out = [constitutive.constitute_slices(s, cfg.dt, la.to_mat(F), C, Jpep,
-                                          mat) for s in (single, merged)]
+      # Jitted (the slices static): eagerly, each of the SVD's and its
+      # derivative's operations compiled a program of its own (564).
+      update = jax.jit(lambda s, F: constitutive.constitute_slices(
+        s, cfg.dt, la.to_mat(F), C, Jpep, mat), static_argnums=0)
+      grad = jax.jit(jax.grad(loss, argnums=1), static_argnums=0)
+      out = [update(s, F) for s in (single, merged)]
       for a, b in zip(jax.tree.leaves(out[0]), jax.tree.leaves(out[1])):
         np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-10)
-      g = [jax.grad(loss, argnums=1)(s, F) for s in (single, merged)]
+      g = [grad(s, F) for s in (single, merged)]
       np.testing.assert_allclose(g[1], g[0], rtol=1e-8, atol=1e-10)
 
   def test_wrong_counts_are_reported(self):
