@@ -45,22 +45,22 @@ def assert_tree_all_finite(tree, err_msg=''):
 def random_gaussians(key, num: int, sh_degree: int = 0, dtype=jnp.float32,
                      extent: float = 1.0):
   """A random, well-conditioned :class:`~physsplat_jax.types.Gaussians`."""
-  from physsplat_jax.types import Gaussians
-
-  names = ('means', 'log_scales', 'quats', 'opacity_logits', 'sh')
-  arrays = _random_gaussian_arrays(key, num, sh_degree, jnp.dtype(dtype),
-                                   float(extent))
-  return Gaussians(**dict(zip(names, arrays)))
+  return _random_gaussians(key, num, sh_degree, jnp.dtype(dtype),
+                           float(extent))
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2, 3, 4))
-def _random_gaussian_arrays(key, num, sh_degree, dtype, extent):
+def _random_gaussians(key, num, sh_degree, dtype, extent):
   """One program per size: eagerly, each of the five draws compiled its
   own (about 0.2 s each at a new size on the 2-core VM)."""
+  from physsplat_jax.types import Gaussians
+
   k = jax.random.split(key, 5)
   nb = (sh_degree + 1) ** 2
-  return (jax.random.uniform(k[0], (num, 3), dtype, -extent, extent),
-          jax.random.uniform(k[1], (num, 3), dtype, -4.0, -2.0),
-          jax.random.normal(k[2], (num, 4), dtype),
-          jax.random.normal(k[3], (num,), dtype),
-          0.5 * jax.random.normal(k[4], (num, nb, 3), dtype))
+  return Gaussians(
+    means=jax.random.uniform(k[0], (num, 3), dtype, -extent, extent),
+    log_scales=jax.random.uniform(k[1], (num, 3), dtype, -4.0, -2.0),
+    quats=jax.random.normal(k[2], (num, 4), dtype),
+    opacity_logits=jax.random.normal(k[3], (num,), dtype),
+    sh=0.5 * jax.random.normal(k[4], (num, nb, 3), dtype),
+  )

@@ -578,7 +578,7 @@ class OfflineTest(parameterized.TestCase):
     ('unknown_key', 'unobtainium', 'not in the library; give a library '
      "key or alias, such as 'titanium'"),
     ('unknown_key_nothing_close', 'xyzzy', 'give a library key or alias, '
-     r"such as 'aluminum', .* \(all 54 keys: "),
+     r"such as 'aluminum', .* \(all 54: "),
     # A close spelling was taken for the key without a word ('rubbr' ran
     # as rubber); a typo's nearest key may be another material.
     ('typo', 'rubbr', r"not in the library; did you mean 'rubber'\? Write "

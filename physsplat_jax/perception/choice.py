@@ -236,6 +236,19 @@ def rigid_for(entry: MaterialEntry, rigid: bool | None,
   return bool(rigid), ''
 
 
+def _some_keys(library: MaterialLibrary, name: str) -> str:
+  """Library keys to show in a message: those close to ``name``, else a
+  spread of the library's."""
+  keys = library.suggest(name) or list(library.keys[::11])
+  return ', '.join(map(repr, keys))
+
+
+def _all_keys(library: MaterialLibrary) -> str:
+  """Where a message's reader finds every key."""
+  return (f'all {len(library)}: physsplat_jax.perception.default_library()'
+          '.keys, docs/materials.md')
+
+
 def apply_spec(
   object_name: str,
   spec: Any,
@@ -288,29 +301,23 @@ def apply_spec(
       # A material the user names is taken as written: a close spelling is
       # offered, never substituted (a typo's nearest key may be another
       # material).
-      if m is not None:
-        fix = (f'did you mean {m.key!r}? Write the key exactly (a close '
-               'spelling is not taken for it)')
-      else:
-        keys = library.suggest(str(name)) or list(library.keys[::11])
-        fix = ('give a library key or alias, such as '
-               + ', '.join(map(repr, keys)))
+      fix = (f'did you mean {m.key!r}? Write the key exactly (a close '
+             'spelling is not taken for it)' if m is not None else
+             f'give a library key or alias, such as '
+             f'{_some_keys(library, str(name))}')
       raise MaterialChoiceError(
-        f'{where}: material {name!r} is not in the library; {fix} (all '
-        f'{len(library)} keys: physsplat_jax.perception.default_library()'
-        '.keys, docs/materials.md)')
+        f'{where}: material {name!r} is not in the library; {fix} '
+        f'({_all_keys(library)})')
     entry = library[m.key]
     how = f'{name!r}' if m.key == name else f'{name!r} -> {m.key}'
   elif base is not None:
     entry, how = base, f'values over {base.key}'
   else:
-    keys = library.suggest(object_name) or list(library.keys[::11])
     raise MaterialChoiceError(
       f'{where}: no "material" given and the object name '
       'matches no library material; add "material": KEY to the mapping, '
-      f'KEY a library key such as {", ".join(map(repr, keys))} (all '
-      f'{len(library)}: physsplat_jax.perception.default_library().keys, '
-      'docs/materials.md)')
+      f'KEY a library key such as {_some_keys(library, object_name)} '
+      f'({_all_keys(library)})')
   fields = {'E': entry.E_sim, 'nu': entry.nu_sim, 'rho': entry.rho_sim}
   for k_spec, k in (('E', 'E'), ('nu', 'nu'), ('rho', 'rho'),
                     ('density', 'rho')):
