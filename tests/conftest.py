@@ -1,7 +1,10 @@
 """pytest configuration shared by all tests."""
 
+import atexit
 import os
 import pathlib
+import shutil
+import tempfile
 
 os.environ.setdefault('JAX_PLATFORMS', 'cpu')
 
@@ -52,6 +55,32 @@ _test_xla_cpu_flags()
 import jax  # noqa: E402
 
 import pytest  # noqa: E402
+
+# physsplat_jax.compile_cache.ENV (not imported here: the xdist controller
+# would load the whole package for one name; outputs_test checks they agree)
+CACHE_ENV = 'PHYSSPLAT_JAX_CACHE'
+OWN_CACHE = 'PHYSSPLAT_TESTS_OWN_CACHE'  # the folder, where the suite made it
+
+
+def _session_cache_folder():
+  """A compilation cache folder of the suite's own, for its scripts.
+
+  The experiment scripts the tests run turn JAX's persistent compilation
+  cache on in the user's cache folder by default (~/.cache/physsplat_jax,
+  with the stored programs and scenes beside it): the suite's runs wrote
+  there and could load what a demo or a benchmark had left, so that a
+  fresh machine's suite ran colder than a used one's. They share one
+  empty folder instead, removed at the end by the process that made it
+  (the xdist workers and the scripts inherit it through the
+  environment). A PHYSSPLAT_JAX_CACHE set by the caller wins."""
+  if CACHE_ENV in os.environ:
+    return
+  folder = tempfile.mkdtemp(prefix='physsplat_tests_cache_')
+  os.environ[CACHE_ENV] = os.environ[OWN_CACHE] = folder
+  atexit.register(shutil.rmtree, folder, ignore_errors=True)
+
+
+_session_cache_folder()
 
 # Tests that need float64 use ``with jax.enable_x64(True):`` locally, so the
 # f32 default of the library is what the rest of the suite exercises.

@@ -284,6 +284,20 @@ class CompileCacheTest(absltest.TestCase):
     self.assertEqual(jax_cache_dir(), before)
 
 
+  def test_the_suite_keeps_its_scripts_out_of_the_users_cache(self):
+    # tests/conftest.py gives the scripts the tests run a folder of the
+    # session's own (under the temporary folder, not ~/.cache).
+    import conftest  # noqa: PLC0415
+    from physsplat_jax import compile_cache  # noqa: PLC0415
+    self.assertEqual(conftest.CACHE_ENV, compile_cache.ENV)
+    folder = compile_cache.default_cache_dir()
+    if folder != os.environ.get(conftest.OWN_CACHE):
+      return  # the caller set PHYSSPLAT_JAX_CACHE: theirs
+    self.assertTrue(folder.startswith(tempfile.gettempdir()), folder)
+    self.assertIn('physsplat_tests_cache_', folder)
+    self.assertTrue(os.path.isdir(folder))
+
+
 def jax_cache_dir():
   import jax  # noqa: PLC0415
   return jax.config.jax_compilation_cache_dir
