@@ -61,7 +61,7 @@ def device_array(x, dtype=None) -> Array:
                                    else jnp.dtype(dtype)))
 
 
-def _in_host_memory(x) -> bool:
+def in_host_memory(x) -> bool:
   """Whether ``x`` is concrete and in host memory (NumPy data, or a JAX
   array on CPU devices), so that NumPy reads it without a transfer."""
   if isinstance(x, jax.core.Tracer):
@@ -88,7 +88,7 @@ def nonfinite_rows(a) -> np.ndarray:
   Empty for K = 0 (the callers say what an empty set means to them)."""
   if np.shape(a)[0] == 0:
     return np.zeros(0, np.int64)
-  if _in_host_memory(a):
+  if in_host_memory(a):
     x = np.asarray(a)
     return np.flatnonzero(~np.isfinite(x.reshape(len(x), -1)).all(axis=1))
   ok = jnp.isfinite(a).reshape(a.shape[0], -1).all(axis=1)
@@ -291,7 +291,7 @@ def concatenate_gaussians(parts: list[Gaussians]) -> Gaussians:
   deg = max(p.sh_degree for p in parts)
   parts = [p.with_sh_degree(deg) for p in parts]
   def cat(xs):
-    if all(_in_host_memory(x) for x in xs):
+    if all(in_host_memory(x) for x in xs):
       # Joined in NumPy: no eager program to compile.
       return device_array(np.concatenate([np.asarray(x) for x in xs]))
     return jnp.concatenate(xs, axis=0)  # traced, or on an accelerator

@@ -9,6 +9,7 @@ import numpy as np
 from absl.testing import absltest
 
 from physsplat_jax import cameras
+from physsplat_jax import mpm
 from physsplat_jax import pipeline as pl
 from physsplat_jax.types import Gaussians
 from physsplat_jax.types import ObjectInfo
@@ -102,6 +103,38 @@ class PreparationCompilesTest(absltest.TestCase):
       rubber = pl.ObjectMaterial('fixed_corotated', 3e4, 0.3, 1000.0)
       pl.prepare_scene(jax.random.PRNGKey(0), scene, [rubber], cfg)
     self.assertLess(len(events), 25)
+
+  def test_mpm_state_from_host_data_compiles_nothing(self):
+    """mpm.make_materials and mpm.init_state on NumPy data (9 programs
+    per new particle count before); the same arrays as through jnp."""
+    models = ('fixed_corotated', 'neo_hookean', 'rigid')
+    cfg = mpm.SimConfig(grid=mpm.GridSpec(res=16, size=1.0), dt=1e-3,
+                        models=models, num_bodies=1, maxwell=True)
+    rng = np.random.default_rng(3)
+
+    def build(n, wrap):
+      x = 0.3 + 0.4 * rng.uniform(size=(n, 3))
+      body = np.where(np.arange(n) % 3 == 2, 0, -1)
+      mat = mpm.make_materials([models[i % 3] for i in range(n)],
+                               wrap(rng.uniform(1e4, 2e4, n)), 0.3, 1000.0,
+                               config_models=models, maxwell_E=wrap(3e3))
+      return mat, mpm.init_state(wrap(x), wrap(np.array([0.0, 0.0, -1.0])),
+                                 wrap(rng.uniform(1e-6, 2e-6, n)), mat, cfg,
+                                 body_id=wrap(body))
+
+    build(6, np.asarray)  # the programs every count shares (a frame's
+    with _count_compiles() as events:  # statistics, ...), if any
+      host = build(37, np.asarray)
+      jax.block_until_ready(host)
+    self.assertEmpty(events)
+    rng = np.random.default_rng(3)
+    build(6, np.asarray)
+    on_device = build(37, jnp.asarray)  # the jnp path, same values
+    for a, b in zip(jax.tree.leaves(host), jax.tree.leaves(on_device),
+                    strict=True):
+      self.assertEqual((a.dtype, a.shape, a.weak_type),
+                       (b.dtype, b.shape, b.weak_type))
+      np.testing.assert_array_equal(a, b)
 
 
 if __name__ == '__main__':

@@ -33,6 +33,7 @@ from physsplat_jax.mpm.models import MAXWELL_FIELDS
 from physsplat_jax.mpm.models import MODEL_DEFAULTS as MODEL_DEFAULTS
 from physsplat_jax.mpm.models import model_default as model_default
 from physsplat_jax.types import Array
+from physsplat_jax.types import device_array
 
 INF = float('inf')
 
@@ -701,14 +702,24 @@ def make_materials(
   maxwell = MAXWELL_FIELDS if set(MAXWELL_FIELDS) & set(overrides) else ()
   for f in FLOAT_FIELDS[3:] + maxwell:
     if f in overrides:
-      fields[f] = jnp.broadcast_to(jnp.asarray(overrides[f], dtype), (n,))
+      fields[f] = _per_particle(overrides[f], n, dtype)
     else:
       table = np.asarray([model_default(m, f) for m in config_models])
-      fields[f] = jnp.asarray(table[model_id], dtype)
-  bc = lambda a: jnp.broadcast_to(jnp.asarray(a, dtype), (n,))  # noqa: E731
+      fields[f] = device_array(table[model_id], dtype)
   del per_particle
-  return Materials(E=bc(E), nu=bc(nu), rho=bc(rho),
-                   model_id=jnp.asarray(model_id), **fields)
+  return Materials(E=_per_particle(E, n, dtype),
+                   nu=_per_particle(nu, n, dtype),
+                   rho=_per_particle(rho, n, dtype),
+                   model_id=device_array(model_id), **fields)
+
+
+def _per_particle(a, n: int, dtype) -> Array:
+  """``a`` (scalar or (n,)) as an (n,) array: host data broadcast in
+  NumPy and transferred (in jnp each new particle count compiled a
+  program per field), JAX arrays and tracers in jnp."""
+  if isinstance(a, (jax.Array, jax.core.Tracer)):
+    return jnp.broadcast_to(jnp.asarray(a, dtype), (n,))
+  return device_array(np.broadcast_to(np.asarray(a, jnp.dtype(dtype)), (n,)))
 
 
 # -------------------------------------------------------------------- forces
