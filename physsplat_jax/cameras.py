@@ -34,7 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from physsplat_jax.errors import PhysSplatError
-from physsplat_jax.types import Array, Camera, device_array, make_camera
+from physsplat_jax.types import Array, Camera, device_array, is_host_data
+from physsplat_jax.types import make_camera
 
 
 class CameraError(PhysSplatError, ValueError):
@@ -92,7 +93,7 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Array:
       zero ``up`` (when the inputs are concrete; under ``jit`` the result is
       then undefined).
   """
-  if not isinstance(eye, (jax.Array, jax.core.Tracer)):
+  if is_host_data(eye):
     eye = _numeric('eye', eye)
   # float64 stays float64 only with x64 on (canonicalised, as jnp.asarray).
   dtype = jnp.result_type(jax.dtypes.canonicalize_dtype(eye.dtype),
@@ -123,7 +124,7 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Array:
 def _numeric(name, v):
   """``v`` unchanged if a JAX array or tracer, else as a numeric NumPy
   array (strings and ragged lists refused by name)."""
-  if isinstance(v, (jax.Array, jax.core.Tracer)):
+  if not is_host_data(v):
     return v
   try:
     a = np.asarray(v)

@@ -44,6 +44,12 @@ Array = jax.Array
 ArrayLike = Any
 
 
+def is_host_data(x) -> bool:
+  """Whether ``x`` is host data (NumPy arrays, Python values), neither a
+  JAX array nor a tracer."""
+  return not isinstance(x, (jax.Array, jax.core.Tracer))
+
+
 def device_array(x, dtype=None) -> Array:
   """``jnp.asarray(x, dtype)``, without compiling anything for host data.
 
@@ -55,7 +61,7 @@ def device_array(x, dtype=None) -> Array:
   ``jax.device_put`` (same dtype rules: float64 becomes float32 unless x64
   is on); JAX arrays and tracers go through ``jnp.asarray``.
   """
-  if isinstance(x, (jax.Array, jax.core.Tracer)):
+  if not is_host_data(x):
     return jnp.asarray(x, dtype)
   return jax.device_put(np.asarray(x, None if dtype is None
                                    else jnp.dtype(dtype)))

@@ -122,8 +122,8 @@ class PreparationCompilesTest(absltest.TestCase):
                                  wrap(rng.uniform(1e-6, 2e-6, n)), mat, cfg,
                                  body_id=wrap(body))
 
-    build(6, np.asarray)  # the programs every count shares (a frame's
-    with _count_compiles() as events:  # statistics, ...), if any
+    build(6, np.asarray)  # first: whatever every particle count shares
+    with _count_compiles() as events:
       host = build(37, np.asarray)
       jax.block_until_ready(host)
     self.assertEmpty(events)

@@ -283,7 +283,6 @@ class CompileCacheTest(absltest.TestCase):
                   'without it', logs.output[0])
     self.assertEqual(jax_cache_dir(), before)
 
-
   def test_the_suite_keeps_its_scripts_out_of_the_users_cache(self):
     # tests/conftest.py gives the scripts the tests run a folder of the
     # session's own (under the temporary folder, not ~/.cache).

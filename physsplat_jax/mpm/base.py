@@ -34,6 +34,7 @@ from physsplat_jax.mpm.models import MODEL_DEFAULTS as MODEL_DEFAULTS
 from physsplat_jax.mpm.models import model_default as model_default
 from physsplat_jax.types import Array
 from physsplat_jax.types import device_array
+from physsplat_jax.types import is_host_data
 
 INF = float('inf')
 
@@ -714,10 +715,9 @@ def make_materials(
 
 
 def _per_particle(a, n: int, dtype) -> Array:
-  """``a`` (scalar or (n,)) as an (n,) array: host data broadcast in
-  NumPy and transferred (in jnp each new particle count compiled a
-  program per field), JAX arrays and tracers in jnp."""
-  if isinstance(a, (jax.Array, jax.core.Tracer)):
+  """``a`` (scalar or (n,)) as (n,): host data broadcast in NumPy (in jnp
+  each new count compiled a program per field), JAX arrays in jnp."""
+  if not is_host_data(a):
     return jnp.broadcast_to(jnp.asarray(a, dtype), (n,))
   return device_array(np.broadcast_to(np.asarray(a, jnp.dtype(dtype)), (n,)))
 

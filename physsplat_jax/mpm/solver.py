@@ -71,12 +71,6 @@ node_velocity = boundary.node_velocity
 # ------------------------------------------------------------------- set-up
 
 
-def _host_data(*arrays) -> bool:
-  """Whether none of ``arrays`` is a JAX array or tracer (None skipped)."""
-  return not any(isinstance(a, (jax.Array, jax.core.Tracer))
-                 for a in arrays if a is not None)
-
-
 def _host(a):
   try:
     return np.asarray(a)
@@ -108,24 +102,25 @@ def init_state(x, v, volume, materials: base.Materials,
       grid, negative or non-finite volumes, bad body ids or model ids
       (checked when the inputs are concrete).
   """
-  dtype = config.jnp_dtype
+  dtype = jnp.dtype(config.jnp_dtype)
   # Host data (NumPy, Python; no JAX array among the particle inputs) is
   # built in NumPy and transferred at the end: in jnp each operation
   # compiled a program per particle count (9 with make_materials, 0.4 s
   # per new count on a 2-core CPU). JAX arrays and tracers stay in jnp.
-  xp = np if _host_data(x, v, volume, body_id, F) else jnp
-  x = xp.asarray(x, jnp.dtype(dtype))
+  xp = np if all(types.is_host_data(a) for a in (x, v, volume, body_id, F)
+                 if a is not None) else jnp
+  x = xp.asarray(x, dtype)
   if x.ndim != 2 or x.shape[1] != 3:
     raise MPMInputError(f'init_state: x has shape {x.shape}; expected (N, 3) '
                         'positions.')
   n = x.shape[0]
-  v = xp.asarray(v, jnp.dtype(dtype))
+  v = xp.asarray(v, dtype)
   if v.ndim <= 1:
     v = xp.broadcast_to(v, (n, 3))
   if v.shape != (n, 3):
     raise MPMInputError(f'init_state: v has shape {v.shape}; expected ({n}, 3) '
                         'or (3,).')
-  volume = xp.asarray(volume, jnp.dtype(dtype))
+  volume = xp.asarray(volume, dtype)
   if volume.ndim > 1 or (volume.ndim == 1 and volume.shape not in ((n,),
                                                                   (1,))):
     raise MPMInputError(f'init_state: volume has shape {volume.shape}; '
@@ -200,20 +195,21 @@ def init_state(x, v, volume, materials: base.Materials,
           'init_state: with SimConfig.model_counts, the rigid particles '
           '(body_id >= 0) must be exactly those of model "rigid"; fix '
           'body_id/model_id or set model_counts=None.')
-  eye = xp.broadcast_to(xp.eye(3, dtype=jnp.dtype(dtype)), (n, 3, 3))
-  F = xp.asarray(eye if F is None else F, jnp.dtype(dtype))
+  eye = (xp.broadcast_to(xp.eye(3, dtype=dtype), (n, 3, 3))
+         if F is None or config.maxwell else None)
+  F = xp.asarray(eye if F is None else F, dtype)
   if F.shape != (n, 3, 3):
     raise MPMInputError(f'init_state: F has shape {F.shape}; expected '
                         f'({n}, 3, 3) deformation gradients.')
   if xp is np and types.in_host_memory(materials.rho):
-    mass = np.asarray(materials.rho).astype(jnp.dtype(dtype)) * volume
+    mass = np.asarray(materials.rho).astype(dtype) * volume
   else:
     mass = materials.rho.astype(dtype) * volume
   fields = dict(
-    x=x, v=v, F=F, C=xp.zeros((n, 3, 3), jnp.dtype(dtype)),
-    Jp=xp.ones((n,), jnp.dtype(dtype)), ep=xp.zeros((n,), jnp.dtype(dtype)),
+    x=x, v=v, F=F, C=xp.zeros((n, 3, 3), dtype),
+    Jp=xp.ones((n,), dtype), ep=xp.zeros((n,), dtype),
     vol0=volume, mass=mass, body_id=body_id,
-    t=xp.zeros((), jnp.dtype(dtype)), step=xp.zeros((), np.int32),
+    t=xp.zeros((), dtype), step=xp.zeros((), np.int32),
     F_N=eye if config.maxwell else None)
   if xp is np:  # (jnp.asarray of a NumPy array compiles per shape too)
     fields = {k: None if a is None else types.device_array(a)
